@@ -1,0 +1,248 @@
+"""sample → scene → scan → network → metrics → store, spread over warm worker processes.
+
+Each worker holds a Simulator (BVHs, cached background hits) and an inference session for the
+whole run and scores samples in batches. The driver hands the samplers an `evaluate` callback
+that answers stored samples from the run's SQLite file and computes only the rest, so a resumed
+run replays the sampler without recomputing or duplicating anything.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import sys
+import time
+import zlib
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from falsify.errors import FalsifyError
+from falsify.metrics import CLASSES, class_scores, confusion
+from falsify.scene import InvalidSample, Simulator
+from falsify.sensor import load_sensor
+from falsify.space import Sample, Space
+from falsify.store import SampleResult, Store, sample_key
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    """What a worker needs to rebuild its warm state."""
+
+    space: Space
+    model: str | None = None
+    backend: str = "onnx"
+    threads: int = 1
+    lod: int = 2
+    crf_iterations: int | None = None
+    sensor_overrides: dict = field(default_factory=dict)
+
+
+def sample_seed(space: Space, sample: Sample) -> int:
+    """A per-sample seed for sensor effects: fixed by the space's seed and the sample alone."""
+    return (space.seed * 1_000_003 + zlib.crc32(sample_key(sample).encode())) % (2**31)
+
+
+class Evaluator:
+    """Scores batches of samples with one warm simulator and one inference session."""
+
+    def __init__(self, settings: EvalSettings):
+        from models.runner import load_segmenter
+
+        self.settings = settings
+        self.space = settings.space
+        sensor = load_sensor(self.space.sensor, **settings.sensor_overrides)
+        self.sim = Simulator(sensor, self.space.user_cars, lod=settings.lod)
+        self.model = load_segmenter(settings.model, backend=settings.backend,
+                                    threads=settings.threads)
+        spec = self.model.spec
+        if (spec.height, spec.width) != sensor.shape:
+            raise FalsifyError(f"model {settings.model or 'bundled'} takes {spec.height}×"
+                               f"{spec.width} range images but sensor {sensor.name} makes "
+                               f"{sensor.shape[0]}×{sensor.shape[1]}")
+
+    @property
+    def model_hash(self) -> str:
+        return self.model.model_hash
+
+    def scan(self, sample: Sample):
+        rng = np.random.default_rng(sample_seed(self.space, sample))
+        return self.sim.scan(sample, rng=rng)
+
+    def evaluate(self, samples: Sequence[Sample]) -> list[SampleResult]:
+        results: list[SampleResult | None] = [None] * len(samples)
+        images, where, t_scans = [], [], []
+        for i, sample in enumerate(samples):
+            t0 = time.perf_counter()
+            try:
+                scan = self.scan(sample)
+            except InvalidSample as exc:
+                results[i] = SampleResult(sample, "invalid", str(exc),
+                                          t_scan=time.perf_counter() - t0,
+                                          seed=sample_seed(self.space, sample))
+                continue
+            images.append(scan.image)
+            where.append(i)
+            t_scans.append(time.perf_counter() - t0)
+        if images:
+            t0 = time.perf_counter()
+            pred = self.model.predict(np.stack(images))
+            t_infer = (time.perf_counter() - t0) / len(images)
+            for k, i in enumerate(where):
+                label = images[k][..., 5].astype(np.uint8)
+                counts = confusion(pred.classes[k], label, len(CLASSES))
+                metrics: dict[str, float | int | None] = {}
+                notes = {}
+                for cs in class_scores(counts):
+                    for m in ("tp", "fp", "fn", "iou", "precision", "recall"):
+                        metrics[f"{cs.name}_{m}"] = getattr(cs, m)
+                    notes[cs.name] = cs.note
+                status = "ok" if metrics["car_iou"] is not None else "undefined"
+                results[i] = SampleResult(
+                    samples[i], status, "" if status == "ok" else notes["car"], metrics,
+                    car_points=int((pred.classes[k] == 1).sum()),
+                    label_points=int((label == 1).sum()),
+                    t_scan=t_scans[k], t_infer=t_infer, t_total=t_scans[k] + t_infer,
+                    seed=sample_seed(self.space, samples[i]))
+        return [r for r in results if r is not None]
+
+
+_worker: Evaluator | None = None
+
+
+def _init_worker(settings: EvalSettings) -> None:
+    global _worker
+    _worker = Evaluator(settings)
+
+
+def _work(samples: list[Sample]) -> list[SampleResult]:
+    assert _worker is not None
+    return _worker.evaluate(samples)
+
+
+@dataclass
+class Progress:
+    """Counts and the lowest IoU so far; draws a one-line bar on stderr."""
+
+    total: int | None
+    quiet: bool = False
+    done: int = 0
+    computed: int = 0
+    lowest: float | None = None
+    lowest_at: dict | None = None
+    started: float = field(default_factory=time.perf_counter)
+    _last: float = 0.0
+
+    def update(self, results: Sequence[SampleResult], fresh: int) -> None:
+        self.done += len(results)
+        self.computed += fresh
+        for r in results:
+            s = r.score
+            if s is not None and (self.lowest is None or s < self.lowest):
+                self.lowest, self.lowest_at = s, r.sample.as_dict()
+        self.draw()
+
+    def draw(self, final: bool = False) -> None:
+        if self.quiet:
+            return
+        now = time.perf_counter()
+        if not final and now - self._last < 0.25:
+            return
+        self._last = now
+        elapsed = now - self.started
+        rate = self.computed / elapsed if elapsed > 0 else 0.0
+        total = f"/{self.total}" if self.total else ""
+        eta = ""
+        if self.total and rate > 0:
+            eta = f" ETA {max(0.0, (self.total - self.done) / rate):5.0f}s"
+        low = "-" if self.lowest is None else f"{self.lowest:.3f}"
+        bar = ""
+        if self.total:
+            filled = int(24 * min(1.0, self.done / self.total))
+            bar = "[" + "#" * filled + "." * (24 - filled) + "] "
+        end = "\n" if final or not sys.stderr.isatty() else "\r"
+        if not sys.stderr.isatty() and not final and self.done % 200 and self.done != self.total:
+            return
+        sys.stderr.write(f"{bar}{self.done}{total} samples  {rate:6.1f}/s{eta}  "
+                         f"lowest IoU {low}{end}")
+        sys.stderr.flush()
+
+
+class Driver:
+    """Runs a sampler against the store, computing only what the store does not hold."""
+
+    def __init__(self, settings: EvalSettings, store: Store, workers: int = 1,
+                 batch: int = 8, progress: Progress | None = None):
+        self.settings = settings
+        self.store = store
+        self.workers = workers
+        self.batch = batch
+        self.progress = progress or Progress(None, quiet=True)
+        self.evaluations = 0
+        self.curve: list[float | None] = []   # car IoU per evaluation, in order
+        self._local: Evaluator | None = None
+        self._pool: ProcessPoolExecutor | None = None
+        self.model_hash = ""
+
+    def __enter__(self) -> Driver:
+        if self.workers <= 1:
+            self._local = Evaluator(self.settings)
+            self.model_hash = self._local.model_hash
+        else:
+            from models.runner import load_segmenter
+            self.model_hash = load_segmenter(self.settings.model, backend="onnx" if
+                                             self.settings.backend == "onnx" else
+                                             self.settings.backend).model_hash
+            ctx = mp.get_context("spawn")
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=ctx,
+                                             initializer=_init_worker,
+                                             initargs=(self.settings,))
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+
+    def evaluate(self, samples: Sequence[Sample]) -> list[float | None]:
+        """The samplers' callback: scores in order, stored ones read back, the rest computed."""
+        todo: list[Sample] = []
+        seen = set()
+        for s in samples:
+            if s not in self.store and s not in seen:
+                todo.append(s)
+                seen.add(s)
+        known = [s for s in samples if s in self.store and s not in seen]
+        if known:
+            self.progress.update([SampleResult(s, "ok", metrics={"car_iou": self.store.score(s)})
+                                  for s in known], 0)
+        chunks = [todo[i:i + self.batch] for i in range(0, len(todo), self.batch)]
+        outputs = (map(self._local.evaluate, chunks) if self._local is not None
+                   else self._pool.map(_work, chunks))
+        for chunk_results in outputs:
+            self.store.add(chunk_results, self.model_hash, self.settings.space.config_hash)
+            self.progress.update(chunk_results, len(chunk_results))
+        scores = [self.store.score(s) for s in samples]
+        self.evaluations += len(samples)
+        self.curve.extend(scores)
+        return scores
+
+
+def run_sampler(sampler, space: Space, driver: Driver, budget: int | None,
+                seed: int) -> None:
+    """One driver loop for every sampler."""
+    sampler.run(space, driver.evaluate, budget, seed)
+    driver.progress.draw(final=True)
+
+
+def lowest_curve(curve: Sequence[float | None]) -> list[float | None]:
+    """Running minimum of the scores (None until the first defined one)."""
+    out, best = [], math.inf
+    for s in curve:
+        if s is not None and s < best:
+            best = s
+        out.append(None if best == math.inf else best)
+    return out
+
+

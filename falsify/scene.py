@@ -1,0 +1,296 @@
+"""Scenes from samples, cast into scans: background hits cached per pose, cars cast in a window.
+
+The background never changes inside a run, so its BVH is built once and every sensor ray is cast
+at it once per (background, sensor pose). A sampled car covers a small window of the range image:
+only the rays inside the window of its bounding box are moved into the car's own frame and cast
+at the car's BVH, and the nearer hit wins per pixel. That gives exactly the first returns of the
+merged scene (tests compare against a full re-cast).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+import falsify.backgrounds as backgrounds  # noqa: I001
+import falsify.cars as cars
+from falsify.raycast import MeshCaster
+from falsify.scan import Scan
+from falsify.sensor import Sensor, SensorPose, rot_z
+from falsify.space import CarPose, Sample, UserCar
+
+# The ego vehicle's footprint around the sensor (KITTI's Passat, sensor behind the front axle);
+# a sampled car that overlaps it cannot exist. It is not drawn: real scans filter the ego car.
+EGO_FOOTPRINT = np.array([[-2.8, -0.95], [1.9, -0.95], [1.9, 0.95], [-2.8, 0.95]])
+CAR_CLASS = 1
+FIRST_CAR_INSTANCE = 1
+
+
+class InvalidSample(Exception):
+    """The sample's objects would intersect each other, the ego car or the background."""
+
+
+@dataclass(frozen=True)
+class PlacedCar:
+    """A car mesh at a world pose: the car frame's origin at (x, y) on the ground, turned by
+    `heading_deg` counter-clockwise from the world's +x (forward) axis."""
+
+    model: str
+    x: float
+    y: float
+    heading_deg: float
+    instance: int
+    cls: int = CAR_CLASS
+
+    def rotation(self) -> np.ndarray:
+        return rot_z(self.heading_deg)
+
+    def translation(self) -> np.ndarray:
+        return np.array([self.x, self.y, 0.0])
+
+
+def place(pose: CarPose, instance: int) -> PlacedCar:
+    """Space coordinates (x to the right, y forward, yaw 0 = facing forward) to the world frame."""
+    heading = math.remainder(pose.yaw, 360.0)  # -180, 180 and 540 are one pose
+    return PlacedCar(pose.model, x=pose.y, y=-pose.x, heading_deg=heading, instance=instance)
+
+
+@dataclass
+class _Layer:
+    """Per-pixel nearest hit so far: range (inf = none), class and instance."""
+
+    rng: np.ndarray
+    cls: np.ndarray
+    inst: np.ndarray
+
+
+class Simulator:
+    """Holds the expensive state (BVHs, background hits) warm across many samples."""
+
+    def __init__(self, sensor: Sensor, user_cars: dict[str, UserCar] | None = None,
+                 lod: int = 2, max_bvh: int = 2, max_hits: int = 256):
+        self.sensor = sensor
+        self.user_cars = dict(user_cars or {})
+        self.lod = lod
+        self._bvh: OrderedDict[int, tuple[MeshCaster, object]] = OrderedDict()
+        self._hits: OrderedDict[tuple, _Layer] = OrderedDict()
+        self._cars: dict[str, tuple[MeshCaster, np.ndarray]] = {}
+        self._obstacles: dict[int, Obstacles] = {}
+        self._max_bvh, self._max_hits = max_bvh, max_hits
+        self.background_source = backgrounds.build_background
+
+    # -- meshes ---------------------------------------------------------------------------
+    def car_mesh(self, model: str):
+        if model in self.user_cars:
+            u = self.user_cars[model]
+            return cars.load_user_car(u.file, u.scale, u.forward, u.up)
+        return cars.car_mesh(model, lod=self.lod)
+
+    def car_caster(self, model: str) -> tuple[MeshCaster, np.ndarray]:
+        """The car's BVH in its own frame and its bounding box corners (8×3)."""
+        if model not in self._cars:
+            mesh = self.car_mesh(model)
+            lo, hi = np.asarray(mesh.bounds[0]), np.asarray(mesh.bounds[1])
+            corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                                for z in (lo[2], hi[2])])
+            self._cars[model] = (MeshCaster(mesh.vertices, mesh.faces, anchor=np.zeros(3)),
+                                 corners)
+        return self._cars[model]
+
+    def background(self, bg_id: int):
+        """The background and its BVH (a few kept, least recently used dropped)."""
+        if bg_id in self._bvh:
+            self._bvh.move_to_end(bg_id)
+            return self._bvh[bg_id]
+        bg = self.background_source(bg_id)
+        entry = (MeshCaster(bg.vertices, bg.faces), bg)
+        self._obstacles[bg_id] = Obstacles.of(bg.obstacles)
+        self._bvh[bg_id] = entry
+        while len(self._bvh) > self._max_bvh:
+            self._bvh.popitem(last=False)
+        return entry
+
+    # -- casting --------------------------------------------------------------------------
+    def background_hits(self, bg_id: int, pose: SensorPose) -> _Layer:
+        """Every sensor ray cast at the background once per (background, pose), then cached."""
+        key = (bg_id, pose)
+        if key in self._hits:
+            self._hits.move_to_end(key)
+            return self._hits[key]
+        caster, bg = self.background(bg_id)
+        rot = pose.rotation(self.sensor)
+        dirs = self.sensor.directions.reshape(-1, 3) @ rot.T
+        t, prim = caster.cast(pose.origin(self.sensor), dirs, self.sensor.max_range)
+        hit = prim >= 0
+        cls = np.zeros(t.shape, dtype=np.uint8)
+        inst = np.zeros(t.shape, dtype=np.int32)
+        cls[hit] = bg.face_class[prim[hit]]
+        inst[hit] = bg.face_instance[prim[hit]]
+        shape = self.sensor.shape
+        layer = _Layer(t.reshape(shape), cls.reshape(shape), inst.reshape(shape))
+        for a in (layer.rng, layer.cls, layer.inst):
+            a.setflags(write=False)
+        self._hits[key] = layer
+        while len(self._hits) > self._max_hits:
+            self._hits.popitem(last=False)
+        return layer
+
+    def window(self, car: PlacedCar, pose: SensorPose) -> tuple[np.ndarray, np.ndarray]:
+        """Rows and columns whose rays can reach the car's bounding box (may be empty)."""
+        _, corners = self.car_caster(car.model)
+        s_rot = pose.rotation(self.sensor)
+        world = corners @ car.rotation().T + car.translation()
+        p = (world - pose.origin(self.sensor)) @ s_rot  # corners in the sensor frame
+        # Distance from the sensor to the box, in the car frame where the box is axis-aligned.
+        local = (pose.origin(self.sensor) - car.translation()) @ car.rotation()
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        d_min = float(np.linalg.norm(local - np.clip(local, lo, hi)))
+        d_max = float(np.linalg.norm(p, axis=1).max())
+        if d_min > self.sensor.max_range:
+            return np.empty(0, np.int64), np.empty(0, np.int64)
+        all_rows = np.arange(self.sensor.rows)
+        all_cols = np.arange(self.sensor.columns)
+        if d_min <= 1e-9:
+            return all_rows, all_cols
+        z_lo, z_hi = p[:, 2].min(), p[:, 2].max()
+        el_hi = math.asin(min(1.0, z_hi / d_min)) if z_hi > 0 else math.asin(z_hi / d_max)
+        el_lo = math.asin(max(-1.0, z_lo / d_min)) if z_lo < 0 else math.asin(z_lo / d_max)
+        el = np.radians(np.asarray(self.sensor.elevations_deg))
+        eps = 1e-9
+        rows = all_rows[(el >= el_lo - eps) & (el <= el_hi + eps)]
+        # Azimuth: the arc the corners span is the complement of the largest gap between them.
+        az = np.sort(np.degrees(np.arctan2(p[:, 1], p[:, 0])))
+        gaps = np.diff(np.concatenate([az, [az[0] + 360.0]]))
+        k = int(np.argmax(gaps))
+        if gaps[k] <= 180.0:  # the sensor is inside the box's outline: every column
+            return rows, all_cols
+        start = az[(k + 1) % len(az)]  # arc runs counter-clockwise from start by span
+        span = 360.0 - gaps[k]
+        rel = (self.sensor.azimuths_deg - start) % 360.0
+        cols = all_cols[(rel <= span + eps) | (rel >= 360.0 - eps)]
+        return rows, cols
+
+    def cast_car(self, layer: _Layer, car: PlacedCar, pose: SensorPose) -> int:
+        """Cast the car's window rays at its BVH and keep the nearer hits; returns rays cast."""
+        rows, cols = self.window(car, pose)
+        if len(rows) == 0 or len(cols) == 0:
+            return 0
+        caster, _ = self.car_caster(car.model)
+        r_idx, c_idx = np.meshgrid(rows, cols, indexing="ij")
+        r_idx, c_idx = r_idx.ravel(), c_idx.ravel()
+        s_rot = pose.rotation(self.sensor)
+        c_rot = car.rotation()
+        dirs = self.sensor.directions[r_idx, c_idx] @ (c_rot.T @ s_rot).T
+        origin = (pose.origin(self.sensor) - car.translation()) @ c_rot
+        current = layer.rng[r_idx, c_idx]
+        t, prim = caster.cast(origin, dirs, np.minimum(current, self.sensor.max_range))
+        nearer = (prim >= 0) & (t < current)
+        layer.rng[r_idx[nearer], c_idx[nearer]] = t[nearer]
+        layer.cls[r_idx[nearer], c_idx[nearer]] = car.cls
+        layer.inst[r_idx[nearer], c_idx[nearer]] = car.instance
+        return len(t)
+
+    def render(self, bg_id: int, placed: Sequence[PlacedCar], pose: SensorPose = SensorPose(),
+               rng: np.random.Generator | None = None) -> Scan:
+        """Compose the cached background with the cars and turn first returns into a Scan."""
+        base = self.background_hits(bg_id, pose)
+        layer = _Layer(base.rng.copy(), base.cls.copy(), base.inst.copy())
+        for car in placed:
+            self.cast_car(layer, car, pose)
+        return self.to_scan(layer, rng)
+
+    def to_scan(self, layer: _Layer, rng: np.random.Generator | None) -> Scan:
+        """Apply range limits and sensor effects, then build the H×W×6 image."""
+        s = self.sensor
+        r = layer.rng
+        if rng is not None and s.range_noise > 0:
+            r = r + rng.normal(0.0, s.range_noise, r.shape)
+        valid = np.isfinite(r) & (r >= s.min_range) & (r <= s.max_range)
+        if rng is not None and s.ray_drop > 0:
+            valid &= rng.random(r.shape) >= s.ray_drop
+        image = np.zeros((*s.shape, 6), dtype=np.float32)
+        rv = np.where(valid, r, 0.0)
+        image[..., 0:3] = s.directions * rv[..., None]
+        image[..., 4] = rv
+        image[..., 5] = np.where(valid, layer.cls, 0)
+        return Scan(image, np.where(valid, layer.inst, 0).astype(np.int32))
+
+    # -- samples --------------------------------------------------------------------------
+    def placed_cars(self, sample: Sample) -> list[PlacedCar]:
+        """The sample's cars in the world, or InvalidSample naming what they would intersect."""
+        placed = [place(c, FIRST_CAR_INSTANCE + i) for i, c in enumerate(sample.cars)]
+        check_placement(placed, [self.footprint(c) for c in placed],
+                        self.obstacles(sample.background))
+        return placed
+
+    def obstacles(self, bg_id: int) -> Obstacles:
+        """The background's obstacle outlines, kept after its BVH is dropped."""
+        if bg_id not in self._obstacles:
+            self.background(bg_id)
+        return self._obstacles[bg_id]
+
+    def footprint(self, car: PlacedCar) -> np.ndarray:
+        """The car's outline on the ground (4×2, counter-clockwise) in the world frame."""
+        _, corners = self.car_caster(car.model)
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        box = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+        return box @ car.rotation()[:2, :2].T + [car.x, car.y]
+
+    def scan(self, sample: Sample, pose: SensorPose = SensorPose(),
+             rng: np.random.Generator | None = None) -> Scan:
+        """The labelled scan of a sample; raises InvalidSample for impossible scenes."""
+        return self.render(sample.background, self.placed_cars(sample), pose, rng)
+
+
+@dataclass(frozen=True)
+class Obstacles:
+    """A background's obstacle outlines with their bounding boxes, for a quick first test."""
+
+    items: tuple
+    lo: np.ndarray  # (N, 2)
+    hi: np.ndarray  # (N, 2)
+
+    @classmethod
+    def of(cls, items: Sequence) -> Obstacles:
+        items = tuple(items)
+        lo = np.array([o.polygon.min(axis=0) for o in items]).reshape(-1, 2)
+        hi = np.array([o.polygon.max(axis=0) for o in items]).reshape(-1, 2)
+        return cls(items, lo, hi)
+
+
+def check_placement(placed: Sequence[PlacedCar], outlines: Sequence[np.ndarray],
+                    obstacles: Obstacles, ego: np.ndarray = EGO_FOOTPRINT) -> None:
+    """Raise InvalidSample if car outlines overlap each other, the ego car or an obstacle."""
+    for i, (car, poly) in enumerate(zip(placed, outlines, strict=True)):
+        if polygons_overlap(poly, ego):
+            raise InvalidSample(f"car {i + 1} ({car.model}) intersects the ego vehicle")
+        for j in range(i):
+            if polygons_overlap(poly, outlines[j]):
+                raise InvalidSample(f"car {i + 1} ({car.model}) intersects car {j + 1}")
+        lo, hi = poly.min(axis=0), poly.max(axis=0)
+        near = np.flatnonzero(~((obstacles.lo > hi).any(axis=1) | (obstacles.hi < lo).any(axis=1)))
+        for k in near:
+            obstacle = obstacles.items[k]
+            if polygons_overlap(poly, obstacle.polygon):
+                raise InvalidSample(f"car {i + 1} ({car.model}) intersects the background's "
+                                    f"{obstacle.label}")
+
+
+def ego_outline(pose: SensorPose) -> np.ndarray:
+    """The ego vehicle's outline on the ground for a sensor pose."""
+    return EGO_FOOTPRINT @ rot_z(pose.heading_deg)[:2, :2].T + [pose.x, pose.y]
+
+
+def polygons_overlap(a: np.ndarray, b: np.ndarray) -> bool:
+    """Separating-axis test for two convex polygons (touching counts as overlap)."""
+    for poly in (a, b):
+        edges = np.roll(poly, -1, axis=0) - poly
+        normals = np.stack([-edges[:, 1], edges[:, 0]], axis=1)
+        pa, pb = a @ normals.T, b @ normals.T
+        if np.any((pa.max(axis=0) < pb.min(axis=0)) | (pb.max(axis=0) < pa.min(axis=0))):
+            return False
+    return True

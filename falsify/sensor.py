@@ -1,0 +1,236 @@
+"""The virtual LiDAR: beam elevations, azimuth grid, mounting, range limits and sensor effects.
+
+A sensor is a fixed fan of rays in its own frame (x forward, y left, z up, origin at the optical
+centre). Row r, column c of the range image is the ray at elevation `elevations[r]` and azimuth
+`az_left - (c + 0.5) * az_step`, so a point at azimuth `a` falls in column
+`floor((az_left - a) / az_step)`: SqueezeSeg's layout (column 0 is the left edge).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, replace
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from falsify.errors import ConfigError
+
+PRESET_DIR = Path(__file__).resolve().parent.parent / "configs" / "sensors"
+SENSOR_KEYS = {
+    "name", "description", "elevations_deg", "vertical", "h_fov_deg", "columns", "pitch_deg",
+    "mount_height", "max_range", "min_range", "rotation_hz", "ray_drop", "range_noise",
+}
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """A LiDAR's geometry and effects; `elevations_deg` runs from the top row down."""
+
+    name: str
+    elevations_deg: tuple[float, ...]
+    az_left_deg: float
+    az_right_deg: float
+    columns: int
+    pitch_deg: float = 0.0
+    mount_height: float = 1.73
+    max_range: float = 120.0
+    min_range: float = 0.0
+    rotation_hz: float = 10.0
+    ray_drop: float = 0.0
+    range_noise: float = 0.0
+    description: str = ""
+
+    @property
+    def rows(self) -> int:
+        return len(self.elevations_deg)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.rows, self.columns)
+
+    @property
+    def az_step_deg(self) -> float:
+        return (self.az_left_deg - self.az_right_deg) / self.columns
+
+    @property
+    def full_circle(self) -> bool:
+        return abs(self.az_left_deg - self.az_right_deg - 360.0) < 1e-9
+
+    @cached_property
+    def azimuths_deg(self) -> np.ndarray:
+        """Azimuth of each column's ray (the centre of its bin), degrees, left to right."""
+        return self.az_left_deg - (np.arange(self.columns) + 0.5) * self.az_step_deg
+
+    @cached_property
+    def directions(self) -> np.ndarray:
+        """(H, W, 3) float64 unit ray directions in the sensor frame."""
+        el = np.radians(np.asarray(self.elevations_deg))[:, None]
+        az = np.radians(self.azimuths_deg)[None, :]
+        d = np.stack(np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az),
+                                         np.sin(el)), axis=-1)
+        d.setflags(write=False)
+        return d
+
+    @cached_property
+    def row_edges_deg(self) -> np.ndarray:
+        """Elevation boundaries between rows (midpoints), descending, length H + 1."""
+        el = np.asarray(self.elevations_deg, dtype=np.float64)
+        if len(el) == 1:
+            return np.array([el[0] + 1.0, el[0] - 1.0])
+        mid = (el[:-1] + el[1:]) / 2
+        return np.concatenate([[el[0] + (el[0] - mid[0])], mid, [el[-1] - (mid[-1] - el[-1])]])
+
+    def pixel_of(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Project sensor-frame points to (row, col, inside) with this sensor's layout."""
+        p = np.asarray(points, dtype=np.float64)
+        r = np.linalg.norm(p, axis=1)
+        az = np.degrees(np.arctan2(p[:, 1], p[:, 0]))
+        el = np.degrees(np.arcsin(np.divide(p[:, 2], r, out=np.zeros_like(r), where=r > 0)))
+        col = np.floor((self.az_left_deg - az) / self.az_step_deg).astype(np.int64)
+        if self.full_circle:
+            col %= self.columns
+        edges = self.row_edges_deg
+        row = np.searchsorted(-edges, -el, side="right") - 1
+        inside = (col >= 0) & (col < self.columns) & (row >= 0) & (row < self.rows) & (r > 0)
+        return row, col, inside
+
+    def with_resolution(self, rows: int, columns: int) -> Sensor:
+        """The same sensor resampled to another grid over the same fields of view."""
+        el = np.asarray(self.elevations_deg)
+        src = np.linspace(0.0, 1.0, len(el))
+        new = np.interp(np.linspace(0.0, 1.0, rows), src, el)
+        return replace(self, name=f"{self.name}@{rows}x{columns}",
+                       elevations_deg=tuple(float(v) for v in new), columns=columns)
+
+
+@dataclass(frozen=True)
+class SensorPose:
+    """Where the sensor's ground point stands in the world and which way it looks."""
+
+    x: float = 0.0
+    y: float = 0.0
+    heading_deg: float = 0.0
+
+    def rotation(self, sensor: Sensor) -> np.ndarray:
+        """3×3 rotation taking sensor-frame vectors to world-frame vectors (yaw, then pitch)."""
+        return rot_z(self.heading_deg) @ rot_y(sensor.pitch_deg)
+
+    def origin(self, sensor: Sensor) -> np.ndarray:
+        return np.array([self.x, self.y, sensor.mount_height], dtype=np.float64)
+
+
+def rot_z(deg: float) -> np.ndarray:
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rot_y(deg: float) -> np.ndarray:
+    """Rotation about y; positive pitch tilts the sensor's forward axis down."""
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def preset_names() -> list[str]:
+    return sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
+
+
+def load_sensor(name_or_path: str | Path, **overrides) -> Sensor:
+    """Load a preset by name (configs/sensors/NAME.toml) or a TOML file path."""
+    path = Path(name_or_path)
+    if path.suffix != ".toml":
+        path = PRESET_DIR / f"{name_or_path}.toml"
+        if not path.exists():
+            raise ConfigError(f"sensor: unknown preset {str(name_or_path)!r}; allowed: "
+                              f"{', '.join(preset_names())} or a path to a .toml file")
+    try:
+        raw = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise ConfigError(f"sensor: cannot read {path} ({exc.strerror})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"sensor: {path} is not valid TOML ({exc})") from None
+    raw.update(overrides)
+    return parse_sensor(raw, source=str(path))
+
+
+def parse_sensor(raw: dict, source: str = "<sensor>") -> Sensor:
+    """Validate a sensor table; each error names the key and what is allowed."""
+    where = f"{source}: "
+    extra = sorted(set(raw) - SENSOR_KEYS)
+    if extra:
+        raise ConfigError(f"{where}unknown key {extra[0]!r}; allowed: {', '.join(sorted(SENSOR_KEYS))}")
+
+    def num(key: str, default: float | None = None, lo: float | None = None,
+            hi: float | None = None, lo_open: bool = False) -> float:
+        if key not in raw:
+            if default is None:
+                raise ConfigError(f"{where}missing key {key!r}")
+            return default
+        v = raw[key]
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise ConfigError(f"{where}{key}: expected a finite number, got {v!r}")
+        if lo is not None and (v < lo or (lo_open and v == lo)):
+            raise ConfigError(f"{where}{key}: {v} must be {'>' if lo_open else '>='} {lo}")
+        if hi is not None and v > hi:
+            raise ConfigError(f"{where}{key}: {v} must be <= {hi}")
+        return float(v)
+
+    if ("elevations_deg" in raw) == ("vertical" in raw):
+        raise ConfigError(f"{where}give exactly one of elevations_deg (a per-beam table) or "
+                          "vertical = {{ up_deg, down_deg, beams }}")
+    if "elevations_deg" in raw:
+        el = raw["elevations_deg"]
+        if not isinstance(el, list) or not el or not all(
+                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+                for v in el):
+            raise ConfigError(f"{where}elevations_deg: expected a non-empty list of numbers")
+        elevations = [float(v) for v in el]
+        if any(b >= a for a, b in zip(elevations, elevations[1:], strict=False)):
+            raise ConfigError(f"{where}elevations_deg: must decrease strictly from the top row")
+    else:
+        v = raw["vertical"]
+        if not isinstance(v, dict) or set(v) != {"up_deg", "down_deg", "beams"}:
+            raise ConfigError(f"{where}vertical: expected {{ up_deg, down_deg, beams }}")
+        up, down, beams = v["up_deg"], v["down_deg"], v["beams"]
+        if isinstance(beams, bool) or not isinstance(beams, int) or beams < 1:
+            raise ConfigError(f"{where}vertical.beams: {beams!r} must be an integer >= 1")
+        if not all(isinstance(a, int | float) and math.isfinite(a) for a in (up, down)) or up <= down:
+            raise ConfigError(f"{where}vertical: up_deg must be a number above down_deg")
+        elevations = list(np.linspace(float(up), float(down), beams)) if beams > 1 else [float(up)]
+    if elevations[0] >= 90.0 or elevations[-1] <= -90.0:
+        raise ConfigError(f"{where}vertical field of view {elevations[-1]:g}..{elevations[0]:g} "
+                          "deg: elevations must lie strictly inside (-90, 90) (FOV < 180 deg); "
+                          "the range-image projection cannot hold at the poles")
+
+    fov = raw.get("h_fov_deg")
+    if (not isinstance(fov, list) or len(fov) != 2
+            or not all(isinstance(a, int | float) and math.isfinite(a) for a in fov)):
+        raise ConfigError(f"{where}h_fov_deg: expected [left_deg, right_deg], e.g. [45, -45]")
+    left, right = float(fov[0]), float(fov[1])
+    if not 0 < left - right <= 360.0:
+        raise ConfigError(f"{where}h_fov_deg: left {left:g} minus right {right:g} must be in "
+                          "(0, 360] degrees")
+    cols = raw.get("columns")
+    if isinstance(cols, bool) or not isinstance(cols, int) or not 1 <= cols <= 16384:
+        raise ConfigError(f"{where}columns: {cols!r} must be an integer in 1..16384")
+    max_range = num("max_range", 120.0, lo=0.0, lo_open=True)
+    min_range = num("min_range", 0.0, lo=0.0)
+    if min_range >= max_range:
+        raise ConfigError(f"{where}min_range {min_range} must be below max_range {max_range}")
+    return Sensor(
+        name=str(raw.get("name", Path(source).stem)),
+        description=str(raw.get("description", "")),
+        elevations_deg=tuple(elevations),
+        az_left_deg=left,
+        az_right_deg=right,
+        columns=cols,
+        pitch_deg=num("pitch_deg", 0.0, lo=-45.0, hi=45.0),
+        mount_height=num("mount_height", 1.73, lo=0.0, hi=100.0),
+        max_range=max_range,
+        min_range=min_range,
+        rotation_hz=num("rotation_hz", 10.0, lo=0.0, lo_open=True),
+        ray_drop=num("ray_drop", 0.0, lo=0.0, hi=1.0),
+        range_noise=num("range_noise", 0.0, lo=0.0, hi=1.0),
+    )

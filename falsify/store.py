@@ -1,0 +1,184 @@
+"""The run's SQLite file: run metadata and one row per sample, committed as results arrive.
+
+Rows are keyed by the sample (its dims as canonical JSON), so a resumed run finds what a killed
+one finished and neither recomputes nor duplicates it. WAL mode keeps a kill -9 from losing any
+committed row.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import pandas as pd
+
+from falsify.errors import FalsifyError
+from falsify.metrics import CLASSES
+from falsify.space import Sample, Space
+
+STORE_NAME = "results.sqlite"
+METRIC_COLUMNS = [f"{c}_{m}" for c in CLASSES for m in ("tp", "fp", "fn", "iou", "precision",
+                                                           "recall")]
+FIXED_COLUMNS = ["eval_index", "sample_key", "status", "reason", "car_points", "label_points",
+                 "t_scan", "t_infer", "t_total", "seed", "model_hash", "config_hash"]
+TIMING_COLUMNS = ("t_scan", "t_infer", "t_total")
+
+
+@dataclass(frozen=True)
+class SampleResult:
+    """What one evaluated sample produced; metrics are None where undefined or invalid."""
+
+    sample: Sample
+    status: str                 # "ok", "undefined" (car IoU has an empty union), "invalid"
+    reason: str = ""
+    metrics: dict[str, float | int | None] = field(default_factory=dict)
+    car_points: int = 0         # points predicted car
+    label_points: int = 0       # points labelled car
+    t_scan: float = 0.0
+    t_infer: float = 0.0
+    t_total: float = 0.0
+    seed: int = 0
+
+    @property
+    def score(self) -> float | None:
+        """The car IoU the samplers minimise; None when invalid or undefined."""
+        v = self.metrics.get("car_iou")
+        return None if v is None else float(v)
+
+
+def sample_key(sample: Sample) -> str:
+    return json.dumps(sample.values, separators=(",", ":"))
+
+
+class Store:
+    """Append-only result table of one run."""
+
+    def __init__(self, path: str | Path, space: Space):
+        self.path = Path(path)
+        self.space = space
+        self.dim_names = list(space.dims)
+        self.db = sqlite3.connect(self.path, timeout=30.0)
+        self.db.execute("PRAGMA journal_mode=WAL")
+        self.db.execute("PRAGMA synchronous=NORMAL")
+        dims = ", ".join(f'"{d}" {"TEXT" if _is_text(space, d) else "REAL"}'
+                         for d in self.dim_names)
+        metrics = ", ".join(f"{m} REAL" for m in METRIC_COLUMNS)
+        self.db.execute("CREATE TABLE IF NOT EXISTS run (key TEXT PRIMARY KEY, value TEXT)")
+        self.db.execute(
+            "CREATE TABLE IF NOT EXISTS samples (eval_index INTEGER, sample_key TEXT UNIQUE "
+            f"NOT NULL, {dims}, status TEXT NOT NULL, reason TEXT, {metrics}, car_points "
+            "INTEGER, label_points INTEGER, t_scan REAL, t_infer REAL, t_total REAL, seed "
+            "INTEGER, model_hash TEXT, config_hash TEXT)")
+        self.db.commit()
+        self._cache: dict[str, float | None] = {
+            k: v for k, v in self.db.execute("SELECT sample_key, car_iou FROM samples")}
+
+    def close(self) -> None:
+        self.db.close()
+
+    # -- metadata ---------------------------------------------------------------------------
+    def set_meta(self, **values) -> None:
+        with self.db:
+            self.db.executemany("INSERT OR REPLACE INTO run VALUES (?, ?)",
+                                [(k, json.dumps(v)) for k, v in values.items()])
+
+    def meta(self) -> dict:
+        return {k: json.loads(v) for k, v in self.db.execute("SELECT key, value FROM run")}
+
+    # -- rows -------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self._cache)
+
+    def __contains__(self, sample: Sample) -> bool:
+        return sample_key(sample) in self._cache
+
+    def score(self, sample: Sample) -> float | None:
+        return self._cache[sample_key(sample)]
+
+    def add(self, results: Iterable[SampleResult], model_hash: str, config_hash: str) -> None:
+        """Insert a batch of results in one transaction (skipping any already stored)."""
+        rows = []
+        for r in results:
+            key = sample_key(r.sample)
+            if key in self._cache:
+                continue
+            self._cache[key] = r.score
+            values = [r.sample[d] for d in self.dim_names]
+            metrics = [r.metrics.get(m) for m in METRIC_COLUMNS]
+            rows.append([len(self._cache) - 1, key, *values, r.status, r.reason, *metrics,
+                         r.car_points, r.label_points, r.t_scan, r.t_infer, r.t_total, r.seed,
+                         model_hash, config_hash])
+        if not rows:
+            return
+        cols = FIXED_COLUMNS[:2] + self.dim_names + ["status", "reason"] + METRIC_COLUMNS + \
+            FIXED_COLUMNS[4:]
+        sql = (f"INSERT INTO samples ({', '.join(_q(c) for c in cols)}) VALUES "
+               f"({', '.join('?' * len(cols))})")
+        with self.db:
+            self.db.executemany(sql, rows)
+
+    def frame(self) -> pd.DataFrame:
+        """All rows as a DataFrame, in evaluation order."""
+        return read_frame(self.path)
+
+
+def read_frame(path: str | Path) -> pd.DataFrame:
+    path = Path(path)
+    if path.is_dir():
+        path = path / STORE_NAME
+    if not path.exists():
+        raise FalsifyError(f"{path}: no results file (is this a run directory?)")
+    try:
+        with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+            return pd.read_sql_query("SELECT * FROM samples ORDER BY eval_index", db)
+    except sqlite3.DatabaseError as exc:
+        raise FalsifyError(f"{path}: not a readable results file ({exc})") from None
+
+
+def read_meta(path: str | Path) -> dict:
+    path = Path(path)
+    if path.is_dir():
+        path = path / STORE_NAME
+    if not path.exists():
+        raise FalsifyError(f"{path}: no results file (is this a run directory?)")
+    try:
+        with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+            return {k: json.loads(v) for k, v in db.execute("SELECT key, value FROM run")}
+    except sqlite3.DatabaseError as exc:
+        raise FalsifyError(f"{path}: not a readable results file ({exc})") from None
+
+
+def export(frame: pd.DataFrame, out: Path, formats: Sequence[str] = ("csv", "parquet")) -> list:
+    """Write the table as CSV and Parquet (Parquet only where pyarrow is installed)."""
+    from falsify.fileio import write_bytes
+    written = []
+    if "csv" in formats:
+        write_bytes(out.with_suffix(".csv"), frame.to_csv(index=False).encode())
+        written.append(out.with_suffix(".csv"))
+    if "parquet" in formats:
+        try:
+            import pyarrow  # noqa: F401
+        except ImportError:
+            return written
+        import io
+        buf = io.BytesIO()
+        frame.to_parquet(buf, index=False)
+        write_bytes(out.with_suffix(".parquet"), buf.getvalue())
+        written.append(out.with_suffix(".parquet"))
+    return written
+
+
+def _q(name: str) -> str:
+    return f'"{name}"'
+
+
+def _is_text(space: Space, dim: str) -> bool:
+    from falsify.space import Categorical
+    d = space.dims[dim]
+    return isinstance(d, Categorical) and any(isinstance(v, str) for v in d.values)
+
+
+__all__ = ["SampleResult", "Store", "read_frame", "read_meta", "export", "asdict"]
