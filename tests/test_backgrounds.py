@@ -1,0 +1,155 @@
+"""Procedural street backgrounds: determinism, labels, the free zone, size, and a LiDAR sweep."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import trimesh
+from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+from falsify import backgrounds
+from falsify.backgrounds import (
+    FREE_ZONE,
+    MAX_BACKGROUND_ID,
+    SENSOR_CLEARANCE,
+    Background,
+    build_background,
+)
+from falsify.errors import ConfigError
+
+IDS = [*range(15), *range(1000, 1005), MAX_BACKGROUND_ID]
+
+
+@pytest.fixture(scope="module")
+def built() -> dict[int, Background]:
+    out = {}
+    for i in IDS:
+        t0 = time.perf_counter()
+        out[i] = build_background(i)
+        print(f"background {i}: {len(out[i].faces)} triangles in {time.perf_counter() - t0:.3f} s")
+    return out
+
+
+def test_arrays_and_size(built):
+    for bg in built.values():
+        v, f = bg.vertices, bg.faces
+        assert v.dtype == np.float64 and v.ndim == 2 and v.shape[1] == 3
+        assert f.dtype == np.int32 and f.shape[1] == 3
+        assert bg.face_class.dtype == np.uint8 and bg.face_class.shape == (len(f),)
+        assert bg.face_instance.dtype == np.int32 and bg.face_instance.shape == (len(f),)
+        assert np.isfinite(v).all() and f.min() >= 0 and f.max() < len(v)
+        assert 50_000 <= len(f) <= 300_000
+        tri = v[f]
+        area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        assert (area > 0).all()
+        assert bg.face_class.max() <= 3
+        assert bg.road_half_width >= 9.0
+        assert not v.flags.writeable
+
+
+def test_deterministic_bytes(built):
+    for i in (0, 7, 1003):
+        backgrounds._build.cache_clear()
+        again = build_background(i)
+        ref = built[i]
+        assert again is not ref
+        for name in ("vertices", "faces", "face_class", "face_instance"):
+            assert getattr(again, name).tobytes() == getattr(ref, name).tobytes()
+        assert len(again.obstacles) == len(ref.obstacles)
+
+
+def test_ids_differ(built):
+    digests = {(len(bg.faces), bg.road_half_width, bg.vertices[-10:].tobytes())
+               for bg in built.values()}
+    assert len(digests) == len(built)
+
+
+def test_every_label_present(built):
+    for bg in built.values():
+        assert set(np.unique(bg.face_class).tolist()) == {0, 1, 2, 3}
+
+
+def test_instances_have_one_class(built):
+    for bg in built.values():
+        inst, cls = bg.face_instance, bg.face_class
+        assert (cls[inst == 0] == 0).all(), "cars, pedestrians and cyclists need instance ids"
+        assert inst[inst != 0].min() >= 1000
+        ids, first = np.unique(inst, return_inverse=True)
+        per_instance = np.zeros(len(ids), dtype=np.int64)
+        np.maximum.at(per_instance, first, cls.astype(np.int64))
+        lowest = np.full(len(ids), 9, dtype=np.int64)
+        np.minimum.at(lowest, first, cls.astype(np.int64))
+        assert (lowest == per_instance).all()
+
+
+def _overlaps_free_zone(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    (x0, x1), (y0, y1) = FREE_ZONE
+    return (hi[:, 0] > x0) & (lo[:, 0] < x1) & (hi[:, 1] > y0) & (lo[:, 1] < y1)
+
+
+def test_free_zone_is_flat_empty_road(built):
+    for bg in built.values():
+        tri = bg.vertices[bg.faces]
+        lo, hi = tri.min(axis=1), tri.max(axis=1)
+        inside = _overlaps_free_zone(lo, hi)
+        assert inside.any()  # the road itself
+        assert (hi[inside, 2] <= 0.01).all()
+        assert (bg.face_class[inside] == 0).all()
+        # Nothing but road within the sensor clearance either.
+        c = SENSOR_CLEARANCE
+        near = ((hi[:, 0] > -c) & (lo[:, 0] < c) & (hi[:, 1] > -c) & (lo[:, 1] < c))
+        assert (hi[near, 2] <= 0.01).all()
+        polys = [o.polygon for o in bg.obstacles]
+        plo = np.array([p.min(axis=0) for p in polys])
+        phi = np.array([p.max(axis=0) for p in polys])
+        assert not _overlaps_free_zone(plo, phi).any()
+
+
+def test_obstacles_are_ccw_convex(built):
+    for o in built[0].obstacles:
+        p = o.polygon
+        assert p.dtype == np.float64 and p.shape[1] == 2 and len(p) >= 3
+        e = np.roll(p, -1, axis=0) - p
+        cross = e[:, 0] * np.roll(e, -1, axis=0)[:, 1] - e[:, 1] * np.roll(e, -1, axis=0)[:, 0]
+        assert (cross > 0).all(), o.label
+    labels = " ".join(o.label for o in built[0].obstacles)
+    for word in ("curb", "building", "parked car", "pedestrian", "cyclist"):
+        assert word in labels
+
+
+@pytest.mark.parametrize("bad", [-1, MAX_BACKGROUND_ID + 1, 1.5, "3", None, True])
+def test_bad_ids(bad):
+    with pytest.raises(ConfigError, match="999999"):
+        build_background(bad)
+
+
+def test_numpy_integer_id():
+    assert build_background(np.int64(3)) is build_background(3)
+
+
+def _front_fan(bg: Background) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 64×512 front-90° HDL-64E-like sweep from (0, 0, 1.73): hit mask, range, class."""
+    el = np.deg2rad(np.linspace(2.0, -24.9, 64))
+    az = np.deg2rad(np.linspace(45.0, -45.0, 512))
+    e, a = np.meshgrid(el, az, indexing="ij")
+    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
+    o = np.tile([0.0, 0.0, 1.73], (len(d), 1))
+    mesh = trimesh.Trimesh(bg.vertices, bg.faces, process=False)
+    loc, ray, tri = RayMeshIntersector(mesh).intersects_location(o, d, multiple_hits=False)
+    rng = np.full(len(d), np.inf)
+    rng[ray] = np.linalg.norm(loc - o[ray], axis=1)
+    cls = np.full(len(d), 255)
+    cls[ray] = bg.face_class[tri]
+    hit = rng < 120.0
+    return hit, rng, cls
+
+
+def test_lidar_sweep_sees_the_street(built):
+    seen = set()
+    for i in (0, 1, 2, 3):
+        hit, rng, cls = _front_fan(built[i])
+        assert hit.mean() > 0.85
+        seen |= set(np.unique(cls[hit & (rng < 60.0)]).tolist())
+    assert {1, 2, 3} <= seen
