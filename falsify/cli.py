@@ -10,6 +10,10 @@ from pathlib import Path
 from falsify.errors import FalsifyError
 
 
+ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_CONFIG = ROOT / "configs" / "paper.toml"
+
+
 class UsageError(FalsifyError):
     """A bad command-line argument."""
 
@@ -97,6 +101,23 @@ def cmd_dataset(args) -> int:
     return 0
 
 
+# -- bench ----------------------------------------------------------------------------------
+def cmd_bench(args) -> int:
+    from falsify import bench
+
+    if args.what == "scan":
+        result = bench.bench_scan(args.config, samples=args.samples, workers=args.workers,
+                                  naive_samples=args.naive_samples)
+        w = args.workers
+        text = (f"scan: {result[f'fast_scans_per_s_{w}_processes']} scans/s on {w} processes "
+                f"({result['fast_scans_per_s_1_process']} on 1), naive "
+                f"{result['naive_scans_per_s']} scans/s: {result[f'speedup_{w}_processes']}x")
+    else:
+        raise UsageError(f"bench {args.what}: not available")
+    emit(args, result, text)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="falsify", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
@@ -122,6 +143,18 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--range-noise", type=float, default=0.02, help="range noise sigma, m")
     d.add_argument("--json", action="store_true")
     d.set_defaults(func=cmd_dataset)
+
+    b = sub.add_parser("bench", help="measure a fast path beside its naive path")
+    b.add_argument("what", choices=["scan"])
+    b.add_argument("--config", default=str(DEFAULT_CONFIG))
+    b.add_argument("--samples", type=int, default=1000)
+    b.add_argument("--naive-samples", type=int, default=5)
+    b.add_argument("--workers", type=int, default=2)
+    b.add_argument("--json", action="store_true")
+    b.set_defaults(func=cmd_bench)
+
+    from reports.cli import register
+    register(sub)
     return p
 
 

@@ -160,7 +160,8 @@ def parse_sensor(raw: dict, source: str = "<sensor>") -> Sensor:
     where = f"{source}: "
     extra = sorted(set(raw) - SENSOR_KEYS)
     if extra:
-        raise ConfigError(f"{where}unknown key {extra[0]!r}; allowed: {', '.join(sorted(SENSOR_KEYS))}")
+        raise ConfigError(f"{where}unknown key {extra[0]!r}; allowed: "
+                          f"{', '.join(sorted(SENSOR_KEYS))}")
 
     def num(key: str, default: float | None = None, lo: float | None = None,
             hi: float | None = None, lo_open: bool = False) -> float:
@@ -196,7 +197,8 @@ def parse_sensor(raw: dict, source: str = "<sensor>") -> Sensor:
         up, down, beams = v["up_deg"], v["down_deg"], v["beams"]
         if isinstance(beams, bool) or not isinstance(beams, int) or beams < 1:
             raise ConfigError(f"{where}vertical.beams: {beams!r} must be an integer >= 1")
-        if not all(isinstance(a, int | float) and math.isfinite(a) for a in (up, down)) or up <= down:
+        numbers = all(isinstance(a, int | float) and math.isfinite(a) for a in (up, down))
+        if not numbers or up <= down:
             raise ConfigError(f"{where}vertical: up_deg must be a number above down_deg")
         elevations = list(np.linspace(float(up), float(down), beams)) if beams > 1 else [float(up)]
     if elevations[0] >= 90.0 or elevations[-1] <= -90.0:

@@ -184,7 +184,7 @@ class Space:
         return Sample(tuple((name, merged[name]) for name in self.dims))
 
     def coerce(self, name: str, raw: Value) -> Value:
-        """Convert a raw value (e.g. a `--set` string) to the dim's type and check it is in range."""
+        """Convert a raw value (e.g. a `--set` string) to the dim's type; check it is in range."""
         dim = self.dims[name]
         if isinstance(dim, Continuous):
             try:
@@ -254,7 +254,8 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
     where = f"{source}: "
     extra = sorted(set(raw) - TOP_KEYS)
     if extra:
-        raise ConfigError(f"{where}unknown key {extra[0]!r}; allowed: {', '.join(sorted(TOP_KEYS))}")
+        raise ConfigError(f"{where}unknown key {extra[0]!r}; allowed: "
+                          f"{', '.join(sorted(TOP_KEYS))}")
     name = _typed(raw, "name", str, where, default=Path(source).stem)
     sensor = _typed(raw, "sensor", str, where, default="kitti-hdl64e-front")
     seed = _typed(raw, "seed", int, where, default=0)
@@ -323,7 +324,8 @@ def _typed(raw: dict, key: str, types, where: str, default):
         return default
     value = raw[key]
     if isinstance(value, bool) or not isinstance(value, types):
-        names = types.__name__ if isinstance(types, type) else " or ".join(t.__name__ for t in types)
+        names = (types.__name__ if isinstance(types, type)
+                 else " or ".join(t.__name__ for t in types))
         raise ConfigError(f"{where}{key}: expected {names}, got {value!r}")
     return value
 
