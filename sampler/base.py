@@ -1,0 +1,106 @@
+"""The sampler contract, the registry of sampler names and small helpers shared by samplers."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Iterator, Sequence
+from typing import Protocol
+
+import nlopt
+
+from falsify.errors import ConfigError
+from falsify.space import Sample, Space
+
+Score = float | None
+"""A sample's car IoU (lower = worse for the network); None = invalid sample or undefined IoU."""
+
+Evaluate = Callable[[Sequence[Sample]], list[Score]]
+"""The driver's evaluator: scores a batch (in parallel, from the store on resume), in order."""
+
+BATCH = 64
+
+_NLOPT_CANDIDATES = (
+    "GN_DIRECT_L", "GN_CRS2_LM", "GN_ISRES", "GN_ESCH", "G_MLSL_LDS",
+    "LN_BOBYQA", "LN_COBYLA", "LN_NELDERMEAD", "LN_SBPLX",
+)
+NLOPT_ALGORITHMS: tuple[str, ...] = tuple(n for n in _NLOPT_CANDIDATES if hasattr(nlopt, n))
+"""NLopt algorithms offered by name (those this NLopt build provides)."""
+
+ALGORITHMS: tuple[str, ...] = ("grid", "random", "sobol", *NLOPT_ALGORITHMS)
+"""Every name `make_sampler` accepts."""
+
+
+class Sampler(Protocol):
+    """Walks a space, calling `evaluate` on batches of samples until done or out of budget."""
+
+    name: str
+
+    def run(self, space: Space, evaluate: Evaluate, budget: int | None, seed: int) -> None: ...
+
+
+def make_sampler(name: str, **options: object) -> Sampler:
+    """Build a sampler by name; an unknown name or option raises ConfigError listing the allowed."""
+    from sampler.grid import GridSampler
+    from sampler.nlopt import NloptSampler
+    from sampler.random import RandomSampler
+    from sampler.sobol import SobolSampler
+
+    classes: dict[str, type] = {"grid": GridSampler, "random": RandomSampler,
+                                "sobol": SobolSampler}
+    if name in classes:
+        cls = classes[name]
+    elif name in NLOPT_ALGORITHMS:
+        cls = NloptSampler
+        options = {"name": name, **options}
+    else:
+        raise ConfigError(f"unknown sampler {name!r}; allowed: {', '.join(ALGORITHMS)}")
+    settable = [f.name for f in dataclasses.fields(cls) if f.init and f.name != "name"]
+    unknown = sorted(set(options) - set(settable) - {"name"})
+    if unknown:
+        raise ConfigError(f"sampler {name}: unknown option {unknown[0]!r}; allowed: "
+                          f"{', '.join(settable) or '(none)'}")
+    return cls(**options)
+
+
+def check_budget(name: str, budget: int | None, required: bool) -> int | None:
+    """Validate a budget: a non-negative int, or None where the sampler allows it."""
+    if budget is None:
+        if required:
+            raise ConfigError(f"sampler {name} needs a budget (number of samples to evaluate)")
+        return None
+    if isinstance(budget, bool) or not isinstance(budget, int) or budget < 0:
+        raise ConfigError(f"sampler {name}: budget must be an integer >= 0, got {budget!r}")
+    return budget
+
+
+def check_batch(name: str, batch_size: int) -> None:
+    if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+        raise ConfigError(f"sampler {name}: batch_size must be an integer >= 1, got {batch_size!r}")
+
+
+def batches(samples: Sequence[Sample], size: int) -> Iterator[Sequence[Sample]]:
+    for start in range(0, len(samples), size):
+        yield samples[start:start + size]
+
+
+def evaluate_all(evaluate: Evaluate, samples: Sequence[Sample], size: int) -> list[Score]:
+    """Evaluate `samples` in batches of `size`, in order; returns the scores in order."""
+    scores: list[Score] = []
+    for batch in batches(samples, size):
+        got = evaluate(batch)
+        if len(got) != len(batch):
+            raise RuntimeError(f"evaluate returned {len(got)} scores for {len(batch)} samples")
+        scores.extend(got)
+    return scores
+
+
+def best_so_far(scores: Sequence[Score]) -> list[float]:
+    """Running minimum of the scores, skipping None (nan until the first defined score)."""
+    out: list[float] = []
+    best = float("nan")
+    for s in scores:
+        if s is not None and not math.isnan(s) and (math.isnan(best) or s < best):
+            best = float(s)
+        out.append(best)
+    return out

@@ -1,0 +1,38 @@
+"""Random: independent uniform samples, each continuous dim over [lo, hi], each categorical dim
+over its values, from a numpy Generator seeded by the run's seed."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from falsify.space import Categorical, Sample, Space
+from sampler.base import BATCH, Evaluate, check_batch, check_budget, evaluate_all
+
+
+@dataclass(frozen=True)
+class RandomSampler:
+    """Draws all `budget` samples up front (one column per dim, in dim order), so the samples do
+    not depend on the batch size; dims of cars beyond a sample's count are pinned by Space.make."""
+
+    batch_size: int = BATCH
+    name: str = field(default="random", init=False)
+
+    def samples(self, space: Space, budget: int, seed: int) -> list[Sample]:
+        rng = np.random.default_rng(seed)
+        columns: dict[str, list] = {}
+        for name, dim in space.dims.items():
+            if isinstance(dim, Categorical):
+                idx = rng.integers(0, len(dim.values), size=budget)
+                columns[name] = [dim.values[i] for i in idx]
+            else:
+                columns[name] = [float(v) for v in rng.uniform(dim.lo, dim.hi, size=budget)]
+        return [space.make({name: col[i] for name, col in columns.items()})
+                for i in range(budget)]
+
+    def run(self, space: Space, evaluate: Evaluate, budget: int | None, seed: int) -> None:
+        check_batch(self.name, self.batch_size)
+        n = check_budget(self.name, budget, required=True)
+        assert n is not None
+        evaluate_all(evaluate, self.samples(space, n, seed), self.batch_size)
