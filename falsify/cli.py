@@ -9,7 +9,6 @@ from pathlib import Path
 
 from falsify.errors import FalsifyError
 
-
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_CONFIG = ROOT / "configs" / "paper.toml"
 
@@ -101,11 +100,144 @@ def cmd_dataset(args) -> int:
     return 0
 
 
+# -- predict and train ----------------------------------------------------------------------
+def _read_scans(paths: list[str], sensor_name: str):
+    """Range images from .npy files (our layout) or KITTI .bin files (+ .label beside)."""
+    import numpy as np
+
+    from falsify.scan import load_scan_npy, read_kitti
+    from falsify.sensor import load_sensor
+
+    images = []
+    sensor = None
+    for p in map(Path, paths):
+        if p.suffix == ".bin":
+            sensor = sensor or load_sensor(sensor_name)
+            label = p.with_suffix(".label")
+            images.append(read_kitti(p, label if label.exists() else None, sensor).image)
+        elif p.suffix == ".npy":
+            images.append(load_scan_npy(p))
+        else:
+            raise UsageError(f"{p}: expected a .npy range image or a KITTI .bin scan")
+    shapes = {im.shape for im in images}
+    if len(shapes) > 1:
+        raise UsageError(f"scans have different shapes: {sorted(shapes)}")
+    return np.stack(images)
+
+
+def cmd_predict(args) -> int:
+    import numpy as np
+
+    from falsify.fileio import write_npy
+    from falsify.metrics import CLASSES, class_scores, confusion, pooled
+    from models.runner import load_segmenter
+
+    scans = _read_scans(args.scans, args.sensor)
+    model = load_segmenter(args.model, backend=args.backend)
+    out = Path(args.out)
+    counts = []
+    per_scan = []
+    labelled = bool((scans[..., 5] > 0).any())
+    for i in range(0, len(scans), 8):
+        pred = model.predict(scans[i:i + 8])
+        for k, cls in enumerate(pred.classes):
+            name = Path(args.scans[i + k]).stem
+            write_npy(out / f"{name}.pred.npy", cls.astype(np.uint8))
+            label = np.where(scans[i + k][..., 4] > 0, scans[i + k][..., 5], 0).astype(np.uint8)
+            c = confusion(cls, label, len(CLASSES))
+            counts.append(c)
+            per_scan.append({"scan": args.scans[i + k], "car_iou": class_scores(c)[1].iou})
+    summary: dict = {"model": model.spec.name, "model_hash": model.model_hash,
+                     "backend": args.backend, "scans": len(scans), "out": str(out)}
+    lines = [f"predicted {len(scans)} scans with {model.spec.name} "
+             f"({model.model_hash[:12]}, {args.backend}) into {out}"]
+    if labelled:
+        scores = class_scores(pooled(counts))
+        summary["pooled"] = {s.name: {"iou": s.iou, "precision": s.precision,
+                                      "recall": s.recall, "tp": s.tp, "fp": s.fp, "fn": s.fn,
+                                      "note": s.note} for s in scores}
+        summary["per_scan"] = per_scan
+        lines.append("class        IoU    precision  recall   (TP, FP, FN pooled over scans)")
+        for s in scores:
+            def f(v):
+                return "   -  " if v is None else f"{v:6.3f}"
+            lines.append(f"{s.name:11s} {f(s.iou)}  {f(s.precision)}    {f(s.recall)}"
+                         + (f"   ({s.note})" if s.note else ""))
+    emit(args, summary, "\n".join(lines))
+    return 0
+
+
+def cmd_train(args) -> int:
+    from models.train import main as train_main
+    return int(train_main(args.train_args) or 0)
+
+
+# -- grid and search ------------------------------------------------------------------------
+def _run(args, command: str, algorithm: str) -> int:
+    from falsify.runs import RunRequest, execute, summary_text
+
+    req = RunRequest(
+        config=Path(args.config), out=Path(args.out), command=command, algorithm=algorithm,
+        budget=getattr(args, "budget", None), seed=args.seed, model=args.model,
+        backend=args.backend, workers=args.workers, resume=args.resume,
+        threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
+        quiet=args.quiet)
+    summary = execute(req)
+    emit(args, summary, summary_text(summary))
+    return 0
+
+
+def cmd_grid(args) -> int:
+    return _run(args, "grid", "grid")
+
+
+def cmd_search(args) -> int:
+    if args.budget is None or args.budget < 1:
+        raise UsageError("--budget: a number of evaluations >= 1 is required")
+    return _run(args, "search", args.algorithm)
+
+
+def _run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config")
+    p.add_argument("--out", required=True, help="run directory (results.sqlite, maps, report)")
+    p.add_argument("--model", default=None,
+                   help="an ONNX segmentation model with its .json spec (default: bundled)")
+    p.add_argument("--backend", choices=["onnx", "torch"], default="onnx")
+    p.add_argument("--workers", type=int, default=1, help="local worker processes")
+    p.add_argument("--seed", type=int, default=None, help="default: the config's seed")
+    p.add_argument("--resume", action="store_true", help="continue a killed run")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="mIoU below which a cell is a blind spot (default: config, 0.65)")
+    p.add_argument("--fidelity", default="exact", choices=["fast", "balanced", "exact"])
+    p.add_argument("--no-report", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true")
+
+
 # -- bench ----------------------------------------------------------------------------------
 def cmd_bench(args) -> int:
     from falsify import bench
 
-    if args.what == "scan":
+    if args.what == "model":
+        import numpy as np
+
+        from models.bench import bench_models
+        from models.runner import BUNDLED_ONNX
+        files = sorted(Path(args.scans).glob("*.npy"))[: args.samples] if args.scans else []
+        if args.scans and not files:
+            raise UsageError(f"--scans {args.scans}: no .npy scans there")
+        if files:
+            scans = _read_scans([str(f) for f in files], "kitti-hdl64e-front")
+        else:
+            scans = _held_out_scans(args.samples)
+        onnx = Path(args.model) if args.model else BUNDLED_ONNX
+        rows = bench_models(np.asarray(scans), onnx, repeats=args.repeats)
+        result = {"benchmark": "model", "model": str(onnx), "frames": len(scans),
+                  "machine": __import__("falsify.bench").bench.machine(), "variants": rows}
+        text = "\n".join(f"{r['variant']:11s} {r['ms_per_frame']:8.1f} ms/frame "
+                         f"{r['fps']:6.1f} fps  car IoU diff {r['car_iou_diff']:+.4f}"
+                         for r in rows)
+    elif args.what == "scan":
         result = bench.bench_scan(args.config, samples=args.samples, workers=args.workers,
                                   naive_samples=args.naive_samples)
         w = args.workers
@@ -116,6 +248,23 @@ def cmd_bench(args) -> int:
         raise UsageError(f"bench {args.what}: not available")
     emit(args, result, text)
     return 0
+
+
+def _held_out_scans(n: int):
+    """Labelled synthetic scans on backgrounds no training or test config uses (ids 9000+)."""
+    import numpy as np
+
+    from falsify.dataset import TrafficOptions, scene_for
+    from falsify.scene import Simulator
+    from falsify.sensor import load_sensor
+
+    sim = Simulator(load_sensor("kitti-hdl64e-front"), max_bvh=1)
+    opts = TrafficOptions(backgrounds=max(1, n), first_background=9000)
+    images = []
+    for i in range(n):
+        bg, pose, cars = scene_for(i * 8, 77, sim, opts)
+        images.append(sim.render(bg, cars, pose).image)
+    return np.stack(images)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -144,12 +293,44 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--json", action="store_true")
     d.set_defaults(func=cmd_dataset)
 
+    pr = sub.add_parser("predict", help="run the network on scans; IoU where labelled")
+    pr.add_argument("scans", nargs="+", help=".npy range images or KITTI .bin files")
+    pr.add_argument("--model", default=None)
+    pr.add_argument("--backend", choices=["onnx", "torch"], default="onnx")
+    pr.add_argument("--sensor", default="kitti-hdl64e-front",
+                    help="preset used to project .bin scans")
+    pr.add_argument("--out", required=True)
+    pr.add_argument("--json", action="store_true")
+    pr.set_defaults(func=cmd_predict)
+
+    tr = sub.add_parser("train", help="train SqueezeSeg (same options as python -m models.train)",
+                        add_help=False)
+    tr.add_argument("train_args", nargs=argparse.REMAINDER)
+    tr.set_defaults(func=cmd_train)
+
+    g = sub.add_parser("grid", help="evaluate the full factorial grid of a space")
+    _run_options(g)
+    g.set_defaults(func=cmd_grid)
+
+    from sampler.base import ALGORITHMS
+    se = sub.add_parser("search", help="search a space for low car IoU within a budget")
+    _run_options(se)
+    se.add_argument("--algorithm", required=True, choices=[a for a in ALGORITHMS if a != "grid"],
+                    metavar="NAME", help="random, sobol, or an NLopt algorithm: "
+                    + ", ".join(a for a in ALGORITHMS if a not in ("grid", "random", "sobol")))
+    se.add_argument("--budget", type=int, default=None, help="number of evaluations")
+    se.set_defaults(func=cmd_search)
+
     b = sub.add_parser("bench", help="measure a fast path beside its naive path")
-    b.add_argument("what", choices=["scan"])
+    b.add_argument("what", choices=["scan", "model"])
     b.add_argument("--config", default=str(DEFAULT_CONFIG))
     b.add_argument("--samples", type=int, default=1000)
     b.add_argument("--naive-samples", type=int, default=5)
     b.add_argument("--workers", type=int, default=2)
+    b.add_argument("--model", default=None, help="bench model: an ONNX model (default bundled)")
+    b.add_argument("--scans", default=None,
+                   help="bench model: a folder of labelled .npy scans (default: generated)")
+    b.add_argument("--repeats", type=int, default=3)
     b.add_argument("--json", action="store_true")
     b.set_defaults(func=cmd_bench)
 

@@ -1,0 +1,254 @@
+"""A falsification run from start to summary: checks, store, sampler loop, maps, retraining set.
+
+Everything a user can get wrong (config, model, sampler, run directory) is checked before the
+run directory is touched, so bad input leaves nothing half-written.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from falsify.errors import FalsifyError
+from falsify.fileio import write_bytes, write_json, write_npy
+from falsify.maps import CellMap, miou_map
+from falsify.pipeline import Driver, EvalSettings, Evaluator, Progress
+from falsify.space import Space, load_space
+from falsify.store import STORE_NAME, Store, export, read_meta
+
+RESUME_KEYS = ("config_hash", "model_hash", "algorithm", "seed", "budget", "fidelity")
+
+
+@dataclass(frozen=True)
+class RunRequest:
+    """Everything that defines a run; equal requests give equal rows."""
+
+    config: Path
+    out: Path
+    command: str                 # "grid" or "search"
+    algorithm: str = "grid"
+    budget: int | None = None
+    seed: int | None = None
+    model: str | None = None
+    backend: str = "onnx"
+    workers: int = 1
+    resume: bool = False
+    threshold: float | None = None
+    fidelity: str = "exact"
+    report: bool = True
+    quiet: bool = False
+
+
+def prepare(req: RunRequest):
+    """Validate the request; returns (space, sampler, settings, seed) without writing anything."""
+    from models.runner import load_segmenter
+    from sampler.base import make_sampler
+
+    from falsify.fidelity import preset
+
+    space = load_space(req.config)
+    fid = preset(req.fidelity)
+    if req.workers < 1 or req.workers > 64:
+        raise FalsifyError(f"--workers: {req.workers} must be between 1 and 64")
+    if req.budget is not None and req.budget < 1:
+        raise FalsifyError(f"--budget: {req.budget} must be >= 1")
+    if req.threshold is not None and not 0 < req.threshold <= 1:
+        raise FalsifyError(f"--threshold: {req.threshold} must be in (0, 1]")
+    sampler = make_sampler(req.algorithm)
+    seed = space.seed if req.seed is None else req.seed
+    threads = 2 if req.workers == 1 else 1
+    settings = EvalSettings(space=space, model=req.model, backend=req.backend, threads=threads,
+                            lod=fid.lod, sensor_overrides=fid.sensor_overrides(space.sensor))
+    # Load the model once here: a missing, corrupt or mismatched model fails before any sample.
+    seg = load_segmenter(req.model, backend=req.backend, threads=1)
+    from falsify.sensor import load_sensor
+    sensor = load_sensor(space.sensor, **settings.sensor_overrides)
+    if (seg.spec.height, seg.spec.width) != sensor.shape:
+        raise FalsifyError(f"model {req.model or 'bundled'} takes {seg.spec.height}×"
+                           f"{seg.spec.width} range images but sensor {sensor.name} makes "
+                           f"{sensor.shape[0]}×{sensor.shape[1]}")
+    store_path = req.out / STORE_NAME
+    meta = {
+        "command": req.command, "config_path": str(req.config),
+        "config_text": Path(req.config).read_text(), "config_hash": space.config_hash,
+        "space_name": space.name, "sensor": sensor.name, "model_path": req.model,
+        "model_name": seg.spec.name, "model_hash": seg.model_hash, "backend": req.backend,
+        "seed": seed, "algorithm": req.algorithm, "budget": req.budget,
+        "threshold": req.threshold or space.threshold, "workers": req.workers,
+        "fidelity": req.fidelity,
+    }
+    if store_path.exists():
+        if not req.resume:
+            raise FalsifyError(f"{req.out} already holds a run; pass --resume to continue it "
+                               "or choose another --out")
+        old = read_meta(req.out)
+        for key in RESUME_KEYS:
+            if old.get(key) != meta[key]:
+                raise FalsifyError(f"--resume: {key} differs from the run in {req.out} "
+                                   f"({old.get(key)!r} there, {meta[key]!r} now)")
+    elif req.resume:
+        raise FalsifyError(f"--resume: {req.out} holds no run to resume ({STORE_NAME} missing)")
+    elif req.out.exists() and any(req.out.iterdir()):
+        raise FalsifyError(f"--out {req.out}: directory exists and is not empty")
+    return space, sampler, settings, seed, meta
+
+
+def execute(req: RunRequest) -> dict:
+    """Run the sampler to the end, then write maps, retraining set, tables and report."""
+    space, sampler, settings, seed, meta = prepare(req)
+    req.out.mkdir(parents=True, exist_ok=True)
+    store = Store(req.out / STORE_NAME, space)
+    old = store.meta()
+    started = time.perf_counter()
+    if not old:
+        store.set_meta(**meta, started=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+                       elapsed_s=0.0, curve=[])
+    total = req.budget if req.budget is not None else (
+        len(space.grid()) if req.algorithm == "grid" else None)
+    progress = Progress(total, quiet=req.quiet)
+    try:
+        with Driver(settings, store, workers=req.workers, progress=progress) as driver:
+            sampler.run(space, driver.evaluate, req.budget, seed)
+            progress.draw(final=True)
+        elapsed = float(old.get("elapsed_s", 0.0)) + time.perf_counter() - started
+        store.set_meta(elapsed_s=round(elapsed, 3), curve=driver.curve,
+                       computed_last=progress.computed)
+    finally:
+        store.close()
+    return finish(req.out, space, threshold=req.threshold, report=req.report, settings=settings)
+
+
+def finish(run: Path, space: Space, threshold: float | None = None, report: bool = True,
+           settings: EvalSettings | None = None) -> dict:
+    """Maps, blind spots, retraining set, CSV/Parquet, report and the summary of a run."""
+    from falsify.store import read_frame
+    meta = read_meta(run)
+    frame = read_frame(run)
+    thr = threshold if threshold is not None else float(meta.get("threshold", space.threshold))
+    cmap = miou_map(frame, space, "x", "y")
+    blind = cmap.blind_spots(thr)
+    maps_dir = run / "maps"
+    write_bytes(maps_dir / "miou_x_y.csv", cmap.to_frame().to_csv(index=False).encode())
+    for a, b in extra_map_pairs(space):
+        write_bytes(maps_dir / f"miou_{a}_{b}.csv",
+                    miou_map(frame, space, a, b).to_frame().to_csv(index=False).encode())
+    export(frame, run / "results")
+    retrain = write_retraining_set(run, space, frame, cmap, thr, settings)
+    ok = frame[frame["status"] == "ok"]
+    lowest = None
+    if len(ok):
+        row = ok.loc[ok["car_iou"].astype(float).idxmin()]
+        lowest = {"car_iou": round(float(row["car_iou"]), 4),
+                  "sample": {d: _plain(row[d]) for d in space.dims}}
+    summary = {
+        "run": str(run), "command": meta.get("command"), "algorithm": meta.get("algorithm"),
+        "config": meta.get("config_path"), "model": meta.get("model_name"),
+        "model_hash": meta.get("model_hash"), "samples": int(len(frame)),
+        "computed_this_time": int(meta.get("computed_last", 0)),
+        "ok": int(len(ok)), "invalid": int((frame["status"] == "invalid").sum()),
+        "undefined": int((frame["status"] == "undefined").sum()),
+        "threshold": thr, "cells": int(np.isfinite(cmap.miou).sum()),
+        "blind_spots": len(blind),
+        "blind_spot_cells": [{"x": c.a, "y": c.b, "miou": round(c.miou, 4), "samples": c.samples}
+                             for c in blind],
+        "lowest": lowest, "elapsed_s": meta.get("elapsed_s"),
+        "retraining_samples": retrain,
+        "mean_car_iou": None if not len(ok) else round(float(ok["car_iou"].mean()), 4),
+    }
+    write_json(run / "summary.json", summary)
+    if report:
+        try:
+            from reports.html import write_report
+            summary["report"] = str(write_report(run))
+        except ImportError:  # reports not installed: the run itself is complete
+            summary["report"] = None
+    return summary
+
+
+def extra_map_pairs(space: Space) -> list[tuple[str, str]]:
+    """Other dim pairs worth a map: every pair of dims that vary, besides (x, y)."""
+    varying = [n for n, d in space.dims.items() if len(d.grid()) > 1 and n != "background"]
+    pairs = []
+    for i, a in enumerate(varying):
+        for b in varying[i + 1:]:
+            if (a, b) != ("x", "y"):
+                pairs.append((a, b))
+    return pairs
+
+
+def write_retraining_set(run: Path, space: Space, frame: pd.DataFrame, cmap: CellMap,
+                         threshold: float, settings: EvalSettings | None) -> int:
+    """Scans of every valid sample in a blind-spot cell, in SqueezeSeg's layout, plus index.csv."""
+    from falsify.maps import snap
+    out = run / "retrain"
+    if out.exists():
+        shutil.rmtree(out)
+    blind = {(c.a, c.b) for c in cmap.blind_spots(threshold)}
+    if not blind or not len(frame):
+        return 0
+    ok = frame[frame["status"] == "ok"].copy()
+    ok["_a"], ok["_b"] = snap(ok["x"], space, "x"), snap(ok["y"], space, "y")
+    chosen = ok[[(a, b) in blind for a, b in zip(ok["_a"], ok["_b"], strict=True)]]
+    if not len(chosen):
+        return 0
+    if settings is None:
+        settings = EvalSettings(space=space)
+    from falsify.pipeline import sample_seed
+    from falsify.scene import Simulator
+    from falsify.sensor import load_sensor
+    sim = Simulator(load_sensor(space.sensor, **settings.sensor_overrides), space.user_cars,
+                    lod=settings.lod)
+    rows = []
+    for _, row in chosen.iterrows():
+        sample = space.make({d: _plain(row[d]) for d in space.dims})
+        scan = sim.scan(sample, rng=np.random.default_rng(sample_seed(space, sample)))
+        name = f"{int(row['eval_index']):06d}.npy"
+        write_npy(out / name, scan.image)
+        rows.append({"file": name, "eval_index": int(row["eval_index"]),
+                     **{d: _plain(row[d]) for d in space.dims},
+                     "car_iou": float(row["car_iou"])})
+    write_bytes(out / "index.csv", pd.DataFrame(rows).to_csv(index=False).encode())
+    return len(rows)
+
+
+def _plain(v):
+    """numpy scalars to Python values, integral floats of integer dims kept as stored."""
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def load_evaluator(run: Path) -> Evaluator:
+    """An evaluator set up as the run was (used by reports and tools)."""
+    meta = read_meta(run)
+    space = load_space(meta["config_path"])
+    return Evaluator(EvalSettings(space=space, model=meta.get("model_path"),
+                                  backend=meta.get("backend", "onnx")))
+
+
+def summary_text(s: dict) -> str:
+    low = s["lowest"]
+    where = "" if low is None else ", ".join(f"{k}={v}" for k, v in low["sample"].items()
+                                             if k in ("x", "y", "yaw", "background",
+                                                      "car_model"))
+    lines = [
+        f"{s['samples']} samples ({s['computed_this_time']} computed now, {s['invalid']} invalid, "
+        f"{s['undefined']} undefined) in {s['elapsed_s']:.1f} s",
+        f"blind spots: {s['blind_spots']} of {s['cells']} cells below mIoU {s['threshold']}",
+        f"lowest car IoU: {'-' if low is None else low['car_iou']} at {where}",
+        f"mean car IoU: {s['mean_car_iou']}",
+        f"retraining set: {s['retraining_samples']} scans in {Path(s['run']) / 'retrain'}",
+    ]
+    if s.get("report"):
+        lines.append(f"report: {s['report']}")
+    return "\n".join(lines)
+
+
+__all__ = ["RunRequest", "execute", "finish", "summary_text", "json"]

@@ -1,0 +1,130 @@
+"""Speed and agreement of the model variants (torch fp32, ORT fp32, ORT int8, ORT fp16)."""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from falsify.errors import FalsifyError
+from models.runner import OnnxSegmenter, Prediction, TorchSegmenter
+from models.spec import spec_path_for
+
+
+def plausible_scans(n: int, H: int = 64, W: int = 512, seed: int = 0) -> np.ndarray:
+    """Random but plausible front-view scans (n,H,W,6): ground plane, side walls, box cars.
+
+    Rows span +2 to -24.9 degrees, columns +45 (left) to -45 degrees, like the KITTI layout.
+    Used for parity tests, calibration and benchmarks; not a substitute for `falsify dataset`.
+    """
+    rng = np.random.default_rng(seed)
+    elev = np.deg2rad(np.linspace(2.0, -24.9, H))[:, None]
+    az = np.deg2rad(45.0 - (np.arange(W) + 0.5) * 90.0 / W)[None, :]
+    d = np.stack(np.broadcast_arrays(np.cos(elev) * np.cos(az), np.cos(elev) * np.sin(az),
+                                     np.sin(elev) + 0 * az), axis=-1)
+    out = np.zeros((n, H, W, 6), np.float32)
+    for k in range(n):
+        h = 1.73 + rng.normal(0, 0.03)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(d[..., 2] < 0, -h / d[..., 2], np.inf)
+            for side in (-1, 1):
+                wy = side * rng.uniform(6, 15)
+                tw = np.where(d[..., 1] * side > 0, wy / d[..., 1], np.inf)
+                tw = np.where(tw * d[..., 2] < 6 - h, tw, np.inf)  # walls 6 m high
+                t = np.minimum(t, tw)
+            label = np.zeros((H, W), np.float32)
+            for _ in range(rng.integers(1, 5)):
+                c = np.array([rng.uniform(5, 30), rng.uniform(-8, 8), -h + 0.8])
+                half = np.array([2.1, 0.9, 0.8]) if rng.random() < 0.5 else np.array(
+                    [0.9, 2.1, 0.8])
+                t1, t2 = (c - half) / d, (c + half) / d
+                tmin = np.nanmax(np.minimum(t1, t2), axis=-1)
+                tmax = np.nanmin(np.maximum(t1, t2), axis=-1)
+                hit = (tmax >= tmin) & (tmin > 0) & (tmin < t)
+                t = np.where(hit, tmin, t)
+                label = np.where(hit, 1.0, label)
+        t = t * (1 + rng.normal(0, 0.002, t.shape))
+        valid = np.isfinite(t) & (t < 80) & (rng.random(t.shape) > 0.02)
+        t = np.where(valid, t, 0.0)
+        xyz = d * t[..., None]
+        out[k, ..., :3] = xyz
+        out[k, ..., 3] = np.where(valid, rng.uniform(0, 0.5, t.shape), 0)
+        out[k, ..., 4] = np.linalg.norm(xyz, axis=-1)
+        out[k, ..., 5] = np.where(valid, label, 0)
+    return out
+
+
+def car_iou(pred: np.ndarray, truth: np.ndarray) -> float:
+    """Pooled car IoU (class 1) over all pixels; nan if neither has a car."""
+    p, t = pred == 1, truth == 1
+    union = int((p | t).sum())
+    return float((p & t).sum() / union) if union else float("nan")
+
+
+def _time(run, scans: np.ndarray, repeats: int) -> tuple[float, Prediction]:
+    pred = run(scans[:1])  # warm-up
+    best = float("inf")
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        pred = run(scans)
+        best = min(best, time.perf_counter() - t0)
+    return best / len(scans), pred
+
+
+def bench_models(scans: np.ndarray, onnx_path: str | Path, pt_path: str | Path | None = None,
+                 repeats: int = 3, threads: int = 2, variants: tuple[str, ...] = (
+                     "torch-fp32", "onnx-fp32", "onnx-int8", "onnx-fp16")) -> list[dict]:
+    """One dict per variant: ms/frame, fps, car IoU vs labels, and agreement with ONNX fp32.
+
+    ``car_iou_diff`` is the variant's car IoU minus ONNX fp32's (against the labels in channel 5);
+    ``car_agreement_iou`` is the car IoU of the variant's predictions against ONNX fp32's.
+    """
+    from models.export import convert_fp16, quantize_int8
+
+    scans = np.asarray(scans, np.float32)
+    if scans.ndim == 3:
+        scans = scans[None]
+    onnx_path = Path(onnx_path)
+    labels = np.where(scans[..., 4] > 0, scans[..., 5], 0).astype(np.uint8)
+    rows: list[dict] = []
+    ref: Prediction | None = None
+    with tempfile.TemporaryDirectory() as tmp:
+        makers = {
+            "onnx-fp32": lambda: OnnxSegmenter(onnx_path, threads),
+            "torch-fp32": lambda: TorchSegmenter(
+                pt_path if pt_path else onnx_path.with_suffix(".pt"), threads,
+                spec_path=spec_path_for(onnx_path)),
+            "onnx-int8": lambda: OnnxSegmenter(
+                quantize_int8(onnx_path, Path(tmp) / "int8.onnx"), threads),
+            "onnx-fp16": lambda: OnnxSegmenter(
+                convert_fp16(onnx_path, Path(tmp) / "fp16.onnx"), threads),
+        }
+        order = ["onnx-fp32"] + [v for v in variants if v != "onnx-fp32"]
+        for name in order:
+            if name not in makers:
+                raise FalsifyError(f"unknown bench variant {name!r}; choose from {list(makers)}")
+            row: dict = {"variant": name}
+            try:
+                seg = makers[name]()
+                sec, pred = _time(seg.predict, scans, repeats)
+            except FalsifyError:
+                raise
+            except Exception as e:  # a variant that does not run here is reported, not fatal
+                row["error"] = f"{type(e).__name__}: {e}"
+                rows.append(row)
+                continue
+            if ref is None:
+                ref = pred
+            iou = car_iou(pred.classes, labels)
+            row.update(
+                ms_per_frame=round(sec * 1e3, 2), fps=round(1.0 / sec, 2), frames=len(scans),
+                threads=threads, car_iou=iou,
+                car_iou_diff=iou - car_iou(ref.classes, labels),
+                car_agreement_iou=car_iou(pred.classes, ref.classes),
+                pixel_agreement=float((pred.classes == ref.classes).mean()),
+                model_hash=seg.model_hash[:12])
+            if name in variants:
+                rows.append(row)
+    return rows

@@ -1,0 +1,136 @@
+"""ONNX export of SqueezeSeg (+ its spec JSON) and int8 / fp16 variants for ONNX Runtime."""
+
+from __future__ import annotations
+
+import copy
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from falsify.errors import FalsifyError
+from models.spec import ModelSpec, default_spec, load_spec, normalise, save_spec, spec_path_for
+
+if TYPE_CHECKING:
+    from models.squeezeseg import SqueezeSeg
+
+OPSET = 17
+
+
+def export_onnx(model: SqueezeSeg, path: str | Path, H: int = 64, W: int = 512,
+                name: str | None = None, **extra: Any) -> tuple[Path, ModelSpec]:
+    """Export ``model`` (eval mode, batch dynamic) to ``path`` and write ``<path>.json``.
+
+    Uses the legacy TorchScript exporter (opset 17): same weights give the same bytes.
+    """
+    import torch
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    m = copy.deepcopy(model).float().to(memory_format=torch.contiguous_format).eval()
+    spec = default_spec(name or path.stem, m.channels, H, W, m.crf_iterations, **extra)
+    c = len(spec.channels)
+    args: tuple[torch.Tensor, ...] = (torch.zeros(1, c, H, W),)
+    names = [spec.input_name]
+    if m.crf_iterations:
+        args += (torch.zeros(1, 3, H, W), torch.ones(1, 1, H, W))
+        names += [spec.xyz_input, spec.mask_input]
+    dyn = {n: {0: "batch"} for n in [*names, spec.output_name]}
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(m, args, str(path), dynamo=False, opset_version=OPSET,
+                          input_names=names, output_names=[spec.output_name],
+                          dynamic_axes=dyn, do_constant_folding=True)
+    save_spec(spec, spec_path_for(path))
+    return path, spec
+
+
+class _ScanReader:
+    """Calibration data reader for static quantisation: one scan per call."""
+
+    def __init__(self, spec: ModelSpec, scans: np.ndarray) -> None:
+        self.feeds = []
+        for i in range(len(scans)):
+            x, xyz, mask = normalise(scans[i : i + 1], spec.channels, spec.mean, spec.std)
+            feed = {spec.input_name: x}
+            if spec.xyz_input:
+                feed[spec.xyz_input] = xyz
+            if spec.mask_input:
+                feed[spec.mask_input] = mask
+            self.feeds.append(feed)
+        self.it = iter(self.feeds)
+
+    def get_next(self) -> dict[str, np.ndarray] | None:
+        return next(self.it, None)
+
+    def rewind(self) -> None:
+        self.it = iter(self.feeds)
+
+
+def _crf_nodes(onnx_path: Path) -> list[str]:
+    """Names of the graph nodes that belong to the CRF (kept in fp32 when quantising)."""
+    import onnx
+
+    g = onnx.load(str(onnx_path)).graph
+    return [n.name for n in g.node if "crf" in n.name.lower()
+            or any("crf" in i for i in n.input)]
+
+
+def quantize_int8(onnx_in: str | Path, onnx_out: str | Path, scans: np.ndarray | None = None,
+                  method: str = "static") -> Path:
+    """Write an int8 model (+ a copy of the spec). ``static``: QDQ, calibrated on ``scans``
+    (default: a few synthetic plausible scans); ``dynamic``: weights-only ConvInteger.
+
+    The CRF stays fp32. Measured on the 2-core EPYC: see models/README.md.
+    """
+    from onnxruntime.quantization import (
+        CalibrationMethod,
+        QuantFormat,
+        QuantType,
+        quantize_dynamic,
+        quantize_static,
+    )
+
+    onnx_in, onnx_out = Path(onnx_in), Path(onnx_out)
+    spec = load_spec(spec_path_for(onnx_in))
+    if not onnx_in.is_file():
+        raise FalsifyError(f"model file {onnx_in} not found")
+    exclude = _crf_nodes(onnx_in)
+    if method == "dynamic":
+        quantize_dynamic(str(onnx_in), str(onnx_out), weight_type=QuantType.QInt8,
+                         nodes_to_exclude=exclude, op_types_to_quantize=["Conv"])
+    elif method == "static":
+        if scans is None:
+            from models.bench import plausible_scans
+
+            scans = plausible_scans(8, spec.height, spec.width, seed=123)
+        quantize_static(str(onnx_in), str(onnx_out), _ScanReader(spec, scans),
+                        quant_format=QuantFormat.QDQ, activation_type=QuantType.QUInt8,
+                        weight_type=QuantType.QInt8, per_channel=True,
+                        calibrate_method=CalibrationMethod.MinMax,
+                        nodes_to_exclude=exclude, op_types_to_quantize=["Conv", "MaxPool",
+                                                                       "Concat", "Add"])
+    else:
+        raise FalsifyError(f"quantisation method must be 'static' or 'dynamic', got {method!r}")
+    save_spec(spec, spec_path_for(onnx_out))
+    return onnx_out
+
+
+def convert_fp16(onnx_in: str | Path, onnx_out: str | Path,
+                 keep_fp32: Sequence[str] = ()) -> Path:
+    """fp16 weights and activations with fp32 inputs/outputs (keep_io_types); spec copied.
+
+    No speedup on this CPU (ORT has few fp16 CPU kernels); kept for agreement checks.
+    """
+    import onnx
+    from onnxruntime.transformers.float16 import convert_float_to_float16
+
+    onnx_in, onnx_out = Path(onnx_in), Path(onnx_out)
+    model = onnx.load(str(onnx_in))
+    m16 = convert_float_to_float16(model, keep_io_types=True,
+                                   node_block_list=list(keep_fp32) or None)
+    onnx.save(m16, str(onnx_out))
+    save_spec(load_spec(spec_path_for(onnx_in)), spec_path_for(onnx_out))
+    return onnx_out

@@ -1,0 +1,247 @@
+"""Segmentation runners: ONNX Runtime (default, no torch needed) and torch, one interface.
+
+``load_segmenter()`` checks the model against its spec JSON when it is created, so a wrong model
+fails before any sample runs. Predictions are in our class ids: 0 unknown, 1 car, 2 pedestrian,
+3 cyclist; invalid pixels (range == 0) are always 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from falsify.errors import FalsifyError
+from models.spec import CLASS_NAMES, ModelSpec, load_spec, model_hash, normalise, spec_path_for
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+BUNDLED_ONNX = WEIGHTS_DIR / "squeezeseg.onnx"
+BUNDLED_PT = WEIGHTS_DIR / "squeezeseg.pt"
+MAX_BATCH = 8
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Per-pixel classes (B,H,W) uint8 in our ids and probabilities (B,H,W,4) float32."""
+
+    classes: np.ndarray
+    probabilities: np.ndarray
+
+
+class Segmenter(Protocol):
+    """What the rest of falsify calls: a spec, a content hash and ``predict``."""
+
+    spec: ModelSpec
+    model_hash: str
+
+    def predict(self, scans: np.ndarray) -> Prediction: ...
+
+
+def short_hash(h: str) -> str:
+    """The 12-character form of a model hash shown to users."""
+    return h[:12]
+
+
+def check_scans(scans: np.ndarray, spec: ModelSpec, source: Path) -> np.ndarray:
+    """(H,W,C) or (B,H,W,C) with C >= 5 -> float32 (B,H,W,C); FalsifyError on shape or NaN/inf."""
+    a = np.asarray(scans)
+    if a.ndim == 3:
+        a = a[None]
+    if a.ndim != 4 or a.shape[1:3] != (spec.height, spec.width) or a.shape[3] < 5:
+        raise FalsifyError(
+            f"model {source} expects scans of shape (B, {spec.height}, {spec.width}, 6) "
+            f"(x, y, z, intensity, range, label), got {tuple(np.shape(scans))}")
+    if not np.issubdtype(a.dtype, np.number):
+        raise FalsifyError(f"model {source}: scans must be numeric, got dtype {a.dtype}")
+    a = a.astype(np.float32, copy=False)
+    if not np.isfinite(a[..., :5]).all():
+        bad = np.argwhere(~np.isfinite(a[..., :5]))[0]
+        raise FalsifyError(f"model {source}: scan input holds NaN or inf (first at batch, row, "
+                           f"col, channel = {tuple(int(i) for i in bad)}); refusing to score it")
+    return a
+
+
+def to_prediction(out: np.ndarray, spec: ModelSpec, valid: np.ndarray) -> Prediction:
+    """Model output (B,K,H,W) -> Prediction in our 4 classes; unmapped outputs count as unknown."""
+    out = out.astype(np.float32, copy=False)
+    if spec.output_kind == "logits":
+        e = np.exp(out - out.max(axis=1, keepdims=True))
+        p = e / e.sum(axis=1, keepdims=True)
+    else:
+        p = out
+    ours = np.zeros((p.shape[0], len(CLASS_NAMES), *p.shape[2:]), np.float32)
+    used = set()
+    for j, name in enumerate(CLASS_NAMES):
+        for i in spec.classes.get(name, ()):
+            ours[:, j] += p[:, i]
+            used.add(i)
+    for i in range(p.shape[1]):
+        if i not in used:
+            ours[:, 0] += p[:, i]
+    probs = np.ascontiguousarray(np.moveaxis(ours, 1, -1))
+    classes = probs.argmax(axis=-1).astype(np.uint8)
+    invalid = ~valid
+    classes[invalid] = 0
+    probs[invalid] = np.eye(len(CLASS_NAMES), dtype=np.float32)[0]
+    return Prediction(classes=classes, probabilities=probs)
+
+
+def _feeds(spec: ModelSpec, scans: np.ndarray) -> dict[str, np.ndarray]:
+    x, xyz, mask = normalise(scans, spec.channels, spec.mean, spec.std)
+    feeds = {spec.input_name: x}
+    if spec.xyz_input:
+        feeds[spec.xyz_input] = xyz
+    if spec.mask_input:
+        feeds[spec.mask_input] = mask
+    return feeds
+
+
+class OnnxSegmenter:
+    """ONNX Runtime on the CPU; the CRF (if any) is part of the graph."""
+
+    def __init__(self, path: str | Path, threads: int | None = None,
+                 spec_path: str | Path | None = None) -> None:
+        self.path = Path(path)
+        spec_path = spec_path_for(self.path) if spec_path is None else Path(spec_path)
+        if not self.path.is_file():
+            raise FalsifyError(f"model file {self.path} not found")
+        self.spec = load_spec(spec_path)
+        self.model_hash = model_hash(self.path, spec_path)
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
+        if threads:
+            opts.intra_op_num_threads = int(threads)
+            opts.inter_op_num_threads = 1
+        opts.log_severity_level = 3
+        try:
+            self.session = ort.InferenceSession(str(self.path), opts,
+                                                providers=["CPUExecutionProvider"])
+        except Exception as e:  # onnxruntime raises its own exception types
+            raise FalsifyError(f"cannot load ONNX model {self.path}: {e}") from e
+        self._check()
+
+    def _check(self) -> None:
+        """Compare the graph's inputs and outputs with the spec; FalsifyError on any mismatch."""
+        s, where = self.spec, f"model {self.path} does not match its spec"
+        inputs = {i.name: i.shape for i in self.session.get_inputs()}
+        want = {s.input_name: len(s.channels)}
+        if s.xyz_input:
+            want[s.xyz_input] = 3
+        if s.mask_input:
+            want[s.mask_input] = 1
+        missing = [n for n in want if n not in inputs]
+        extra = [n for n in inputs if n not in want]
+        if missing or extra:
+            raise FalsifyError(f"{where}: spec inputs {list(want)}, model inputs {list(inputs)}")
+        for name, c in want.items():
+            self._check_dims(where, f"input '{name}'", inputs[name], c)
+        outputs = {o.name: o.shape for o in self.session.get_outputs()}
+        if s.output_name not in outputs:
+            raise FalsifyError(f"{where}: output '{s.output_name}' not in {list(outputs)}")
+        shape = outputs[s.output_name]
+        if not all(isinstance(d, int) for d in shape[1:]):  # dynamic: run one zero frame
+            zero = np.zeros((1, s.height, s.width, 6), np.float32)
+            shape = self.session.run([s.output_name], _feeds(s, zero))[0].shape
+        self._check_dims(where, f"output '{s.output_name}'", shape, s.num_classes,
+                         what="classes")
+
+    def _check_dims(self, where: str, label: str, shape: Any, c: int,
+                    what: str = "channels") -> None:
+        s = self.spec
+        if len(shape) != 4:
+            raise FalsifyError(f"{where}: {label} has rank {len(shape)}, expected 4 (NCHW)")
+        for got, exp, key in ((shape[1], c, what), (shape[2], s.height, "height"),
+                              (shape[3], s.width, "width")):
+            if isinstance(got, int) and got != exp:
+                raise FalsifyError(f"{where}: {label} has {got} {key}, spec says {exp}")
+
+    def run_raw(self, scans: np.ndarray) -> np.ndarray:
+        """Raw model output (B,K,H,W) for checked scans."""
+        a = check_scans(scans, self.spec, self.path)
+        outs = [self.session.run([self.spec.output_name], _feeds(self.spec, a[i:i + MAX_BATCH]))[0]
+                for i in range(0, len(a), MAX_BATCH)]
+        return np.concatenate(outs)
+
+    def predict(self, scans: np.ndarray) -> Prediction:
+        a = check_scans(scans, self.spec, self.path)
+        return to_prediction(self.run_raw(a), self.spec, a[..., 4] > 0)
+
+
+class TorchSegmenter:
+    """PyTorch eager fp32 channels_last on the CPU from a state dict (weights_only load)."""
+
+    def __init__(self, path: str | Path, threads: int | None = None,
+                 spec_path: str | Path | None = None) -> None:
+        self.path = Path(path)
+        spec_path = spec_path_for(self.path) if spec_path is None else Path(spec_path)
+        if not self.path.is_file():
+            raise FalsifyError(f"model file {self.path} not found")
+        self.spec = load_spec(spec_path)
+        self.model_hash = model_hash(self.path, spec_path)
+        if self.spec.architecture != "squeezeseg":
+            raise FalsifyError(f"torch backend builds SqueezeSeg only; {spec_path} says "
+                               f"architecture {self.spec.architecture!r}")
+        import torch
+
+        from models.squeezeseg import SqueezeSeg
+
+        if threads:
+            torch.set_num_threads(int(threads))
+        self.torch = torch
+        self.model = SqueezeSeg([c for c in self.spec.channels if c != "mask"],
+                                crf_iterations=self.spec.crf_iterations,
+                                num_classes=self.spec.num_classes)
+        if self.spec.channels[-1] != "mask":
+            raise FalsifyError(f"model spec {spec_path}: key 'channels' must end with 'mask' "
+                               "for the torch SqueezeSeg")
+        try:
+            state = torch.load(str(self.path), map_location="cpu", weights_only=True)
+            self.model.load_state_dict(state)
+        except Exception as e:
+            raise FalsifyError(f"cannot load torch weights {self.path}: {e}") from e
+        # channels_last: about 2x faster than channels-first eager on this CPU (measured)
+        self.model = self.model.to(memory_format=torch.channels_last).eval()
+
+    def run_raw(self, scans: np.ndarray) -> np.ndarray:
+        """Raw model output (B,K,H,W) for checked scans."""
+        a = check_scans(scans, self.spec, self.path)
+        outs = []
+        with self.torch.inference_mode():
+            for i in range(0, len(a), MAX_BATCH):
+                f = _feeds(self.spec, a[i:i + MAX_BATCH])
+                t = {k: self.torch.from_numpy(v) for k, v in f.items()}
+                x = t[self.spec.input_name].contiguous(memory_format=self.torch.channels_last)
+                y = self.model(x, t.get(self.spec.xyz_input or ""),
+                               t.get(self.spec.mask_input or ""))
+                outs.append(y.float().numpy())
+        return np.concatenate(outs)
+
+    def predict(self, scans: np.ndarray) -> Prediction:
+        a = check_scans(scans, self.spec, self.path)
+        return to_prediction(self.run_raw(a), self.spec, a[..., 4] > 0)
+
+
+def load_segmenter(path: str | Path | None = None, backend: str = "onnx",
+                   threads: int | None = None) -> Segmenter:
+    """Load a model: ``path=None`` is the bundled models/weights/squeezeseg.onnx (or .pt).
+
+    backend "onnx" reads ``<path>`` (.onnx) + ``<path>.json``; "torch" reads the .pt state dict
+    beside it (a .onnx path is mapped to the .pt of the same stem).
+    """
+    if backend == "onnx":
+        p = BUNDLED_ONNX if path is None else Path(path)
+        if p.suffix == ".pt":
+            p = p.with_suffix(".onnx")
+        if path is None and not p.is_file():
+            raise FalsifyError(f"bundled model {p} not found; train one with "
+                               "`python -m models.train --data DIR --out models/weights`")
+        return OnnxSegmenter(p, threads)
+    if backend == "torch":
+        p = BUNDLED_PT if path is None else Path(path)
+        if p.suffix == ".onnx":
+            p = p.with_suffix(".pt")
+        return TorchSegmenter(p, threads)
+    raise FalsifyError(f"unknown model backend {backend!r}; choose 'onnx' or 'torch'")

@@ -1,0 +1,220 @@
+"""Model spec: the JSON file beside a model (``<model>.onnx`` -> ``<model>.json``).
+
+It says how to turn a scan (H, W, 6: x, y, z, intensity, range, label) into the model's input
+tensors and how to read its output, so a runner can check a model before any sample runs.
+Importing this module needs numpy only (no torch).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from falsify.errors import FalsifyError
+
+ALL_CHANNELS = ("x", "y", "z", "intensity", "range")
+DEFAULT_CHANNELS = ("x", "y", "z", "range")  # the paper leaves intensity out for synthetic data
+SCAN_INDEX = {"x": 0, "y": 1, "z": 2, "intensity": 3, "range": 4}
+INPUT_MEAN = (10.88, 0.23, -1.04, 0.21, 12.12)
+INPUT_STD = (11.47, 6.91, 0.86, 0.16, 12.32)
+CLASS_NAMES = ("unknown", "car", "pedestrian", "cyclist")
+OUTPUT_KINDS = ("logits", "probabilities")
+SPEC_VERSION = 1
+
+NORMALISATION_NOTE = (
+    "each channel c except 'mask': (scan[..., c] - mean[c]) / std[c], then multiplied by the "
+    "valid mask (range > 0); 'mask' is the valid mask itself (mean 0, std 1). Tensor 'xyz' "
+    "(if named) is the raw x, y, z of the scan (zero where invalid), 'mask' (if named) is "
+    "(B, 1, H, W) float32."
+)
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """What a runner needs to feed a segmentation model and read its answer."""
+
+    name: str
+    channels: tuple[str, ...]
+    mean: tuple[float, ...]
+    std: tuple[float, ...]
+    height: int
+    width: int
+    input_name: str
+    output_name: str
+    output_kind: str
+    num_classes: int
+    classes: Mapping[str, tuple[int, ...]]
+    layout: str = "NCHW"
+    xyz_input: str | None = None
+    mask_input: str | None = None
+    architecture: str = "squeezeseg"
+    crf_iterations: int = 0
+    notes: str = NORMALISATION_NOTE
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> str:
+        """Deterministic JSON text (sorted keys) for the spec file."""
+        d = asdict(self)
+        d["version"] = SPEC_VERSION
+        d["classes"] = {k: list(v) if len(v) > 1 else v[0] for k, v in self.classes.items()}
+        d["channels"], d["mean"], d["std"] = list(self.channels), list(self.mean), list(self.std)
+        d["extra"] = dict(self.extra)
+        return json.dumps(d, indent=2, sort_keys=True) + "\n"
+
+
+def default_spec(name: str = "squeezeseg", channels: Sequence[str] = DEFAULT_CHANNELS,
+                 height: int = 64, width: int = 512, crf_iterations: int = 3,
+                 **extra: Any) -> ModelSpec:
+    """The spec of our own SqueezeSeg export: channels + mask, raw xyz and mask for the CRF."""
+    mean = [INPUT_MEAN[SCAN_INDEX[c]] for c in channels] + [0.0]
+    std = [INPUT_STD[SCAN_INDEX[c]] for c in channels] + [1.0]
+    return ModelSpec(
+        name=name, channels=(*channels, "mask"), mean=tuple(mean), std=tuple(std),
+        height=height, width=width, input_name="input", output_name="logits",
+        output_kind="logits", num_classes=len(CLASS_NAMES),
+        classes={c: (i,) for i, c in enumerate(CLASS_NAMES)},
+        xyz_input="xyz" if crf_iterations else None,
+        mask_input="mask" if crf_iterations else None,
+        crf_iterations=crf_iterations, extra=extra,
+    )
+
+
+def spec_path_for(model_path: str | Path) -> Path:
+    """``model.onnx`` (or ``.pt``) -> ``model.json``."""
+    return Path(model_path).with_suffix(".json")
+
+
+def save_spec(spec: ModelSpec, path: str | Path) -> Path:
+    """Write the spec JSON; returns the path."""
+    path = Path(path)
+    path.write_text(spec.to_json(), encoding="utf-8")
+    return path
+
+
+def _get(d: Mapping[str, Any], key: str, path: Path, kind: type | tuple[type, ...],
+         default: Any = ..., nullable: bool = False) -> Any:
+    if key not in d:
+        if default is ...:
+            raise FalsifyError(f"model spec {path}: missing key '{key}'")
+        return default
+    v = d[key]
+    if v is None and nullable:
+        return None
+    if not isinstance(v, kind) or isinstance(v, bool) and kind is not bool:
+        raise FalsifyError(f"model spec {path}: key '{key}' has invalid value {v!r}")
+    return v
+
+
+def load_spec(path: str | Path) -> ModelSpec:
+    """Read and validate a spec JSON; FalsifyError names the file and the key on any problem."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise FalsifyError(
+            f"model spec {path} not found (a model needs <model>.json beside it)") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise FalsifyError(f"model spec {path}: not valid JSON ({e})") from e
+    if not isinstance(d, dict):
+        raise FalsifyError(f"model spec {path}: top level must be a JSON object")
+
+    def bad(key: str, why: str) -> FalsifyError:
+        return FalsifyError(f"model spec {path}: key '{key}' {why}")
+
+    channels = _get(d, "channels", path, list)
+    allowed = (*ALL_CHANNELS, "mask")
+    if not channels or any(c not in allowed for c in channels) or len(set(channels)) != len(
+            channels):
+        raise bad("channels", f"must be distinct names from {list(allowed)}, got {channels}")
+    stats = {}
+    for key in ("mean", "std"):
+        v = _get(d, key, path, list)
+        if len(v) != len(channels) or not all(
+                isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+                for x in v):
+            raise bad(key, f"must be {len(channels)} finite numbers (one per channel), got {v}")
+        stats[key] = tuple(float(x) for x in v)
+    if any(s <= 0 for s in stats["std"]):
+        raise bad("std", "must be > 0")
+    height = _get(d, "height", path, int)
+    width = _get(d, "width", path, int)
+    for key, v in (("height", height), ("width", width)):
+        if v <= 0:
+            raise bad(key, f"must be > 0, got {v}")
+    layout = _get(d, "layout", path, str, "NCHW")
+    if layout != "NCHW":
+        raise bad("layout", f"must be 'NCHW', got {layout!r}")
+    kind = _get(d, "output_kind", path, str)
+    if kind not in OUTPUT_KINDS:
+        raise bad("output_kind", f"must be one of {list(OUTPUT_KINDS)}, got {kind!r}")
+    num_classes = _get(d, "num_classes", path, int)
+    if num_classes < 1:
+        raise bad("num_classes", f"must be >= 1, got {num_classes}")
+    raw_classes = _get(d, "classes", path, dict)
+    classes: dict[str, tuple[int, ...]] = {}
+    for name, idx in raw_classes.items():
+        if name not in CLASS_NAMES:
+            raise bad("classes", f"has unknown class {name!r}; allowed {list(CLASS_NAMES)}")
+        ids = idx if isinstance(idx, list) else [idx]
+        if not ids or not all(isinstance(i, int) and not isinstance(i, bool)
+                              and 0 <= i < num_classes for i in ids):
+            raise bad("classes", f"'{name}' must map to output indices in [0, {num_classes})")
+        classes[name] = tuple(ids)
+    if "car" not in classes:
+        raise bad("classes", "must map at least 'car'")
+    used = [i for ids in classes.values() for i in ids]
+    if len(used) != len(set(used)):
+        raise bad("classes", "maps one output index to two classes")
+    crf = _get(d, "crf_iterations", path, int, 0)
+    if not 0 <= crf <= 3:
+        raise bad("crf_iterations", f"must be 0..3, got {crf}")
+    return ModelSpec(
+        name=_get(d, "name", path, str),
+        channels=tuple(channels), mean=stats["mean"], std=stats["std"],
+        height=height, width=width,
+        input_name=_get(d, "input_name", path, str),
+        output_name=_get(d, "output_name", path, str),
+        output_kind=kind, num_classes=num_classes, classes=classes, layout=layout,
+        xyz_input=_get(d, "xyz_input", path, str, None, nullable=True),
+        mask_input=_get(d, "mask_input", path, str, None, nullable=True),
+        architecture=_get(d, "architecture", path, str, "squeezeseg"),
+        crf_iterations=crf,
+        notes=_get(d, "notes", path, str, NORMALISATION_NOTE),
+        extra=_get(d, "extra", path, dict, {}),
+    )
+
+
+def model_hash(path: str | Path, spec_path: str | Path | None = None) -> str:
+    """sha256 (hex) of the model bytes followed by the spec bytes; show the first 12 chars."""
+    path = Path(path)
+    spec_path = spec_path_for(path) if spec_path is None else Path(spec_path)
+    h = hashlib.sha256()
+    for p in (path, spec_path):
+        try:
+            h.update(p.read_bytes())
+        except OSError as e:
+            raise FalsifyError(f"cannot read model file {p}: {e.strerror or e}") from e
+    return h.hexdigest()
+
+
+def normalise(scans: np.ndarray, channels: Sequence[str], mean: Sequence[float],
+              std: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Scans (B,H,W,>=5) -> input (B,C,H,W), raw xyz (B,3,H,W), mask (B,1,H,W), all float32."""
+    mask = (scans[..., 4] > 0).astype(np.float32)  # (B,H,W)
+    planes = []
+    for c, m, s in zip(channels, mean, std, strict=True):
+        if c == "mask":
+            planes.append(mask)
+        else:
+            planes.append((scans[..., SCAN_INDEX[c]] - np.float32(m)) / np.float32(s) * mask)
+    x = np.stack(planes, axis=1).astype(np.float32, copy=False)
+    xyz = np.ascontiguousarray(np.moveaxis(scans[..., :3], -1, 1) * mask[:, None],
+                               dtype=np.float32)
+    return np.ascontiguousarray(x), xyz, np.ascontiguousarray(mask[:, None])

@@ -1,0 +1,74 @@
+"""Training: a tiny run writes checkpoints, logs and models; resume gives the same weights."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from falsify.errors import FalsifyError  # noqa: E402
+from models.bench import plausible_scans  # noqa: E402
+from models.train import flip, main  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    d = tmp_path_factory.mktemp("scans")
+    # 64 x 64 crops of plausible scans (the centre columns, where the cars are)
+    for i, s in enumerate(plausible_scans(4, 64, 512, seed=11)):
+        np.save(d / f"scan_{i}.npy", np.ascontiguousarray(s[:, 224:288]))
+    return d
+
+
+ARGS = ["--batch", "2", "--seed", "3", "--precision", "fp32", "--crf-iterations", "1"]
+
+
+def _weights(out):
+    return torch.load(out / "squeezeseg.pt", weights_only=True)
+
+
+def test_train_writes_outputs_and_resume_is_exact(data, tmp_path):
+    full = tmp_path / "full"
+    assert main(["--data", str(data), "--out", str(full), "--epochs", "2",
+                 "--val-data", str(data), *ARGS]) == 0
+    for name in ("checkpoint.pt", "train_log.jsonl", "squeezeseg.pt", "squeezeseg.onnx",
+                 "squeezeseg.json"):
+        assert (full / name).is_file(), name
+    log = [json.loads(line) for line in (full / "train_log.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in log] == [1, 2]
+    assert all(np.isfinite(r["loss"]) and 0 <= r["val_car_iou"] <= 1 for r in log)
+    spec = json.loads((full / "squeezeseg.json").read_text())
+    assert (spec["height"], spec["width"], spec["crf_iterations"]) == (64, 64, 1)
+
+    # interrupted after 3 of the 4 steps (mid epoch 2), then resumed
+    part = tmp_path / "part"
+    assert main(["--data", str(data), "--out", str(part), "--epochs", "2", "--max-steps", "3",
+                 "--no-export", *ARGS]) == 0
+    assert not (part / "squeezeseg.pt").exists()
+    ck = torch.load(part / "checkpoint.pt", weights_only=True)
+    assert (ck["epoch"], ck["step"]) == (1, 1)
+    assert main(["--data", str(data), "--out", str(part), "--epochs", "2", "--resume",
+                 "--no-export", *ARGS]) == 0
+    a, b = _weights(full), _weights(part)
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
+def test_flip_negates_y_and_reverses_columns():
+    s = plausible_scans(1, 8, 16, seed=0)[0]
+    f = flip(s)
+    np.testing.assert_array_equal(f[:, 0, 1], -s[:, -1, 1])
+    np.testing.assert_array_equal(f[:, 0, [0, 2, 3, 4, 5]], s[:, -1, [0, 2, 3, 4, 5]])
+
+
+def test_bad_data_dir_is_a_clear_error(tmp_path, capsys):
+    assert main(["--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "no *.npy scans" in capsys.readouterr().err
+    with pytest.raises(FalsifyError):
+        from models.train import TrainConfig, train
+
+        train(TrainConfig(data=str(tmp_path), out=str(tmp_path / "o")))
