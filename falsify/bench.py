@@ -212,3 +212,118 @@ def _subdivide(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     f2 = np.concatenate([np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1),
                          np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1)]).astype(np.int32)
     return v2, f2, np.tile(np.arange(m), 4)
+
+
+def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
+                   model: str | None = None, batch: int = 8) -> dict:
+    """End-to-end samples/s through the real driver and store, and the pipeline's overhead over
+    the network's own inference time on the same scans in the same process."""
+    import tempfile
+
+    from falsify.pipeline import Driver, EvalSettings, Evaluator, Progress
+    from falsify.store import Store
+
+    space = load_space(config)
+    grid = space.grid()
+    if samples <= 0:
+        raise FalsifyError(f"--samples: {samples} must be > 0")
+    picked = [grid[i % len(grid)] for i in range(samples)]
+
+    # 1. In one process with 2 inference threads: the pipeline against inference alone.
+    ev = Evaluator(EvalSettings(space=space, model=model, threads=2))
+    _warm(ev.sim, picked)
+    ev.evaluate(picked[:batch])
+    t0 = time.perf_counter()
+    for i in range(0, samples, batch):
+        ev.evaluate(picked[i:i + batch])
+    t_pipeline = time.perf_counter() - t0
+    images = [ev.scan(s).image for s in picked]
+    t0 = time.perf_counter()
+    for i in range(0, samples, batch):
+        ev.model.predict(np.stack(images[i:i + batch]))
+    t_infer = time.perf_counter() - t0
+
+    # 2. Through the driver, the store and `workers` processes, as `falsify grid` runs.
+    with tempfile.TemporaryDirectory() as tmp:
+        store = Store(Path(tmp) / "results.sqlite", space)
+        settings = EvalSettings(space=space, model=model, threads=1 if workers > 1 else 2)
+        with Driver(settings, store, workers=workers, batch=batch,
+                    progress=Progress(None, quiet=True)) as driver:
+            driver.evaluate(picked[: workers * batch])  # start-up and warm caches
+            rest = picked[workers * batch:]
+            t0 = time.perf_counter()
+            driver.evaluate(rest)
+            t_driver = time.perf_counter() - t0
+        store.close()
+    return {
+        "benchmark": "pipeline", "config": str(config), "samples": samples,
+        "model": ev.model.spec.name, "model_hash": ev.model_hash[:12], "machine": machine(),
+        "batch": batch,
+        "one_process": {
+            "samples_per_s": round(samples / t_pipeline, 2),
+            "inference_only_samples_per_s": round(samples / t_infer, 2),
+            "ms_per_sample": round(t_pipeline / samples * 1e3, 2),
+            "inference_ms_per_sample": round(t_infer / samples * 1e3, 2),
+            "overhead": round(t_pipeline / t_infer - 1.0, 4),
+        },
+        f"{workers}_workers": {"samples_per_s": round(len(rest) / t_driver, 2),
+                               "samples": len(rest)},
+    }
+
+
+SEARCH_ALGORITHMS = ("random", "sobol", "GN_DIRECT_L", "GN_CRS2_LM", "LN_BOBYQA")
+
+
+def bench_search(config: str | Path, out: str | Path, algorithms=SEARCH_ALGORITHMS,
+                 fraction: float = 0.2, workers: int = 2, model: str | None = None,
+                 tolerance: float = 0.02) -> dict:
+    """Lowest IoU against evaluations for each search algorithm, against a dense grid.
+
+    Every run is an ordinary run directory under `out` (resumable), so an interrupted benchmark
+    continues where it stopped."""
+    import pandas as pd
+
+    from falsify.fileio import write_bytes
+    from falsify.pipeline import lowest_curve
+    from falsify.runs import RunRequest, execute
+    from falsify.store import read_frame, read_meta
+
+    out = Path(out)
+    space = load_space(config)
+    n_grid = len(space.grid())
+    budget = max(1, int(n_grid * fraction))
+
+    def run(name: str, algorithm: str, b: int | None, command: str) -> Path:
+        d = out / name
+        req = RunRequest(config=Path(config), out=d, command=command, algorithm=algorithm,
+                         budget=b, model=model, workers=workers, quiet=True, report=False,
+                         resume=(d / "results.sqlite").exists())
+        execute(req)
+        return d
+
+    dense = run("grid", "grid", None, "grid")
+    g = read_frame(dense)
+    grid_min = float(g.loc[g["status"] == "ok", "car_iou"].min())
+    target = grid_min + tolerance
+    rows, curves = [], {}
+    for algo in algorithms:
+        d = run(algo, algo, budget, "search")
+        curve = [None if v is None else float(v) for v in read_meta(d)["curve"]]
+        low = lowest_curve(curve)
+        curves[algo] = low
+        hit = next((i + 1 for i, v in enumerate(low) if v is not None and v <= target), None)
+        frame = read_frame(d)
+        rows.append({"algorithm": algo, "budget": budget, "evaluations": len(curve),
+                     "distinct_samples": int(len(frame)),
+                     "lowest": None if low[-1] is None else round(low[-1], 4),
+                     "evaluations_to_target": hit,
+                     "fraction_of_grid_to_target": None if hit is None else round(hit / n_grid, 4),
+                     "reached": hit is not None})
+    longest = max(len(c) for c in curves.values())
+    table = pd.DataFrame({a: c + [c[-1]] * (longest - len(c)) for a, c in curves.items()})
+    table.insert(0, "evaluation", range(1, longest + 1))
+    write_bytes(out / "search_curves.csv", table.to_csv(index=False).encode())
+    return {"benchmark": "search", "config": str(config), "grid_samples": n_grid,
+            "grid_lowest": round(grid_min, 4), "target": round(target, 4),
+            "budget": budget, "fraction": fraction, "algorithms": rows,
+            "curves_csv": str(out / "search_curves.csv"), "machine": machine()}

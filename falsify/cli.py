@@ -218,6 +218,8 @@ def _run_options(p: argparse.ArgumentParser) -> None:
 def cmd_bench(args) -> int:
     from falsify import bench
 
+    if args.what == "search" and Path(args.config) == DEFAULT_CONFIG:
+        args.config = str(ROOT / "configs" / "yaw.toml")
     if args.what == "model":
         import numpy as np
 
@@ -233,10 +235,27 @@ def cmd_bench(args) -> int:
         onnx = Path(args.model) if args.model else BUNDLED_ONNX
         rows = bench_models(np.asarray(scans), onnx, repeats=args.repeats)
         result = {"benchmark": "model", "model": str(onnx), "frames": len(scans),
-                  "machine": __import__("falsify.bench").bench.machine(), "variants": rows}
+                  "machine": bench.machine(), "variants": rows}
         text = "\n".join(f"{r['variant']:11s} {r['ms_per_frame']:8.1f} ms/frame "
                          f"{r['fps']:6.1f} fps  car IoU diff {r['car_iou_diff']:+.4f}"
                          for r in rows)
+    elif args.what == "pipeline":
+        result = bench.bench_pipeline(args.config, samples=args.samples, workers=args.workers,
+                                      model=args.model)
+        one = result["one_process"]
+        text = (f"pipeline: {result[f'{args.workers}_workers']['samples_per_s']} samples/s on "
+                f"{args.workers} workers; one process {one['samples_per_s']} samples/s against "
+                f"{one['inference_only_samples_per_s']} for inference alone (overhead "
+                f"{one['overhead']:.1%})")
+    elif args.what == "search":
+        if not args.out:
+            raise UsageError("bench search needs --out DIR (its runs are resumable there)")
+        result = bench.bench_search(args.config, args.out, workers=args.workers,
+                                    model=args.model, fraction=args.fraction)
+        text = "\n".join(
+            f"{r['algorithm']:12s} lowest {r['lowest']} after {r['evaluations']} evaluations; "
+            f"within 0.02 of the grid's {result['grid_lowest']} after "
+            f"{r['evaluations_to_target']}" for r in result["algorithms"])
     elif args.what == "scan":
         result = bench.bench_scan(args.config, samples=args.samples, workers=args.workers,
                                   naive_samples=args.naive_samples)
@@ -322,7 +341,7 @@ def build_parser() -> argparse.ArgumentParser:
     se.set_defaults(func=cmd_search)
 
     b = sub.add_parser("bench", help="measure a fast path beside its naive path")
-    b.add_argument("what", choices=["scan", "model"])
+    b.add_argument("what", choices=["scan", "model", "pipeline", "search"])
     b.add_argument("--config", default=str(DEFAULT_CONFIG))
     b.add_argument("--samples", type=int, default=1000)
     b.add_argument("--naive-samples", type=int, default=5)
@@ -331,6 +350,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--scans", default=None,
                    help="bench model: a folder of labelled .npy scans (default: generated)")
     b.add_argument("--repeats", type=int, default=3)
+    b.add_argument("--out", default=None, help="bench search: where its runs go")
+    b.add_argument("--fraction", type=float, default=0.2,
+                   help="bench search: budget as a fraction of the dense grid")
     b.add_argument("--json", action="store_true")
     b.set_defaults(func=cmd_bench)
 
