@@ -312,9 +312,9 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
             raise ConfigError(f"{where}dims.background: unknown background {v}; allowed: "
                               f"integer ids 0..{MAX_BACKGROUND_ID}")
     dims["background"] = bg
-    for name in IMAGE_ONLY:
-        if name in dims_raw:
-            dims[name] = _categorical(name, dims_raw[name], where, str)
+    for image_dim in IMAGE_ONLY:
+        if image_dim in dims_raw:
+            dims[image_dim] = _categorical(image_dim, dims_raw[image_dim], where, str)
     return Space(name=name, sensor=sensor, seed=seed, threshold=threshold, dims=dims,
                  user_cars=user_cars, source=source, config_hash=config_hash)
 

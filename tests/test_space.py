@@ -24,6 +24,7 @@ def test_paper_config_is_the_papers_space():
     assert space.dims["background"].grid() == tuple(range(15))
     assert len(space.grid()) == 2250
     assert space.threshold == 0.65 and space.sensor == "kitti-hdl64e-front"
+    assert space.name == "paper"
 
 
 def test_smoke_config_is_tiny():

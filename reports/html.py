@@ -1,0 +1,1101 @@
+"""One self-contained HTML report of a run: summary, mIoU heat map, worst samples, comparisons.
+
+Everything is inline (CSS, JS, SVG, PNG previews as data: URIs) and a Content-Security-Policy
+forbids any fetch, so the file opens offline and leaks nothing. Output bytes depend only on the
+run (and the compared run): no render time, sorted data, fixed number formats.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+import falsify
+from falsify.fileio import write_text
+from falsify.gate import RunData, fmt_value, open_run
+from falsify.maps import CellMap
+from falsify.maps import compare as compare_maps
+from falsify.space import Categorical, Sample, Space
+
+WORST = 12
+MAX_MULTIPLES = 30
+# viridis at 0, 0.1, ..., 1 (matplotlib): perceptually uniform and colour-blind safe.
+VIRIDIS = ["#440154", "#482475", "#414487", "#355f8d", "#2a788e", "#21918c", "#22a884",
+           "#44bf70", "#7ad151", "#bddf26", "#fde725"]
+# PuOr (ColorBrewer, colour-blind safe): orange = worse, purple = better.
+PUOR = ["#b35806", "#e08214", "#fdb863", "#fee0b6", "#f7f7f7", "#d8daeb", "#b2abd2", "#8073ac",
+        "#542788"]
+BLIND_STROKE = "#e4002b"
+FONT = 'system-ui, -apple-system, "Segoe UI", Roboto, Helvetica, Arial, sans-serif'
+
+
+# -- small helpers ------------------------------------------------------------------------
+def esc(value: object) -> str:
+    """Escape any user-supplied value for HTML text or a quoted attribute."""
+    return html.escape(str(value), quote=True)
+
+
+def f3(value: float | None) -> str:
+    """A number rounded to 3 places, or an em dash when undefined."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "—"
+    return f"{float(value):.3f}"
+
+
+def _num(value: float) -> str:
+    """SVG coordinate: 1 decimal, no trailing zeros."""
+    s = f"{value:.1f}"
+    return s[:-2] if s.endswith(".0") else s
+
+
+def _hex(c: str) -> np.ndarray:
+    return np.array([int(c[i:i + 2], 16) for i in (1, 3, 5)], np.float64)
+
+
+def _ramp(stops: Sequence[str], t: float) -> str:
+    t = min(1.0, max(0.0, t))
+    pos = t * (len(stops) - 1)
+    i = min(int(pos), len(stops) - 2)
+    rgb = _hex(stops[i]) + (_hex(stops[i + 1]) - _hex(stops[i])) * (pos - i)
+    return "#" + "".join(f"{int(round(v)):02x}" for v in rgb)
+
+
+def viridis(value: float) -> str:
+    """Sequential colour of an IoU in [0, 1]."""
+    return _ramp(VIRIDIS, value)
+
+
+def diverging(change: float, span: float) -> str:
+    """Diverging colour of a change in [-span, span]."""
+    return _ramp(PUOR, 0.5 + change / (2 * span))
+
+
+def ink(fill: str) -> str:
+    """Black or white text, whichever reads better on `fill`."""
+    r, g, b = _hex(fill)
+    return "#000" if 0.299 * r + 0.587 * g + 0.114 * b > 140 else "#fff"
+
+
+def png_uri(rgb: np.ndarray) -> str:
+    from falsify.preview import encode_png
+    return "data:image/png;base64," + base64.b64encode(encode_png(rgb)).decode("ascii")
+
+
+def script_json(obj: object) -> str:
+    """JSON that is safe inside <script>: no `<`, `>` or `&` can end the element."""
+    text = json.dumps(obj, separators=(",", ":"), sort_keys=True, ensure_ascii=True,
+                      allow_nan=False)
+    return text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
+
+
+def _clean(value: object) -> object:
+    """Plain JSON value: NaN → None, numpy scalars → Python, floats to 3 places."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        return value
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        return None if math.isnan(v) else round(v, 3)
+    return str(value)
+
+
+def cell_key(x: float, y: float) -> str:
+    return f"{fmt_value(x)}|{fmt_value(y)}"
+
+
+# -- the run's rows -----------------------------------------------------------------------
+def row_sample(space: Space, row: pd.Series) -> Sample:
+    """The Sample of a stored row (categorical ints come back from SQLite as floats)."""
+    values = {}
+    for name, dim in space.dims.items():
+        if name not in row.index:
+            continue
+        raw = row[name]
+        if raw is None or (isinstance(raw, float) and math.isnan(raw)):
+            continue
+        if isinstance(dim, Categorical):
+            raw = _category(dim, raw)
+        values[name] = raw
+    return space.make(values)
+
+
+def _category(dim: Categorical, raw: object) -> object:
+    for v in dim.values:
+        if str(v) == str(raw):
+            return v
+        if not isinstance(v, str) and not isinstance(raw, str):
+            try:
+                if float(v) == float(raw):
+                    return v
+            except (TypeError, ValueError):
+                continue
+    return raw
+
+
+def _ok(frame: pd.DataFrame) -> pd.DataFrame:
+    return frame[frame["status"] == "ok"]
+
+
+def _bg_values(data: RunData) -> tuple:
+    return tuple(data.space.dims["background"].grid()) if "background" in data.space.dims else ()
+
+
+# -- grid geometry --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Grid:
+    """Pixel layout of an (x, y) map: x left to right, y (forward) upwards, sensor below."""
+
+    xs: tuple
+    ys: tuple
+    cw: float
+    ch: float
+    left: float = 0.0
+    top: float = 0.0
+
+    @property
+    def width(self) -> float:
+        return len(self.xs) * self.cw
+
+    @property
+    def height(self) -> float:
+        return len(self.ys) * self.ch
+
+    def cell(self, i: int, j: int) -> tuple[float, float]:
+        """Top-left pixel of cell (column i, row j); row 0 (nearest) is drawn at the bottom."""
+        return self.left + i * self.cw, self.top + (len(self.ys) - 1 - j) * self.ch
+
+    def px(self, x: float) -> float:
+        return self.left + _interp(x, self.xs, self.cw)
+
+    def py(self, y: float) -> float:
+        return self.top + self.height - _interp(y, self.ys, self.ch)
+
+    @staticmethod
+    def sized(xs: tuple, ys: tuple, width: float, height: float, left: float = 0.0,
+              top: float = 0.0, lo: float = 4.0, hi: float = 110.0) -> Grid:
+        cw = min(hi, max(lo, width / max(1, len(xs))))
+        ch = min(hi * 0.7, max(lo * 0.7, height / max(1, len(ys))))
+        return Grid(xs, ys, cw, ch, left, top)
+
+
+def _interp(v: float, values: tuple, size: float) -> float:
+    """Pixel offset of a value along an axis whose cell centres sit at `values`."""
+    vals = [float(a) for a in values]
+    centres = [(k + 0.5) * size for k in range(len(vals))]
+    if len(vals) == 1:
+        return centres[0] + (v - vals[0]) * size
+    if v <= vals[0]:
+        return centres[0] + (v - vals[0]) / (vals[1] - vals[0]) * size
+    if v >= vals[-1]:
+        return centres[-1] + (v - vals[-1]) / (vals[-1] - vals[-2]) * size
+    return float(np.interp(v, vals, centres))
+
+
+def _tip(text: str) -> str:
+    return f' data-tip="{esc(text)}"'
+
+
+def cells_svg(grid: Grid, values: np.ndarray, fill: Callable[[float], str],
+              tip: Callable[[int, int], str], cls: str, outline: np.ndarray | None = None,
+              label: Callable[[int, int], str] | None = None,
+              attrs: Callable[[int, int], str] | None = None) -> str:
+    """One rect per cell (hatched where NaN), optional in-cell labels and outlines on top."""
+    parts, labels, outlines = [], [], []
+    for j in range(len(grid.ys)):
+        for i in range(len(grid.xs)):
+            x, y = grid.cell(i, j)
+            v = values[j, i]
+            empty = bool(np.isnan(v))
+            colour = "url(#hatch)" if empty else fill(float(v))
+            text = tip(i, j)
+            klass = cls + (" empty" if empty else "") + (
+                " blind" if outline is not None and outline[j, i] else "")
+            extra = attrs(i, j) if attrs else ""
+            parts.append(f'<rect class="{klass}" x="{_num(x)}" y="{_num(y)}" '
+                         f'width="{_num(grid.cw)}" height="{_num(grid.ch)}" fill="{colour}"'
+                         f'{extra}{_tip(text)}><title>{esc(text)}</title></rect>')
+            if label is not None and not empty:
+                labels.append(f'<text class="lbl" x="{_num(x + grid.cw / 2)}" '
+                              f'y="{_num(y + grid.ch / 2 + 3.5)}" fill="{ink(fill(float(v)))}">'
+                              f'{esc(label(i, j))}</text>')
+            if outline is not None and outline[j, i]:
+                outlines.append(f'<rect class="outline" x="{_num(x + 1.5)}" y="{_num(y + 1.5)}" '
+                                f'width="{_num(grid.cw - 3)}" height="{_num(grid.ch - 3)}"/>')
+    return "".join(parts) + "".join(labels) + "".join(outlines)
+
+
+def axes_svg(grid: Grid, sensor: bool = True) -> str:
+    """Tick labels under the columns and left of the rows, axis titles, and the sensor."""
+    out = []
+    every_x = max(1, math.ceil(26 / grid.cw))
+    every_y = max(1, math.ceil(14 / grid.ch))
+    base = grid.top + grid.height
+    for i, xv in enumerate(grid.xs):
+        if i % every_x == 0:
+            cx = grid.left + (i + 0.5) * grid.cw
+            out.append(f'<text x="{_num(cx)}" y="{_num(base + 14)}" text-anchor="middle">'
+                       f'{esc(fmt_value(xv))}</text>')
+    for j, yv in enumerate(grid.ys):
+        if j % every_y == 0:
+            _, cy = grid.cell(0, j)
+            out.append(f'<text x="{_num(grid.left - 6)}" y="{_num(cy + grid.ch / 2 + 4)}" '
+                       f'text-anchor="end">{esc(fmt_value(yv))}</text>')
+    out.append(f'<text x="{_num(grid.left + grid.width / 2)}" y="{_num(base + 30)}" '
+               'text-anchor="middle" class="axis">X (m), right positive</text>')
+    ymid = grid.top + grid.height / 2
+    out.append(f'<text transform="translate({_num(grid.left - 36)} {_num(ymid)}) rotate(-90)" '
+               'text-anchor="middle" class="axis">Y (m), forward ↑</text>')
+    if sensor:
+        sx = min(max(grid.px(0.0), grid.left), grid.left + grid.width)
+        sy = base + 40
+        out.append(f'<path class="sensor" d="M{_num(sx)} {_num(sy)} l-7 12 h14 z"/>'
+                   f'<text x="{_num(sx + 11)}" y="{_num(sy + 11)}">sensor (0, 0)</text>')
+    return "".join(out)
+
+
+def _svg(content: str, width: float, height: float, klass: str, ident: str = "",
+         label: str = "") -> str:
+    idattr = f' id="{ident}"' if ident else ""
+    return (f'<svg{idattr} class="{klass}" xmlns="http://www.w3.org/2000/svg" '
+            f'width="{_num(width)}" height="{_num(height)}" '
+            f'viewBox="0 0 {_num(width)} {_num(height)}" role="img" '
+            f'aria-label="{esc(label)}">{content}</svg>')
+
+
+# -- sections ----------------------------------------------------------------------------
+def _cell_tip(x: float, y: float, miou: float | None, n: int, undefined: int, invalid: int,
+              threshold: float) -> str:
+    where = f"x = {fmt_value(x)} m, y = {fmt_value(y)} m"
+    extra = []
+    if undefined:
+        extra.append(f"{undefined} undefined")
+    if invalid:
+        extra.append(f"{invalid} invalid")
+    more = f" ({', '.join(extra)})" if extra else ""
+    if miou is None:
+        return f"{where}\nno valid sample{more}"
+    s = f"{where}\nmIoU {miou:.3f} · {n} sample{'s' * (n != 1)}{more}"
+    if miou < threshold:
+        s += f"\nblind spot: {threshold - miou:.3f} below {threshold:.3f}"
+    return s
+
+
+def heatmap_section(data: RunData, cmap: CellMap, threshold: float) -> str:
+    grid = Grid.sized(cmap.a_values, cmap.b_values, 480, 430, left=52, top=8)
+    blind = np.nan_to_num(cmap.miou, nan=1.0) < threshold
+
+    def tip(i: int, j: int) -> str:
+        m = cmap.miou[j, i]
+        return _cell_tip(cmap.a_values[i], cmap.b_values[j], None if np.isnan(m) else float(m),
+                         int(cmap.samples[j, i]), int(cmap.undefined[j, i]),
+                         int(cmap.invalid[j, i]), threshold)
+
+    def attrs(i: int, j: int) -> str:
+        m = cmap.miou[j, i]
+        return (f' data-x="{esc(fmt_value(cmap.a_values[i]))}" '
+                f'data-y="{esc(fmt_value(cmap.b_values[j]))}" '
+                f'data-miou="{"" if np.isnan(m) else f3(float(m))}" '
+                f'data-n="{int(cmap.samples[j, i])}" tabindex="0"')
+
+    show = grid.cw >= 34 and grid.ch >= 14
+    body = cells_svg(grid, cmap.miou, viridis, tip, "cell", blind,
+                     (lambda i, j: f3(float(cmap.miou[j, i]))) if show else None, attrs)
+    selbox = '<rect id="selbox" x="0" y="0" width="0" height="0" visibility="hidden"/>'
+    svg = _svg(body + axes_svg(grid) + selbox, grid.left + grid.width + 8,
+               grid.top + grid.height + 60, "map", "heatmap", "mIoU heat map over x and y")
+    multiples = multiples_section(data, threshold)
+    n_blind = int(blind.sum())
+    scored = int((~np.isnan(cmap.miou)).sum())
+    return f"""
+<section id="map-section">
+<h2>mIoU over position (car 1)</h2>
+<p class="note">Mean car IoU of the valid samples in each cell (over backgrounds and every
+other dimension), seen from above: the sensor at the bottom, forward (Y) up. {n_blind} of
+{scored} scored cells are blind spots (mIoU &lt; {threshold:.3f}, outlined). Hover a cell for
+its value; click it to list its samples.</p>
+<div class="row">
+<figure class="main-map">{svg}</figure>
+<figure>{legend_svg(threshold)}</figure>
+{multiples}
+</div>
+<div id="cell-samples">
+<h3 id="cell-title">Samples of a cell</h3>
+<p id="cell-hint" class="note">Click a cell of the map to list its samples here.</p>
+<div class="scroll"><table id="cell-table" hidden><thead><tr><th>eval</th><th>x</th><th>y</th>
+<th>yaw</th><th>car model</th><th>count</th><th>background</th><th>status</th><th>car IoU</th>
+<th>precision</th><th>recall</th><th>reason</th></tr></thead><tbody></tbody></table></div>
+</div>
+</section>"""
+
+
+def legend_svg(threshold: float) -> str:
+    """Vertical viridis bar 0..1 with the threshold marked, plus the hatched and blind keys."""
+    top, h, x0 = 20, 240, 8
+    ty = top + h * (1 - threshold)
+    ticks = "".join(
+        f'<text x="{x0 + 24}" y="{_num(top + h * (1 - v) + 4)}">{v:.2f}</text>'
+        for v in (0.0, 0.25, 0.5, 0.75, 1.0))
+    body = (f'<text x="{x0}" y="{top - 8}" class="axis">mIoU</text>'
+            f'<rect x="{x0}" y="{top}" width="16" height="{h}" fill="url(#vir)" stroke="#888"/>'
+            f"{ticks}"
+            f'<line x1="{x0 - 4}" x2="{x0 + 20}" y1="{_num(ty)}" y2="{_num(ty)}" '
+            f'stroke="{BLIND_STROKE}" stroke-width="2.5"/>'
+            f'<text x="{x0 + 62}" y="{_num(ty + 4)}" class="thr">threshold {threshold:.3f}'
+            "</text>"
+            f'<rect x="{x0}" y="{top + h + 18}" width="16" height="16" fill="url(#hatch)" '
+            'stroke="#888"/>'
+            f'<text x="{x0 + 24}" y="{top + h + 30}">no valid sample</text>'
+            f'<rect x="{x0}" y="{top + h + 42}" width="16" height="16" fill="{viridis(0.3)}"/>'
+            f'<rect class="outline" x="{x0 + 1.5}" y="{top + h + 43.5}" width="13" '
+            'height="13"/>'
+            f'<text x="{x0 + 24}" y="{top + h + 54}">blind spot (&lt; {threshold:.3f})</text>')
+    return _svg(body, 170, top + h + 66, "legend", "", "colour scale")
+
+
+def multiples_section(data: RunData, threshold: float) -> str:
+    """One small mIoU map per background, same colours and axes as the main map."""
+    bgs = _bg_values(data)
+    if len(bgs) < 2:
+        return ""
+    shown = bgs[:MAX_MULTIPLES]
+    figs = []
+    for bg in shown:
+        rows = data.frame[data.frame["background"] == bg]
+        cmap = data.cell_map(rows)
+        grid = Grid.sized(cmap.a_values, cmap.b_values, 84, 96, lo=3, hi=42)
+        blind = np.nan_to_num(cmap.miou, nan=1.0) < threshold
+
+        def tip(i: int, j: int, cmap: CellMap = cmap, bg: object = bg) -> str:
+            m = cmap.miou[j, i]
+            return f"background {bg}\n" + _cell_tip(
+                cmap.a_values[i], cmap.b_values[j], None if np.isnan(m) else float(m),
+                int(cmap.samples[j, i]), int(cmap.undefined[j, i]), int(cmap.invalid[j, i]),
+                threshold)
+
+        body = cells_svg(grid, cmap.miou, viridis, tip, "mcell", blind)
+        valid = cmap.miou[~np.isnan(cmap.miou)]
+        mean = f3(float(valid.mean())) if valid.size else "—"
+        figs.append(f'<figure class="multiple">{_svg(body, grid.width, grid.height, "small", "", f"background {bg}")}'  # noqa: E501
+                    f"<figcaption>bg {esc(bg)} · {mean}<br>{int(blind.sum())} blind"
+                    "</figcaption></figure>")
+    more = (f'<p class="note">showing {len(shown)} of {len(bgs)} backgrounds</p>'
+            if len(bgs) > len(shown) else "")
+    return (f'<div class="multiples-wrap"><h3>Per background</h3><div class="multiples">'
+            f'{"".join(figs)}</div>{more}</div>')
+
+
+def distance_section(data: RunData, threshold: float) -> str:
+    """IoU of every valid sample against car 1's distance, with the mean per metre."""
+    ok = _ok(data.frame)
+    d = np.hypot(ok["x"].astype(float), ok["y"].astype(float)).to_numpy()
+    iou = ok["car_iou"].astype(float).to_numpy()
+    w, h, left, top, bottom = 560, 260, 46, 12, 40
+    pw, ph = w - left - 12, h - top - bottom
+    dmax = max(5.0, math.ceil((float(d.max()) if d.size else 5.0) / 5.0) * 5.0)
+
+    def sx(v: float) -> float:
+        return left + v / dmax * pw
+
+    def sy(v: float) -> float:
+        return top + (1 - v) * ph
+
+    out = [f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" class="frame"/>']
+    for v in (0.0, 0.25, 0.5, 0.75, 1.0):
+        out.append(f'<line class="grid" x1="{left}" x2="{left + pw}" y1="{_num(sy(v))}" '
+                   f'y2="{_num(sy(v))}"/><text x="{left - 6}" y="{_num(sy(v) + 4)}" '
+                   f'text-anchor="end">{v:.2f}</text>')
+    step = 5.0 if dmax > 10 else 1.0
+    for k in range(int(dmax / step) + 1):
+        v = k * step
+        out.append(f'<text x="{_num(sx(v))}" y="{top + ph + 15}" text-anchor="middle">'
+                   f'{v:g}</text>')
+    out.append(f'<text x="{left + pw / 2}" y="{h - 6}" text-anchor="middle" class="axis">'
+               "distance of car 1 from the sensor (m)</text>")
+    out.append(f'<line class="thrline" x1="{left}" x2="{left + pw}" y1="{_num(sy(threshold))}" '
+               f'y2="{_num(sy(threshold))}"/><text class="thr" x="{left + pw - 4}" '
+               f'y="{_num(sy(threshold) - 4)}" text-anchor="end">threshold {threshold:.3f}'
+               "</text>")
+    eval_ix = ok["eval_index"].to_numpy()
+    for di, vi, ei in zip(d, iou, eval_ix, strict=True):
+        out.append(f'<circle class="pt" cx="{_num(sx(di))}" cy="{_num(sy(vi))}" r="2.2">'
+                   f"<title>eval {int(ei)}: {di:.1f} m, IoU {vi:.3f}</title></circle>")
+    if d.size:
+        bins = np.floor(d).astype(int)
+        pts = []
+        for b in sorted(set(bins.tolist())):
+            m = float(iou[bins == b].mean())
+            pts.append(f"{_num(sx(b + 0.5))},{_num(sy(m))}")
+        out.append(f'<polyline class="meanline" points="{" ".join(pts)}"/>')
+    svg = _svg("".join(out), w, h, "plot", "distance", "IoU against distance")
+    return f"""
+<section id="distance-section">
+<h2>IoU against distance</h2>
+<p class="note">Each dot is one valid sample; the orange line is the mean per metre of
+distance (hypot(x, y) of car 1).</p>
+<figure>{svg}</figure>
+</section>"""
+
+
+def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
+    """Lowest IoU so far against evaluations, and where the search went on the map's axes."""
+    curve = data.meta.get("curve")
+    if not isinstance(curve, list):
+        curve = [None if pd.isna(v) else float(v) for v in data.frame["car_iou"]]
+    vals = [None if not isinstance(v, int | float) or isinstance(v, bool) else float(v)
+            for v in curve]
+    n = len(vals)
+    w, h, left, top, bottom = 560, 240, 46, 12, 40
+    pw, ph = w - left - 12, h - top - bottom
+
+    def sx(k: float) -> float:
+        return left + (k / max(1, n - 1)) * pw
+
+    def sy(v: float) -> float:
+        return top + (1 - v) * ph
+
+    out = [f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" class="frame"/>']
+    for v in (0.0, 0.25, 0.5, 0.75, 1.0):
+        out.append(f'<line class="grid" x1="{left}" x2="{left + pw}" y1="{_num(sy(v))}" '
+                   f'y2="{_num(sy(v))}"/><text x="{left - 6}" y="{_num(sy(v) + 4)}" '
+                   f'text-anchor="end">{v:.2f}</text>')
+    for k in sorted({0, n // 4, n // 2, 3 * n // 4, max(0, n - 1)}):
+        out.append(f'<text x="{_num(sx(k))}" y="{top + ph + 15}" text-anchor="middle">{k}'
+                   "</text>")
+    out.append(f'<text x="{left + pw / 2}" y="{h - 6}" text-anchor="middle" class="axis">'
+               "evaluation</text>")
+    out.append(f'<line class="thrline" x1="{left}" x2="{left + pw}" y1="{_num(sy(threshold))}" '
+               f'y2="{_num(sy(threshold))}"/>')
+    best, steps = math.inf, []
+    for k, v in enumerate(vals):
+        if v is not None:
+            out.append(f'<circle class="pt" cx="{_num(sx(k))}" cy="{_num(sy(v))}" r="2">'
+                       f"<title>eval {k}: IoU {v:.3f}</title></circle>")
+            best = min(best, v)
+        if best < math.inf:
+            steps.append(f"{_num(sx(k))},{_num(sy(best))}")
+    if steps:
+        out.append(f'<polyline class="minline" points="{" ".join(steps)}"/>')
+    lowest = f3(best) if best < math.inf else "—"
+    curve_svg = _svg("".join(out), w, h, "plot", "curve", "lowest IoU against evaluations")
+
+    # where the search went: the heat map faded, the evaluations in order on top
+    grid = Grid.sized(cmap.a_values, cmap.b_values, 480, 430, left=52, top=8)
+    faded = cells_svg(grid, cmap.miou, viridis, lambda i, j: "", "pcell")
+    frame = data.frame.sort_values("eval_index", kind="stable")
+    xs, ys = frame["x"].astype(float).to_numpy(), frame["y"].astype(float).to_numpy()
+    ious = frame["car_iou"].astype(float).to_numpy()
+    lo_x, hi_x = grid.left, grid.left + grid.width
+    lo_y, hi_y = grid.top, grid.top + grid.height
+    pts = [(min(max(grid.px(x), lo_x), hi_x), min(max(grid.py(y), lo_y), hi_y))
+           for x, y in zip(xs, ys, strict=True)]
+    path = " ".join(f"{_num(px)},{_num(py)}" for px, py in pts)
+    dots = []
+    for k, ((px, py), ev, v) in enumerate(zip(pts, frame["eval_index"], ious, strict=True)):
+        fill = "#9aa0a6" if np.isnan(v) else viridis(float(v))
+        text = (f"eval {int(ev)}: x = {xs[k]:.3f}, y = {ys[k]:.3f}, IoU "
+                f"{'undefined' if np.isnan(v) else f'{v:.3f}'}")
+        dots.append(f'<circle class="step" cx="{_num(px)}" cy="{_num(py)}" r="4.5" '
+                    f'fill="{fill}"{_tip(text)}><title>{esc(text)}</title></circle>')
+    if np.isfinite(ious).any():
+        k = int(np.nanargmin(ious))
+        px, py = pts[k]
+        dots.append(f'<circle class="ring" cx="{_num(px)}" cy="{_num(py)}" r="8"/>')
+    body = (faded + f'<polyline class="path" points="{path}"/>' + "".join(dots)
+            + axes_svg(grid))
+    path_svg = _svg(body, grid.left + grid.width + 8, grid.top + grid.height + 60, "map",
+                    "searchpath", "where the search went")
+    return f"""
+<section id="search-section">
+<h2>Search</h2>
+<p class="note">{esc(data.meta.get("algorithm", "search"))}, {n} evaluations; lowest car IoU
+found {lowest}. Left: each evaluation's IoU (dots) and the lowest so far (line). Right: where
+each evaluation put car 1, in order (grey path), coloured by IoU on the map's axes; the ring
+marks the lowest.</p>
+<div class="row"><figure>{curve_svg}</figure><figure>{path_svg}</figure></div>
+</section>"""
+
+
+def compare_section(before: RunData, after: RunData, after_map: CellMap,
+                    threshold: float) -> str:
+    """The difference map (after − before) and the paper's sorted per-cell change plot."""
+    bmap = before.cell_map()
+    bidx = {cell_key(x, y): (i, j) for j, y in enumerate(bmap.b_values)
+            for i, x in enumerate(bmap.a_values)}
+    diff = np.full(after_map.miou.shape, np.nan)
+    prev = np.full(after_map.miou.shape, np.nan)
+    for j, y in enumerate(after_map.b_values):
+        for i, x in enumerate(after_map.a_values):
+            hit = bidx.get(cell_key(x, y))
+            if hit is not None:
+                prev[j, i] = bmap.miou[hit[1], hit[0]]
+                diff[j, i] = after_map.miou[j, i] - prev[j, i]
+    finite = diff[~np.isnan(diff)]
+    span = max(0.1, math.ceil(float(np.abs(finite).max()) * 10) / 10) if finite.size else 0.1
+    grid = Grid.sized(after_map.a_values, after_map.b_values, 480, 430, left=52, top=8)
+
+    def tip(i: int, j: int) -> str:
+        where = (f"x = {fmt_value(after_map.a_values[i])} m, "
+                 f"y = {fmt_value(after_map.b_values[j])} m")
+        if np.isnan(diff[j, i]):
+            return f"{where}\nnot scored in both runs"
+        return (f"{where}\nmIoU {prev[j, i]:.3f} → {after_map.miou[j, i]:.3f} "
+                f"({diff[j, i]:+.3f})")
+
+    show = grid.cw >= 34 and grid.ch >= 14
+    body = cells_svg(grid, diff, lambda v: diverging(v, span), tip, "dcell",
+                     label=(lambda i, j: f"{diff[j, i]:+.3f}") if show else None)
+    diff_svg = _svg(body + axes_svg(grid), grid.left + grid.width + 8,
+                    grid.top + grid.height + 60, "map", "diffmap", "mIoU difference map")
+    legend = diverging_legend(span)
+
+    table = compare_maps(bmap, after_map)
+    changes = table["change"].to_numpy(dtype=float)
+    plot = improvement_svg(table, span)
+    before_blind = {cell_key(x, y) for x, y in _blind_keys(bmap, threshold)}
+    after_blind = {cell_key(x, y) for x, y in _blind_keys(after_map, threshold)}
+    fixed, new = len(before_blind - after_blind), len(after_blind - before_blind)
+    mean = f"{float(changes.mean()):+.3f}" if changes.size else "—"
+    meta = before.meta
+    return f"""
+<section id="compare-section">
+<h2>Comparison with the run before</h2>
+<p class="note">Before: {esc(before.path)} (model {esc(meta.get("model_name", "?"))}
+{esc(str(meta.get("model_hash") or "")[:12])}, config {esc(meta.get("space_name", "?"))}).
+Over {changes.size} cells scored in both runs the mIoU changed by {mean} on average:
+{int((changes > 0).sum())} improved, {int((changes < 0).sum())} got worse. Blind spots
+{len(before_blind)} → {len(after_blind)} ({fixed} fixed, {new} new).</p>
+<div class="row">
+<figure><figcaption>Difference map (after − before)</figcaption>{diff_svg}</figure>
+<figure>{legend}</figure>
+<figure><figcaption>Per-cell change, sorted (the paper's improvement plot)</figcaption>
+{plot}</figure>
+</div>
+</section>"""
+
+
+def _blind_keys(cmap: CellMap, threshold: float) -> list[tuple]:
+    return [(c.a, c.b) for c in cmap.blind_spots(threshold)]
+
+
+def diverging_legend(span: float) -> str:
+    top, h, x0 = 20, 240, 8
+    stops = "".join(f'<rect x="{x0}" y="{_num(top + h * k / 40)}" width="16" '
+                    f'height="{_num(h / 40 + 0.5)}" fill="{diverging(span * (1 - k / 20), span)}"/>'
+                    for k in range(40))
+    ticks = "".join(f'<text x="{x0 + 24}" y="{_num(top + h * (1 - (v / span + 1) / 2) + 4)}">'
+                    f"{v:+.2f}</text>" for v in (-span, -span / 2, 0.0, span / 2, span))
+    body = (f'<text x="{x0}" y="{top - 8}" class="axis">change</text>{stops}'
+            f'<rect x="{x0}" y="{top}" width="16" height="{h}" fill="none" stroke="#888"/>'
+            f"{ticks}"
+            f'<text x="{x0}" y="{top + h + 18}">purple: better</text>'
+            f'<text x="{x0}" y="{top + h + 34}">orange: worse</text>')
+    return _svg(body, 120, top + h + 44, "legend", "", "difference colour scale")
+
+
+def improvement_svg(table: pd.DataFrame, span: float) -> str:
+    """Bars of per-cell change, sorted from most improved to most worsened."""
+    w, h, left, top, bottom = 440, 260, 46, 12, 40
+    pw, ph = w - left - 12, h - top - bottom
+    n = len(table)
+
+    def sy(v: float) -> float:
+        return top + ph / 2 - v / span * ph / 2
+
+    out = [f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" class="frame"/>']
+    for v in (-span, -span / 2, 0.0, span / 2, span):
+        out.append(f'<line class="grid" x1="{left}" x2="{left + pw}" y1="{_num(sy(v))}" '
+                   f'y2="{_num(sy(v))}"/><text x="{left - 6}" y="{_num(sy(v) + 4)}" '
+                   f'text-anchor="end">{v:+.2f}</text>')
+    bw = pw / max(1, n)
+    for k, row in enumerate(table.itertuples(index=False)):
+        c = float(row.change)
+        y0, y1 = sorted((sy(0.0), sy(c)))
+        text = (f"x = {fmt_value(row.x)}, y = {fmt_value(row.y)}: {row.miou_before:.3f} → "
+                f"{row.miou_after:.3f} ({c:+.3f})")
+        out.append(f'<rect class="bar" x="{_num(left + k * bw)}" y="{_num(y0)}" '
+                   f'width="{_num(max(bw - 0.4, 0.6))}" height="{_num(max(y1 - y0, 0.5))}" '
+                   f'fill="{PUOR[-2] if c >= 0 else PUOR[1]}"{_tip(text)}>'
+                   f"<title>{esc(text)}</title></rect>")
+    out.append(f'<line x1="{left}" x2="{left + pw}" y1="{_num(sy(0))}" y2="{_num(sy(0))}" '
+               'stroke="#333"/>')
+    out.append(f'<text x="{left + pw / 2}" y="{h - 6}" text-anchor="middle" class="axis">'
+               f"{n} cells, sorted by change</text>")
+    return _svg("".join(out), w, h, "plot", "improvement", "sorted per-cell improvement")
+
+
+# -- worst samples with previews ----------------------------------------------------------------
+@dataclass(frozen=True)
+class Preview:
+    """Inline pictures of one sample's scan: labels, and the model's prediction if it ran."""
+
+    label_range: str
+    label_bev: str
+    pred_range: str | None = None
+    pred_bev: str | None = None
+    error: str = ""
+
+
+BEV_AHEAD, BEV_SIDE, BEV_SIZE = 32.0, 16.0, 128
+
+
+def _pictures(image: np.ndarray, car: tuple[float, float] | None = None) -> tuple[str, str]:
+    """Range image (2 px per beam, at most 1024 columns) and a bird's-eye view with car 1
+    bracketed, as PNG data URIs."""
+    from falsify.preview import bev_rgb, range_image_rgb
+    rng = range_image_rgb(image, row_scale=2)
+    if rng.shape[1] > 1024:
+        rng = rng[:, :: math.ceil(rng.shape[1] / 1024)]
+    bev = bev_rgb(image, size=BEV_SIZE, ahead=BEV_AHEAD, side=BEV_SIDE)
+    if car is not None:
+        _bracket(bev, *car)
+    return png_uri(rng), png_uri(bev)
+
+
+def _bracket(bev: np.ndarray, x: float, y: float, half: float = 3.0) -> None:
+    """Draw a white square around space point (x right, y forward) into the BEV picture."""
+    size = bev.shape[0]
+    scale_c, scale_r = size / (2 * BEV_SIDE), size / BEV_AHEAD
+    c0, c1 = int((x - half + BEV_SIDE) * scale_c), int((x + half + BEV_SIDE) * scale_c)
+    r0, r1 = int((BEV_AHEAD - y - half) * scale_r), int((BEV_AHEAD - y + half) * scale_r)
+    c0, c1 = max(c0, 0), min(c1, size - 1)
+    r0, r1 = max(r0, 0), min(r1, size - 1)
+    if c0 >= c1 or r0 >= r1:
+        return
+    white = (255, 255, 255)
+    bev[r0, c0:c1 + 1] = white
+    bev[r1, c0:c1 + 1] = white
+    bev[r0:r1 + 1, c0] = white
+    bev[r0:r1 + 1, c1] = white
+
+
+def load_model(meta: dict, predict: bool) -> tuple[object | None, str]:
+    """The run's model if `predict` and it loads; else None and a note saying why."""
+    if not predict:
+        return None, "Previews show labels only (--no-predict)."
+    try:
+        from models.runner import load_segmenter
+        seg = load_segmenter(meta.get("model_path"), backend=meta.get("backend") or "onnx")
+    except Exception as exc:  # any failure: the report is still useful without predictions
+        return None, f"Model not loaded ({exc}); previews show labels only."
+    note = ""
+    have, want = getattr(seg, "model_hash", None), meta.get("model_hash")
+    if have and want and have != want:
+        note = (f"The model found now (hash {str(have)[:12]}) is not the run's "
+                f"({str(want)[:12]}); predictions may differ from the scores.")
+    return seg, note
+
+
+def make_previews(data: RunData, rows: pd.DataFrame, predict: bool) -> tuple[dict, str]:
+    """Regenerate the scans of `rows` (grouped by background to reuse BVHs) and picture them."""
+    from falsify.scene import Simulator
+    from falsify.sensor import load_sensor
+
+    seg, note = load_model(data.meta, predict)
+    lod, overrides = 2, {}
+    try:  # regenerate at the run's fidelity (car level of detail, sensor overrides)
+        from falsify.fidelity import preset
+        fid = preset(str(data.meta.get("fidelity") or "exact"))
+        lod, overrides = fid.lod, fid.sensor_overrides(data.space.sensor)
+    except Exception:  # older runs or an unknown preset: the exact scene
+        pass
+    try:
+        sim = Simulator(load_sensor(data.space.sensor, **overrides), data.space.user_cars,
+                        lod=lod)
+    except Exception as exc:
+        return {}, f"Scans could not be regenerated ({exc})."
+    out: dict[int, Preview] = {}
+    order = rows.sort_values(["background", "eval_index"], kind="stable") \
+        if "background" in rows else rows
+    for _, row in order.iterrows():
+        ev = int(row["eval_index"])
+        try:
+            sample = row_sample(data.space, row)
+            seed = row.get("seed")
+            rng = None if seed is None or pd.isna(seed) else np.random.default_rng(int(seed))
+            image = sim.scan(sample, rng=rng).image
+        except Exception as exc:
+            out[ev] = Preview("", "", error=f"scan not regenerated: {exc}")
+            continue
+        car = (float(sample.cars[0].x), float(sample.cars[0].y))
+        lr, lb = _pictures(image, car)
+        pr = pb = None
+        if seg is not None:
+            try:
+                pred = seg.predict(image[None]).classes[0]
+                pimg = image.copy()
+                pimg[..., 5] = np.where(image[..., 4] > 0, pred, 0)
+                pr, pb = _pictures(pimg, car)
+            except Exception as exc:
+                out[ev] = Preview(lr, lb, error=f"prediction failed: {exc}")
+                continue
+        out[ev] = Preview(lr, lb, pr, pb)
+    return out, note
+
+
+def worst_section(data: RunData, predict: bool, worst: int) -> str:
+    ok = _ok(data.frame)
+    rows = ok.assign(_iou=ok["car_iou"].astype(float)).sort_values(
+        ["_iou", "eval_index"], kind="stable").head(worst)
+    previews, note = make_previews(data, rows, predict) if len(rows) else ({}, "")
+    with_pred = any(p.pred_range for p in previews.values())
+    head = ("<tr><th>#</th><th>eval</th><th>x, y (m)</th><th>yaw</th><th>car model</th>"
+            "<th>bg</th><th>car IoU</th><th>precision /<br>recall</th>"
+            "<th>car points<br>label / pred.</th><th>scan: range image, bird's-eye view"
+            + (" (label above, prediction below)" if with_pred else " (label)")
+            + "</th></tr>")
+    body = []
+    for rank, (_, r) in enumerate(rows.iterrows(), start=1):
+        p = previews.get(int(r["eval_index"]))
+        pics = ""
+        if p is not None and p.label_range:
+            pics = _pics_html(p.label_range, p.label_bev, "label")
+            if p.pred_range:
+                pics += _pics_html(p.pred_range, p.pred_bev or "", "prediction")
+        if p is not None and p.error:
+            pics += f'<p class="note">{esc(p.error)}</p>'
+        body.append(
+            f"<tr><td>{rank}</td><td>{int(r['eval_index'])}</td>"
+            f'<td class="num">{esc(_dimtext(r, "x"))}, {esc(_dimtext(r, "y"))}</td>'
+            f'<td class="num">{esc(_dimtext(r, "yaw"))}</td>'
+            f"<td>{esc(_dimtext(r, 'car_model'))}</td>"
+            f"<td>{esc(_dimtext(r, 'background'))}</td>"
+            f'<td class="num bad">{f3(r["car_iou"])}</td>'
+            f'<td class="num">{f3(r.get("car_precision"))} /<br>{f3(r.get("car_recall"))}</td>'
+            f'<td class="num">{_int(r.get("label_points"))} / {_int(r.get("car_points"))}</td>'
+            f'<td class="pics">{pics}</td></tr>')
+    legend = ('<span class="key" style="background:#e63c32"></span>car '
+              '<span class="key" style="background:#3278e6"></span>pedestrian '
+              '<span class="key" style="background:#f0be1e"></span>cyclist '
+              '<span class="key" style="background:#969696"></span>other (shaded by range)')
+    note_html = f'<p class="note">{esc(note)}</p>' if note else ""
+    empty = "" if body else '<p class="note">No valid sample.</p>'
+    return f"""
+<section id="worst-section">
+<h2>The {len(rows)} worst samples</h2>
+<p class="note">Lowest car IoU first. Each scan is regenerated from its sample: the range image
+(rows = beams, columns = azimuth) over a bird's-eye view (sensor at the bottom, forward up).
+{legend}</p>
+{note_html}{empty}
+<div class="scroll"><table class="worst">{head}{"".join(body)}</table></div>
+</section>"""
+
+
+def _pics_html(rng: str, bev: str, what: str) -> str:
+    return (f'<div class="pic"><img src="{rng}" alt="range image, {what}" width="448">'
+            f'<img src="{bev}" alt="bird\'s-eye view, {what}" width="112" '
+            f'height="112"></div>')
+
+
+def _dimtext(row: pd.Series, name: str) -> str:
+    if name not in row.index:
+        return "—"
+    v = row[name]
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "—"
+    if isinstance(v, str):
+        return v
+    return f"{float(v):.3f}".rstrip("0").rstrip(".") if name in ("x", "y", "yaw") else \
+        fmt_value(v)
+
+
+def _int(v: object) -> str:
+    return "—" if v is None or pd.isna(v) else str(int(v))
+
+
+# -- summary and page -------------------------------------------------------------------------
+def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
+    meta, frame = data.meta, data.frame
+    status = frame["status"]
+    ok = _ok(frame)
+    blind = cmap.blind_spots(threshold)
+    scored = int((~np.isnan(cmap.miou)).sum())
+    if len(ok):
+        low = ok.assign(_iou=ok["car_iou"].astype(float)).sort_values(
+            ["_iou", "eval_index"], kind="stable").iloc[0]
+        lowest = (f"{f3(low['car_iou'])} at x = {_dimtext(low, 'x')}, y = {_dimtext(low, 'y')}"
+                  f", background {_dimtext(low, 'background')} (eval {int(low['eval_index'])})")
+    else:
+        lowest = "—"
+    scored_cells = sorted((c for c in cmap.cells() if c.miou is not None),
+                          key=lambda c: (c.miou, str(c.a), str(c.b)))
+    worst_cell = "—"
+    if scored_cells:
+        w = scored_cells[0]
+        worst_cell = f"{w.miou:.3f} at x = {fmt_value(w.a)}, y = {fmt_value(w.b)}"
+    elapsed = meta.get("elapsed_s")
+    took = []
+    if isinstance(elapsed, int | float):
+        took.append(f"{float(elapsed):.1f} s")
+    if meta.get("workers"):
+        took.append(f"{esc(meta['workers'])} workers")
+    started = str(meta.get("started") or "—").replace("T", " ")
+    timing = (f"{esc(started)}<br><span class=\"note\">"
+              f"{' on '.join(took) or 'duration unknown'}</span>")
+    model = f"{esc(meta.get('model_name', '—'))} <code>{esc(str(meta.get('model_hash') or '')[:12])}</code>"  # noqa: E501
+    model_path = meta.get("model_path")
+    search = str(meta.get("command", "")) or "—"
+    if meta.get("algorithm"):
+        search += f" · {meta['algorithm']}"
+    if meta.get("budget") is not None:
+        search += f" · budget {meta['budget']}"
+    if meta.get("seed") is not None:
+        search += f" · seed {meta['seed']}"
+    items = [
+        ("Model", model + f'<br><span class="note">{esc(model_path or "bundled model")}'
+         f' · {esc(meta.get("backend", "onnx"))}</span>'),
+        ("Config", f"{esc(meta.get('space_name', data.space.name))}<br><span class=\"note\">"
+         f"{esc(meta.get('config_path', '—'))}</span>"),
+        ("Sensor", esc(meta.get("sensor", data.space.sensor))),
+        ("Run", esc(search)),
+        ("Samples", f"{len(frame)} ({len(ok)} valid)"),
+        ("Invalid samples", str(int((status == "invalid").sum()))),
+        ("Undefined samples", str(int((status == "undefined").sum()))),
+        ("Blind spots", f'<span class="{"bad" if blind else ""}">{len(blind)}</span> of '
+         f"{scored} cells (mIoU &lt; {threshold:.3f})"),
+        ("Worst cell", worst_cell),
+        ("Lowest IoU", lowest),
+        ("Time", timing),
+    ]
+    cards = "".join(f"<div><dt>{k}</dt><dd>{v}</dd></div>" for k, v in items)
+    return f'<section id="summary"><dl class="summary">{cards}</dl></section>'
+
+
+def samples_json(data: RunData) -> dict:
+    """The rows the click-to-list table needs, keyed to their heat-map cell."""
+    from falsify.maps import snap
+
+    f = data.frame
+    cx = snap(f["x"], data.space, "x")
+    cy = snap(f["y"], data.space, "y")
+    cols = ["cell", "eval", "x", "y", "yaw", "car_model", "count", "background", "status",
+            "iou", "precision", "recall", "reason"]
+    src = {"eval": "eval_index", "iou": "car_iou", "precision": "car_precision",
+           "recall": "car_recall"}
+    rows = []
+    for k in range(len(f)):
+        r = f.iloc[k]
+        row: list = [cell_key(cx.iloc[k], cy.iloc[k])]
+        for c in cols[1:]:
+            name = src.get(c, c)
+            v = r[name] if name in f.columns else None
+            if v is not None and not isinstance(v, str) and pd.isna(v):
+                v = None
+            elif c in ("count", "background") and v is not None and not isinstance(v, str):
+                v = fmt_value(v)
+            row.append(_clean(v))
+        rows.append(row)
+    return {"columns": cols, "rows": rows}
+
+
+CSS = """
+:root{--fg:#1d2430;--muted:#5b6573;--line:#d9dee5;--panel:#f5f7fa}
+*{box-sizing:border-box}
+body{font:14px/1.45 $FONT;color:var(--fg);margin:0;background:#fff}
+main{max-width:1240px;margin:0 auto;padding:20px 24px 48px}
+h1{font-size:22px;margin:0 0 2px}h2{font-size:17px;margin:28px 0 8px;padding-bottom:4px;
+border-bottom:1px solid var(--line)}h3{font-size:14px;margin:10px 0 6px}
+.sub{color:var(--muted);margin:0 0 14px}
+.summary{display:grid;grid-template-columns:repeat(auto-fill,minmax(220px,1fr));gap:8px;margin:0}
+.summary div{background:var(--panel);border-radius:6px;padding:8px 10px}
+.summary dt{color:var(--muted);font-size:12px}.summary dd{margin:0;font-weight:600;
+overflow-wrap:anywhere}
+.summary .note{font-weight:400;font-size:12px}
+.note{color:var(--muted)}.bad{color:#b00020}
+.row{display:flex;flex-wrap:wrap;gap:18px;align-items:flex-start}
+figure{margin:0}figcaption{font-size:12px;color:var(--muted);margin:2px 0}
+svg text{font:11px $FONT;fill:#333}svg text.axis{fill:#5b6573}
+svg text.thr{fill:$BLIND;font-weight:600}
+.cell{cursor:pointer}.cell:hover,.cell:focus{stroke:#111;stroke-width:2;outline:none}
+#selbox{fill:none;stroke:#000;stroke-width:3;pointer-events:none}
+.outline{fill:none;stroke:$BLIND;stroke-width:2.5;pointer-events:none}
+.small .outline{stroke-width:1}
+svg text.lbl{font-size:10px;text-anchor:middle;pointer-events:none}
+.sensor{fill:#1d2430}
+.frame{fill:#fbfcfd;stroke:#c8ced6}.grid{stroke:#e6e9ee}
+.thrline{stroke:$BLIND;stroke-dasharray:5 4;stroke-width:1.5}
+.pt{fill:#2a4d8f;fill-opacity:.35}.meanline{fill:none;stroke:#e08214;stroke-width:2.5}
+.minline{fill:none;stroke:$BLIND;stroke-width:2}
+.pcell{opacity:.28}.path{fill:none;stroke:#5b6573;stroke-width:1;stroke-opacity:.6}
+.step{stroke:#fff;stroke-width:1}.ring{fill:none;stroke:$BLIND;stroke-width:2.5}
+.multiples-wrap{flex:1 1 300px;min-width:280px}
+.multiples{display:grid;grid-template-columns:repeat(auto-fill,minmax(96px,1fr));gap:8px}
+.multiple figcaption{font-size:11px}
+#tip{position:fixed;display:none;pointer-events:none;background:#1d2430;color:#fff;
+padding:6px 9px;border-radius:5px;font-size:12px;max-width:340px;z-index:10;
+white-space:pre-line;box-shadow:0 2px 8px rgba(0,0,0,.25)}
+table{border-collapse:collapse;font-size:13px}th,td{padding:4px 8px;
+border-bottom:1px solid var(--line);text-align:left;vertical-align:top}th{background:var(--panel)}
+td.num{text-align:right;font-variant-numeric:tabular-nums}
+.scroll{overflow-x:auto;max-width:100%}
+#cell-samples .scroll{max-height:360px;overflow-y:auto}
+#cell-samples th{position:sticky;top:0}
+.pic{display:flex;gap:6px;margin:0 0 4px}.pic img{display:block;image-rendering:auto}
+.key{display:inline-block;width:10px;height:10px;margin:0 3px 0 8px;border-radius:2px}
+code{font-size:12px}footer{margin-top:32px;color:var(--muted);font-size:12px}
+""".replace("$FONT", FONT).replace("$BLIND", BLIND_STROKE)
+
+JS = """
+(function () {
+  var data = JSON.parse(document.getElementById('falsify-data').textContent);
+  var tip = document.getElementById('tip');
+  function place(ev) {
+    var pad = 14, x = ev.clientX + pad, y = ev.clientY + pad, r = tip.getBoundingClientRect();
+    if (x + r.width > window.innerWidth) x = Math.max(0, ev.clientX - r.width - pad);
+    if (y + r.height > window.innerHeight) y = Math.max(0, ev.clientY - r.height - pad);
+    tip.style.left = x + 'px'; tip.style.top = y + 'px';
+  }
+  document.addEventListener('mouseover', function (ev) {
+    var el = ev.target.closest ? ev.target.closest('[data-tip]') : null;
+    if (!el || !el.getAttribute('data-tip')) { tip.style.display = 'none'; return; }
+    tip.textContent = el.getAttribute('data-tip');
+    tip.style.display = 'block';
+    place(ev);
+  });
+  document.addEventListener('mousemove', function (ev) {
+    if (tip.style.display === 'block') place(ev);
+  });
+  var cols = data.samples.columns, rows = data.samples.rows, at = {};
+  cols.forEach(function (c, i) { at[c] = i; });
+  function fmt(v, c) {
+    if (v === null || v === undefined || v === '') return '\\u2014';
+    if (typeof v === 'number' && (c === 'iou' || c === 'precision' || c === 'recall'))
+      return v.toFixed(3);
+    return String(v);
+  }
+  function showCell(cell) {
+    var key = cell.getAttribute('data-x') + '|' + cell.getAttribute('data-y');
+    var sel = document.querySelectorAll('#heatmap .cell.selected');
+    for (var s = 0; s < sel.length; s++) sel[s].classList.remove('selected');
+    cell.classList.add('selected');
+    var box = document.getElementById('selbox');
+    ['x', 'y', 'width', 'height'].forEach(function (a) {
+      box.setAttribute(a, cell.getAttribute(a));
+    });
+    box.setAttribute('visibility', 'visible');
+    var hits = rows.filter(function (r) { return r[at.cell] === key; });
+    hits.sort(function (a, b) {
+      var u = a[at.iou], v = b[at.iou];
+      if (u === null && v === null) return a[at.eval] - b[at.eval];
+      if (u === null) return 1;
+      if (v === null) return -1;
+      return u - v || a[at.eval] - b[at.eval];
+    });
+    var table = document.getElementById('cell-table'), body = table.tBodies[0];
+    while (body.firstChild) body.removeChild(body.firstChild);
+    var show = ['eval', 'x', 'y', 'yaw', 'car_model', 'count', 'background', 'status', 'iou',
+                'precision', 'recall', 'reason'];
+    hits.forEach(function (r) {
+      var tr = document.createElement('tr');
+      show.forEach(function (c) {
+        var td = document.createElement('td');
+        td.textContent = fmt(r[at[c]], c);
+        if (typeof r[at[c]] === 'number') td.className = 'num';
+        tr.appendChild(td);
+      });
+      body.appendChild(tr);
+    });
+    var m = cell.getAttribute('data-miou');
+    document.getElementById('cell-title').textContent = 'Samples of cell x = ' +
+      cell.getAttribute('data-x') + ', y = ' + cell.getAttribute('data-y') + ' (' +
+      hits.length + ' rows, mIoU ' + (m ? m : 'none') + ')';
+    document.getElementById('cell-hint').hidden = true;
+    table.hidden = false;
+  }
+  var map = document.getElementById('heatmap');
+  map.addEventListener('click', function (ev) {
+    var cell = ev.target.closest('.cell'); if (cell) showCell(cell);
+  });
+  map.addEventListener('keydown', function (ev) {
+    var cell = ev.target.closest('.cell');
+    if (cell && (ev.key === 'Enter' || ev.key === ' ')) { ev.preventDefault(); showCell(cell); }
+  });
+})();
+"""
+
+CSP = ("default-src 'none'; img-src data:; style-src 'unsafe-inline'; "
+       "script-src 'unsafe-inline'; base-uri 'none'; form-action 'none'")
+
+DEFS = ('<svg width="0" height="0" style="position:absolute" aria-hidden="true"><defs>'
+        '<pattern id="hatch" width="6" height="6" patternUnits="userSpaceOnUse" '
+        'patternTransform="rotate(45)"><rect width="6" height="6" fill="#eceef1"/>'
+        '<line x1="0" y1="0" x2="0" y2="6" stroke="#b4bac3" stroke-width="2"/></pattern>'
+        '<linearGradient id="vir" x1="0" y1="1" x2="0" y2="0">'
+        + "".join(f'<stop offset="{k / 10:.1f}" stop-color="{c}"/>'
+                  for k, c in enumerate(VIRIDIS))
+        + "</linearGradient></defs></svg>")
+
+
+def render_report(run: Path, compare: Path | None = None, predict: bool = True,
+                  worst: int = WORST) -> str:
+    """The report of `run` as one self-contained HTML string (deterministic for its inputs)."""
+    data = open_run(run)
+    before = open_run(compare) if compare is not None else None
+    threshold = data.threshold
+    cmap = data.cell_map()
+    meta = data.meta
+    name = meta.get("space_name") or data.space.name
+    sections = [summary_section(data, cmap, threshold), heatmap_section(data, cmap, threshold)]
+    if meta.get("command") == "search":
+        sections.append(search_section(data, cmap, threshold))
+    if before is not None:
+        sections.append(compare_section(before, data, cmap, threshold))
+    sections.append(distance_section(data, threshold))
+    sections.append(worst_section(data, predict, worst))
+    payload = script_json({"samples": samples_json(data), "threshold": threshold})
+    return f"""<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<meta http-equiv="Content-Security-Policy" content="{CSP}">
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<title>falsify report: {esc(name)}</title>
+<style>{CSS}</style>
+</head>
+<body>
+{DEFS}
+<main>
+<h1>falsify report: {esc(name)}</h1>
+<p class="sub">{esc(meta.get("command", "run"))} run in {esc(data.path)} ·
+car IoU of {esc(meta.get("model_name", "the model"))} per sample · threshold
+{threshold:.3f}</p>
+{"".join(sections)}
+<footer>falsify {esc(falsify.__version__)} · config hash
+<code>{esc(str(meta.get("config_hash") or "")[:12])}</code> · model hash
+<code>{esc(str(meta.get("model_hash") or "")[:12])}</code></footer>
+</main>
+<div id="tip" role="tooltip"></div>
+<script type="application/json" id="falsify-data">{payload}</script>
+<script>{JS}</script>
+</body>
+</html>
+"""
+
+
+def write_report(run: Path, out: Path | None = None, compare: Path | None = None,
+                 predict: bool = True) -> Path:
+    """Render and write the report atomically (default RUN/report.html); returns the path."""
+    from falsify.errors import FalsifyError
+
+    text = render_report(Path(run), compare=None if compare is None else Path(compare),
+                         predict=predict)
+    path = Path(out) if out is not None else Path(run) / "report.html"
+    if path.is_dir():
+        raise FalsifyError(f"--out {path}: is a directory")
+    try:
+        write_text(path, text)
+    except OSError as exc:
+        raise FalsifyError(f"--out {path}: cannot write ({exc.strerror})") from None
+    return path

@@ -1,0 +1,224 @@
+"""The HTML report: one cell per grid cell, escaping, size, comparison, determinism, and a headless
+Chromium session that hovers and clicks cells and proves the page made no network request."""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from falsify.cli import main
+from reports.html import render_report, write_report
+from tests.runfixture import PAPER, write_run
+
+EVIL_NAME = "<script>alert(1)</script>"
+EVIL_PATH = '/models/"&<>.onnx'
+EVIL_REASON = "<img src=x onerror=alert(2)> & more"
+CELL = re.compile(r'<rect class="cell[ "]')
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> dict[str, Path]:
+    """Small runs over smoke.toml: a hostile-named one, a 'before' run, and a search run."""
+    root = tmp_path_factory.mktemp("runs")
+    return {
+        "evil": write_run(root / "evil", meta={"space_name": EVIL_NAME, "model_path": EVIL_PATH,
+                                               "config_path": EVIL_PATH + "/<b>.toml"},
+                          invalid_every=3, invalid_reason=EVIL_REASON),
+        "before": write_run(root / "before", seed=7,
+                            iou=lambda s: 0.4 if float(s["y"]) < 10 else 0.7),
+        "search": write_run(root / "search", command="search", seed=3),
+    }
+
+
+def test_one_cell_per_grid_cell_and_sections(runs) -> None:
+    page = render_report(runs["evil"], predict=False)
+    assert len(CELL.findall(page)) == 4
+    for ident in ('id="heatmap"', 'id="distance"', 'id="worst-section"', 'id="cell-table"',
+                  "no valid sample", "Blind spots", "Lowest IoU"):
+        assert ident in page
+    assert 'id="searchpath"' not in page and 'id="diffmap"' not in page
+    # each cell carries its data and a <title> for hovering without JS
+    cells = re.findall(r'<rect class="cell[^>]*>', page)
+    for c in cells:
+        for attr in ("data-x=", "data-y=", "data-miou=", "data-n=", "data-tip="):
+            assert attr in c
+    assert page.count("<title>x = ") >= 4
+
+
+def test_escaping(runs) -> None:
+    page = render_report(runs["evil"], predict=False)
+    assert "<script>alert" not in page and "<img src=x" not in page and "<b>.toml" not in page
+    assert "&lt;script&gt;alert(1)&lt;/script&gt;" in page
+    assert "&quot;&amp;&lt;&gt;" in page
+    # the embedded JSON is valid and holds the reason intact, with no raw < > &
+    blob = re.search(r'<script type="application/json" id="falsify-data">(.*?)</script>', page,
+                     re.S).group(1)
+    assert "<" not in blob and ">" not in blob and "&" not in blob
+    data = json.loads(blob)
+    reasons = {r[data["samples"]["columns"].index("reason")] for r in data["samples"]["rows"]}
+    assert EVIL_REASON in reasons
+    # only our own two script elements
+    assert page.count("<script") == 2
+
+
+def test_self_contained(runs) -> None:
+    page = render_report(runs["evil"], predict=False)
+    assert not re.search(r"""(src|href)\s*=\s*["']?(https?:|//)""", page)
+    assert "@import" not in page and "url(http" not in page
+    assert "Content-Security-Policy" in page
+    for src in re.findall(r'<img src="([^"]+)"', page):
+        assert src.startswith("data:image/png;base64,")
+        assert base64.b64decode(src.split(",", 1)[1]).startswith(b"\x89PNG")
+
+
+def test_deterministic_and_written(runs, tmp_path: Path) -> None:
+    a = render_report(runs["evil"], predict=False)
+    b = render_report(runs["evil"], predict=False)
+    assert a == b
+    out = write_report(runs["evil"], tmp_path / "r.html", )
+    assert out.read_text(encoding="utf-8") == render_report(runs["evil"])
+
+
+def test_compare_page(runs) -> None:
+    page = render_report(runs["evil"], compare=runs["before"], predict=False)
+    assert 'id="diffmap"' in page and 'id="improvement"' in page
+    assert len(CELL.findall(page)) == 4                 # the diff map uses its own class
+    assert page.count('class="bar"') == 4
+    assert page.count('<rect class="dcell') == 4
+    assert "Blind spots" in page and "fixed" in page
+
+
+def test_search_page(runs) -> None:
+    page = render_report(runs["search"], predict=False)
+    assert 'id="curve"' in page and 'id="searchpath"' in page
+    assert page.count('class="step"') == 40             # one dot per evaluation
+    assert 'class="minline"' in page
+
+
+def test_predict_falls_back_to_labels(runs) -> None:
+    page = render_report(runs["evil"], predict=True)
+    if "Model not loaded" in page:
+        assert 'alt="range image, prediction"' not in page
+    else:
+        assert 'alt="range image, prediction"' in page
+
+
+def test_cli(runs, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "sub" / "page.html"
+    assert main(["report", str(runs["before"]), "--out", str(out), "--no-predict",
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["out"] == str(out) and doc["bytes"] == out.stat().st_size
+    assert main(["report", str(tmp_path / "missing"), "--no-predict"]) == 2
+    assert "missing" in capsys.readouterr().err
+    assert main(["report", str(runs["before"]), "--compare", str(tmp_path / "nope")]) == 2
+
+
+def test_paper_size(tmp_path: Path) -> None:
+    """150 cells × 15 backgrounds = 2,250 rows: one file under 5 MB with 12 previews."""
+    run = write_run(tmp_path / "paper", PAPER, undefined_every=37, invalid_every=53)
+    out = write_report(run, compare=None, predict=False)
+    page = out.read_text(encoding="utf-8")
+    assert out == run / "report.html"
+    assert len(CELL.findall(page)) == 150
+    assert page.count('alt="range image, label"') == 12
+    assert page.count('class="multiple"') == 15
+    assert out.stat().st_size < 5_000_000
+
+
+# -- headless Chromium ---------------------------------------------------------------------------
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMEDRIVER = Path("/usr/bin/chromedriver")
+
+COUNT_COLOURS = """
+const done = arguments[arguments.length - 1];
+const img = new Image();
+img.onload = () => {
+  const c = document.createElement('canvas');
+  c.width = img.width; c.height = img.height;
+  const g = c.getContext('2d'); g.drawImage(img, 0, 0);
+  const d = g.getImageData(0, 0, c.width, c.height).data, seen = new Set();
+  for (let i = 0; i < d.length; i += 4) seen.add((d[i] << 16) | (d[i + 1] << 8) | d[i + 2]);
+  done(seen.size);
+};
+img.onerror = () => done(-1);
+img.src = arguments[0];
+"""
+
+
+@pytest.fixture
+def browser(tmp_path: Path):
+    if not CHROMIUM.exists() or not CHROMEDRIVER.exists():
+        pytest.skip(f"headless browser test needs {CHROMIUM} and {CHROMEDRIVER}")
+    webdriver = pytest.importorskip("selenium.webdriver")
+    from selenium.webdriver.chrome.service import Service
+
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = str(CHROMIUM)
+    for arg in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                "--no-first-run", "--disable-component-update", "--disable-sync",
+                f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1300,1000"):
+        opts.add_argument(arg)
+    opts.set_capability("goog:loggingPrefs", {"performance": "ALL", "browser": "ALL"})
+    driver = webdriver.Chrome(options=opts, service=Service(str(CHROMEDRIVER)))
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+def test_in_chromium(browser, runs, tmp_path: Path) -> None:
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+
+    page = write_report(runs["evil"], tmp_path / "report.html", compare=runs["before"])
+    browser.get(page.as_uri())
+    cells = browser.find_elements(By.CSS_SELECTOR, "#heatmap .cell")
+    assert len(cells) == 4
+
+    # hover: the tooltip shows the cell's value and sample count
+    scored = [c for c in cells if c.get_attribute("data-miou")]
+    cell = scored[0]
+    ActionChains(browser).move_to_element(cell).perform()
+    tip = browser.find_element(By.ID, "tip")
+    assert tip.is_displayed()
+    assert f"mIoU {cell.get_attribute('data-miou')}" in tip.text
+    assert f"{cell.get_attribute('data-n')} sample" in tip.text
+
+    # click: the table lists that cell's samples (2 per cell in smoke.toml: one per background)
+    cell.click()
+    table = browser.find_element(By.ID, "cell-table")
+    assert table.is_displayed()
+    rows = table.find_elements(By.CSS_SELECTOR, "tbody tr")
+    assert len(rows) == 2
+    x, y = cell.get_attribute("data-x"), cell.get_attribute("data-y")
+    assert f"x = {x}, y = {y}" in browser.find_element(By.ID, "cell-title").text
+    assert "selected" in cell.get_attribute("class")
+
+    # no network: no resource entries except data: URIs, no http(s) request in the log
+    resources = browser.execute_script(
+        "return performance.getEntriesByType('resource').map(e => e.name)")
+    assert all(r.startswith("data:") for r in resources), resources
+    requested = []
+    for entry in browser.get_log("performance"):
+        msg = json.loads(entry["message"])["message"]
+        if msg.get("method") == "Network.requestWillBeSent":
+            requested.append(msg["params"]["request"]["url"])
+    assert any(u.startswith("file:") for u in requested)     # the log works: it saw the page
+    assert not [u for u in requested if u.startswith(("http:", "https:", "ws:", "wss:"))]
+    errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
+    assert not errors, errors
+
+    # screenshot: saved, and far from blank (count colours with the browser's own decoder)
+    shot = tmp_path / "report.png"
+    assert browser.save_screenshot(str(shot))
+    png = shot.read_bytes()
+    assert png.startswith(b"\x89PNG") and len(png) > 20_000
+    browser.get("about:blank")
+    uri = "data:image/png;base64," + base64.b64encode(png).decode("ascii")
+    colours = browser.execute_async_script(COUNT_COLOURS, uri)
+    assert colours > 50, colours
