@@ -10,7 +10,8 @@ from __future__ import annotations
 import json
 import sqlite3
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass, field
+from contextlib import closing
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pandas as pd
@@ -125,30 +126,30 @@ class Store:
         return read_frame(self.path)
 
 
-def read_frame(path: str | Path) -> pd.DataFrame:
+def _read_only(path: str | Path, query):
+    """Run `query(connection)` on a run's SQLite file opened read-only; clear errors."""
     path = Path(path)
     if path.is_dir():
         path = path / STORE_NAME
     if not path.exists():
         raise FalsifyError(f"{path}: no results file (is this a run directory?)")
     try:
-        with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
-            return pd.read_sql_query("SELECT * FROM samples ORDER BY eval_index", db)
-    except sqlite3.DatabaseError as exc:
+        with closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as db:
+            return query(db)
+    except (sqlite3.DatabaseError, pd.errors.DatabaseError) as exc:
         raise FalsifyError(f"{path}: not a readable results file ({exc})") from None
+
+
+def read_frame(path: str | Path) -> pd.DataFrame:
+    """All sample rows of a run, in evaluation order."""
+    return _read_only(path, lambda db: pd.read_sql_query(
+        "SELECT * FROM samples ORDER BY eval_index", db))
 
 
 def read_meta(path: str | Path) -> dict:
-    path = Path(path)
-    if path.is_dir():
-        path = path / STORE_NAME
-    if not path.exists():
-        raise FalsifyError(f"{path}: no results file (is this a run directory?)")
-    try:
-        with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
-            return {k: json.loads(v) for k, v in db.execute("SELECT key, value FROM run")}
-    except sqlite3.DatabaseError as exc:
-        raise FalsifyError(f"{path}: not a readable results file ({exc})") from None
+    """The run's metadata (config, model, seed, curve, ...)."""
+    return _read_only(path, lambda db: {
+        k: json.loads(v) for k, v in db.execute("SELECT key, value FROM run")})
 
 
 def export(frame: pd.DataFrame, out: Path, formats: Sequence[str] = ("csv", "parquet")) -> list:
@@ -181,4 +182,3 @@ def _is_text(space: Space, dim: str) -> bool:
     return isinstance(d, Categorical) and any(isinstance(v, str) for v in d.values)
 
 
-__all__ = ["SampleResult", "Store", "read_frame", "read_meta", "export", "asdict"]
