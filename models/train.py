@@ -49,6 +49,9 @@ class TrainConfig:
     val_data: str | None = None
     resume: bool = False
     max_steps: int | None = None  # stop (with a checkpoint) after this many steps: for tests
+    loss_on: str = "backbone"  # backbone: CE on the pre-CRF logits; crf: on the CRF energies
+    init: str | None = None  # start from these weights (checkpoint or state dict), new optimiser
+    crf_only: bool = False  # train only the CRF's compatibility matrices (backbone frozen)
     export: bool = True
 
 
@@ -148,7 +151,7 @@ def evaluate(model, files: list[Path], cfg: TrainConfig, shape, autocast) -> dic
                 tp[c] += int((p & t).sum())
                 fp[c] += int((p & ~t).sum())
                 fn[c] += int((~p & t).sum())
-    model.train()
+    model.train(not cfg.crf_only)
     denom = tp + fp + fn
     iou = [float(tp[c] / denom[c]) if denom[c] else None for c in range(4)]
     return {"val_car_iou": iou[1], "val_iou": iou, "val_scans": len(files)}
@@ -184,6 +187,12 @@ def train(cfg: TrainConfig) -> dict:
 
     torch.set_num_threads(cfg.threads)
     torch.use_deterministic_algorithms(True)
+    if cfg.crf_only and (cfg.loss_on != "crf" or cfg.crf_iterations == 0):
+        raise FalsifyError("--crf-only trains the CRF: it needs --loss-on crf and CRF iterations")
+    if cfg.loss_on not in ("backbone", "crf"):
+        raise FalsifyError(f"--loss-on must be backbone or crf, got {cfg.loss_on!r}")
+    if cfg.init and not Path(cfg.init).is_file():
+        raise FalsifyError(f"--init {cfg.init}: no such file")
     if cfg.precision not in ("auto", "bf16", "fp32"):
         raise FalsifyError(f"--precision must be auto, bf16 or fp32, got {cfg.precision!r}")
     use_bf16 = cfg.precision == "bf16" or (cfg.precision == "auto" and bf16_supported())
@@ -196,7 +205,12 @@ def train(cfg: TrainConfig) -> dict:
     torch.manual_seed(cfg.seed)
     model = SqueezeSeg(cfg.channels, crf_iterations=cfg.crf_iterations)
     model = model.to(memory_format=torch.channels_last)
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    if cfg.crf_only:
+        for name, p in model.named_parameters():
+            p.requires_grad_(name.startswith("crf."))
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=0.0 if cfg.crf_only
+                            else cfg.weight_decay)
     weights = torch.tensor(CLASS_WEIGHTS, dtype=torch.float32)
     epoch, step = 0, 0
     ckpt_path = out / CHECKPOINT
@@ -208,7 +222,10 @@ def train(cfg: TrainConfig) -> dict:
         opt.load_state_dict(ck["optim"])
         epoch, step = int(ck["epoch"]), int(ck["step"])
         torch.set_rng_state(ck["torch_rng"])
-    model.train()
+    elif cfg.init:
+        ck = torch.load(cfg.init, map_location="cpu", weights_only=True)
+        model.load_state_dict(ck.get("model", ck))
+    model.train(not cfg.crf_only)  # CRF-only: the frozen backbone runs as at inference
 
     def checkpoint(e: int, s: int) -> None:
         _save_atomic({"model": model.state_dict(), "optim": opt.state_dict(), "epoch": e,
@@ -236,7 +253,12 @@ def train(cfg: TrainConfig) -> dict:
                               for i, s in ((i, load_scan(files[i], shape)) for i in idx)])
             x, xyz, mask, labels = batch_tensors(scans, cfg.channels)
             with autocast():
-                logits = model(x.contiguous(memory_format=torch.channels_last), xyz, mask)
+                xc = x.contiguous(memory_format=torch.channels_last)
+                # The CRF's energies live in [0, ~1.2] (softmax + small messages, as in the
+                # official code), so a cross-entropy on them cannot saturate and the class
+                # weights swamp the unknown class; the backbone's logits train cleanly and the
+                # CRF keeps its published initialisation at inference.
+                logits = model.backbone(xc) if cfg.loss_on == "backbone" else model(xc, xyz, mask)
             loss = masked_loss(logits, labels, mask, weights)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -304,13 +326,19 @@ def parse_args(argv: Sequence[str] | None) -> TrainConfig:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--max-steps", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--no-export", action="store_true", help="skip the ONNX export at the end")
+    p.add_argument("--loss-on", default="backbone", choices=["backbone", "crf"],
+                   help="train on the pre-CRF logits (default) or on the CRF's energies")
+    p.add_argument("--init", default=None, help="start from these weights (fresh optimiser)")
+    p.add_argument("--crf-only", action="store_true",
+                   help="train only the CRF compatibility matrices, the backbone frozen")
     a = p.parse_args(argv)
     return TrainConfig(
         data=a.data, out=a.out, epochs=a.epochs, batch=a.batch, seed=a.seed, lr=a.lr,
         lr_decay=a.lr_decay, crf_iterations=a.crf_iterations,
         channels=tuple(c.strip() for c in a.channels.split(",") if c.strip()),
         precision=a.precision, threads=a.threads, time_limit_min=a.time_limit_min,
-        val_data=a.val_data, resume=a.resume, max_steps=a.max_steps, export=not a.no_export)
+        val_data=a.val_data, resume=a.resume, max_steps=a.max_steps, export=not a.no_export,
+        loss_on=a.loss_on, init=a.init, crf_only=a.crf_only)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -202,3 +202,16 @@ def test_two_workers_give_the_same_rows_as_one(tmp_path):
     assert main(["grid", str(config), "--out", str(two), "--quiet", "--no-report",
                  "--workers", "2"]) == 0
     pd.testing.assert_frame_equal(rows(one), rows(two), check_exact=False, atol=1e-6)
+
+
+def test_grid_report_and_gate_run_without_torch(tmp_path):
+    """CI users should not pay for torch: scoring, reporting and gating never import it."""
+    run = tmp_path / "run"
+    code = ("import sys; sys.modules['torch'] = None\n"
+            "from falsify.cli import main\n"
+            f"assert main(['grid', {str(CONFIGS / 'smoke.toml')!r}, '--out', {str(run)!r},"
+            " '--quiet']) == 0\n"
+            f"sys.exit(main(['gate', {str(run)!r}, '--max-blind-spots', '4']))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert (run / "report.html").exists()

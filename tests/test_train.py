@@ -72,3 +72,18 @@ def test_bad_data_dir_is_a_clear_error(tmp_path, capsys):
         from models.train import TrainConfig, train
 
         train(TrainConfig(data=str(tmp_path), out=str(tmp_path / "o")))
+
+
+def test_crf_only_fine_tune_moves_only_the_compatibility(data, tmp_path):
+    base = tmp_path / "base"
+    assert main(["--data", str(data), "--out", str(base), "--epochs", "1", "--no-export",
+                 *ARGS]) == 0
+    tuned = tmp_path / "tuned"
+    assert main(["--data", str(data), "--out", str(tuned), "--epochs", "1", "--no-export",
+                 "--init", str(base / "squeezeseg.pt"), "--loss-on", "crf", "--crf-only",
+                 "--lr", "0.05", *ARGS]) == 0
+    a, b = _weights(base), _weights(tuned)
+    changed = {k for k in a if not torch.equal(a[k], b[k])}
+    assert changed and all(k.startswith("crf.") for k in changed)
+    assert main(["--data", str(data), "--out", str(tmp_path / "x"), "--crf-only",
+                 *ARGS]) == 2  # needs --loss-on crf
