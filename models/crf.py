@@ -62,8 +62,11 @@ class RecurrentCRF(nn.Module):
 
     Each iteration: q = softmax(energy); angular message = fixed gaussian on pixel offsets of the
     masked q; bilateral message = sum over neighbours of gaussian(xyz distance) x angular gaussian
-    x masked q; learned 1x1 compatibility per message; energy = q + both messages (as in the
-    official code). ``iterations=0`` returns the logits unchanged.
+    x masked q; learned 1x1 compatibility per message; energy = logits - both transformed
+    messages (mean field with a Potts-like penalty, CRF-as-RNN). The official TF code used
+    softmax(energy) as the unary and added the messages: with its (1 - I) initialisation that
+    rewards disagreeing with the neighbours and flattens the scores each iteration (measured on
+    our backbone: car IoU 0.15 against 0.86 with this form). ``iterations=0`` returns the logits.
     """
 
     def __init__(
@@ -139,5 +142,7 @@ class RecurrentCRF(nn.Module):
             qm = q * mask
             ang = F.conv2d(F.pad(qm, self.pad), self.angular_filter, groups=self.num_classes)
             bi = (self._neighbours(qm, self.gather_q) * bi_w).sum(dim=2) * mask
-            energy = q + self.angular_compat(ang) + self.bilateral_compat(bi)
+            # Mean-field update: the unary is the network's logits, and the Potts penalty
+            # (compatibility (1 - I)·coef) of neighbours holding other classes is subtracted.
+            energy = logits - self.angular_compat(ang) - self.bilateral_compat(bi)
         return energy

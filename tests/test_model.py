@@ -93,7 +93,8 @@ def _reference_crf(logits, xyz, mask, iters, ang_c, bi_c):
                             if mask[r, c]:
                                 b = math.exp(-d2 / 2 / THETA_R[k] ** 2)
                                 bi[k, r, c] += g * b * q[k, rr, cc]
-        e = q + np.einsum("ij,jhw->ihw", ang_c, ang) + np.einsum("ij,jhw->ihw", bi_c, bi)
+        e = (logits - np.einsum("ij,jhw->ihw", ang_c, ang)
+             - np.einsum("ij,jhw->ihw", bi_c, bi))  # mean field: unary = logits
     return e
 
 
@@ -129,3 +130,22 @@ def test_crf_zero_iterations_is_identity():
     assert torch.equal(RecurrentCRF(0)(x, torch.zeros(1, 3, 3, 5), torch.ones(1, 1, 3, 5)), x)
     with pytest.raises(ValueError):
         RecurrentCRF(4)
+
+
+def test_crf_with_its_initialisation_smooths_an_isolated_pixel():
+    """A pixel narrowly voting car inside a surface of close 'unknown' points is pulled back to
+    its neighbours' class; a confident car region is left alone."""
+    H, W = 5, 9
+    logits = np.zeros((4, H, W), np.float32)
+    logits[0] = 2.0                     # unknown everywhere ...
+    logits[1, 2, 4] = 2.1               # ... one pixel narrowly car
+    logits[1, :, 6:] = 6.0              # a confident car region on the right
+    xs, ys = np.meshgrid(np.arange(W) * 0.005, np.arange(H) * 0.005)
+    xyz = np.stack([np.full((H, W), 10.0), xs, ys]).astype(np.float32)
+    mask = np.ones((1, 1, H, W), np.float32)
+    crf = RecurrentCRF(3)
+    with torch.no_grad():
+        out = crf(torch.from_numpy(logits)[None], torch.from_numpy(xyz)[None],
+                  torch.from_numpy(mask))[0].argmax(0).numpy()
+    assert logits.argmax(0)[2, 4] == 1 and out[2, 4] == 0
+    assert (out[:, 7:] == 1).all()
