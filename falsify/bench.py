@@ -271,7 +271,7 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
     }
 
 
-SEARCH_ALGORITHMS = ("random", "sobol", "GN_DIRECT_L", "GN_CRS2_LM", "LN_BOBYQA")
+SEARCH_ALGORITHMS = ("random", "sobol", "GN_DIRECT_L", "GN_CRS2_LM")
 
 
 def bench_search(config: str | Path, out: str | Path, algorithms=SEARCH_ALGORITHMS,

@@ -134,3 +134,46 @@ def convert_fp16(onnx_in: str | Path, onnx_out: str | Path,
     onnx.save(m16, str(onnx_out))
     save_spec(load_spec(spec_path_for(onnx_in)), spec_path_for(onnx_out))
     return onnx_out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m models.export WEIGHTS.pt --out MODEL.onnx`: export trained weights with spec."""
+    import argparse
+    import json
+
+    p = argparse.ArgumentParser(prog="python -m models.export", description=main.__doc__)
+    p.add_argument("weights", help="a state dict (.pt) or a training checkpoint.pt")
+    p.add_argument("--out", required=True, help="the .onnx to write (spec .json beside it)")
+    p.add_argument("--crf-iterations", type=int, default=3, choices=range(4))
+    p.add_argument("--height", type=int, default=64)
+    p.add_argument("--width", type=int, default=512)
+    p.add_argument("--note", action="append", default=[], metavar="KEY=VALUE",
+                   help="extra facts recorded in the spec (repeatable)")
+    a = p.parse_args(argv)
+    import torch
+
+    from models.squeezeseg import SqueezeSeg
+    try:
+        state = torch.load(a.weights, map_location="cpu", weights_only=True)
+    except (OSError, RuntimeError) as exc:
+        print(f"error: {a.weights}: cannot load weights ({exc})")
+        return 2
+    state = state.get("model", state)
+    model = SqueezeSeg(crf_iterations=a.crf_iterations)
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as exc:
+        print(f"error: {a.weights}: not SqueezeSeg weights ({str(exc).splitlines()[0]})")
+        return 2
+    extra = dict(n.split("=", 1) for n in a.note if "=" in n)
+    out = Path(a.out)
+    path, spec = export_onnx(model, out, H=a.height, W=a.width, name=out.stem, **extra)
+    torch.save({k: v.contiguous() for k, v in model.state_dict().items()}, out.with_suffix(".pt"))
+    print(json.dumps({"onnx": str(path), "spec": str(spec_path_for(path)),
+                      "weights": str(out.with_suffix(".pt"))}))
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+    sys.exit(main())
