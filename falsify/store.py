@@ -64,8 +64,7 @@ class Store:
         self.db = sqlite3.connect(self.path, timeout=30.0)
         self.db.execute("PRAGMA journal_mode=WAL")
         self.db.execute("PRAGMA synchronous=NORMAL")
-        dims = ", ".join(f'"{d}" {"TEXT" if _is_text(space, d) else "REAL"}'
-                         for d in self.dim_names)
+        dims = ", ".join(f'"{d}" {_sql_type(space, d)}' for d in self.dim_names)
         metrics = ", ".join(f"{m} REAL" for m in METRIC_COLUMNS)
         self.db.execute("CREATE TABLE IF NOT EXISTS run (key TEXT PRIMARY KEY, value TEXT)")
         self.db.execute(
@@ -176,9 +175,14 @@ def _q(name: str) -> str:
     return f'"{name}"'
 
 
-def _is_text(space: Space, dim: str) -> bool:
+def _sql_type(space: Space, dim: str) -> str:
+    """TEXT for named values, INTEGER for ids and counts, REAL for coordinates."""
     from falsify.space import Categorical
     d = space.dims[dim]
-    return isinstance(d, Categorical) and any(isinstance(v, str) for v in d.values)
+    if isinstance(d, Categorical) and any(isinstance(v, str) for v in d.values):
+        return "TEXT"
+    if isinstance(d, Categorical) and all(isinstance(v, int) for v in d.values):
+        return "INTEGER"
+    return "REAL"
 
 
