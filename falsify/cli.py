@@ -358,6 +358,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     from reports.cli import register
     register(sub)
+    from falsify.tradeoff import register as register_tradeoff
+    register_tradeoff(sub)
     return p
 
 

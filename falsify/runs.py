@@ -48,10 +48,9 @@ class RunRequest:
 
 def prepare(req: RunRequest):
     """Validate the request; returns (space, sampler, settings, seed) without writing anything."""
+    from falsify.fidelity import preset
     from models.runner import load_segmenter
     from sampler.base import make_sampler
-
-    from falsify.fidelity import preset
 
     space = load_space(req.config)
     fid = preset(req.fidelity)

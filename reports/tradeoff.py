@@ -21,7 +21,7 @@ CSS = """body{font:14px/1.45 system-ui,-apple-system,"Segoe UI",Roboto,Helvetica
 margin:2rem auto;max-width:1000px;padding:0 1rem;color:#222}
 table{border-collapse:collapse;margin:1rem 0;font-variant-numeric:tabular-nums}
 th,td{border-bottom:1px solid #ddd;padding:.25rem .6rem;text-align:right}
-th:nth-child(-n+2),td:nth-child(-n+2),td:last-child{text-align:left}
+th:nth-child(-n+2),td:nth-child(-n+2),th:last-child,td:last-child{text-align:left}
 tr.ref td{font-weight:600;background:#f3f6fa}tr.skip td{color:#888}
 .note{color:#555;max-width:60rem}svg text{font:11px system-ui,sans-serif}"""
 W, H = 760, 440
@@ -53,6 +53,12 @@ def grid_ms(row: dict, grid_samples: int) -> float:
     return row["map_time_s"] * 1e3 / grid_samples
 
 
+def nice_step(raw: float) -> float:
+    """The smallest of 1, 2, 5 × 10^k at or above `raw` (axis tick spacing)."""
+    base = 10.0 ** math.floor(math.log10(raw))
+    return next(m * base for m in (1, 2, 5, 10) if m * base >= raw * (1 - 1e-9))
+
+
 def pareto(points: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
     """Points no other point beats in both time and error, fastest first."""
     front, best = [], math.inf
@@ -78,14 +84,16 @@ def _marker(kind: str, x: float, y: float, colour: str, hollow: bool) -> str:
 
 
 def plot(rows: Sequence[dict], grid_samples: int) -> str:
-    """Inline SVG: log time per grid sample (x) against the map's mean absolute error (y)."""
+    """Inline SVG: log time per grid sample (x) against the map's mean absolute error (y);
+    each knob's settings joined in table order, the Pareto front dashed."""
     pts = [r for r in rows if r["map_time_s"] is not None and r["map_mean_abs_error"] is not None]
     if not pts:
         return "<p>No measured rows to plot.</p>"
     xs = [math.log10(max(grid_ms(r, grid_samples), 1e-6)) for r in pts]
     ys = [r["map_mean_abs_error"] for r in pts]
     x0, x1 = min(xs) - 0.1, max(xs) + 0.1
-    y1 = max(max(ys) * 1.1, 0.01)
+    y_step = nice_step(max(max(ys), 0.005) / 5)
+    y1 = y_step * math.ceil(max(max(ys), 0.005) * 1.05 / y_step)
     pw, ph = W - LEFT - RIGHT, H - TOP - BOTTOM
 
     def px(lx: float) -> float:
@@ -105,11 +113,11 @@ def plot(rows: Sequence[dict], grid_samples: int) -> str:
                            f'y2="{TOP + ph}" stroke="#eee"/><text x="{_n(px(lx))}" '
                            f'y="{TOP + ph + 15}" text-anchor="middle">{esc(f"{10 ** lx:g}")}'
                            '</text>')
-    for k in range(6):
-        v = y1 * k / 5
+    for k in range(round(y1 / y_step) + 1):
+        v = k * y_step
         out.append(f'<line x1="{LEFT}" x2="{LEFT + pw}" y1="{_n(py(v))}" y2="{_n(py(v))}" '
                    f'stroke="#eee"/><text x="{LEFT - 6}" y="{_n(py(v) + 4)}" '
-                   f'text-anchor="end">{v:.3f}</text>')
+                   f'text-anchor="end">{v:g}</text>')
     out.append(f'<text x="{LEFT + pw / 2:.0f}" y="{H - 10}" text-anchor="middle">ms per grid '
                'sample (map time ÷ samples in the config grid; log scale)</text>')
     out.append(f'<text transform="translate(16 {TOP + ph / 2:.0f}) rotate(-90)" '
@@ -123,14 +131,16 @@ def plot(rows: Sequence[dict], grid_samples: int) -> str:
     for i, knob in enumerate(knobs):
         colour, kind = COLOURS[i % len(COLOURS)], MARKERS[i % len(MARKERS)]
         series = [(x, y, r) for x, y, r in zip(xs, ys, pts, strict=True) if r["knob"] == knob]
-        line = " ".join(f"{_n(px(x))},{_n(py(y))}" for x, y, _ in sorted(series))
+        line = " ".join(f"{_n(px(x))},{_n(py(y))}" for x, y, _ in series)
         out.append(f'<g><title>{esc(knob)}</title><polyline points="{line}" fill="none" '
                    f'stroke="{colour}" stroke-opacity=".5"/>')
         for x, y, r in series:
             out.append(f'<g><title>{esc(knob)} {esc(r["setting"])}: '
                        f'{grid_ms(r, grid_samples):.1f} ms, error '
                        f'{r["map_mean_abs_error"]:.4f}</title>'
-                       + _marker(kind, px(x), py(y), colour, r["is_reference"]) + "</g>")
+                       + _marker(kind, px(x), py(y), colour, r["is_reference"])
+                       + f'<text x="{_n(px(x) + 7)}" y="{_n(py(y) - 6)}" fill="#555" '
+                       f'font-size="9">{esc(r["setting"])}</text></g>')
         ly = TOP + 10 + 18 * i
         out.append(_marker(kind, LEFT + pw + 18, ly, colour, False)
                    + f'<text x="{LEFT + pw + 30}" y="{ly + 4}">{esc(knob)}</text></g>')
