@@ -1,4 +1,4 @@
-"""`falsify predict` on the bundled model: synthetic and real KITTI scans, pooled metrics, errors."""
+"""`falsify predict` on the bundled model: synthetic and real KITTI scans, pooled metrics."""
 
 from __future__ import annotations
 
