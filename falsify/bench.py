@@ -295,8 +295,11 @@ def bench_search(config: str | Path, out: str | Path, algorithms=SEARCH_ALGORITH
 
     def run(name: str, algorithm: str, b: int | None, command: str) -> Path:
         d = out / name
+        # NLopt asks for one point at a time: one process with two inference threads is faster
+        # for it than two single-threaded workers taking turns.
+        w = 1 if algorithm not in ("grid", "random", "sobol") else workers
         req = RunRequest(config=Path(config), out=d, command=command, algorithm=algorithm,
-                         budget=b, model=model, workers=workers, quiet=True, report=False,
+                         budget=b, model=model, workers=w, quiet=True, report=False,
                          resume=(d / "results.sqlite").exists())
         execute(req)
         return d
