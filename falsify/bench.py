@@ -123,7 +123,7 @@ def bench_scan(config: str | Path, samples: int = 1000, naive_samples: int = 5,
         "naive_samples": naive_samples,
         "speedup_1_process": round(single / naive, 1),
         f"speedup_{workers}_processes": round(multi / naive, 1),
-        "scene_size": scene_size_effect(space, picked[: min(300, samples)]),
+        "scene_size": scene_size_effect(space, picked[: min(900, samples)]),
     }
 
 

@@ -26,6 +26,7 @@ tr.ref td{font-weight:600;background:#f3f6fa}tr.skip td{color:#888}
 .note{color:#555;max-width:60rem}svg text{font:11px system-ui,sans-serif}"""
 W, H = 760, 440
 LEFT, RIGHT, TOP, BOTTOM = 70, 170, 20, 50
+ERROR_FLOOR = 1e-4   # the log error axis starts here; zero-error points (references) sit on it
 
 
 def esc(value: object) -> str:
@@ -53,12 +54,6 @@ def grid_ms(row: dict, grid_samples: int) -> float:
     return row["map_time_s"] * 1e3 / grid_samples
 
 
-def nice_step(raw: float) -> float:
-    """The smallest of 1, 2, 5 × 10^k at or above `raw` (axis tick spacing)."""
-    base = 10.0 ** math.floor(math.log10(raw))
-    return next(m * base for m in (1, 2, 5, 10) if m * base >= raw * (1 - 1e-9))
-
-
 def pareto(points: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
     """Points no other point beats in both time and error, fastest first."""
     front, best = [], math.inf
@@ -84,23 +79,22 @@ def _marker(kind: str, x: float, y: float, colour: str, hollow: bool) -> str:
 
 
 def plot(rows: Sequence[dict], grid_samples: int) -> str:
-    """Inline SVG: log time per grid sample (x) against the map's mean absolute error (y);
-    each knob's settings joined in table order, the Pareto front dashed."""
+    """Inline SVG: time per grid sample (x) against the map's mean absolute error (y), both
+    log scale; each knob's settings joined in table order, the Pareto front dashed."""
     pts = [r for r in rows if r["map_time_s"] is not None and r["map_mean_abs_error"] is not None]
     if not pts:
         return "<p>No measured rows to plot.</p>"
     xs = [math.log10(max(grid_ms(r, grid_samples), 1e-6)) for r in pts]
-    ys = [r["map_mean_abs_error"] for r in pts]
+    ys = [math.log10(max(r["map_mean_abs_error"], ERROR_FLOOR)) for r in pts]
     x0, x1 = min(xs) - 0.1, max(xs) + 0.1
-    y_step = nice_step(max(max(ys), 0.005) / 5)
-    y1 = y_step * math.ceil(max(max(ys), 0.005) * 1.05 / y_step)
+    y0, y1 = math.log10(ERROR_FLOOR), max(math.ceil(max(ys)), math.log10(ERROR_FLOOR) + 2)
     pw, ph = W - LEFT - RIGHT, H - TOP - BOTTOM
 
     def px(lx: float) -> float:
         return LEFT + (lx - x0) / (x1 - x0) * pw
 
-    def py(v: float) -> float:
-        return TOP + ph - v / y1 * ph
+    def py(ly: float) -> float:
+        return TOP + ph - (ly - y0) / (y1 - y0) * ph
 
     out = [f'<svg width="{W}" height="{H}" role="img" '
            'aria-label="time per sample against mIoU-map error, one series per knob">',
@@ -113,15 +107,15 @@ def plot(rows: Sequence[dict], grid_samples: int) -> str:
                            f'y2="{TOP + ph}" stroke="#eee"/><text x="{_n(px(lx))}" '
                            f'y="{TOP + ph + 15}" text-anchor="middle">{esc(f"{10 ** lx:g}")}'
                            '</text>')
-    for k in range(round(y1 / y_step) + 1):
-        v = k * y_step
-        out.append(f'<line x1="{LEFT}" x2="{LEFT + pw}" y1="{_n(py(v))}" y2="{_n(py(v))}" '
-                   f'stroke="#eee"/><text x="{LEFT - 6}" y="{_n(py(v) + 4)}" '
-                   f'text-anchor="end">{v:g}</text>')
+    for e in range(round(y0), y1 + 1):
+        label = f"≤{10.0 ** e:g}" if e == round(y0) else f"{10.0 ** e:g}"
+        out.append(f'<line x1="{LEFT}" x2="{LEFT + pw}" y1="{_n(py(e))}" y2="{_n(py(e))}" '
+                   f'stroke="#eee"/><text x="{LEFT - 6}" y="{_n(py(e) + 4)}" '
+                   f'text-anchor="end">{esc(label)}</text>')
     out.append(f'<text x="{LEFT + pw / 2:.0f}" y="{H - 10}" text-anchor="middle">ms per grid '
                'sample (map time ÷ samples in the config grid; log scale)</text>')
     out.append(f'<text transform="translate(16 {TOP + ph / 2:.0f}) rotate(-90)" '
-               'text-anchor="middle">mean |ΔmIoU| per cell vs reference</text>')
+               'text-anchor="middle">mean |ΔmIoU| per cell vs reference (log)</text>')
     front = pareto(list(zip(xs, ys, strict=True)))
     if len(front) > 1:
         path = " ".join(f"{_n(px(x))},{_n(py(y))}" for x, y in front)
@@ -192,7 +186,8 @@ def render(summary: dict) -> str:
 ({esc(summary["model_hash"][:12])}), blind-spot threshold {esc(summary["threshold"])}.
 Reference: {esc(ref["resolution"])} native scan, LOD {esc(ref["lod"])}, {esc(ref["precision"])},
 CRF {esc(ref["crf"])} iterations, {esc(ref["grid"])} grid: {esc(ref["time_per_sample_ms"])} ms
-per sample, {esc(ref["blind_spots"])} blind spots. Times: scan + inference per sample in one
+per sample, {esc(ref["blind_spots"])} blind spots (lowest cell mIoU
+{esc(fmt(ref.get("lowest_cell_miou")))}). Times: scan + inference per sample in one
 process, {esc(summary["threads"])} inference threads, batches of {esc(summary["batch"])}, after a
 warm-up, on {esc(machine.get("cpus", "?"))} CPUs ({esc(machine.get("processor", ""))}).</p>
 <p class="note">Each knob is varied alone. Errors are per (x, y) cell of the mIoU map against the
