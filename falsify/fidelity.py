@@ -1,32 +1,47 @@
 """`--fidelity` presets: named trades of speed against accuracy for `grid` and `search`.
 
-Each preset is a setting of the knobs `falsify tradeoff` measures; the README records what each
-costs and changes (time per sample, mIoU-map error, blind-spot agreement) on the paper's space.
+Each preset is a setting of knobs `falsify tradeoff` measured on configs/tradeoff.toml (the
+README records the figures). The network dominates the time per sample, so the presets that
+save time change the bundled model's precision and CRF; your own `--model` is used as given and
+only the car mesh level of detail follows the preset.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 from falsify.errors import FalsifyError
+
+WEIGHTS = Path(__file__).resolve().parent.parent / "models" / "weights"
 
 
 @dataclass(frozen=True)
 class Fidelity:
-    """Car mesh level of detail and sensor resolution scale for a run."""
+    """Car mesh level of detail and which variant of the bundled model to run."""
 
     name: str
     lod: int = 2
+    bundled_model: str = "squeezeseg.onnx"
 
     def sensor_overrides(self, sensor: str) -> dict:
         """Sensor keys this preset changes (none: the network fixes the resolution)."""
         return {}
 
+    def model(self, user_model: str | None) -> str | None:
+        """The model a run uses: the user's as given, else this preset's bundled variant."""
+        if user_model is not None or self.bundled_model == "squeezeseg.onnx":
+            return user_model
+        return str(WEIGHTS / self.bundled_model)
+
 
 PRESETS = {
+    # reference: ONNX Runtime fp32, 3 CRF iterations, full car meshes
     "exact": Fidelity("exact", lod=2),
-    "balanced": Fidelity("balanced", lod=1),
-    "fast": Fidelity("fast", lod=0),
+    # int8 network (CRF kept fp32), car meshes at a quarter of the triangles
+    "balanced": Fidelity("balanced", lod=1, bundled_model="squeezeseg-int8.onnx"),
+    # int8 network without the CRF, coarsest car meshes
+    "fast": Fidelity("fast", lod=0, bundled_model="squeezeseg-int8-nocrf.onnx"),
 }
 
 

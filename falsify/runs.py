@@ -61,12 +61,16 @@ def prepare(req: RunRequest):
     if req.threshold is not None and not 0 < req.threshold <= 1:
         raise FalsifyError(f"--threshold: {req.threshold} must be in (0, 1]")
     sampler = make_sampler(req.algorithm)
+    if req.backend == "torch" and req.fidelity != "exact":
+        raise FalsifyError(f"--fidelity {req.fidelity} runs an ONNX variant of the network; "
+                           "use --backend onnx or --fidelity exact")
+    model = fid.model(req.model)
     seed = space.seed if req.seed is None else req.seed
     threads = 2 if req.workers == 1 else 1
-    settings = EvalSettings(space=space, model=req.model, backend=req.backend, threads=threads,
+    settings = EvalSettings(space=space, model=model, backend=req.backend, threads=threads,
                             lod=fid.lod, sensor_overrides=fid.sensor_overrides(space.sensor))
     # Load the model once here: a missing, corrupt or mismatched model fails before any sample.
-    seg = load_segmenter(req.model, backend=req.backend, threads=1)
+    seg = load_segmenter(model, backend=req.backend, threads=1)
     from falsify.sensor import load_sensor
     sensor = load_sensor(space.sensor, **settings.sensor_overrides)
     if (seg.spec.height, seg.spec.width) != sensor.shape:
@@ -77,7 +81,7 @@ def prepare(req: RunRequest):
     meta = {
         "command": req.command, "config_path": str(req.config),
         "config_text": Path(req.config).read_text(), "config_hash": space.config_hash,
-        "space_name": space.name, "sensor": sensor.name, "model_path": req.model,
+        "space_name": space.name, "sensor": sensor.name, "model_path": model,
         "model_name": seg.spec.name, "model_hash": seg.model_hash, "backend": req.backend,
         "seed": seed, "algorithm": req.algorithm, "budget": req.budget,
         "threshold": req.threshold or space.threshold, "workers": req.workers,

@@ -222,3 +222,17 @@ def test_grid_report_and_gate_run_without_torch(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert (run / "report.html").exists()
+
+
+@pytest.mark.parametrize("fidelity", ["fast", "balanced"])
+def test_fidelity_presets_run_their_model_variant(tmp_path, capsys, fidelity):
+    out = tmp_path / fidelity
+    assert main(["grid", str(CONFIGS / "smoke.toml"), "--out", str(out), "--quiet",
+                 "--no-report", "--fidelity", fidelity, "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["samples"] == 8
+    from falsify.store import read_meta
+    meta = read_meta(out)
+    assert meta["fidelity"] == fidelity and "int8" in meta["model_path"]
+    assert main(["grid", str(CONFIGS / "smoke.toml"), "--out", str(tmp_path / "t"),
+                 "--fidelity", fidelity, "--backend", "torch"]) == 2
