@@ -82,6 +82,10 @@ def cmd_dataset(args) -> int:
         raise UsageError(f"--scans: {args.scans} must be > 0")
     if not 0 <= args.first_background <= 999_000:
         raise UsageError(f"--first-background: {args.first_background} must be in 0..999000")
+    if not 0 <= args.max_cars <= 40:
+        raise UsageError(f"--max-cars: {args.max_cars} must be in 0..40")
+    if args.backgrounds < 1:
+        raise UsageError(f"--backgrounds: {args.backgrounds} must be >= 1")
     if not 0 <= args.ray_drop < 1 or not 0 <= args.range_noise <= 1:
         raise UsageError("--ray-drop must be in [0, 1) and --range-noise in [0, 1] m")
     used = {int(b) for b in space.dims["background"].grid()}

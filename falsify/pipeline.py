@@ -192,9 +192,8 @@ class Driver:
             self.model_hash = self._local.model_hash
         else:
             from models.runner import load_segmenter
-            self.model_hash = load_segmenter(self.settings.model, backend="onnx" if
-                                             self.settings.backend == "onnx" else
-                                             self.settings.backend).model_hash
+            self.model_hash = load_segmenter(self.settings.model, backend=self.settings.backend,
+                                             threads=1).model_hash
             ctx = mp.get_context("spawn")
             self._pool = ProcessPoolExecutor(self.workers, mp_context=ctx,
                                              initializer=_init_worker,

@@ -103,3 +103,14 @@ def test_dataset_writes_resumable_scans(tmp_path, capsys):
     assert main(["dataset", str(CONFIGS / "smoke.toml"), "--scans", "3", "--out",
                  str(tmp_path / "x"), "--first-background", "0"]) == 2
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize(("option", "message"), [
+    (["--max-cars", "-1"], "--max-cars: -1"), (["--backgrounds", "0"], "--backgrounds: 0"),
+    (["--ray-drop", "1.5"], "--ray-drop"), (["--scans", "0"], "--scans: 0"),
+])
+def test_dataset_bad_options_exit_2(tmp_path, capsys, option, message):
+    args = ["dataset", str(CONFIGS / "smoke.toml"), "--scans", "2", "--out", str(tmp_path / "d")]
+    assert main(args + option) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()
