@@ -98,17 +98,22 @@ def _feeds(spec: ModelSpec, scans: np.ndarray) -> dict[str, np.ndarray]:
     return feeds
 
 
+def _open(path: str | Path, spec_path: str | Path | None
+          ) -> tuple[Path, Path, ModelSpec, str]:
+    """The model file, its spec (beside it unless given) and their content hash."""
+    path = Path(path)
+    spec_path = spec_path_for(path) if spec_path is None else Path(spec_path)
+    if not path.is_file():
+        raise FalsifyError(f"model file {path} not found")
+    return path, spec_path, load_spec(spec_path), model_hash(path, spec_path)
+
+
 class OnnxSegmenter:
     """ONNX Runtime on the CPU; the CRF (if any) is part of the graph."""
 
     def __init__(self, path: str | Path, threads: int | None = None,
                  spec_path: str | Path | None = None) -> None:
-        self.path = Path(path)
-        spec_path = spec_path_for(self.path) if spec_path is None else Path(spec_path)
-        if not self.path.is_file():
-            raise FalsifyError(f"model file {self.path} not found")
-        self.spec = load_spec(spec_path)
-        self.model_hash = model_hash(self.path, spec_path)
+        self.path, spec_path, self.spec, self.model_hash = _open(path, spec_path)
         import onnxruntime as ort
 
         opts = ort.SessionOptions()
@@ -175,12 +180,7 @@ class TorchSegmenter:
 
     def __init__(self, path: str | Path, threads: int | None = None,
                  spec_path: str | Path | None = None) -> None:
-        self.path = Path(path)
-        spec_path = spec_path_for(self.path) if spec_path is None else Path(spec_path)
-        if not self.path.is_file():
-            raise FalsifyError(f"model file {self.path} not found")
-        self.spec = load_spec(spec_path)
-        self.model_hash = model_hash(self.path, spec_path)
+        self.path, spec_path, self.spec, self.model_hash = _open(path, spec_path)
         if self.spec.architecture != "squeezeseg":
             raise FalsifyError(f"torch backend builds SqueezeSeg only; {spec_path} says "
                                f"architecture {self.spec.architecture!r}")
