@@ -10,7 +10,14 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from models.crf import ANGULAR_COEF, BILATERAL_COEF, THETA_A, THETA_R, RecurrentCRF  # noqa: E402
-from models.squeezeseg import Conv, SqueezeSeg, bilinear_kernel, count_parameters  # noqa: E402
+from models.squeezeseg import (  # noqa: E402
+    Conv,
+    Pool,
+    SqueezeSeg,
+    _same_pad_w,
+    bilinear_kernel,
+    count_parameters,
+)
 
 
 def test_parameter_count_matches_paper():
@@ -40,6 +47,36 @@ def test_stride2_conv_pads_like_tensorflow_same():
     y = conv(x)
     assert y.shape[-1] == 4
     assert y.flatten().tolist() == [0.0, 2.0, 4.0, 6.0]
+
+
+@pytest.mark.parametrize("W", [512, 256, 129, 64, 7, 2])
+def test_pool_equals_explicit_tensorflow_same_padding(W):
+    # the pool pads inside itself (ceil_mode for the one right column); same values as F.pad
+    x = torch.rand(2, 3, 5, W)
+    left, right = _same_pad_w(W, 3, 2)
+    ref = torch.nn.functional.max_pool2d(
+        torch.nn.functional.pad(x, (left, right, 1, 1)), 3, stride=(1, 2))
+    assert torch.equal(Pool()(x), ref)
+
+
+def test_unstrided_conv_pads_inside_like_tensorflow_same():
+    conv = Conv(2, 3, 3, relu=False)
+    x = torch.randn(1, 2, 6, 9)
+    ref = torch.nn.functional.conv2d(torch.nn.functional.pad(x, (1, 1, 1, 1)),
+                                     conv.conv.weight, conv.conv.bias)
+    torch.testing.assert_close(conv(x), ref)
+
+
+def test_exported_graph_keeps_the_blocked_layout(tmp_path):
+    # Speed guard without a timer: a Pad or a Softmax on axis 1 between layers makes ONNX
+    # Runtime reorder the blocked layout around it. Only conv1's input pad may remain.
+    onnx = pytest.importorskip("onnx")
+    from models.export import export_onnx
+
+    path, _ = export_onnx(SqueezeSeg(crf_iterations=3).eval(), tmp_path / "m.onnx")
+    ops = [n.op_type for n in onnx.load(str(path)).graph.node]
+    assert ops.count("Pad") == 1 and "Softmax" not in ops
+    assert ops.count("MaxPool") == 3
 
 
 def test_deconv_is_bilinear_and_doubles_width():
