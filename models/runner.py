@@ -7,7 +7,8 @@ fails before any sample runs. Predictions are in our class ids: 0 unknown, 1 car
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -19,15 +20,28 @@ from models.spec import CLASS_NAMES, ModelSpec, load_spec, model_hash, normalise
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 BUNDLED_ONNX = WEIGHTS_DIR / "squeezeseg.onnx"
 BUNDLED_PT = WEIGHTS_DIR / "squeezeseg.pt"
-MAX_BATCH = 8
+# Frames per forward pass. Both backends run SqueezeSeg fastest one frame at a time on the 2-core
+# EPYC: the activations stay in cache (fp32 with CRF, ONNX Runtime 1 thread: 46 ms/frame at
+# batch 1 against 54 at 8; 2 threads: 25 against 35; torch 2 threads: 52 against 105).
+BATCH = 1
 
 
 @dataclass(frozen=True)
 class Prediction:
-    """Per-pixel classes (B,H,W) uint8 in our ids and probabilities (B,H,W,4) float32."""
+    """Per-pixel classes (B,H,W) uint8 in our ids; ``probabilities`` (B,H,W,4) float32 on demand.
+
+    The pipeline needs only the classes; the probabilities cost 1.5 ms/frame, so they are
+    computed the first time they are read.
+    """
 
     classes: np.ndarray
-    probabilities: np.ndarray
+    raw: np.ndarray = field(repr=False)
+    spec: ModelSpec = field(repr=False)
+    valid: np.ndarray = field(repr=False)
+
+    @cached_property
+    def probabilities(self) -> np.ndarray:
+        return _our_probabilities(self.raw, self.spec, self.valid)
 
 
 class Segmenter(Protocol):
@@ -63,8 +77,9 @@ def check_scans(scans: np.ndarray, spec: ModelSpec, source: Path) -> np.ndarray:
     return a
 
 
-def to_prediction(out: np.ndarray, spec: ModelSpec, valid: np.ndarray) -> Prediction:
-    """Model output (B,K,H,W) -> Prediction in our 4 classes; unmapped outputs count as unknown."""
+def _our_probabilities(out: np.ndarray, spec: ModelSpec, valid: np.ndarray) -> np.ndarray:
+    """Model output (B,K,H,W) -> (B,H,W,4) probabilities of our classes; unmapped outputs count
+    as unknown, invalid pixels are certain unknown."""
     out = out.astype(np.float32, copy=False)
     if spec.output_kind == "logits":
         e = np.exp(out - out.max(axis=1, keepdims=True))
@@ -81,11 +96,31 @@ def to_prediction(out: np.ndarray, spec: ModelSpec, valid: np.ndarray) -> Predic
         if i not in used:
             ours[:, 0] += p[:, i]
     probs = np.ascontiguousarray(np.moveaxis(ours, 1, -1))
-    classes = probs.argmax(axis=-1).astype(np.uint8)
-    invalid = ~valid
-    classes[invalid] = 0
-    probs[invalid] = np.eye(len(CLASS_NAMES), dtype=np.float32)[0]
-    return Prediction(classes=classes, probabilities=probs)
+    probs[~valid] = np.eye(len(CLASS_NAMES), dtype=np.float32)[0]
+    return probs
+
+
+def _one_to_one(spec: ModelSpec) -> list[int] | None:
+    """The model output index of each of our classes when every output is exactly one of ours."""
+    order = [list(spec.classes.get(name, ())) for name in CLASS_NAMES]
+    flat = [i for o in order for i in o]
+    if all(len(o) == 1 for o in order) and sorted(flat) == list(range(spec.num_classes)):
+        return flat
+    return None
+
+
+def to_prediction(out: np.ndarray, spec: ModelSpec, valid: np.ndarray) -> Prediction:
+    """Model output (B,K,H,W) -> Prediction in our 4 classes; invalid pixels are unknown.
+
+    With one model output per class of ours, the classes are the argmax of the raw output
+    (softmax keeps the order); otherwise of the summed probabilities."""
+    order = _one_to_one(spec)
+    if order is not None:
+        classes = np.asarray(out)[:, order].argmax(axis=1).astype(np.uint8)
+    else:
+        classes = _our_probabilities(out, spec, valid).argmax(axis=-1).astype(np.uint8)
+    classes[~valid] = 0
+    return Prediction(classes=classes, raw=out, spec=spec, valid=valid)
 
 
 def _feeds(spec: ModelSpec, scans: np.ndarray) -> dict[str, np.ndarray]:
@@ -112,8 +147,9 @@ class OnnxSegmenter:
     """ONNX Runtime on the CPU; the CRF (if any) is part of the graph."""
 
     def __init__(self, path: str | Path, threads: int | None = None,
-                 spec_path: str | Path | None = None) -> None:
+                 spec_path: str | Path | None = None, batch: int = BATCH) -> None:
         self.path, spec_path, self.spec, self.model_hash = _open(path, spec_path)
+        self.batch = max(1, int(batch))
         import onnxruntime as ort
 
         opts = ort.SessionOptions()
@@ -166,8 +202,8 @@ class OnnxSegmenter:
     def run_raw(self, scans: np.ndarray) -> np.ndarray:
         """Raw model output (B,K,H,W) for checked scans."""
         a = check_scans(scans, self.spec, self.path)
-        outs = [self.session.run([self.spec.output_name], _feeds(self.spec, a[i:i + MAX_BATCH]))[0]
-                for i in range(0, len(a), MAX_BATCH)]
+        outs = [self.session.run([self.spec.output_name], _feeds(self.spec, a[i:i + self.batch]))[0]
+                for i in range(0, len(a), self.batch)]
         return np.concatenate(outs)
 
     def predict(self, scans: np.ndarray) -> Prediction:
@@ -179,8 +215,9 @@ class TorchSegmenter:
     """PyTorch eager fp32 channels_last on the CPU from a state dict (weights_only load)."""
 
     def __init__(self, path: str | Path, threads: int | None = None,
-                 spec_path: str | Path | None = None) -> None:
+                 spec_path: str | Path | None = None, batch: int = BATCH) -> None:
         self.path, spec_path, self.spec, self.model_hash = _open(path, spec_path)
+        self.batch = max(1, int(batch))
         if self.spec.architecture != "squeezeseg":
             raise FalsifyError(f"torch backend builds SqueezeSeg only; {spec_path} says "
                                f"architecture {self.spec.architecture!r}")
@@ -210,8 +247,8 @@ class TorchSegmenter:
         a = check_scans(scans, self.spec, self.path)
         outs = []
         with self.torch.inference_mode():
-            for i in range(0, len(a), MAX_BATCH):
-                f = _feeds(self.spec, a[i:i + MAX_BATCH])
+            for i in range(0, len(a), self.batch):
+                f = _feeds(self.spec, a[i:i + self.batch])
                 t = {k: self.torch.from_numpy(v) for k, v in f.items()}
                 x = t[self.spec.input_name].contiguous(memory_format=self.torch.channels_last)
                 y = self.model(x, t.get(self.spec.xyz_input or ""),

@@ -170,6 +170,29 @@ def test_class_mapping_folds_outputs(exported, tmp_path):
     np.testing.assert_allclose(a.probabilities[..., 0][valid], b.probabilities[..., 1][valid])
 
 
+def test_network_batch_size_does_not_change_predictions(exported):
+    from models.runner import OnnxSegmenter
+
+    scans = plausible_scans(5, seed=8)
+    one = OnnxSegmenter(exported, threads=1, batch=1).run_raw(scans)
+    three = OnnxSegmenter(exported, threads=1, batch=3).run_raw(scans)
+    np.testing.assert_allclose(one, three, atol=1e-5)
+
+
+def test_classes_from_logits_equal_classes_from_probabilities(exported, tmp_path):
+    # one output per class: argmax of the raw logits; several outputs per class (here car and
+    # cyclist folded into car): argmax of the summed probabilities. Both match the probabilities.
+    scans = plausible_scans(2, seed=4)
+    valid = scans[..., 4] > 0
+    for spec_path in (spec_path_for(exported), spec_path_for(_with_spec(
+            exported, tmp_path, classes={"unknown": 0, "car": [1, 3], "pedestrian": 2}))):
+        spec = load_spec(spec_path)
+        raw = load_segmenter(exported).run_raw(scans)
+        pred = to_prediction(raw, spec, valid)
+        assert (pred.classes == pred.probabilities.argmax(-1)).mean() > 0.9999
+        assert (pred.classes[~valid] == 0).all()
+
+
 def test_runner_imports_and_runs_without_torch(exported):
     code = (
         "import sys; sys.modules['torch'] = None\n"
