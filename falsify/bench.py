@@ -18,6 +18,7 @@ from falsify.errors import FalsifyError
 from falsify.scene import Simulator
 from falsify.sensor import SensorPose, load_sensor
 from falsify.space import Sample, Space, load_space
+from models.runner import BATCH
 
 
 def machine() -> dict:
@@ -258,7 +259,7 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
     return {
         "benchmark": "pipeline", "config": str(config), "samples": samples,
         "model": ev.model.spec.name, "model_hash": ev.model_hash[:12], "machine": machine(),
-        "batch": batch,
+        "samples_per_task": batch, "network_batch": BATCH,
         "one_process": {
             "samples_per_s": round(samples / t_pipeline, 2),
             "inference_only_samples_per_s": round(samples / t_infer, 2),

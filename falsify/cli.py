@@ -237,10 +237,12 @@ def cmd_bench(args) -> int:
         else:
             scans = _held_out_scans(args.samples)
         onnx = Path(args.model) if args.model else BUNDLED_ONNX
-        rows = bench_models(np.asarray(scans), onnx, repeats=args.repeats)
+        from falsify.tradeoff import calibration_scans
+        rows = bench_models(np.asarray(scans), onnx, repeats=args.repeats,
+                            calibration=calibration_scans("kitti-hdl64e-front"))
         result = {"benchmark": "model", "model": str(onnx), "frames": len(scans),
                   "machine": bench.machine(), "variants": rows}
-        text = "\n".join(f"{r['variant']:11s} {r['ms_per_frame']:8.1f} ms/frame "
+        text = "\n".join(f"{r['variant']:16s} {r['ms_per_frame']:8.1f} ms/frame "
                          f"{r['fps']:6.1f} fps  car IoU diff {r['car_iou_diff']:+.4f}"
                          for r in rows)
     elif args.what == "pipeline":

@@ -81,7 +81,7 @@ class Scored:
 
 
 class Bench:
-    """Scores samples under settings in this process (2 inference threads, batches of 8),
+    """Scores samples under settings in this process (2 inference threads, 8 samples a call),
     caching results per (setting, sample), and times settings against each other."""
 
     def __init__(self, space: Space, threads: int = THREADS, batch: int = BATCH):

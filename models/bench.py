@@ -73,13 +73,18 @@ def _time(run, scans: np.ndarray, repeats: int) -> tuple[float, Prediction]:
     return best / len(scans), pred
 
 
+VARIANTS = ("torch-fp32", "onnx-fp32", "onnx-fp32-batch8", "onnx-int8", "onnx-fp16")
+
+
 def bench_models(scans: np.ndarray, onnx_path: str | Path, pt_path: str | Path | None = None,
-                 repeats: int = 3, threads: int = 2, variants: tuple[str, ...] = (
-                     "torch-fp32", "onnx-fp32", "onnx-int8", "onnx-fp16")) -> list[dict]:
+                 repeats: int = 3, threads: int = 2, variants: tuple[str, ...] = VARIANTS,
+                 calibration: np.ndarray | None = None) -> list[dict]:
     """One dict per variant: ms/frame, fps, car IoU vs labels, and agreement with ONNX fp32.
 
     ``car_iou_diff`` is the variant's car IoU minus ONNX fp32's (against the labels in channel 5);
     ``car_agreement_iou`` is the car IoU of the variant's predictions against ONNX fp32's.
+    ``onnx-fp32-batch8`` feeds the network 8 frames a run instead of one, the batching the
+    runners do not use; int8 is calibrated on ``calibration`` (never the scans measured).
     """
     from models.export import convert_fp16, quantize_int8
 
@@ -93,11 +98,12 @@ def bench_models(scans: np.ndarray, onnx_path: str | Path, pt_path: str | Path |
     with tempfile.TemporaryDirectory() as tmp:
         makers = {
             "onnx-fp32": lambda: OnnxSegmenter(onnx_path, threads),
+            "onnx-fp32-batch8": lambda: OnnxSegmenter(onnx_path, threads, batch=8),
             "torch-fp32": lambda: TorchSegmenter(
                 pt_path if pt_path else onnx_path.with_suffix(".pt"), threads,
                 spec_path=spec_path_for(onnx_path)),
             "onnx-int8": lambda: OnnxSegmenter(
-                quantize_int8(onnx_path, Path(tmp) / "int8.onnx"), threads),
+                quantize_int8(onnx_path, Path(tmp) / "int8.onnx", scans=calibration), threads),
             "onnx-fp16": lambda: OnnxSegmenter(
                 convert_fp16(onnx_path, Path(tmp) / "fp16.onnx"), threads),
         }
@@ -120,7 +126,7 @@ def bench_models(scans: np.ndarray, onnx_path: str | Path, pt_path: str | Path |
             iou = car_iou(pred.classes, labels)
             row.update(
                 ms_per_frame=round(sec * 1e3, 2), fps=round(1.0 / sec, 2), frames=len(scans),
-                threads=threads, car_iou=iou,
+                threads=threads, batch=seg.batch, car_iou=iou,
                 car_iou_diff=iou - car_iou(ref.classes, labels),
                 car_agreement_iou=car_iou(pred.classes, ref.classes),
                 pixel_agreement=float((pred.classes == ref.classes).mean()),

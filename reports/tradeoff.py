@@ -188,8 +188,9 @@ Reference: {esc(ref["resolution"])} native scan, LOD {esc(ref["lod"])}, {esc(ref
 CRF {esc(ref["crf"])} iterations, {esc(ref["grid"])} grid: {esc(ref["time_per_sample_ms"])} ms
 per sample, {esc(ref["blind_spots"])} blind spots (lowest cell mIoU
 {esc(fmt(ref.get("lowest_cell_miou")))}). Times: scan + inference per sample in one
-process, {esc(summary["threads"])} inference threads, batches of {esc(summary["batch"])}, after a
-warm-up, on {esc(machine.get("cpus", "?"))} CPUs ({esc(machine.get("processor", ""))}).</p>
+process, {esc(summary["threads"])} inference threads, {esc(summary["batch"])} samples per call (the
+network takes them one frame at a time), after a warm-up, on {esc(machine.get("cpus", "?"))}
+CPUs ({esc(machine.get("processor", ""))}).</p>
 <p class="note">Each knob is varied alone. Errors are per (x, y) cell of the mIoU map against the
 knob's reference (the grid-step knob: the 0.5 m grid, coarser maps upsampled by nearest cell;
 the budget knob: the full grid, empty cells filled from the nearest sampled cell). The Jaccard
