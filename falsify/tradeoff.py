@@ -29,7 +29,7 @@ from models.spec import ModelSpec
 if TYPE_CHECKING:   # the CLI imports this module for `register`: keep trimesh out of it
     from falsify.pipeline import Evaluator
 
-KNOBS = ("resolution", "lod", "precision", "crf", "step", "budget")
+KNOBS = ("resolution", "lod", "precision", "crf", "step", "budget", "preset")
 RESOLUTIONS = ((32, 256), (64, 512), (64, 1024), (128, 2048))
 LODS = (0, 1, 2)
 PRECISIONS = ("torch fp32", "onnx fp32", "onnx fp16", "onnx int8")
@@ -251,6 +251,7 @@ class Context:
     reference: Setting
     out: Path
     ref_map: CellMap
+    user_model: Path | None = None   # --model as given; None runs the bundled model
 
     @property
     def threshold(self) -> float:
@@ -397,8 +398,22 @@ def knob_budget(ctx: Context) -> list[Row]:
     return rows
 
 
+def knob_preset(ctx: Context) -> list[Variant]:
+    """The `--fidelity` presets as a run applies them: their LOD with the bundled model's
+    variant, or with your own model as given (then only the LOD changes)."""
+    from falsify.fidelity import PRESETS
+
+    out = []
+    for name, fid in PRESETS.items():
+        model = fid.model(None if ctx.user_model is None else str(ctx.user_model))
+        path = ctx.reference.model if model is None else Path(model).resolve()
+        setting = dataclasses.replace(ctx.reference, model=path, lod=fid.lod)
+        out.append(Variant("preset", name, setting, f"lod {fid.lod}, {path.name}"))
+    return out
+
+
 VARIANT_KNOBS = {"resolution": knob_resolution, "lod": knob_lod, "precision": knob_precision,
-                 "crf": knob_crf}
+                 "crf": knob_crf, "preset": knob_preset}
 MAP_KNOBS = {"step": knob_step, "budget": knob_budget}
 
 
@@ -491,7 +506,8 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
     reference = Setting(model=onnx.resolve())
     # Loads and checks the model against the sensor: may raise, and nothing is written yet.
     ref_map = miou_map(bench.score(reference, samples), bench.space, "x", "y")
-    ctx = Context(bench.space, samples, bench, reference, out, ref_map)
+    ctx = Context(bench.space, samples, bench, reference, out, ref_map,
+                  Path(model) if model else None)
     variants = {k: VARIANT_KNOBS[k](ctx) for k in knobs if k in VARIANT_KNOBS}
     settings = [reference] + [v.setting for vs in variants.values() for v in vs
                               if v.setting is not None and v.setting != reference]

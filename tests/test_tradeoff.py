@@ -92,6 +92,7 @@ def _names() -> dict[str, list[str]]:
         "step": [f"{s:g} m" for s in STEPS],
         "budget": ["grid 100%"] + [f"{n} {f:.0%}" for n in BUDGET_SAMPLERS
                                    for f in BUDGET_FRACTIONS],
+        "preset": ["exact", "balanced", "fast"],
     }
 
 
@@ -117,7 +118,7 @@ def test_reference_rows_have_zero_error_and_full_agreement(run):
     refs = [r for r in summary["rows"] if r["is_reference"]]
     assert {r["knob"] for r in refs} == set(KNOBS)
     assert {r["setting"] for r in refs} == {"64x512 (native)", "lod 2", "onnx fp32", "crf 3",
-                                            "0.5 m", "grid 100%"}
+                                            "0.5 m", "grid 100%", "exact"}
     for r in refs:
         assert r["map_mean_abs_error"] == 0.0 and r["map_max_abs_error"] == 0.0, r
         assert r["blind_spot_jaccard"] == 1.0 and r["speedup"] == 1.0, r
