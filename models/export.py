@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import logging
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -98,22 +99,29 @@ def quantize_int8(onnx_in: str | Path, onnx_out: str | Path, scans: np.ndarray |
     if not onnx_in.is_file():
         raise FalsifyError(f"model file {onnx_in} not found")
     exclude = _crf_nodes(onnx_in)
-    if method == "dynamic":
-        quantize_dynamic(str(onnx_in), str(onnx_out), weight_type=QuantType.QInt8,
-                         nodes_to_exclude=exclude, op_types_to_quantize=["Conv"])
-    elif method == "static":
-        if scans is None:
-            from models.bench import plausible_scans
+    root = logging.getLogger()
+    level = root.level
+    root.setLevel(logging.ERROR)  # its 'consider pre-processing' advice, on every call
+    try:
+        if method == "dynamic":
+            quantize_dynamic(str(onnx_in), str(onnx_out), weight_type=QuantType.QInt8,
+                             nodes_to_exclude=exclude, op_types_to_quantize=["Conv"])
+        elif method == "static":
+            if scans is None:
+                from models.bench import plausible_scans
 
-            scans = plausible_scans(8, spec.height, spec.width, seed=123)
-        quantize_static(str(onnx_in), str(onnx_out), _ScanReader(spec, scans),
-                        quant_format=QuantFormat.QDQ, activation_type=QuantType.QUInt8,
-                        weight_type=QuantType.QInt8, per_channel=True,
-                        calibrate_method=CalibrationMethod.MinMax,
-                        nodes_to_exclude=exclude, op_types_to_quantize=["Conv", "MaxPool",
-                                                                       "Concat", "Add"])
-    else:
-        raise FalsifyError(f"quantisation method must be 'static' or 'dynamic', got {method!r}")
+                scans = plausible_scans(8, spec.height, spec.width, seed=123)
+            quantize_static(str(onnx_in), str(onnx_out), _ScanReader(spec, scans),
+                            quant_format=QuantFormat.QDQ, activation_type=QuantType.QUInt8,
+                            weight_type=QuantType.QInt8, per_channel=True,
+                            calibrate_method=CalibrationMethod.MinMax,
+                            nodes_to_exclude=exclude, op_types_to_quantize=["Conv", "MaxPool",
+                                                                           "Concat", "Add"])
+        else:
+            raise FalsifyError(f"quantisation method must be 'static' or 'dynamic', got {method!r}")
+    finally:
+        root.setLevel(level)
+
     save_spec(spec, spec_path_for(onnx_out))
     return onnx_out
 
@@ -149,14 +157,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--width", type=int, default=512)
     p.add_argument("--note", action="append", default=[], metavar="KEY=VALUE",
                    help="extra facts recorded in the spec (repeatable)")
+    p.add_argument("--int8", default=None, metavar="PATH",
+                   help="also write a static int8 copy (CRF kept fp32) to PATH, calibrated on "
+                   "training-style synthetic scenes")
     a = p.parse_args(argv)
+    if a.int8 and (a.height, a.width) != (64, 512):
+        print("error: --int8 calibrates on the kitti-hdl64e-front preset: 64 x 512 only")
+        return 2
     import torch
 
     from models.squeezeseg import SqueezeSeg
     try:
         state = torch.load(a.weights, map_location="cpu", weights_only=True)
-    except (OSError, RuntimeError) as exc:
-        print(f"error: {a.weights}: cannot load weights ({exc})")
+    except Exception as exc:  # OSError, RuntimeError, pickle.UnpicklingError, ...
+        print(f"error: {a.weights}: cannot load weights ({str(exc).splitlines()[0]})")
         return 2
     state = state.get("model", state)
     model = SqueezeSeg(crf_iterations=a.crf_iterations)
@@ -169,8 +183,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = Path(a.out)
     path, spec = export_onnx(model, out, H=a.height, W=a.width, name=out.stem, **extra)
     torch.save({k: v.contiguous() for k, v in model.state_dict().items()}, out.with_suffix(".pt"))
-    print(json.dumps({"onnx": str(path), "spec": str(spec_path_for(path)),
-                      "weights": str(out.with_suffix(".pt"))}))
+    written = {"onnx": str(path), "spec": str(spec_path_for(path)),
+               "weights": str(out.with_suffix(".pt"))}
+    if a.int8:
+        from falsify.tradeoff import calibration_scans
+
+        written["int8"] = str(quantize_int8(path, a.int8,
+                                            scans=calibration_scans("kitti-hdl64e-front")))
+    print(json.dumps(written))
     return 0
 
 

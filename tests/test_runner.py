@@ -208,3 +208,33 @@ def test_runner_imports_and_runs_without_torch(exported):
                        timeout=120)
     assert r.returncode == 0, r.stderr
     assert "(1, 64, 512)" in r.stdout
+
+
+def test_export_cli_writes_model_and_int8_copy(exported, tmp_path, monkeypatch, capsys):
+    pytest.importorskip("torch")
+    from models.export import main as export_main
+
+    monkeypatch.setattr("falsify.tradeoff.CALIBRATION_SCANS", 2)   # a short calibration
+    out, q = tmp_path / "net.onnx", tmp_path / "net-int8.onnx"
+    assert export_main([str(exported.with_suffix(".pt")), "--out", str(out), "--int8", str(q),
+                        "--note", "data=test"]) == 0
+    written = json.loads(capsys.readouterr().out)
+    assert written["int8"] == str(q) and load_spec(spec_path_for(q)).extra == {"data": "test"}
+    scans = plausible_scans(1, seed=2)
+    a, b = load_segmenter(out).predict(scans), load_segmenter(q).predict(scans)
+    assert (a.classes == b.classes).mean() > 0.9
+
+
+def test_export_cli_rejects_bad_input_before_writing(exported, tmp_path, capsys):
+    pytest.importorskip("torch")
+    from models.export import main as export_main
+
+    out = tmp_path / "net.onnx"
+    args = [str(exported.with_suffix(".pt")), "--out", str(out)]
+    assert export_main([*args, "--int8", str(tmp_path / "q.onnx"), "--height", "32"]) == 2
+    assert "64 x 512 only" in capsys.readouterr().out
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    assert export_main([str(bad), "--out", str(out)]) == 2
+    assert "cannot load weights" in capsys.readouterr().out
+    assert list(tmp_path.iterdir()) == [bad]
