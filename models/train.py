@@ -165,6 +165,18 @@ def _save_atomic(obj, path: Path) -> None:
     os.replace(tmp, path)
 
 
+def _load(path: Path, option: str, torch) -> dict:
+    """A checkpoint or state dict; FalsifyError naming the option and file if it is not one."""
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # OSError, RuntimeError, pickle.UnpicklingError, ...
+        raise FalsifyError(f"{option} {path}: cannot load weights "
+                           f"({str(exc).splitlines()[0]})") from exc
+    if not isinstance(ck, dict):
+        raise FalsifyError(f"{option} {path}: not a state dict or checkpoint")
+    return ck
+
+
 def train(cfg: TrainConfig) -> dict:
     """Run (or resume) training; returns a summary dict. See the module docstring for files."""
     import contextlib
@@ -176,7 +188,6 @@ def train(cfg: TrainConfig) -> dict:
 
     t_start = time.monotonic()
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
     files = list_scans(cfg.data)
     first = load_scan(files[0])
     shape = first.shape[:2]
@@ -217,15 +228,20 @@ def train(cfg: TrainConfig) -> dict:
     if cfg.resume:
         if not ckpt_path.is_file():
             raise FalsifyError(f"--resume: no checkpoint {ckpt_path}")
-        ck = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+        ck = _load(ckpt_path, "--resume", torch)
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optim"])
         epoch, step = int(ck["epoch"]), int(ck["step"])
         torch.set_rng_state(ck["torch_rng"])
     elif cfg.init:
-        ck = torch.load(cfg.init, map_location="cpu", weights_only=True)
-        model.load_state_dict(ck.get("model", ck))
+        ck = _load(Path(cfg.init), "--init", torch)
+        try:
+            model.load_state_dict(ck.get("model", ck))
+        except RuntimeError as exc:
+            raise FalsifyError(f"--init {cfg.init}: not SqueezeSeg weights for these channels "
+                               f"({str(exc).splitlines()[0]})") from exc
     model.train(not cfg.crf_only)  # CRF-only: the frozen backbone runs as at inference
+    out.mkdir(parents=True, exist_ok=True)   # only once every input has been checked
 
     def checkpoint(e: int, s: int) -> None:
         _save_atomic({"model": model.state_dict(), "optim": opt.state_dict(), "epoch": e,

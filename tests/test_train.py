@@ -74,6 +74,15 @@ def test_bad_data_dir_is_a_clear_error(tmp_path, capsys):
         train(TrainConfig(data=str(tmp_path), out=str(tmp_path / "o")))
 
 
+def test_unreadable_init_weights_exit_2_and_write_nothing(data, tmp_path, capsys):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    out = tmp_path / "o"
+    assert main(["--data", str(data), "--out", str(out), "--init", str(bad), *ARGS]) == 2
+    assert f"--init {bad}: cannot load weights" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_crf_only_fine_tune_moves_only_the_compatibility(data, tmp_path):
     base = tmp_path / "base"
     assert main(["--data", str(data), "--out", str(base), "--epochs", "1", "--no-export",
