@@ -239,6 +239,7 @@ def cmd_bench(args) -> int:
         onnx = Path(args.model) if args.model else BUNDLED_ONNX
         from falsify.tradeoff import calibration_scans
         rows = bench_models(np.asarray(scans), onnx, repeats=args.repeats,
+                            threads=args.threads,
                             calibration=calibration_scans("kitti-hdl64e-front"))
         result = {"benchmark": "model", "model": str(onnx), "frames": len(scans),
                   "machine": bench.machine(), "variants": rows}
@@ -356,6 +357,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--scans", default=None,
                    help="bench model: a folder of labelled .npy scans (default: generated)")
     b.add_argument("--repeats", type=int, default=3)
+    b.add_argument("--threads", type=int, default=2, choices=range(1, 65), metavar="N",
+                   help="bench model: inference threads (a grid worker uses 1)")
     b.add_argument("--out", default=None, help="bench search: where its runs go")
     b.add_argument("--fraction", type=float, default=0.2,
                    help="bench search: budget as a fraction of the dense grid")

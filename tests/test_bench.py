@@ -1,0 +1,47 @@
+"""`falsify bench`: each benchmark runs end to end on a tiny input and reports its fields.
+
+Speed is never asserted here (timed tests flake on shared machines); the figures live in the
+README with the commands that measured them.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from falsify.cli import main
+
+from .conftest import CONFIGS, ROOT
+
+BUNDLED = ROOT / "models" / "weights" / "squeezeseg.onnx"
+pytestmark = pytest.mark.skipif(not BUNDLED.exists(), reason="bundled model not trained yet")
+
+
+def _json(capsys, argv: list[str]) -> dict:
+    assert main(argv) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_bench_pipeline_reports_both_paths(capsys):
+    r = _json(capsys, ["bench", "pipeline", "--config", str(CONFIGS / "smoke.toml"),
+                       "--samples", "24", "--workers", "2", "--json"])
+    one = r["one_process"]
+    assert r["network_batch"] == 1 and r["samples_per_task"] == 8
+    assert one["samples_per_s"] > 0 and one["inference_only_samples_per_s"] > 0
+    assert one["overhead"] == pytest.approx(
+        one["ms_per_sample"] / one["inference_ms_per_sample"] - 1, abs=2e-3)
+    assert r["2_workers"]["samples"] == 24 - 2 * 8 and r["2_workers"]["samples_per_s"] > 0
+
+
+def test_bench_model_compares_variants_on_the_same_frames(capsys):
+    pytest.importorskip("torch")
+    r = _json(capsys, ["bench", "model", "--samples", "2", "--repeats", "1", "--json"])
+    rows = {v["variant"]: v for v in r["variants"]}
+    assert set(rows) == {"onnx-fp32", "onnx-fp32-batch8", "torch-fp32", "onnx-int8",
+                         "onnx-fp16"}, rows
+    assert rows["onnx-fp32"]["batch"] == 1 and rows["onnx-fp32-batch8"]["batch"] == 8
+    # batching changes speed, never the answer; torch agrees with ONNX Runtime
+    for name in ("onnx-fp32-batch8", "torch-fp32"):
+        assert rows[name]["pixel_agreement"] > 0.9999, rows[name]
+    assert all(v["ms_per_frame"] > 0 and v["frames"] == 2 for v in rows.values())
