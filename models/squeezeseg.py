@@ -28,8 +28,9 @@ class Conv(nn.Module):
     """Conv with bias, TF-SAME padding, optional ReLU.
 
     Unstrided odd kernels pad symmetrically inside the Conv (its ONNX ``pads``): a separate Pad
-    node makes ONNX Runtime leave its blocked NCHWc layout around it (3 ms/frame over the 13
-    convs on the 2-core EPYC). Only the strided conv1, on the network input, pads explicitly.
+    node makes ONNX Runtime leave its blocked NCHWc layout around it (these 13 convs and the
+    CRF's gathers together: about 3 ms/frame on the 2-core EPYC). Only the strided conv1, on
+    the network input, pads explicitly.
     """
 
     def __init__(self, cin: int, cout: int, k: int, stride: tuple[int, int] = (1, 1),
