@@ -148,6 +148,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """`python -m models.export WEIGHTS.pt --out MODEL.onnx`: export trained weights with spec."""
     import argparse
     import json
+    import sys
 
     p = argparse.ArgumentParser(prog="python -m models.export", description=main.__doc__)
     p.add_argument("weights", help="a state dict (.pt) or a training checkpoint.pt")
@@ -161,25 +162,32 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="also write a static int8 copy (CRF kept fp32) to PATH, calibrated on "
                    "training-style synthetic scenes")
     a = p.parse_args(argv)
-    if a.int8 and (a.height, a.width) != (64, 512):
-        print("error: --int8 calibrates on the kitti-hdl64e-front preset: 64 x 512 only")
+
+    def fail(message: str) -> int:
+        print(f"python -m models.export: error: {message}", file=sys.stderr)
         return 2
+
+    if a.int8 and (a.height, a.width) != (64, 512):
+        return fail("--int8 calibrates on the kitti-hdl64e-front preset: 64 x 512 only")
+    bad = [n for n in a.note if "=" not in n or not n.split("=", 1)[0]]
+    if bad:
+        return fail(f"--note {bad[0]!r}: write KEY=VALUE")
     import torch
 
     from models.squeezeseg import SqueezeSeg
     try:
         state = torch.load(a.weights, map_location="cpu", weights_only=True)
     except Exception as exc:  # OSError, RuntimeError, pickle.UnpicklingError, ...
-        print(f"error: {a.weights}: cannot load weights ({str(exc).splitlines()[0]})")
-        return 2
+        return fail(f"{a.weights}: cannot load weights ({str(exc).splitlines()[0]})")
+    if not isinstance(state, dict):
+        return fail(f"{a.weights}: not a state dict or training checkpoint")
     state = state.get("model", state)
     model = SqueezeSeg(crf_iterations=a.crf_iterations)
     try:
         model.load_state_dict(state)
     except RuntimeError as exc:
-        print(f"error: {a.weights}: not SqueezeSeg weights ({str(exc).splitlines()[0]})")
-        return 2
-    extra = dict(n.split("=", 1) for n in a.note if "=" in n)
+        return fail(f"{a.weights}: not SqueezeSeg weights ({str(exc).splitlines()[0]})")
+    extra = dict(n.split("=", 1) for n in a.note)
     out = Path(a.out)
     path, spec = export_onnx(model, out, H=a.height, W=a.width, name=out.stem, **extra)
     torch.save({k: v.contiguous() for k, v in model.state_dict().items()}, out.with_suffix(".pt"))
@@ -188,6 +196,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if a.int8:
         from falsify.tradeoff import calibration_scans
 
+        Path(a.int8).parent.mkdir(parents=True, exist_ok=True)
         written["int8"] = str(quantize_int8(path, a.int8,
                                             scans=calibration_scans("kitti-hdl64e-front")))
     print(json.dumps(written))
@@ -196,4 +205,5 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     import sys
+
     sys.exit(main())

@@ -215,7 +215,7 @@ def test_export_cli_writes_model_and_int8_copy(exported, tmp_path, monkeypatch, 
     from models.export import main as export_main
 
     monkeypatch.setattr("falsify.tradeoff.CALIBRATION_SCANS", 2)   # a short calibration
-    out, q = tmp_path / "net.onnx", tmp_path / "net-int8.onnx"
+    out, q = tmp_path / "net.onnx", tmp_path / "int8" / "net-int8.onnx"   # folder made
     assert export_main([str(exported.with_suffix(".pt")), "--out", str(out), "--int8", str(q),
                         "--note", "data=test"]) == 0
     written = json.loads(capsys.readouterr().out)
@@ -226,15 +226,21 @@ def test_export_cli_writes_model_and_int8_copy(exported, tmp_path, monkeypatch, 
 
 
 def test_export_cli_rejects_bad_input_before_writing(exported, tmp_path, capsys):
-    pytest.importorskip("torch")
+    torch = pytest.importorskip("torch")
     from models.export import main as export_main
 
     out = tmp_path / "net.onnx"
     args = [str(exported.with_suffix(".pt")), "--out", str(out)]
     assert export_main([*args, "--int8", str(tmp_path / "q.onnx"), "--height", "32"]) == 2
-    assert "64 x 512 only" in capsys.readouterr().out
+    assert "64 x 512 only" in capsys.readouterr().err
+    assert export_main([*args, "--note", "epochs"]) == 2
+    assert "--note 'epochs': write KEY=VALUE" in capsys.readouterr().err
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
     assert export_main([str(bad), "--out", str(out)]) == 2
-    assert "cannot load weights" in capsys.readouterr().out
-    assert list(tmp_path.iterdir()) == [bad]
+    assert "cannot load weights" in capsys.readouterr().err
+    tensor = tmp_path / "tensor.pt"
+    torch.save(torch.zeros(3), tensor)
+    assert export_main([str(tensor), "--out", str(out)]) == 2
+    assert "not a state dict" in capsys.readouterr().err
+    assert sorted(tmp_path.iterdir()) == [bad, tensor]
