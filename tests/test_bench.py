@@ -45,3 +45,14 @@ def test_bench_model_compares_variants_on_the_same_frames(capsys):
     for name in ("onnx-fp32-batch8", "torch-fp32"):
         assert rows[name]["pixel_agreement"] > 0.9999, rows[name]
     assert all(v["ms_per_frame"] > 0 and v["frames"] == 2 for v in rows.values())
+
+
+@pytest.mark.parametrize("args, message", [
+    (["bench", "model", "--threads", "0"], "--threads"),
+    (["bench", "pipeline", "--samples", "0"], "--samples"),
+])
+def test_bad_bench_options_exit_2(capsys, args, message):
+    with pytest.raises(SystemExit) as exc:
+        code = main(args)
+        raise SystemExit(code)
+    assert exc.value.code == 2 and message in capsys.readouterr().err
