@@ -16,6 +16,7 @@ import numpy as np
 
 from falsify import shapes
 from falsify.cars import BUILTIN_MODELS, car_mesh
+from falsify.classes import CAR, CYCLIST, PEDESTRIAN, UNKNOWN
 from falsify.errors import ConfigError
 
 MAX_BACKGROUND_ID: int = 999_999
@@ -24,7 +25,6 @@ FREE_ZONE: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 25.0), (-8.5
 SENSOR_CLEARANCE: float = 3.0  # metres around (0, 0) holding nothing but road
 TERRAIN_HALF_WIDTH: float = 300.0  # flat ground beyond the curbs out to |y| = this
 
-UNKNOWN, CAR, PEDESTRIAN, CYCLIST = 0, 1, 2, 3
 _FIRST_INSTANCE = 1000
 
 

@@ -8,7 +8,6 @@ extended without changing the scans already written.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from falsify.cars import BUILTIN_MODELS
+from falsify.classes import CLASSES
 from falsify.errors import ConfigError
 from falsify.fileio import write_json, write_npy
 from falsify.scene import InvalidSample, PlacedCar, Simulator, check_placement, ego_outline
@@ -83,7 +83,7 @@ def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
         raise ConfigError(f"--scans: {scans} must be > 0")
     out.mkdir(parents=True, exist_ok=True)
     sim = Simulator(sensor, max_bvh=1, max_hits=8)
-    counts = np.zeros(4, np.int64)
+    counts = np.zeros(len(CLASSES), np.int64)
     written = 0
     for i in range(start, scans):
         path = out / f"{i:06d}.npy"
@@ -94,7 +94,7 @@ def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
         scan = sim.render(bg_id, placed, pose, rng)
         write_npy(path, scan.image)
         lab = scan.image[..., 5][scan.valid].astype(np.int64)
-        counts += np.bincount(lab, minlength=4)[:4]
+        counts += np.bincount(lab, minlength=len(CLASSES))[:len(CLASSES)]
         written += 1
         if progress and written % 50 == 0:
             print(f"  {i + 1}/{scans} scans", flush=True)
@@ -104,8 +104,5 @@ def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
              "range_noise": sensor.range_noise}
     write_json(out / "index.json", index)
     return {**index, "written": written, "points_per_class": dict(
-        zip(("unknown", "car", "pedestrian", "cyclist"), counts.tolist(), strict=True))}
+        zip(CLASSES, counts.tolist(), strict=True))}
 
-
-def read_index(path: Path) -> dict:
-    return json.loads((path / "index.json").read_text())

@@ -24,10 +24,6 @@ class Fidelity:
     lod: int = 2
     bundled_model: str = "squeezeseg.onnx"
 
-    def sensor_overrides(self, sensor: str) -> dict:
-        """Sensor keys this preset changes (none: the network fixes the resolution)."""
-        return {}
-
     def model(self, user_model: str | None) -> str | None:
         """The model a run uses: the user's as given, else this preset's bundled variant."""
         if user_model is not None or self.bundled_model == "squeezeseg.onnx":

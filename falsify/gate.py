@@ -19,10 +19,9 @@ import pandas as pd
 
 from falsify.errors import FalsifyError
 from falsify.maps import CellMap, miou_map
-from falsify.space import Space, parse_space
+from falsify.space import DEFAULT_THRESHOLD, Space, parse_space
 from falsify.store import STORE_NAME, read_frame, read_meta
 
-DEFAULT_THRESHOLD = 0.65
 JUNIT_SUITE = "falsify.gate"
 
 

@@ -13,8 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-CLASSES = ("unknown", "car", "pedestrian", "cyclist")
-CAR = 1
+from falsify.classes import CAR, CLASSES
 
 
 def confusion(pred: np.ndarray, label: np.ndarray, n_classes: int = 4) -> np.ndarray:

@@ -36,8 +36,6 @@ class EvalSettings:
     backend: str = "onnx"
     threads: int = 1
     lod: int = 2
-    crf_iterations: int | None = None
-    sensor_overrides: dict = field(default_factory=dict)
 
 
 def sample_seed(space: Space, sample: Sample) -> int:
@@ -53,7 +51,7 @@ class Evaluator:
 
         self.settings = settings
         self.space = settings.space
-        sensor = load_sensor(self.space.sensor, **settings.sensor_overrides)
+        sensor = load_sensor(self.space.sensor)
         self.sim = Simulator(sensor, self.space.user_cars, lod=settings.lod)
         self.model = load_segmenter(settings.model, backend=settings.backend,
                                     threads=settings.threads)
@@ -226,13 +224,6 @@ class Driver:
         self.evaluations += len(samples)
         self.curve.extend(scores)
         return scores
-
-
-def run_sampler(sampler, space: Space, driver: Driver, budget: int | None,
-                seed: int) -> None:
-    """One driver loop for every sampler."""
-    sampler.run(space, driver.evaluate, budget, seed)
-    driver.progress.draw(final=True)
 
 
 def lowest_curve(curve: Sequence[float | None]) -> list[float | None]:

@@ -19,7 +19,7 @@ import pandas as pd
 from falsify.errors import FalsifyError
 from falsify.fileio import write_bytes, write_json, write_npy
 from falsify.maps import CellMap, miou_map
-from falsify.pipeline import Driver, EvalSettings, Evaluator, Progress
+from falsify.pipeline import Driver, EvalSettings, Progress
 from falsify.space import Space, load_space
 from falsify.store import STORE_NAME, Store, export, read_meta
 
@@ -68,11 +68,11 @@ def prepare(req: RunRequest):
     seed = space.seed if req.seed is None else req.seed
     threads = 2 if req.workers == 1 else 1
     settings = EvalSettings(space=space, model=model, backend=req.backend, threads=threads,
-                            lod=fid.lod, sensor_overrides=fid.sensor_overrides(space.sensor))
+                            lod=fid.lod)
     # Load the model once here: a missing, corrupt or mismatched model fails before any sample.
     seg = load_segmenter(model, backend=req.backend, threads=1)
     from falsify.sensor import load_sensor
-    sensor = load_sensor(space.sensor, **settings.sensor_overrides)
+    sensor = load_sensor(space.sensor)
     if (seg.spec.height, seg.spec.width) != sensor.shape:
         raise FalsifyError(f"model {req.model or 'bundled'} takes {seg.spec.height}×"
                            f"{seg.spec.width} range images but sensor {sensor.name} makes "
@@ -206,7 +206,7 @@ def write_retraining_set(run: Path, space: Space, frame: pd.DataFrame, cmap: Cel
     from falsify.pipeline import sample_seed
     from falsify.scene import Simulator
     from falsify.sensor import load_sensor
-    sim = Simulator(load_sensor(space.sensor, **settings.sensor_overrides), space.user_cars,
+    sim = Simulator(load_sensor(space.sensor), space.user_cars,
                     lod=settings.lod)
     rows = []
     for _, row in chosen.iterrows():
@@ -226,14 +226,6 @@ def _plain(v):
     if isinstance(v, np.generic):
         return v.item()
     return v
-
-
-def load_evaluator(run: Path) -> Evaluator:
-    """An evaluator set up as the run was (used by reports and tools)."""
-    meta = read_meta(run)
-    space = load_space(meta["config_path"])
-    return Evaluator(EvalSettings(space=space, model=meta.get("model_path"),
-                                  backend=meta.get("backend", "onnx")))
 
 
 def summary_text(s: dict) -> str:

@@ -16,7 +16,6 @@ from falsify.errors import FalsifyError
 from falsify.sensor import Sensor
 
 CHANNELS = ("x", "y", "z", "intensity", "range", "label")
-CLASS_NAMES = ("unknown", "car", "pedestrian", "cyclist")
 # Our classes as SemanticKITTI ids when writing .label files (unknown -> 0 "unlabeled").
 TO_SEMANTICKITTI = np.array([0, 10, 30, 31], dtype=np.uint32)
 # SemanticKITTI ids read as our classes (moving variants too); anything else is unknown.
@@ -46,9 +45,6 @@ class Scan:
 
     def count(self, cls: int) -> int:
         return int((self.valid & (self.image[..., 5] == cls)).sum())
-
-    def save_npy(self, path: str | Path) -> None:
-        np.save(path, self.image)
 
     def to_kitti(self, bin_path: str | Path, label_path: str | Path) -> None:
         """Write the valid points as KITTI .bin and SemanticKITTI-style .label."""

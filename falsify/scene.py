@@ -18,6 +18,7 @@ import numpy as np
 
 import falsify.backgrounds as backgrounds  # noqa: I001
 import falsify.cars as cars
+from falsify.classes import CAR
 from falsify.raycast import MeshCaster
 from falsify.scan import Scan
 from falsify.sensor import Sensor, SensorPose, rot_z
@@ -26,7 +27,6 @@ from falsify.space import CarPose, Sample, UserCar
 # The ego vehicle's footprint around the sensor (KITTI's Passat, sensor behind the front axle);
 # a sampled car that overlaps it cannot exist. It is not drawn: real scans filter the ego car.
 EGO_FOOTPRINT = np.array([[-2.8, -0.95], [1.9, -0.95], [1.9, 0.95], [-2.8, 0.95]])
-CAR_CLASS = 1
 FIRST_CAR_INSTANCE = 1
 
 
@@ -44,7 +44,7 @@ class PlacedCar:
     y: float
     heading_deg: float
     instance: int
-    cls: int = CAR_CLASS
+    cls: int = CAR
 
     def rotation(self) -> np.ndarray:
         return rot_z(self.heading_deg)

@@ -22,6 +22,7 @@ CONTINUOUS_BASE = ("x", "y", "yaw")
 IMAGE_ONLY = ("colour", "weather", "time_of_day")
 TOP_KEYS = {"name", "description", "sensor", "seed", "threshold", "dims", "car_models"}
 MAX_CARS = 8
+DEFAULT_THRESHOLD = 0.65   # mIoU below which a cell is a blind spot (the paper's)
 CAR_FILE_KEYS = {"file", "scale", "forward", "up"}
 
 Value = float | int | str
@@ -259,7 +260,7 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
     name = _typed(raw, "name", str, where, default=Path(source).stem)
     sensor = _typed(raw, "sensor", str, where, default="kitti-hdl64e-front")
     seed = _typed(raw, "seed", int, where, default=0)
-    threshold = float(_typed(raw, "threshold", (int, float), where, default=0.65))
+    threshold = float(_typed(raw, "threshold", (int, float), where, default=DEFAULT_THRESHOLD))
     if not 0.0 < threshold <= 1.0:
         raise ConfigError(f"{where}threshold: {threshold} must be in (0, 1]")
 

@@ -120,10 +120,6 @@ class Store:
         with self.db:
             self.db.executemany(sql, rows)
 
-    def frame(self) -> pd.DataFrame:
-        """All rows as a DataFrame, in evaluation order."""
-        return read_frame(self.path)
-
 
 def _read_only(path: str | Path, query):
     """Run `query(connection)` on a run's SQLite file opened read-only; clear errors."""

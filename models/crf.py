@@ -14,7 +14,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-NUM_CLASSES = 4
+from falsify.classes import CLASSES
+
+NUM_CLASSES = len(CLASSES)
 WINDOW = (3, 5)
 THETA_A = (0.9, 0.9, 0.6, 0.6)
 THETA_R = (0.015, 0.015, 0.01, 0.01)

@@ -14,8 +14,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from falsify.classes import CLASSES
 from falsify.errors import FalsifyError
-from models.spec import CLASS_NAMES, ModelSpec, load_spec, model_hash, normalise, spec_path_for
+from models.spec import ModelSpec, load_spec, model_hash, normalise, spec_path_for
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 BUNDLED_ONNX = WEIGHTS_DIR / "squeezeseg.onnx"
@@ -53,11 +54,6 @@ class Segmenter(Protocol):
     def predict(self, scans: np.ndarray) -> Prediction: ...
 
 
-def short_hash(h: str) -> str:
-    """The 12-character form of a model hash shown to users."""
-    return h[:12]
-
-
 def check_scans(scans: np.ndarray, spec: ModelSpec, source: Path) -> np.ndarray:
     """(H,W,C) or (B,H,W,C) with C >= 5 -> float32 (B,H,W,C); FalsifyError on shape or NaN/inf."""
     a = np.asarray(scans)
@@ -86,9 +82,9 @@ def _our_probabilities(out: np.ndarray, spec: ModelSpec, valid: np.ndarray) -> n
         p = e / e.sum(axis=1, keepdims=True)
     else:
         p = out
-    ours = np.zeros((p.shape[0], len(CLASS_NAMES), *p.shape[2:]), np.float32)
+    ours = np.zeros((p.shape[0], len(CLASSES), *p.shape[2:]), np.float32)
     used = set()
-    for j, name in enumerate(CLASS_NAMES):
+    for j, name in enumerate(CLASSES):
         for i in spec.classes.get(name, ()):
             ours[:, j] += p[:, i]
             used.add(i)
@@ -96,13 +92,13 @@ def _our_probabilities(out: np.ndarray, spec: ModelSpec, valid: np.ndarray) -> n
         if i not in used:
             ours[:, 0] += p[:, i]
     probs = np.ascontiguousarray(np.moveaxis(ours, 1, -1))
-    probs[~valid] = np.eye(len(CLASS_NAMES), dtype=np.float32)[0]
+    probs[~valid] = np.eye(len(CLASSES), dtype=np.float32)[0]
     return probs
 
 
 def _one_to_one(spec: ModelSpec) -> list[int] | None:
     """The model output index of each of our classes when every output is exactly one of ours."""
-    order = [list(spec.classes.get(name, ())) for name in CLASS_NAMES]
+    order = [list(spec.classes.get(name, ())) for name in CLASSES]
     flat = [i for o in order for i in o]
     if all(len(o) == 1 for o in order) and sorted(flat) == list(range(spec.num_classes)):
         return flat

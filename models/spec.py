@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from falsify.classes import CLASSES
 from falsify.errors import FalsifyError
 
 ALL_CHANNELS = ("x", "y", "z", "intensity", "range")
@@ -24,7 +25,6 @@ DEFAULT_CHANNELS = ("x", "y", "z", "range")  # the paper leaves intensity out fo
 SCAN_INDEX = {"x": 0, "y": 1, "z": 2, "intensity": 3, "range": 4}
 INPUT_MEAN = (10.88, 0.23, -1.04, 0.21, 12.12)
 INPUT_STD = (11.47, 6.91, 0.86, 0.16, 12.32)
-CLASS_NAMES = ("unknown", "car", "pedestrian", "cyclist")
 OUTPUT_KINDS = ("logits", "probabilities")
 SPEC_VERSION = 1
 
@@ -78,8 +78,8 @@ def default_spec(name: str = "squeezeseg", channels: Sequence[str] = DEFAULT_CHA
     return ModelSpec(
         name=name, channels=(*channels, "mask"), mean=tuple(mean), std=tuple(std),
         height=height, width=width, input_name="input", output_name="logits",
-        output_kind="logits", num_classes=len(CLASS_NAMES),
-        classes={c: (i,) for i, c in enumerate(CLASS_NAMES)},
+        output_kind="logits", num_classes=len(CLASSES),
+        classes={c: (i,) for i, c in enumerate(CLASSES)},
         xyz_input="xyz" if crf_iterations else None,
         mask_input="mask" if crf_iterations else None,
         crf_iterations=crf_iterations, extra=extra,
@@ -160,8 +160,8 @@ def load_spec(path: str | Path) -> ModelSpec:
     raw_classes = _get(d, "classes", path, dict)
     classes: dict[str, tuple[int, ...]] = {}
     for name, idx in raw_classes.items():
-        if name not in CLASS_NAMES:
-            raise bad("classes", f"has unknown class {name!r}; allowed {list(CLASS_NAMES)}")
+        if name not in CLASSES:
+            raise bad("classes", f"has unknown class {name!r}; allowed {list(CLASSES)}")
         ids = idx if isinstance(idx, list) else [idx]
         if not ids or not all(isinstance(i, int) and not isinstance(i, bool)
                               and 0 <= i < num_classes for i in ids):

@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from models.crf import NUM_CLASSES, RecurrentCRF
-from models.spec import ALL_CHANNELS, DEFAULT_CHANNELS, INPUT_MEAN, INPUT_STD
+from models.spec import ALL_CHANNELS, DEFAULT_CHANNELS
 
 
 def _same_pad_w(width: int, kernel: int, stride: int) -> tuple[int, int]:
@@ -175,11 +175,3 @@ def count_parameters(model: nn.Module, include_crf: bool = False) -> int:
     """Trainable parameter count, by default without the CRF's compatibility matrices."""
     return sum(p.numel() for n, p in model.named_parameters() if include_crf or "crf." not in n)
 
-
-def prepare_inputs(scans: np.ndarray, channels: Sequence[str] = DEFAULT_CHANNELS
-                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Scans (B,H,W,6) -> (x, xyz, mask) torch tensors as the network and its CRF expect."""
-    from models.spec import normalise
-
-    x, xyz, mask = normalise(scans, channels, INPUT_MEAN, INPUT_STD)
-    return torch.from_numpy(x), torch.from_numpy(xyz), torch.from_numpy(mask)

@@ -704,16 +704,14 @@ def make_previews(data: RunData, rows: pd.DataFrame, predict: bool) -> tuple[dic
     from falsify.sensor import load_sensor
 
     seg, note = load_model(data.meta, predict)
-    lod, overrides = 2, {}
-    try:  # regenerate at the run's fidelity (car level of detail, sensor overrides)
+    lod = 2
+    try:  # regenerate at the run's fidelity (car level of detail)
         from falsify.fidelity import preset
-        fid = preset(str(data.meta.get("fidelity") or "exact"))
-        lod, overrides = fid.lod, fid.sensor_overrides(data.space.sensor)
+        lod = preset(str(data.meta.get("fidelity") or "exact")).lod
     except Exception:  # older runs or an unknown preset: the exact scene
         pass
     try:
-        sim = Simulator(load_sensor(data.space.sensor, **overrides), data.space.user_cars,
-                        lod=lod)
+        sim = Simulator(load_sensor(data.space.sensor), data.space.user_cars, lod=lod)
     except Exception as exc:
         return {}, f"Scans could not be regenerated ({exc})."
     out: dict[int, Preview] = {}
