@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -235,12 +236,15 @@ def cmd_bench(args) -> int:
         if files:
             scans = _read_scans([str(f) for f in files], "kitti-hdl64e-front")
         else:
-            scans = _held_out_scans(args.samples)
+            from falsify.dataset import held_out_scans
+            from falsify.sensor import load_sensor
+            scans = held_out_scans(load_sensor("kitti-hdl64e-front"), args.samples)
         onnx = Path(args.model) if args.model else BUNDLED_ONNX
-        from falsify.tradeoff import calibration_scans
+        from falsify.dataset import calibration_scans
+        from falsify.sensor import load_sensor
         rows = bench_models(np.asarray(scans), onnx, repeats=args.repeats,
                             threads=args.threads,
-                            calibration=calibration_scans("kitti-hdl64e-front"))
+                            calibration=calibration_scans(load_sensor("kitti-hdl64e-front")))
         result = {"benchmark": "model", "model": str(onnx), "frames": len(scans),
                   "machine": bench.machine(), "variants": rows}
         text = "\n".join(f"{r['variant']:16s} {r['ms_per_frame']:8.1f} ms/frame "
@@ -276,21 +280,59 @@ def cmd_bench(args) -> int:
     return 0
 
 
-def _held_out_scans(n: int):
-    """Labelled synthetic scans on backgrounds no training or test config uses (ids 9000+)."""
-    import numpy as np
+# -- report, gate and tradeoff ----------------------------------------------------------------
+def cmd_report(args) -> int:
+    from reports.html import write_report
 
-    from falsify.dataset import TrafficOptions, scene_for
-    from falsify.scene import Simulator
-    from falsify.sensor import load_sensor
+    out = write_report(Path(args.run), Path(args.out) if args.out else None,
+                       Path(args.compare) if args.compare else None,
+                       predict=not args.no_predict)
+    size = out.stat().st_size
+    summary = {"run": args.run, "out": str(out), "bytes": size, "compare": args.compare}
+    emit(args, summary, f"wrote {out} ({size / 1024:.0f} KiB)")
+    return 0
 
-    sim = Simulator(load_sensor("kitti-hdl64e-front"), max_bvh=1)
-    opts = TrafficOptions(backgrounds=max(1, n), first_background=9000)
-    images = []
-    for i in range(n):
-        bg, pose, cars = scene_for(i * 8, 77, sim, opts)
-        images.append(sim.render(bg, cars, pose).image)
-    return np.stack(images)
+
+def cmd_gate(args) -> int:
+    from falsify.gate import evaluate, format_text, write_junit
+
+    result = evaluate(args.run, threshold=args.threshold,
+                      max_blind_spots=args.max_blind_spots, baseline=args.baseline)
+    if args.junit:
+        write_junit(result, args.junit)
+    if args.json:
+        print(json.dumps(result.to_json(), indent=2))
+    else:
+        print(format_text(result))
+    return result.exit_code
+
+
+def cmd_tradeoff(args) -> int:
+    from falsify.tradeoff import parse_knobs, run_tradeoff
+
+    summary = run_tradeoff(args.config, args.out, parse_knobs(args.knobs), model=args.model,
+                           limit=args.limit)
+    emit(args, summary, tradeoff_text(summary))
+    return 0
+
+
+def tradeoff_text(summary: dict) -> str:
+    """The rows as a fixed-width text table."""
+    def f(v, spec: str) -> str:
+        return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
+
+    lines = [f"{'knob':10s} {'setting':16s} {'ms/sample':>9s} {'speedup':>7s} {'mean err':>8s} "
+             f"{'max err':>7s} {'jaccard':>7s} {'blind':>5s} {'samples':>7s}  notes"]
+    for r in summary["rows"]:
+        mark = "*" if r["is_reference"] else " "
+        lines.append(f"{r['knob']:10s} {r['setting'] + mark:16s} "
+                     f"{f(r['time_per_sample_ms'], '9.1f')} {f(r['speedup'], '7.2f')} "
+                     f"{f(r['map_mean_abs_error'], '8.4f')} {f(r['map_max_abs_error'], '7.4f')} "
+                     f"{f(r['blind_spot_jaccard'], '7.3f')} {f(r['blind_spots'], '5d')} "
+                     f"{r['samples']:7d}  {r['notes']}")
+    lines.append(f"(* reference; {summary['samples']} samples; wrote {summary['files']['csv']}, "
+                 f"{summary['files']['html']})")
+    return "\n".join(lines)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -347,6 +389,7 @@ def build_parser() -> argparse.ArgumentParser:
     se.add_argument("--budget", type=int, default=None, help="number of evaluations")
     se.set_defaults(func=cmd_search)
 
+    from falsify.tradeoff import KNOBS
     b = sub.add_parser("bench", help="measure a fast path beside its naive path")
     b.add_argument("what", choices=["scan", "model", "pipeline", "search"])
     b.add_argument("--config", default=str(DEFAULT_CONFIG))
@@ -365,10 +408,45 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--json", action="store_true")
     b.set_defaults(func=cmd_bench)
 
-    from reports.cli import register
-    register(sub)
-    from falsify.tradeoff import register as register_tradeoff
-    register_tradeoff(sub)
+    r = sub.add_parser("report", help="write a self-contained HTML report of a run")
+    r.add_argument("run", help="run directory (holding results.sqlite)")
+    r.add_argument("--compare", metavar="RUN_BEFORE",
+                   help="an earlier run (e.g. before retraining): adds the difference map")
+    r.add_argument("--out", metavar="FILE", help="output file (default RUN/report.html)")
+    r.add_argument("--no-predict", action="store_true",
+                   help="show label-only previews (do not load the model)")
+    r.add_argument("--json", action="store_true")
+    r.set_defaults(func=cmd_report)
+
+    g = sub.add_parser("gate", help="fail (exit 1) when a run has too many blind spots",
+                       description="Count blind spots: (x, y) cells whose mIoU is below the "
+                       "threshold. Exit 0 within the limit, 1 over it, 2 on bad input.")
+    g.add_argument("run", help="run directory (holding results.sqlite)")
+    lim = g.add_mutually_exclusive_group()
+    lim.add_argument("--max-blind-spots", type=int, metavar="N",
+                     help="allowed number of blind spots (default 0)")
+    lim.add_argument("--baseline", metavar="RUN_OR_JSON",
+                     help="fail only on blind spots not in this run or `gate --json` file")
+    g.add_argument("--threshold", type=float, metavar="T",
+                   help="mIoU threshold in (0, 1] (default: the run's, else 0.65)")
+    g.add_argument("--junit", metavar="FILE", help="also write JUnit XML, one testcase per cell")
+    g.add_argument("--json", action="store_true", help="print the verdict as JSON")
+    g.set_defaults(func=cmd_gate)
+
+    t = sub.add_parser("tradeoff", help="measure speed against mIoU-map error for each knob",
+                       description="Evaluate one sample set under each setting of each knob "
+                       "against a reference setting; write tradeoff.csv, .json and .html.")
+    t.add_argument("config")
+    t.add_argument("--out", required=True, help="output directory")
+    t.add_argument("--knobs", default=",".join(KNOBS),
+                   help=f"comma-separated subset of {','.join(KNOBS)} (default: all)")
+    t.add_argument("--model", default=None,
+                   help="ONNX model with its .json spec (and .pt beside it for torch and CRF); "
+                   "default: bundled")
+    t.add_argument("--limit", type=int, default=None,
+                   help="use only the first N samples of the grid (quick runs)")
+    t.add_argument("--json", action="store_true")
+    t.set_defaults(func=cmd_tradeoff)
     return p
 
 

@@ -23,6 +23,8 @@ from falsify.sensor import Sensor, SensorPose
 
 TRAIN_BACKGROUND_FIRST = 1000
 SCANS_PER_BACKGROUND = 8
+HELD_OUT_BACKGROUND_FIRST = 9000
+CALIBRATION_SCANS = 16
 
 
 @dataclass(frozen=True)
@@ -105,4 +107,28 @@ def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
     write_json(out / "index.json", index)
     return {**index, "written": written, "points_per_class": dict(
         zip(CLASSES, counts.tolist(), strict=True))}
+
+
+def traffic_scans(sensor: Sensor, n: int, seed: int, opts: TrafficOptions,
+                  stride: int) -> np.ndarray:
+    """Range images (n, H, W, 6) of training-style scenes `0, stride, 2 * stride, ...`, without
+    sensor noise: the synthetic scans used for calibration and held-out checks."""
+    sim = Simulator(sensor, max_bvh=1, max_hits=1)
+    images = []
+    for i in range(n):
+        bg, pose, cars = scene_for(i * stride, seed, sim, opts)
+        images.append(sim.render(bg, cars, pose).image)
+    return np.stack(images)
+
+
+def calibration_scans(sensor: Sensor, n: int = CALIBRATION_SCANS, seed: int = 0) -> np.ndarray:
+    """Scans of training-style traffic (training backgrounds, never a test config's and never
+    real KITTI) to calibrate int8 activation ranges."""
+    return traffic_scans(sensor, n, seed, TrafficOptions(), stride=4)
+
+
+def held_out_scans(sensor: Sensor, n: int) -> np.ndarray:
+    """Labelled scans on backgrounds no training or test config uses (ids 9000 and up)."""
+    opts = TrafficOptions(backgrounds=max(1, n), first_background=HELD_OUT_BACKGROUND_FIRST)
+    return traffic_scans(sensor, n, 77, opts, stride=8)
 

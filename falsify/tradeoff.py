@@ -26,7 +26,7 @@ from falsify.sensor import Sensor, SensorPose
 from falsify.space import Categorical, Continuous, Sample, Space, UserCar, load_space
 from models.spec import ModelSpec
 
-if TYPE_CHECKING:   # the CLI imports this module for `register`: keep trimesh out of it
+if TYPE_CHECKING:   # the CLI imports this module for KNOBS: keep trimesh out of it
     from falsify.pipeline import Evaluator
 
 KNOBS = ("resolution", "lod", "precision", "crf", "step", "budget", "preset")
@@ -37,7 +37,6 @@ CRF_ITERATIONS = (0, 1, 2, 3)
 STEPS = (0.5, 1.0, 2.0)
 BUDGET_SAMPLERS = ("random", "sobol")
 BUDGET_FRACTIONS = (0.10, 0.25, 0.50)
-CALIBRATION_SCANS = 16
 TIMING_SAMPLES = 40   # timed per setting and round, spread evenly over the sample set
 TIMING_ROUNDS = 3     # interleaved over the settings; the fastest round counts
 THREADS = 2
@@ -320,6 +319,8 @@ def knob_lod(ctx: Context) -> list[Variant]:
 def knob_precision(ctx: Context) -> list[Variant]:
     """torch fp32 on the .pt weights; ONNX Runtime fp32, fp16 and static int8 (variants
     written to DIR/models/)."""
+    from falsify.dataset import calibration_scans
+    from falsify.sensor import load_sensor
     from models.export import convert_fp16, quantize_int8
 
     ref, onnx = ctx.reference, ctx.reference.model
@@ -332,7 +333,8 @@ def knob_precision(ctx: Context) -> list[Variant]:
         _build("precision", "onnx fp16", lambda: dataclasses.replace(ref, model=convert_fp16(
             onnx, models / f"{onnx.stem}-fp16.onnx"))),
         _build("precision", "onnx int8", lambda: dataclasses.replace(ref, model=quantize_int8(
-            onnx, models / f"{onnx.stem}-int8.onnx", scans=calibration_scans(ctx.space.sensor))),
+            onnx, models / f"{onnx.stem}-int8.onnx",
+            scans=calibration_scans(load_sensor(ctx.space.sensor)))),
             "static QDQ, calibrated on training-style synthetic scenes"),
     ]
 
@@ -449,22 +451,6 @@ def export_crf(pt: Path, spec: ModelSpec, k: int, out: Path) -> Path:
     return path
 
 
-def calibration_scans(sensor: str, n: int | None = None, seed: int = 0) -> np.ndarray:
-    """Scans of training-style traffic scenes (training backgrounds, never the test config's
-    and never real KITTI) to calibrate the int8 activation ranges."""
-    from falsify.dataset import TrafficOptions, scene_for
-    from falsify.scene import Simulator
-    from falsify.sensor import load_sensor
-
-    sim = Simulator(load_sensor(sensor), max_bvh=1, max_hits=1)
-    opts = TrafficOptions()
-    scans = []
-    for i in range(CALIBRATION_SCANS if n is None else n):
-        bg, pose, cars = scene_for(i * 4, seed, sim, opts)
-        scans.append(sim.render(bg, cars, pose).image)
-    return np.stack(scans)
-
-
 # -- entry point ---------------------------------------------------------------------------
 def parse_knobs(text: str) -> tuple[str, ...]:
     names = tuple(dict.fromkeys(k.strip() for k in text.split(",") if k.strip()))
@@ -544,47 +530,3 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
     return summary
 
 
-def table_text(summary: dict) -> str:
-    """The rows as a fixed-width text table."""
-    def f(v, spec: str) -> str:
-        return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
-
-    lines = [f"{'knob':10s} {'setting':16s} {'ms/sample':>9s} {'speedup':>7s} {'mean err':>8s} "
-             f"{'max err':>7s} {'jaccard':>7s} {'blind':>5s} {'samples':>7s}  notes"]
-    for r in summary["rows"]:
-        mark = "*" if r["is_reference"] else " "
-        lines.append(f"{r['knob']:10s} {r['setting'] + mark:16s} "
-                     f"{f(r['time_per_sample_ms'], '9.1f')} {f(r['speedup'], '7.2f')} "
-                     f"{f(r['map_mean_abs_error'], '8.4f')} {f(r['map_max_abs_error'], '7.4f')} "
-                     f"{f(r['blind_spot_jaccard'], '7.3f')} {f(r['blind_spots'], '5d')} "
-                     f"{r['samples']:7d}  {r['notes']}")
-    lines.append(f"(* reference; {summary['samples']} samples; wrote {summary['files']['csv']}, "
-                 f"{summary['files']['html']})")
-    return "\n".join(lines)
-
-
-def cmd_tradeoff(args) -> int:
-    from falsify.cli import emit
-
-    summary = run_tradeoff(args.config, args.out, parse_knobs(args.knobs), model=args.model,
-                           limit=args.limit)
-    emit(args, summary, table_text(summary))
-    return 0
-
-
-def register(sub) -> None:
-    """Add the `tradeoff` subcommand to falsify's argparse subparsers."""
-    t = sub.add_parser("tradeoff", help="measure speed against mIoU-map error for each knob",
-                       description="Evaluate one sample set under each setting of each knob "
-                       "against a reference setting; write tradeoff.csv, .json and .html.")
-    t.add_argument("config")
-    t.add_argument("--out", required=True, help="output directory")
-    t.add_argument("--knobs", default=",".join(KNOBS),
-                   help=f"comma-separated subset of {','.join(KNOBS)} (default: all)")
-    t.add_argument("--model", default=None,
-                   help="ONNX model with its .json spec (and .pt beside it for torch and CRF); "
-                   "default: bundled")
-    t.add_argument("--limit", type=int, default=None,
-                   help="use only the first N samples of the grid (quick runs)")
-    t.add_argument("--json", action="store_true")
-    t.set_defaults(func=cmd_tradeoff)

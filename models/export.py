@@ -194,11 +194,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     written = {"onnx": str(path), "spec": str(spec_path_for(path)),
                "weights": str(out.with_suffix(".pt"))}
     if a.int8:
-        from falsify.tradeoff import calibration_scans
+        from falsify.dataset import calibration_scans
+        from falsify.sensor import load_sensor
 
         Path(a.int8).parent.mkdir(parents=True, exist_ok=True)
-        written["int8"] = str(quantize_int8(path, a.int8,
-                                            scans=calibration_scans("kitti-hdl64e-front")))
+        scans = calibration_scans(load_sensor("kitti-hdl64e-front"))
+        written["int8"] = str(quantize_int8(path, a.int8, scans=scans))
     print(json.dumps(written))
     return 0
 

@@ -1,4 +1,4 @@
-"""Reports of a run: one self-contained HTML page (`falsify report`) and the CI gate wiring."""
+"""Reports: HTML pages drawn from what they are given (a run's report, the trade-off page)."""
 
 from reports.html import render_report, write_report
 
