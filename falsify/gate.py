@@ -10,76 +10,15 @@ from __future__ import annotations
 
 import json
 import math
-import tomllib
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
-import pandas as pd
-
 from falsify.errors import FalsifyError
-from falsify.maps import CellMap, miou_map
-from falsify.space import DEFAULT_THRESHOLD, Space, parse_space
-from falsify.store import STORE_NAME, read_frame, read_meta
+from falsify.maps import CellMap, fmt_value
+from falsify.store import STORE_NAME, open_run
 
 JUNIT_SUITE = "falsify.gate"
-
-
-@dataclass(frozen=True)
-class RunData:
-    """A stored run opened for reading: metadata, rows, and the space rebuilt from its config."""
-
-    path: Path
-    meta: dict
-    frame: pd.DataFrame
-    space: Space
-
-    @property
-    def threshold(self) -> float:
-        t = self.meta.get("threshold")
-        return float(t) if isinstance(t, int | float) and not isinstance(t, bool) else \
-            DEFAULT_THRESHOLD
-
-    def cell_map(self, frame: pd.DataFrame | None = None) -> CellMap:
-        """The (x, y) mIoU map of the run (or of a subset of its rows)."""
-        return miou_map(self.frame if frame is None else frame, self.space, "x", "y")
-
-
-def open_run(run: str | Path) -> RunData:
-    """Read a run directory (or its results.sqlite); FalsifyError names the file if unusable."""
-    path = Path(run)
-    if not path.exists():
-        raise FalsifyError(f"{path}: no such run directory")
-    if path.is_file() and path.name == STORE_NAME:
-        path = path.parent
-    if not path.is_dir():
-        raise FalsifyError(f"{path}: not a run directory (expected a directory holding "
-                           f"{STORE_NAME})")
-    meta = read_meta(path)
-    frame = read_frame(path)
-    text = meta.get("config_text")
-    if not isinstance(text, str):
-        raise FalsifyError(f"{path / STORE_NAME}: run metadata has no config_text; was the run "
-                           "finished by `falsify grid` or `falsify search`?")
-    try:
-        raw = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise FalsifyError(f"{path / STORE_NAME}: stored config is not valid TOML ({exc})") \
-            from None
-    source = str(meta.get("config_path") or "<stored config>")
-    space = parse_space(raw, source=source, base_dir=Path(source).parent,
-                        config_hash=str(meta.get("config_hash") or ""), builtin_cars=None)
-    missing = [c for c in ("x", "y", "status", "car_iou") if c not in frame.columns]
-    if missing:
-        raise FalsifyError(f"{path / STORE_NAME}: samples table lacks column {missing[0]!r}")
-    return RunData(path, meta, frame, space)
-
-
-def fmt_value(v: float | int | str) -> str:
-    """A coordinate as users write it: -5.0 → "-5", 2.5 → "2.5"."""
-    if isinstance(v, str):
-        return v
-    return f"{float(v):g}"
 
 
 def cell_name(x: float, y: float) -> str:

@@ -8,12 +8,21 @@ or that are invalid are counted per cell but never averaged in.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
 
+from falsify.metrics import Status
 from falsify.space import Continuous, Space
+
+
+def fmt_value(v: float | int | str) -> str:
+    """A coordinate as users write it: -5.0 → "-5", 2.5 → "2.5"."""
+    if isinstance(v, str):
+        return v
+    return f"{float(v):g}"
 
 
 @dataclass(frozen=True)
@@ -92,10 +101,10 @@ def miou_map(frame: pd.DataFrame, space: Space, a: str = "x", b: str = "y") -> C
             i, j = ai.get(_match(av, a_vals)), bi.get(_match(bv, b_vals))
             if i is None or j is None:
                 continue
-            ok = grp[grp["status"] == "ok"]
+            ok = grp[grp["status"] == Status.OK]
             samples[j, i] = len(ok)
-            undefined[j, i] = int((grp["status"] == "undefined").sum())
-            invalid[j, i] = int((grp["status"] == "invalid").sum())
+            undefined[j, i] = int((grp["status"] == Status.UNDEFINED).sum())
+            invalid[j, i] = int((grp["status"] == Status.INVALID).sum())
             if len(ok):
                 miou[j, i] = float(ok["car_iou"].astype(float).mean())
     return CellMap(a, b, a_vals, b_vals, miou, samples, undefined, invalid)
@@ -121,3 +130,48 @@ def compare(before: CellMap, after: CellMap) -> pd.DataFrame:
     merged = merged.dropna(subset=["miou_before", "miou_after"])
     merged["change"] = merged["miou_after"] - merged["miou_before"]
     return merged.sort_values("change", ascending=False, kind="stable").reset_index(drop=True)
+
+
+# -- a map against a reference map (the trade-off's measure) -----------------------------
+def jaccard(a: set, b: set) -> float:
+    """|A ∩ B| / |A ∪ B|; 1.0 when both sets are empty (full agreement)."""
+    union = a | b
+    return 1.0 if not union else len(a & b) / len(union)
+
+
+def fill_nearest(cells: CellMap, xs: Sequence[float], ys: Sequence[float]) -> np.ndarray:
+    """Values on the (ys, xs) grid, each from the nearest cell of `cells` that has one (metric
+    distance in x, y; ties go to the lower y, then the lower x). NaN if no cell has a value."""
+    jj, ii = np.nonzero(np.isfinite(cells.miou))
+    if not len(jj):
+        return np.full((len(ys), len(xs)), np.nan)
+    px = np.asarray(cells.a_values, float)[ii]
+    py = np.asarray(cells.b_values, float)[jj]
+    gx, gy = np.meshgrid(np.asarray(xs, float), np.asarray(ys, float))
+    d2 = (gx[..., None] - px) ** 2 + (gy[..., None] - py) ** 2
+    return cells.miou[jj, ii][d2.argmin(axis=-1)]
+
+
+@dataclass(frozen=True)
+class MapError:
+    """How a map differs from the reference map on the reference's cells."""
+
+    mean_abs: float | None
+    max_abs: float | None
+    jaccard: float
+    blind_spots: int
+    lost_cells: int   # cells with an mIoU in the reference but none here
+
+
+def map_error(ref: CellMap, values: np.ndarray, threshold: float) -> MapError:
+    """Errors over cells both maps define; blind spots (mIoU < threshold) over the reference's
+    defined cells."""
+    has_ref, has = np.isfinite(ref.miou), np.isfinite(values)
+    both = has_ref & has
+    diff = np.abs(ref.miou[both] - values[both])
+    ref_bs = set(zip(*np.nonzero(has_ref & (np.where(has_ref, ref.miou, 1.0) < threshold)),
+                     strict=True))
+    bs = set(zip(*np.nonzero(both & (np.where(has, values, 1.0) < threshold)), strict=True))
+    return MapError(float(diff.mean()) if len(diff) else None,
+                    float(diff.max()) if len(diff) else None,
+                    jaccard(ref_bs, bs), len(bs), int((has_ref & ~has).sum()))

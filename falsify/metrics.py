@@ -10,10 +10,19 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 
 from falsify.classes import CAR, CLASSES
+
+
+class Status(StrEnum):
+    """What became of a sample; stored as its value in the `status` column."""
+
+    OK = "ok"                   # scored: car IoU defined
+    UNDEFINED = "undefined"     # cast and predicted, but car IoU has an empty union
+    INVALID = "invalid"         # the scene cannot exist (cars intersect)
 
 
 def confusion(pred: np.ndarray, label: np.ndarray, n_classes: int = 4) -> np.ndarray:

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 import sqlite3
+import tomllib
+import zlib
 from collections.abc import Iterable, Sequence
 from contextlib import closing
 from dataclasses import dataclass, field
@@ -17,8 +19,9 @@ from pathlib import Path
 import pandas as pd
 
 from falsify.errors import FalsifyError
-from falsify.metrics import CLASSES
-from falsify.space import Sample, Space
+from falsify.maps import CellMap, miou_map
+from falsify.metrics import CLASSES, Status
+from falsify.space import DEFAULT_THRESHOLD, Sample, Space, parse_space
 
 STORE_NAME = "results.sqlite"
 METRIC_COLUMNS = [f"{c}_{m}" for c in CLASSES for m in ("tp", "fp", "fn", "iou", "precision",
@@ -33,7 +36,7 @@ class SampleResult:
     """What one evaluated sample produced; metrics are None where undefined or invalid."""
 
     sample: Sample
-    status: str                 # "ok", "undefined" (car IoU has an empty union), "invalid"
+    status: Status
     reason: str = ""
     metrics: dict[str, float | int | None] = field(default_factory=dict)
     car_points: int = 0         # points predicted car
@@ -52,6 +55,11 @@ class SampleResult:
 
 def sample_key(sample: Sample) -> str:
     return json.dumps(sample.values, separators=(",", ":"))
+
+
+def sample_seed(space: Space, sample: Sample) -> int:
+    """A per-sample seed for sensor effects: fixed by the space's seed and the sample alone."""
+    return (space.seed * 1_000_003 + zlib.crc32(sample_key(sample).encode())) % (2**31)
 
 
 class Store:
@@ -108,7 +116,7 @@ class Store:
             self._cache[key] = r.score
             values = [r.sample[d] for d in self.dim_names]
             metrics = [r.metrics.get(m) for m in METRIC_COLUMNS]
-            rows.append([len(self._cache) - 1, key, *values, r.status, r.reason, *metrics,
+            rows.append([len(self._cache) - 1, key, *values, str(r.status), r.reason, *metrics,
                          r.car_points, r.label_points, r.t_scan, r.t_infer, r.t_total, r.seed,
                          model_hash, config_hash])
         if not rows:
@@ -182,3 +190,63 @@ def _sql_type(space: Space, dim: str) -> str:
     return "REAL"
 
 
+# -- reading a run directory ------------------------------------------------------------------
+@dataclass(frozen=True)
+class RunData:
+    """A stored run opened for reading: metadata, rows, and the space rebuilt from its config."""
+
+    path: Path
+    meta: dict
+    frame: pd.DataFrame
+    space: Space
+
+    @property
+    def ok(self) -> pd.DataFrame:
+        """The valid rows (status ok)."""
+        return self.frame[self.frame["status"] == Status.OK]
+
+    def worst(self, n: int) -> pd.DataFrame:
+        """The n valid rows of lowest car IoU, ties by evaluation order."""
+        ok = self.ok
+        return ok.assign(_iou=ok["car_iou"].astype(float)).sort_values(
+            ["_iou", "eval_index"], kind="stable").head(n)
+
+    @property
+    def threshold(self) -> float:
+        t = self.meta.get("threshold")
+        return float(t) if isinstance(t, int | float) and not isinstance(t, bool) else \
+            DEFAULT_THRESHOLD
+
+    def cell_map(self, frame: pd.DataFrame | None = None) -> CellMap:
+        """The (x, y) mIoU map of the run (or of a subset of its rows)."""
+        return miou_map(self.frame if frame is None else frame, self.space, "x", "y")
+
+
+def open_run(run: str | Path) -> RunData:
+    """Read a run directory (or its results.sqlite); FalsifyError names the file if unusable."""
+    path = Path(run)
+    if not path.exists():
+        raise FalsifyError(f"{path}: no such run directory")
+    if path.is_file() and path.name == STORE_NAME:
+        path = path.parent
+    if not path.is_dir():
+        raise FalsifyError(f"{path}: not a run directory (expected a directory holding "
+                           f"{STORE_NAME})")
+    meta = read_meta(path)
+    frame = read_frame(path)
+    text = meta.get("config_text")
+    if not isinstance(text, str):
+        raise FalsifyError(f"{path / STORE_NAME}: run metadata has no config_text; was the run "
+                           "finished by `falsify grid` or `falsify search`?")
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise FalsifyError(f"{path / STORE_NAME}: stored config is not valid TOML ({exc})") \
+            from None
+    source = str(meta.get("config_path") or "<stored config>")
+    space = parse_space(raw, source=source, base_dir=Path(source).parent,
+                        config_hash=str(meta.get("config_hash") or ""), builtin_cars=None)
+    missing = [c for c in ("x", "y", "status", "car_iou") if c not in frame.columns]
+    if missing:
+        raise FalsifyError(f"{path / STORE_NAME}: samples table lacks column {missing[0]!r}")
+    return RunData(path, meta, frame, space)

@@ -21,8 +21,9 @@ import numpy as np
 import pandas as pd
 
 from falsify.errors import FalsifyError
-from falsify.maps import CellMap, miou_map
-from falsify.sensor import Sensor, SensorPose
+from falsify.maps import CellMap, MapError, fill_nearest, map_error, miou_map
+from falsify.metrics import Status
+from falsify.sensor import Sensor, SensorPose, load_sensor
 from falsify.space import Categorical, Continuous, Sample, Space, UserCar, load_space
 from models.spec import ModelSpec
 
@@ -93,11 +94,11 @@ class Bench:
         from falsify.pipeline import EvalSettings, Evaluator
 
         if s not in self._evaluators:
-            ev = Evaluator(EvalSettings(space=self.space, model=str(s.model), backend=s.backend,
-                                        threads=self.threads, lod=s.lod))
-            if s.resolution is not None:
-                ev.sim = Resampling(ev.sim.sensor, s.resolution, self.space.user_cars, s.lod)
-            self._evaluators[s] = ev
+            settings = EvalSettings(space=self.space, model=str(s.model), backend=s.backend,
+                                    threads=self.threads, lod=s.lod)
+            scanner = None if s.resolution is None else Resampling(
+                load_sensor(self.space.sensor), s.resolution, self.space.user_cars, s.lod)
+            self._evaluators[s] = Evaluator(settings, scanner=scanner)
         return self._evaluators[s]
 
     def drop(self, s: Setting) -> None:
@@ -115,7 +116,7 @@ class Bench:
         ev = self.evaluator(s)
         for i in range(0, len(samples), self.batch):
             for r in ev.evaluate(samples[i:i + self.batch]):
-                iou = r.metrics.get("car_iou") if r.status == "ok" else None
+                iou = r.metrics.get("car_iou") if r.status == Status.OK else None
                 self.results[(s, r.sample)] = Scored(r.status, iou)
 
     def time(self, settings: Sequence[Setting], samples: Sequence[Sample],
@@ -139,9 +140,9 @@ class Bench:
 
 
 class Resampling:
-    """Stands in for an evaluator's Simulator: casts at another resolution over the same fields
-    of view, then projects the labelled points into the network's grid (nearest point wins a
-    pixel): holes when coarser, supersampling when finer."""
+    """A scanner for the evaluator in place of its Simulator: casts at another resolution over
+    the same fields of view, then projects the labelled points into the network's grid (nearest
+    point wins a pixel): holes when coarser, supersampling when finer."""
 
     def __init__(self, sensor: Sensor, shape: tuple[int, int], user_cars: dict[str, UserCar],
                  lod: int):
@@ -153,57 +154,13 @@ class Resampling:
     def background_hits(self, bg_id: int, pose: SensorPose):
         return self.sim.background_hits(bg_id, pose)
 
-    def scan(self, sample: Sample, rng: np.random.Generator | None = None):
+    def scan(self, sample: Sample, pose: SensorPose = SensorPose(),
+             rng: np.random.Generator | None = None):
         from falsify.scan import image_from_points
 
-        p = self.sim.scan(sample, rng=rng).points
+        p = self.sim.scan(sample, pose, rng=rng).points
         return image_from_points(self.sensor, p[:, :3], p[:, 5].astype(np.uint8),
                                  p[:, 6].astype(np.int32), intensity=p[:, 3])
-
-
-# -- maps and their comparison -----------------------------------------------------------
-def jaccard(a: set, b: set) -> float:
-    """|A ∩ B| / |A ∪ B|; 1.0 when both sets are empty (full agreement)."""
-    union = a | b
-    return 1.0 if not union else len(a & b) / len(union)
-
-
-def fill_nearest(cells: CellMap, xs: Sequence[float], ys: Sequence[float]) -> np.ndarray:
-    """Values on the (ys, xs) grid, each from the nearest cell of `cells` that has one (metric
-    distance in x, y; ties go to the lower y, then the lower x). NaN if no cell has a value."""
-    jj, ii = np.nonzero(np.isfinite(cells.miou))
-    if not len(jj):
-        return np.full((len(ys), len(xs)), np.nan)
-    px = np.asarray(cells.a_values, float)[ii]
-    py = np.asarray(cells.b_values, float)[jj]
-    gx, gy = np.meshgrid(np.asarray(xs, float), np.asarray(ys, float))
-    d2 = (gx[..., None] - px) ** 2 + (gy[..., None] - py) ** 2
-    return cells.miou[jj, ii][d2.argmin(axis=-1)]
-
-
-@dataclass(frozen=True)
-class MapError:
-    """How a map differs from the reference map on the reference's cells."""
-
-    mean_abs: float | None
-    max_abs: float | None
-    jaccard: float
-    blind_spots: int
-    lost_cells: int   # cells with an mIoU in the reference but none here
-
-
-def compare(ref: CellMap, values: np.ndarray, threshold: float) -> MapError:
-    """Errors over cells both maps define; blind spots (mIoU < threshold) over the reference's
-    defined cells."""
-    has_ref, has = np.isfinite(ref.miou), np.isfinite(values)
-    both = has_ref & has
-    diff = np.abs(ref.miou[both] - values[both])
-    ref_bs = set(zip(*np.nonzero(has_ref & (np.where(has_ref, ref.miou, 1.0) < threshold)),
-                     strict=True))
-    bs = set(zip(*np.nonzero(both & (np.where(has, values, 1.0) < threshold)), strict=True))
-    return MapError(float(diff.mean()) if len(diff) else None,
-                    float(diff.max()) if len(diff) else None,
-                    jaccard(ref_bs, bs), len(bs), int((has_ref & ~has).sum()))
 
 
 # -- spaces --------------------------------------------------------------------------------
@@ -266,7 +223,7 @@ class Context:
         if v.setting is None:
             return Row(v.knob, v.name, False, None, None, None, None, None, None, 0,
                        f"skipped: {v.notes}")
-        err = compare(self.ref_map, self.map_of(v.setting).miou, self.threshold)
+        err = map_error(self.ref_map, self.map_of(v.setting).miou, self.threshold)
         if v.setting != self.reference:
             self.bench.drop(v.setting)   # its results are cached; free the session's memory
         n = len(self.samples)
@@ -320,7 +277,6 @@ def knob_precision(ctx: Context) -> list[Variant]:
     """torch fp32 on the .pt weights; ONNX Runtime fp32, fp16 and static int8 (variants
     written to DIR/models/)."""
     from falsify.dataset import calibration_scans
-    from falsify.sensor import load_sensor
     from models.export import convert_fp16, quantize_int8
 
     ref, onnx = ctx.reference, ctx.reference.model
@@ -367,7 +323,7 @@ def knob_step(ctx: Context) -> list[Row]:
     own = {getattr(ctx.space.dims[d], "step", None) for d in ("x", "y")}
     rows = []
     for step, (m, n) in maps.items():
-        err = compare(ref_map, fill_nearest(m, fine.dims["x"].grid(), fine.dims["y"].grid()),
+        err = map_error(ref_map, fill_nearest(m, fine.dims["x"].grid(), fine.dims["y"].grid()),
                       ctx.threshold)
         rows.append(make_row("step", f"{step:g} m", step == min(STEPS), ms, ms, n, ref_n, err,
                              "the config's step" if own == {step} else ""))
@@ -382,7 +338,7 @@ def knob_budget(ctx: Context) -> list[Row]:
     ms, n = ctx.bench.ms[ctx.reference], len(ctx.samples)
     xs, ys = ctx.space.dims["x"].grid(), ctx.space.dims["y"].grid()
     rows = [make_row("budget", "grid 100%", True, ms, ms, n, n,
-                     compare(ctx.ref_map, ctx.ref_map.miou, ctx.threshold))]
+                     map_error(ctx.ref_map, ctx.ref_map.miou, ctx.threshold))]
     for name in BUDGET_SAMPLERS:
         for frac in BUDGET_FRACTIONS:
             drawn: list[Sample] = []
@@ -393,7 +349,7 @@ def knob_budget(ctx: Context) -> list[Row]:
                 return [None if v is None else float(v) for v in f["car_iou"]]
 
             make_sampler(name).run(ctx.space, evaluate, max(1, round(frac * n)), ctx.space.seed)
-            err = compare(ctx.ref_map, fill_nearest(ctx.map_of(ctx.reference, drawn), xs, ys),
+            err = map_error(ctx.ref_map, fill_nearest(ctx.map_of(ctx.reference, drawn), xs, ys),
                           ctx.threshold)
             rows.append(make_row("budget", f"{name} {frac:.0%}", False, ms, ms, len(drawn), n,
                                  err))

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from falsify.cli import main
-from falsify.maps import CellMap
+from falsify.maps import CellMap, fill_nearest, jaccard, map_error
 from falsify.tradeoff import (
     BUDGET_FRACTIONS,
     BUDGET_SAMPLERS,
@@ -23,9 +23,6 @@ from falsify.tradeoff import (
     PRECISIONS,
     RESOLUTIONS,
     STEPS,
-    compare,
-    fill_nearest,
-    jaccard,
 )
 from reports.tradeoff import pareto
 
@@ -75,7 +72,7 @@ def run(model, config, tmp_path_factory) -> tuple[Path, dict]:
     """All knobs on the first 3 samples of the 2 × 2 grid (the step knob uses their extent)."""
     out = tmp_path_factory.mktemp("run") / "out"
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr("falsify.tradeoff.CALIBRATION_SCANS", 2)   # keep the test quick: a short
+        mp.setattr("falsify.dataset.CALIBRATION_SCANS", 2)   # keep the test quick: a short
         mp.setattr("falsify.tradeoff.TIMING_ROUNDS", 1)       # calibration, one timing round
         assert main(["tradeoff", str(config), "--out", str(out), "--model", str(model),
                      "--limit", "3"]) == 0
@@ -191,10 +188,10 @@ def test_fill_nearest_and_compare():
     assert np.isnan(fill_nearest(_map([0.0], [0.0], [[np.nan]]), [0.0], [0.0])).all()
 
     ref = _map([0.0, 1.0, 2.0], [0.0], [[0.9, 0.5, np.nan]])
-    err = compare(ref, np.array([[0.8, np.nan, 0.1]]), 0.65)
+    err = map_error(ref, np.array([[0.8, np.nan, 0.1]]), 0.65)
     assert err.mean_abs == pytest.approx(0.1) and err.max_abs == pytest.approx(0.1)
     assert err.lost_cells == 1 and err.blind_spots == 0 and err.jaccard == 0.0
-    both_clear = compare(ref, np.array([[0.9, 0.9, 0.9]]), 0.3)
+    both_clear = map_error(ref, np.array([[0.9, 0.9, 0.9]]), 0.3)
     assert both_clear.jaccard == 1.0 and both_clear.blind_spots == 0
 
 
