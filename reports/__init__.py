@@ -1,5 +1,5 @@
 """Reports: HTML pages drawn from what they are given (a run's report, the trade-off page)."""
 
-from reports.html import render_report, write_report
+from reports.html import ReplayedScan, ReportInput, render
 
-__all__ = ["render_report", "write_report"]
+__all__ = ["ReplayedScan", "ReportInput", "render"]

@@ -11,19 +11,17 @@ import base64
 import html
 import json
 import math
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from pathlib import Path
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
 
 import falsify
-from falsify.fileio import write_text
-from falsify.gate import RunData, fmt_value, open_run
-from falsify.maps import CellMap
+from falsify.maps import CellMap, fmt_value
 from falsify.maps import compare as compare_maps
-from falsify.space import Categorical, Sample, Space
+from falsify.metrics import Status
+from falsify.store import RunData
 
 WORST = 12
 MAX_MULTIPLES = 30
@@ -114,39 +112,6 @@ def _clean(value: object) -> object:
 
 def cell_key(x: float, y: float) -> str:
     return f"{fmt_value(x)}|{fmt_value(y)}"
-
-
-# -- the run's rows -----------------------------------------------------------------------
-def row_sample(space: Space, row: pd.Series) -> Sample:
-    """The Sample of a stored row (categorical ints come back from SQLite as floats)."""
-    values = {}
-    for name, dim in space.dims.items():
-        if name not in row.index:
-            continue
-        raw = row[name]
-        if raw is None or (isinstance(raw, float) and math.isnan(raw)):
-            continue
-        if isinstance(dim, Categorical):
-            raw = _category(dim, raw)
-        values[name] = raw
-    return space.make(values)
-
-
-def _category(dim: Categorical, raw: object) -> object:
-    for v in dim.values:
-        if str(v) == str(raw):
-            return v
-        if not isinstance(v, str) and not isinstance(raw, str):
-            try:
-                if float(v) == float(raw):
-                    return v
-            except (TypeError, ValueError):
-                continue
-    return raw
-
-
-def _ok(frame: pd.DataFrame) -> pd.DataFrame:
-    return frame[frame["status"] == "ok"]
 
 
 def _bg_values(data: RunData) -> tuple:
@@ -399,7 +364,7 @@ def multiples_section(data: RunData, threshold: float) -> str:
 
 def distance_section(data: RunData, threshold: float) -> str:
     """IoU of every valid sample against car 1's distance, with the mean per metre."""
-    ok = _ok(data.frame)
+    ok = data.ok
     d = np.hypot(ok["x"].astype(float), ok["y"].astype(float)).to_numpy()
     iou = ok["car_iou"].astype(float).to_numpy()
     w, h, left, top, bottom = 560, 260, 46, 12, 40
@@ -648,7 +613,42 @@ class Preview:
     error: str = ""
 
 
+@dataclass(frozen=True)
+class ReplayedScan:
+    """One worst sample as the report job replayed it: its scan image and car 1's position, and
+    the model's classes where it ran; `error` says what failed (no image: the scan did)."""
+
+    image: np.ndarray | None
+    car: tuple[float, float] | None = None
+    classes: np.ndarray | None = None
+    error: str = ""
+
+
+@dataclass(frozen=True)
+class ReportInput:
+    """Everything a report draws: the run, the run compared with, the worst samples' scans."""
+
+    run: RunData
+    before: RunData | None = None
+    scans: Mapping[int, ReplayedScan] = field(default_factory=dict)   # by eval index
+    note: str = ""
+    worst: int = WORST
+
+
 BEV_AHEAD, BEV_SIDE, BEV_SIZE = 32.0, 16.0, 128
+
+
+def _preview(s: ReplayedScan) -> Preview:
+    """The pictures of a replayed scan: labels, and the prediction over the same points."""
+    if s.image is None:
+        return Preview("", "", error=s.error)
+    lr, lb = _pictures(s.image, s.car)
+    if s.classes is None:
+        return Preview(lr, lb, error=s.error)
+    pimg = s.image.copy()
+    pimg[..., 5] = np.where(s.image[..., 4] > 0, s.classes, 0)
+    pr, pb = _pictures(pimg, s.car)
+    return Preview(lr, lb, pr, pb)
 
 
 def _pictures(image: np.ndarray, car: tuple[float, float] | None = None) -> tuple[str, str]:
@@ -681,73 +681,10 @@ def _bracket(bev: np.ndarray, x: float, y: float, half: float = 3.0) -> None:
     bev[r0:r1 + 1, c1] = white
 
 
-def load_model(meta: dict, predict: bool) -> tuple[object | None, str]:
-    """The run's model if `predict` and it loads; else None and a note saying why."""
-    if not predict:
-        return None, "Previews show labels only (--no-predict)."
-    try:
-        from models.runner import load_segmenter
-        seg = load_segmenter(meta.get("model_path"), backend=meta.get("backend") or "onnx")
-    except Exception as exc:  # any failure: the report is still useful without predictions
-        return None, f"Model not loaded ({exc}); previews show labels only."
-    note = ""
-    have, want = getattr(seg, "model_hash", None), meta.get("model_hash")
-    if have and want and have != want:
-        note = (f"The model found now (hash {str(have)[:12]}) is not the run's "
-                f"({str(want)[:12]}); predictions may differ from the scores.")
-    return seg, note
-
-
-def make_previews(data: RunData, rows: pd.DataFrame, predict: bool) -> tuple[dict, str]:
-    """Regenerate the scans of `rows` (grouped by background to reuse BVHs) and picture them."""
-    from falsify.scene import Simulator
-    from falsify.sensor import load_sensor
-
-    seg, note = load_model(data.meta, predict)
-    lod = 2
-    try:  # regenerate at the run's fidelity (car level of detail)
-        from falsify.fidelity import preset
-        lod = preset(str(data.meta.get("fidelity") or "exact")).lod
-    except Exception:  # older runs or an unknown preset: the exact scene
-        pass
-    try:
-        sim = Simulator(load_sensor(data.space.sensor), data.space.user_cars, lod=lod)
-    except Exception as exc:
-        return {}, f"Scans could not be regenerated ({exc})."
-    out: dict[int, Preview] = {}
-    order = rows.sort_values(["background", "eval_index"], kind="stable") \
-        if "background" in rows else rows
-    for _, row in order.iterrows():
-        ev = int(row["eval_index"])
-        try:
-            sample = row_sample(data.space, row)
-            seed = row.get("seed")
-            rng = None if seed is None or pd.isna(seed) else np.random.default_rng(int(seed))
-            image = sim.scan(sample, rng=rng).image
-        except Exception as exc:
-            out[ev] = Preview("", "", error=f"scan not regenerated: {exc}")
-            continue
-        car = (float(sample.cars[0].x), float(sample.cars[0].y))
-        lr, lb = _pictures(image, car)
-        pr = pb = None
-        if seg is not None:
-            try:
-                pred = seg.predict(image[None]).classes[0]
-                pimg = image.copy()
-                pimg[..., 5] = np.where(image[..., 4] > 0, pred, 0)
-                pr, pb = _pictures(pimg, car)
-            except Exception as exc:
-                out[ev] = Preview(lr, lb, error=f"prediction failed: {exc}")
-                continue
-        out[ev] = Preview(lr, lb, pr, pb)
-    return out, note
-
-
-def worst_section(data: RunData, predict: bool, worst: int) -> str:
-    ok = _ok(data.frame)
-    rows = ok.assign(_iou=ok["car_iou"].astype(float)).sort_values(
-        ["_iou", "eval_index"], kind="stable").head(worst)
-    previews, note = make_previews(data, rows, predict) if len(rows) else ({}, "")
+def worst_section(data: RunData, scans: Mapping[int, ReplayedScan], note: str,
+                  worst: int) -> str:
+    rows = data.worst(worst)
+    previews = {ev: _preview(s) for ev, s in scans.items()}
     with_pred = any(p.pred_range for p in previews.values())
     head = ("<tr><th>#</th><th>eval</th><th>x, y (m)</th><th>yaw</th><th>car model</th>"
             "<th>bg</th><th>car IoU</th><th>precision /<br>recall</th>"
@@ -817,7 +754,7 @@ def _int(v: object) -> str:
 def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     meta, frame = data.meta, data.frame
     status = frame["status"]
-    ok = _ok(frame)
+    ok = data.ok
     blind = cmap.blind_spots(threshold)
     scored = int((~np.isnan(cmap.miou)).sum())
     if len(ok):
@@ -859,8 +796,8 @@ def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
         ("Sensor", esc(meta.get("sensor", data.space.sensor))),
         ("Run", esc(search)),
         ("Samples", f"{len(frame)} ({len(ok)} valid)"),
-        ("Invalid samples", str(int((status == "invalid").sum()))),
-        ("Undefined samples", str(int((status == "undefined").sum()))),
+        ("Invalid samples", str(int((status == Status.INVALID).sum()))),
+        ("Undefined samples", str(int((status == Status.UNDEFINED).sum()))),
         ("Blind spots", f'<span class="{"bad" if blind else ""}">{len(blind)}</span> of '
          f"{scored} cells (mIoU &lt; {threshold:.3f})"),
         ("Worst cell", worst_cell),
@@ -1036,11 +973,9 @@ DEFS = ('<svg width="0" height="0" style="position:absolute" aria-hidden="true">
         + "</linearGradient></defs></svg>")
 
 
-def render_report(run: Path, compare: Path | None = None, predict: bool = True,
-                  worst: int = WORST) -> str:
-    """The report of `run` as one self-contained HTML string (deterministic for its inputs)."""
-    data = open_run(run)
-    before = open_run(compare) if compare is not None else None
+def render(report: ReportInput) -> str:
+    """The report as one self-contained HTML string (deterministic for its input)."""
+    data, before = report.run, report.before
     threshold = data.threshold
     cmap = data.cell_map()
     meta = data.meta
@@ -1051,7 +986,7 @@ def render_report(run: Path, compare: Path | None = None, predict: bool = True,
     if before is not None:
         sections.append(compare_section(before, data, cmap, threshold))
     sections.append(distance_section(data, threshold))
-    sections.append(worst_section(data, predict, worst))
+    sections.append(worst_section(data, report.scans, report.note, report.worst))
     payload = script_json({"samples": samples_json(data), "threshold": threshold})
     return f"""<!DOCTYPE html>
 <html lang="en">
@@ -1080,20 +1015,3 @@ car IoU of {esc(meta.get("model_name", "the model"))} per sample · threshold
 </body>
 </html>
 """
-
-
-def write_report(run: Path, out: Path | None = None, compare: Path | None = None,
-                 predict: bool = True) -> Path:
-    """Render and write the report atomically (default RUN/report.html); returns the path."""
-    from falsify.errors import FalsifyError
-
-    text = render_report(Path(run), compare=None if compare is None else Path(compare),
-                         predict=predict)
-    path = Path(out) if out is not None else Path(run) / "report.html"
-    if path.is_dir():
-        raise FalsifyError(f"--out {path}: is a directory")
-    try:
-        write_text(path, text)
-    except OSError as exc:
-        raise FalsifyError(f"--out {path}: cannot write ({exc.strerror})") from None
-    return path

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from falsify.cli import main
-from reports.html import render_report, write_report
+from falsify.reporting import render_report, write_report
 from tests.runfixture import PAPER, write_run
 
 EVIL_NAME = "<script>alert(1)</script>"
