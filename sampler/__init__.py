@@ -1,7 +1,8 @@
 """Samplers: strategies that walk a modification space and hand batches of samples to a driver.
 
-Every sampler has one method, `run(space, evaluate, budget, seed)`, and is deterministic given its
-inputs and the scores it is told, so a resumed run replays from the store without recomputing.
+Every sampler has one method, `run(space, evaluate, budget, seed)` returning a SearchResult, and
+is deterministic given its inputs and the scores it is told, so a resumed run replays from the
+store without recomputing.
 """
 
 from sampler.base import (
@@ -10,7 +11,8 @@ from sampler.base import (
     Evaluate,
     Sampler,
     Score,
-    best_so_far,
+    SearchResult,
+    lowest_so_far,
     make_sampler,
 )
 
@@ -20,6 +22,7 @@ __all__ = [
     "Evaluate",
     "Sampler",
     "Score",
-    "best_so_far",
+    "SearchResult",
+    "lowest_so_far",
     "make_sampler",
 ]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from typing import Protocol
 
 import nlopt
@@ -31,12 +32,54 @@ ALGORITHMS: tuple[str, ...] = ("grid", "random", "sobol", *NLOPT_ALGORITHMS)
 """Every name `make_sampler` accepts."""
 
 
+@dataclass(frozen=True)
+class SearchResult:
+    """What a sampler did: the score of every evaluation in order, and the lowest it found."""
+
+    curve: tuple[Score, ...]          # car IoU per evaluation, in the order asked
+    best: Score                       # the lowest defined score; None if none was defined
+    best_sample: Sample | None
+
+    @property
+    def evaluations(self) -> int:
+        return len(self.curve)
+
+    @property
+    def lowest(self) -> list[Score]:
+        """The lowest score so far after each evaluation."""
+        return lowest_so_far(self.curve)
+
+
+class Recorder:
+    """Wraps an evaluate callback and keeps every sample and score it passes, in order."""
+
+    def __init__(self, evaluate: Evaluate):
+        self._evaluate = evaluate
+        self.samples: list[Sample] = []
+        self.scores: list[Score] = []
+
+    def __call__(self, samples: Sequence[Sample]) -> list[Score]:
+        scores = self._evaluate(samples)
+        self.samples.extend(samples)
+        self.scores.extend(scores)
+        return scores
+
+    def result(self) -> SearchResult:
+        best: tuple[float, Sample] | None = None
+        for sample, s in zip(self.samples, self.scores, strict=True):
+            if s is not None and not math.isnan(s) and (best is None or s < best[0]):
+                best = (float(s), sample)
+        return SearchResult(tuple(self.scores), None if best is None else best[0],
+                            None if best is None else best[1])
+
+
 class Sampler(Protocol):
     """Walks a space, calling `evaluate` on batches of samples until done or out of budget."""
 
     name: str
 
-    def run(self, space: Space, evaluate: Evaluate, budget: int | None, seed: int) -> None: ...
+    def run(self, space: Space, evaluate: Evaluate, budget: int | None,
+            seed: int) -> SearchResult: ...
 
 
 def make_sampler(name: str, **options: object) -> Sampler:
@@ -95,12 +138,12 @@ def evaluate_all(evaluate: Evaluate, samples: Sequence[Sample], size: int) -> li
     return scores
 
 
-def best_so_far(scores: Sequence[Score]) -> list[float]:
-    """Running minimum of the scores, skipping None (nan until the first defined score)."""
-    out: list[float] = []
-    best = float("nan")
+def lowest_so_far(scores: Sequence[Score]) -> list[Score]:
+    """Running minimum of the scores, skipping None and nan (None until the first defined)."""
+    out: list[Score] = []
+    best: float | None = None
     for s in scores:
-        if s is not None and not math.isnan(s) and (math.isnan(best) or s < best):
+        if s is not None and not math.isnan(s) and (best is None or s < best):
             best = float(s)
         out.append(best)
     return out

@@ -5,7 +5,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from falsify.space import Space
-from sampler.base import BATCH, Evaluate, check_batch, check_budget, evaluate_all
+from sampler.base import (
+    BATCH,
+    Evaluate,
+    Recorder,
+    SearchResult,
+    check_batch,
+    check_budget,
+    evaluate_all,
+)
 
 
 @dataclass(frozen=True)
@@ -16,8 +24,11 @@ class GridSampler:
     batch_size: int = BATCH
     name: str = field(default="grid", init=False)
 
-    def run(self, space: Space, evaluate: Evaluate, budget: int | None, seed: int) -> None:
+    def run(self, space: Space, evaluate: Evaluate, budget: int | None,
+            seed: int) -> SearchResult:
         check_batch(self.name, self.batch_size)
         budget = check_budget(self.name, budget, required=False)
         samples = space.grid()
-        evaluate_all(evaluate, samples if budget is None else samples[:budget], self.batch_size)
+        rec = Recorder(evaluate)
+        evaluate_all(rec, samples if budget is None else samples[:budget], self.batch_size)
+        return rec.result()

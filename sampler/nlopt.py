@@ -30,7 +30,7 @@ import numpy as np
 
 from falsify.errors import ConfigError
 from falsify.space import Categorical, Continuous, Sample, Space, Value
-from sampler.base import NLOPT_ALGORITHMS, Evaluate, check_budget
+from sampler.base import NLOPT_ALGORITHMS, Evaluate, Recorder, SearchResult, check_budget
 
 LOCAL_SUBOPTIMISERS = ("LN_BOBYQA", "LN_COBYLA")
 FTOL = 1e-9  # local runs also stop on an exactly flat score (e.g. the penalty plateau)
@@ -58,8 +58,11 @@ class NloptSampler:
     initial_step: float = 0.25
     xtol: float = 1e-3
 
-    def run(self, space: Space, evaluate: Evaluate, budget: int | None, seed: int) -> None:
-        self.optimise(space, evaluate, budget, seed)
+    def run(self, space: Space, evaluate: Evaluate, budget: int | None,
+            seed: int) -> SearchResult:
+        rec = Recorder(evaluate)
+        self.optimise(space, rec, budget, seed)
+        return rec.result()
 
     def optimise(self, space: Space, evaluate: Evaluate, budget: int | None,
                  seed: int) -> list[ComboResult]:

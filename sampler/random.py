@@ -8,7 +8,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from falsify.space import Categorical, Sample, Space
-from sampler.base import BATCH, Evaluate, check_batch, check_budget, evaluate_all
+from sampler.base import (
+    BATCH,
+    Evaluate,
+    Recorder,
+    SearchResult,
+    check_batch,
+    check_budget,
+    evaluate_all,
+)
 
 
 @dataclass(frozen=True)
@@ -31,8 +39,11 @@ class RandomSampler:
         return [space.make({name: col[i] for name, col in columns.items()})
                 for i in range(budget)]
 
-    def run(self, space: Space, evaluate: Evaluate, budget: int | None, seed: int) -> None:
+    def run(self, space: Space, evaluate: Evaluate, budget: int | None,
+            seed: int) -> SearchResult:
         check_batch(self.name, self.batch_size)
         n = check_budget(self.name, budget, required=True)
         assert n is not None
-        evaluate_all(evaluate, self.samples(space, n, seed), self.batch_size)
+        rec = Recorder(evaluate)
+        evaluate_all(rec, self.samples(space, n, seed), self.batch_size)
+        return rec.result()

@@ -10,7 +10,15 @@ import numpy as np
 from scipy.stats import qmc
 
 from falsify.space import Categorical, Continuous, Sample, Space
-from sampler.base import BATCH, Evaluate, check_batch, check_budget, evaluate_all
+from sampler.base import (
+    BATCH,
+    Evaluate,
+    Recorder,
+    SearchResult,
+    check_batch,
+    check_budget,
+    evaluate_all,
+)
 
 
 @dataclass(frozen=True)
@@ -40,8 +48,11 @@ class SobolSampler:
             out.append(space.make(values))
         return out
 
-    def run(self, space: Space, evaluate: Evaluate, budget: int | None, seed: int) -> None:
+    def run(self, space: Space, evaluate: Evaluate, budget: int | None,
+            seed: int) -> SearchResult:
         check_batch(self.name, self.batch_size)
         n = check_budget(self.name, budget, required=True)
         assert n is not None
-        evaluate_all(evaluate, self.samples(space, n, seed), self.batch_size)
+        rec = Recorder(evaluate)
+        evaluate_all(rec, self.samples(space, n, seed), self.batch_size)
+        return rec.result()

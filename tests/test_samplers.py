@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import itertools
-import math
 import sys
 import types
 from unittest import mock
@@ -12,7 +11,7 @@ import pytest
 
 from falsify.errors import ConfigError
 from falsify.space import Categorical, Continuous, Sample, Space, parse_space
-from sampler import ALGORITHMS, NLOPT_ALGORITHMS, best_so_far, make_sampler
+from sampler import ALGORITHMS, NLOPT_ALGORITHMS, lowest_so_far, make_sampler
 from sampler.nlopt import NloptSampler, discrete_combos
 
 CARS = ("sedan", "suv")
@@ -91,11 +90,23 @@ def test_registry_names_and_unknown_name():
         assert make_sampler(name).name == name
 
 
-def test_best_so_far_skips_none_and_nan():
-    got = best_so_far([None, 0.7, None, 0.9, float("nan"), 0.3, 0.4])
-    assert math.isnan(got[0])
-    assert got[1:] == [0.7, 0.7, 0.7, 0.7, 0.3, 0.3]
-    assert best_so_far([]) == []
+def test_lowest_so_far_skips_none_and_nan():
+    got = lowest_so_far([None, 0.7, None, 0.9, float("nan"), 0.3, 0.4])
+    assert got == [None, 0.7, 0.7, 0.7, 0.7, 0.3, 0.3]
+    assert lowest_so_far([]) == []
+
+
+def test_run_returns_every_score_and_the_lowest():
+    space = small_space()
+    scores = iter([0.9, None, 0.4, float("nan"), 0.6])
+
+    def evaluate(batch):
+        return [next(scores) for _ in batch]
+
+    res = make_sampler("random", batch_size=2).run(space, evaluate, 5, 0)
+    assert res.evaluations == 5 and res.best == 0.4
+    assert res.curve[:3] == (0.9, None, 0.4) and res.lowest[-1] == 0.4
+    assert res.best_sample is not None
 
 
 # ---- grid -----------------------------------------------------------------------------------
