@@ -1,6 +1,7 @@
 """Benchmarks behind `falsify bench`: each fast path measured beside its naive path in one run.
 
-Speed claims live here, never in timed unit tests. Every function returns plain dicts for --json.
+Speed claims live here, never in timed unit tests. Each benchmark returns a typed result whose
+`to_json()` is what --json prints.
 """
 
 from __future__ import annotations
@@ -10,11 +11,13 @@ import multiprocessing as mp
 import os
 import platform
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from falsify.errors import FalsifyError
+from falsify.metrics import Status
 from falsify.scene import Simulator
 from falsify.sensor import SensorPose, load_sensor
 from falsify.space import Sample, Space, load_space
@@ -88,8 +91,38 @@ def _pose_matrix(rot: np.ndarray, t: np.ndarray) -> np.ndarray:
     return m
 
 
+@dataclass(frozen=True)
+class ScanBench:
+    """Scans/s of the fast path in 1 and `workers` processes against the naive path."""
+
+    config: str
+    sensor: str
+    samples: int
+    workers: int
+    machine: dict
+    fast_1: float          # scans/s, 1 process
+    fast_n: float          # scans/s, `workers` processes
+    naive: float           # scans/s, the naive path
+    naive_samples: int
+    scene_size: dict
+
+    def to_json(self) -> dict:
+        w = self.workers
+        return {
+            "benchmark": "scan", "config": self.config, "sensor": self.sensor,
+            "samples": self.samples, "machine": self.machine,
+            "fast_scans_per_s_1_process": round(self.fast_1, 1),
+            f"fast_scans_per_s_{w}_processes": round(self.fast_n, 1),
+            "naive_scans_per_s": round(self.naive, 3),
+            "naive_samples": self.naive_samples,
+            "speedup_1_process": round(self.fast_1 / self.naive, 1),
+            f"speedup_{w}_processes": round(self.fast_n / self.naive, 1),
+            "scene_size": self.scene_size,
+        }
+
+
 def bench_scan(config: str | Path, samples: int = 1000, naive_samples: int = 5,
-               workers: int = 2) -> dict:
+               workers: int = 2) -> ScanBench:
     """Scans/s of the fast path (1 process and `workers` processes) against the naive path, plus
     how flat the per-scan time stays when the background grows and image-only dims change."""
     if samples <= 0 or samples < workers:
@@ -115,32 +148,23 @@ def bench_scan(config: str | Path, samples: int = 1000, naive_samples: int = 5,
         naive_times.append(time.perf_counter() - t0)
     naive = 1.0 / float(np.mean(naive_times))
 
-    return {
-        "benchmark": "scan", "config": str(config), "sensor": space.sensor,
-        "samples": samples, "machine": machine(),
-        "fast_scans_per_s_1_process": round(single, 1),
-        f"fast_scans_per_s_{workers}_processes": round(multi, 1),
-        "naive_scans_per_s": round(naive, 3),
-        "naive_samples": naive_samples,
-        "speedup_1_process": round(single / naive, 1),
-        f"speedup_{workers}_processes": round(multi / naive, 1),
-        "scene_size": scene_size_effect(space, picked[: min(900, samples)]),
-    }
+    return ScanBench(str(config), space.sensor, samples, workers, machine(), single, multi,
+                     naive, naive_samples, scene_size_effect(space, picked[: min(900, samples)]))
 
 
 def scene_size_effect(space: Space, samples: list[Sample]) -> dict:
     """Per-scan time with the street as built, with every triangle split in 4 twice (16× the
     triangles), and with 10× the objects far beyond max range, and with image-only dims varied."""
+    from falsify.backgrounds import build_background
+
     def rate(transform) -> tuple[float, int]:
-        sim = Simulator(load_sensor(space.sensor), space.user_cars)
-        src = sim.background_source
         tri = {}
 
         def source(bg_id):
-            bg = transform(src(bg_id))
+            bg = transform(build_background(bg_id))
             tri[bg_id] = len(bg.faces)
             return bg
-        sim.background_source = source
+        sim = Simulator(load_sensor(space.sensor), space.user_cars, background_source=source)
         _warm(sim, samples)
         t0 = time.perf_counter()
         for s in samples:
@@ -215,8 +239,51 @@ def _subdivide(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     return v2, f2, np.tile(np.arange(m), 4)
 
 
+@dataclass(frozen=True)
+class PipelineBench:
+    """Samples/s through the pipeline in one process against inference alone, and through the
+    driver and store on `workers` processes."""
+
+    config: str
+    samples: int
+    model: str
+    model_hash: str
+    machine: dict
+    batch: int              # samples per task
+    t_pipeline: float       # s for all samples in one process
+    t_infer: float          # s for inference alone on the same scans
+    workers: int
+    driver_samples: int     # samples timed through the driver
+    t_driver: float
+
+    @property
+    def samples_per_s(self) -> float:
+        return round(self.driver_samples / self.t_driver, 2)
+
+    @property
+    def overhead(self) -> float:
+        return round(self.t_pipeline / self.t_infer - 1.0, 4)
+
+    def to_json(self) -> dict:
+        n = self.samples
+        return {
+            "benchmark": "pipeline", "config": self.config, "samples": n,
+            "model": self.model, "model_hash": self.model_hash, "machine": self.machine,
+            "samples_per_task": self.batch, "network_batch": BATCH,
+            "one_process": {
+                "samples_per_s": round(n / self.t_pipeline, 2),
+                "inference_only_samples_per_s": round(n / self.t_infer, 2),
+                "ms_per_sample": round(self.t_pipeline / n * 1e3, 2),
+                "inference_ms_per_sample": round(self.t_infer / n * 1e3, 2),
+                "overhead": self.overhead,
+            },
+            f"{self.workers}_workers": {"samples_per_s": self.samples_per_s,
+                                        "samples": self.driver_samples},
+        }
+
+
 def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
-                   model: str | None = None, batch: int = 8) -> dict:
+                   model: str | None = None, batch: int = 8) -> PipelineBench:
     """End-to-end samples/s through the real driver and store, and the pipeline's overhead over
     the network's own inference time on the same scans in the same process."""
     import tempfile
@@ -249,27 +316,15 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
         store = Store(Path(tmp) / "results.sqlite", space)
         settings = EvalSettings(space=space, model=model, threads=1 if workers > 1 else 2)
         with Driver(settings, store, workers=workers, batch=batch,
-                    progress=Progress(None, quiet=True)) as driver:
+                    progress=Progress(None)) as driver:
             driver.evaluate(picked[: workers * batch])  # start-up and warm caches
             rest = picked[workers * batch:]
             t0 = time.perf_counter()
             driver.evaluate(rest)
             t_driver = time.perf_counter() - t0
         store.close()
-    return {
-        "benchmark": "pipeline", "config": str(config), "samples": samples,
-        "model": ev.model.spec.name, "model_hash": ev.model_hash[:12], "machine": machine(),
-        "samples_per_task": batch, "network_batch": BATCH,
-        "one_process": {
-            "samples_per_s": round(samples / t_pipeline, 2),
-            "inference_only_samples_per_s": round(samples / t_infer, 2),
-            "ms_per_sample": round(t_pipeline / samples * 1e3, 2),
-            "inference_ms_per_sample": round(t_infer / samples * 1e3, 2),
-            "overhead": round(t_pipeline / t_infer - 1.0, 4),
-        },
-        f"{workers}_workers": {"samples_per_s": round(len(rest) / t_driver, 2),
-                               "samples": len(rest)},
-    }
+    return PipelineBench(str(config), samples, ev.model.spec.name, ev.model_hash[:12], machine(),
+                         batch, t_pipeline, t_infer, workers, len(rest), t_driver)
 
 
 SEARCH_ALGORITHMS = ("random", "sobol", "GN_DIRECT_L", "GN_CRS2_LM")
@@ -285,39 +340,37 @@ def bench_search(config: str | Path, out: str | Path, algorithms=SEARCH_ALGORITH
     import pandas as pd
 
     from falsify.fileio import write_bytes
-    from falsify.pipeline import lowest_curve
-    from falsify.runs import RunRequest, execute
-    from falsify.store import read_frame, read_meta
+    from falsify.runs import RunRequest, RunSummary, execute
+    from falsify.store import read_frame
 
     out = Path(out)
     space = load_space(config)
     n_grid = len(space.grid())
     budget = max(1, int(n_grid * fraction))
 
-    def run(name: str, algorithm: str, b: int | None, command: str) -> Path:
+    def run(name: str, algorithm: str, b: int | None, command: str) -> RunSummary:
         d = out / name
         # NLopt asks for one point at a time: one process with two inference threads is faster
         # for it than two single-threaded workers taking turns.
         w = 1 if algorithm not in ("grid", "random", "sobol") else workers
         req = RunRequest(config=Path(config), out=d, command=command, algorithm=algorithm,
-                         budget=b, model=model, workers=w, quiet=True, report=False,
+                         budget=b, model=model, workers=w, report=False,
                          resume=(d / "results.sqlite").exists())
-        execute(req)
-        return d
+        return execute(req)
 
     dense = run("grid", "grid", None, "grid")
-    g = read_frame(dense)
-    grid_min = float(g.loc[g["status"] == "ok", "car_iou"].min())
+    g = read_frame(dense.run)
+    grid_min = float(g.loc[g["status"] == Status.OK, "car_iou"].min())
     target = grid_min + tolerance
     rows, curves = [], {}
     for algo in algorithms:
-        d = run(algo, algo, budget, "search")
-        curve = [None if v is None else float(v) for v in read_meta(d)["curve"]]
-        low = lowest_curve(curve)
+        done = run(algo, algo, budget, "search")
+        assert done.search is not None
+        low = done.search.lowest
         curves[algo] = low
         hit = next((i + 1 for i, v in enumerate(low) if v is not None and v <= target), None)
-        frame = read_frame(d)
-        rows.append({"algorithm": algo, "budget": budget, "evaluations": len(curve),
+        frame = read_frame(done.run)
+        rows.append({"algorithm": algo, "budget": budget, "evaluations": done.search.evaluations,
                      "distinct_samples": int(len(frame)),
                      "lowest": None if low[-1] is None else round(low[-1], 4),
                      "evaluations_to_target": hit,

@@ -6,6 +6,7 @@ import argparse
 import json
 import math
 import sys
+import time
 from pathlib import Path
 
 from falsify.errors import FalsifyError
@@ -98,8 +99,11 @@ def cmd_dataset(args) -> int:
     sensor = load_sensor(space.sensor, ray_drop=args.ray_drop, range_noise=args.range_noise)
     opts = TrafficOptions(max_cars=args.max_cars, backgrounds=args.backgrounds,
                           first_background=args.first_background)
+    def progress(done: int, total: int) -> None:
+        print(f"  {done}/{total} scans", flush=True)
+
     summary = write_dataset(sensor, Path(args.out), args.scans, seed=args.seed, opts=opts,
-                            progress=not args.json)
+                            on_progress=None if args.json else progress)
     emit(args, summary, f"wrote {summary['written']} scans to {args.out} "
          f"({summary['scans']} in the set); points per class {summary['points_per_class']}")
     return 0
@@ -178,17 +182,66 @@ def cmd_train(args) -> int:
 
 
 # -- grid and search ------------------------------------------------------------------------
+class ProgressBar:
+    """Draws a run's progress as one line on stderr: a bar, rate, ETA and the lowest IoU."""
+
+    def __init__(self) -> None:
+        self._last = 0.0
+
+    def __call__(self, p, final: bool) -> None:
+        now = time.perf_counter()
+        if not final and now - self._last < 0.25:
+            return
+        self._last = now
+        elapsed = now - p.started
+        rate = p.computed / elapsed if elapsed > 0 else 0.0
+        total = f"/{p.total}" if p.total else ""
+        eta = ""
+        if p.total and rate > 0:
+            eta = f" ETA {max(0.0, (p.total - p.done) / rate):5.0f}s"
+        low = "-" if p.lowest is None else f"{p.lowest:.3f}"
+        bar = ""
+        if p.total:
+            filled = int(24 * min(1.0, p.done / p.total))
+            bar = "[" + "#" * filled + "." * (24 - filled) + "] "
+        tty = sys.stderr.isatty()
+        end = "\n" if final or not tty else "\r"
+        if not tty and not final and p.done % 200 and p.done != p.total:
+            return
+        sys.stderr.write(f"{bar}{p.done}{total} samples  {rate:6.1f}/s{eta}  "
+                         f"lowest IoU {low}{end}")
+        sys.stderr.flush()
+
+
+def summary_text(s) -> str:
+    """A run's summary (RunSummary) in a few lines."""
+    low = s.lowest
+    where = "" if low is None else ", ".join(f"{k}={v}" for k, v in low["sample"].items()
+                                             if k in ("x", "y", "yaw", "background",
+                                                      "car_model"))
+    lines = [
+        f"{s.samples} samples ({s.computed_this_time} computed now, {s.invalid} invalid, "
+        f"{s.undefined} undefined) in {s.elapsed_s:.1f} s",
+        f"blind spots: {s.blind_spots} of {s.cells} cells below mIoU {s.threshold}",
+        f"lowest car IoU: {'-' if low is None else low['car_iou']} at {where}",
+        f"mean car IoU: {s.mean_car_iou}",
+        f"retraining set: {s.retraining_samples} scans in {Path(s.run) / 'retrain'}",
+    ]
+    if s.report:
+        lines.append(f"report: {s.report}")
+    return "\n".join(lines)
+
+
 def _run(args, command: str, algorithm: str) -> int:
-    from falsify.runs import RunRequest, execute, summary_text
+    from falsify.runs import RunRequest, execute
 
     req = RunRequest(
         config=Path(args.config), out=Path(args.out), command=command, algorithm=algorithm,
         budget=getattr(args, "budget", None), seed=args.seed, model=args.model,
         backend=args.backend, workers=args.workers, resume=args.resume,
-        threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
-        quiet=args.quiet)
-    summary = execute(req)
-    emit(args, summary, summary_text(summary))
+        threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report)
+    summary = execute(req, on_progress=None if args.quiet else ProgressBar())
+    emit(args, summary.to_json(), summary_text(summary))
     return 0
 
 
@@ -251,13 +304,14 @@ def cmd_bench(args) -> int:
                          f"{r['fps']:6.1f} fps  car IoU diff {r['car_iou_diff']:+.4f}"
                          for r in rows)
     elif args.what == "pipeline":
-        result = bench.bench_pipeline(args.config, samples=args.samples, workers=args.workers,
-                                      model=args.model)
+        pipe = bench.bench_pipeline(args.config, samples=args.samples, workers=args.workers,
+                                    model=args.model)
+        result = pipe.to_json()
         one = result["one_process"]
-        text = (f"pipeline: {result[f'{args.workers}_workers']['samples_per_s']} samples/s on "
-                f"{args.workers} workers; one process {one['samples_per_s']} samples/s against "
+        text = (f"pipeline: {pipe.samples_per_s} samples/s on {pipe.workers} workers; one "
+                f"process {one['samples_per_s']} samples/s against "
                 f"{one['inference_only_samples_per_s']} for inference alone (overhead "
-                f"{one['overhead']:.1%})")
+                f"{pipe.overhead:.1%})")
     elif args.what == "search":
         if not args.out:
             raise UsageError("bench search needs --out DIR (its runs are resumable there)")
@@ -268,12 +322,12 @@ def cmd_bench(args) -> int:
             f"within 0.02 of the grid's {result['grid_lowest']} after "
             f"{r['evaluations_to_target']}" for r in result["algorithms"])
     elif args.what == "scan":
-        result = bench.bench_scan(args.config, samples=args.samples, workers=args.workers,
-                                  naive_samples=args.naive_samples)
-        w = args.workers
-        text = (f"scan: {result[f'fast_scans_per_s_{w}_processes']} scans/s on {w} processes "
-                f"({result['fast_scans_per_s_1_process']} on 1), naive "
-                f"{result['naive_scans_per_s']} scans/s: {result[f'speedup_{w}_processes']}x")
+        sb = bench.bench_scan(args.config, samples=args.samples, workers=args.workers,
+                              naive_samples=args.naive_samples)
+        result = sb.to_json()
+        text = (f"scan: {round(sb.fast_n, 1)} scans/s on {sb.workers} processes "
+                f"({round(sb.fast_1, 1)} on 1), naive {round(sb.naive, 3)} scans/s: "
+                f"{round(sb.fast_n / sb.naive, 1)}x")
     else:
         raise UsageError(f"bench {args.what}: not available")
     emit(args, result, text)
@@ -282,7 +336,7 @@ def cmd_bench(args) -> int:
 
 # -- report, gate and tradeoff ----------------------------------------------------------------
 def cmd_report(args) -> int:
-    from reports.html import write_report
+    from falsify.reporting import write_report
 
     out = write_report(Path(args.run), Path(args.out) if args.out else None,
                        Path(args.compare) if args.compare else None,

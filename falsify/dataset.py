@@ -9,6 +9,7 @@ extended without changing the scans already written.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -79,7 +80,7 @@ def scene_for(index: int, seed: int, sim: Simulator,
 
 def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
                   opts: TrafficOptions = TrafficOptions(), start: int = 0,
-                  progress: bool = True) -> dict:
+                  on_progress: Callable[[int, int], None] | None = None) -> dict:
     """Write scans start..scans-1 as NNNNNN.npy (skipping ones already there) plus index.json."""
     if scans <= 0:
         raise ConfigError(f"--scans: {scans} must be > 0")
@@ -98,8 +99,8 @@ def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
         lab = scan.image[..., 5][scan.valid].astype(np.int64)
         counts += np.bincount(lab, minlength=len(CLASSES))[:len(CLASSES)]
         written += 1
-        if progress and written % 50 == 0:
-            print(f"  {i + 1}/{scans} scans", flush=True)
+        if on_progress is not None and written % 50 == 0:
+            on_progress(i + 1, scans)
     index = {"scans": scans, "seed": seed, "sensor": sensor.name,
              "first_background": opts.first_background, "backgrounds": opts.backgrounds,
              "max_cars": opts.max_cars, "ray_drop": sensor.ray_drop,
@@ -121,10 +122,11 @@ def traffic_scans(sensor: Sensor, n: int, seed: int, opts: TrafficOptions,
     return np.stack(images)
 
 
-def calibration_scans(sensor: Sensor, n: int = CALIBRATION_SCANS, seed: int = 0) -> np.ndarray:
+def calibration_scans(sensor: Sensor, n: int | None = None, seed: int = 0) -> np.ndarray:
     """Scans of training-style traffic (training backgrounds, never a test config's and never
-    real KITTI) to calibrate int8 activation ranges."""
-    return traffic_scans(sensor, n, seed, TrafficOptions(), stride=4)
+    real KITTI) to calibrate int8 activation ranges; CALIBRATION_SCANS of them by default."""
+    return traffic_scans(sensor, CALIBRATION_SCANS if n is None else n, seed, TrafficOptions(),
+                         stride=4)
 
 
 def held_out_scans(sensor: Sensor, n: int) -> np.ndarray:

@@ -8,23 +8,20 @@ run replays the sampler without recomputing or duplicating anything.
 
 from __future__ import annotations
 
-import math
 import multiprocessing as mp
-import sys
 import time
-import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from falsify.errors import FalsifyError
-from falsify.metrics import CLASSES, class_scores, confusion
-from falsify.scene import InvalidSample, Simulator
+from falsify.metrics import CLASSES, Status, class_scores, confusion
+from falsify.scene import InvalidSample, Scanner, Simulator
 from falsify.sensor import load_sensor
 from falsify.space import Sample, Space
-from falsify.store import SampleResult, Store, sample_key
+from falsify.store import SampleResult, Store, sample_seed
+from models.runner import Segmenter, load_segmenter
 
 
 @dataclass(frozen=True)
@@ -38,28 +35,19 @@ class EvalSettings:
     lod: int = 2
 
 
-def sample_seed(space: Space, sample: Sample) -> int:
-    """A per-sample seed for sensor effects: fixed by the space's seed and the sample alone."""
-    return (space.seed * 1_000_003 + zlib.crc32(sample_key(sample).encode())) % (2**31)
-
-
 class Evaluator:
-    """Scores batches of samples with one warm simulator and one inference session."""
+    """Scores batches of samples with one warm scanner and one inference session; both can be
+    handed in (an open model, another scanner), else they are built from the settings."""
 
-    def __init__(self, settings: EvalSettings):
-        from models.runner import load_segmenter
-
+    def __init__(self, settings: EvalSettings, model: Segmenter | None = None,
+                 scanner: Scanner | None = None):
         self.settings = settings
         self.space = settings.space
-        sensor = load_sensor(self.space.sensor)
-        self.sim = Simulator(sensor, self.space.user_cars, lod=settings.lod)
-        self.model = load_segmenter(settings.model, backend=settings.backend,
-                                    threads=settings.threads)
-        spec = self.model.spec
-        if (spec.height, spec.width) != sensor.shape:
-            raise FalsifyError(f"model {settings.model or 'bundled'} takes {spec.height}×"
-                               f"{spec.width} range images but sensor {sensor.name} makes "
-                               f"{sensor.shape[0]}×{sensor.shape[1]}")
+        self.sim = scanner or Simulator(load_sensor(self.space.sensor), self.space.user_cars,
+                                        lod=settings.lod)
+        self.model = model or load_segmenter(settings.model, backend=settings.backend,
+                                             threads=settings.threads)
+        self.model.spec.check_fits(self.sim.sensor, settings.model or "bundled")
 
     @property
     def model_hash(self) -> str:
@@ -77,7 +65,7 @@ class Evaluator:
             try:
                 scan = self.scan(sample)
             except InvalidSample as exc:
-                results[i] = SampleResult(sample, "invalid", str(exc),
+                results[i] = SampleResult(sample, Status.INVALID, str(exc),
                                           t_scan=time.perf_counter() - t0,
                                           seed=sample_seed(self.space, sample))
                 continue
@@ -97,9 +85,9 @@ class Evaluator:
                     for m in ("tp", "fp", "fn", "iou", "precision", "recall"):
                         metrics[f"{cs.name}_{m}"] = getattr(cs, m)
                     notes[cs.name] = cs.note
-                status = "ok" if metrics["car_iou"] is not None else "undefined"
+                status = Status.OK if metrics["car_iou"] is not None else Status.UNDEFINED
                 results[i] = SampleResult(
-                    samples[i], status, "" if status == "ok" else notes["car"], metrics,
+                    samples[i], status, "" if status == Status.OK else notes["car"], metrics,
                     car_points=int((pred.classes[k] == 1).sum()),
                     label_points=int((label == 1).sum()),
                     t_scan=t_scans[k], t_infer=t_infer, t_total=t_scans[k] + t_infer,
@@ -120,18 +108,22 @@ def _work(samples: list[Sample]) -> list[SampleResult]:
     return _worker.evaluate(samples)
 
 
+ProgressListener = Callable[["Progress", bool], None]
+"""Told the progress after every batch (final=False) and once at the end (final=True)."""
+
+
 @dataclass
 class Progress:
-    """Counts and the lowest IoU so far; draws a one-line bar on stderr."""
+    """Counts and the lowest IoU so far, told to a listener as they change (the CLI draws a
+    progress bar from them; the jobs print nothing)."""
 
     total: int | None
-    quiet: bool = False
+    listener: ProgressListener | None = None
     done: int = 0
     computed: int = 0
     lowest: float | None = None
     lowest_at: dict | None = None
     started: float = field(default_factory=time.perf_counter)
-    _last: float = 0.0
 
     def update(self, results: Sequence[SampleResult], fresh: int) -> None:
         self.done += len(results)
@@ -140,58 +132,38 @@ class Progress:
             s = r.score
             if s is not None and (self.lowest is None or s < self.lowest):
                 self.lowest, self.lowest_at = s, r.sample.as_dict()
-        self.draw()
+        self.tell()
 
-    def draw(self, final: bool = False) -> None:
-        if self.quiet:
-            return
-        now = time.perf_counter()
-        if not final and now - self._last < 0.25:
-            return
-        self._last = now
-        elapsed = now - self.started
-        rate = self.computed / elapsed if elapsed > 0 else 0.0
-        total = f"/{self.total}" if self.total else ""
-        eta = ""
-        if self.total and rate > 0:
-            eta = f" ETA {max(0.0, (self.total - self.done) / rate):5.0f}s"
-        low = "-" if self.lowest is None else f"{self.lowest:.3f}"
-        bar = ""
-        if self.total:
-            filled = int(24 * min(1.0, self.done / self.total))
-            bar = "[" + "#" * filled + "." * (24 - filled) + "] "
-        end = "\n" if final or not sys.stderr.isatty() else "\r"
-        if not sys.stderr.isatty() and not final and self.done % 200 and self.done != self.total:
-            return
-        sys.stderr.write(f"{bar}{self.done}{total} samples  {rate:6.1f}/s{eta}  "
-                         f"lowest IoU {low}{end}")
-        sys.stderr.flush()
+    def tell(self, final: bool = False) -> None:
+        if self.listener is not None:
+            self.listener(self, final)
 
 
 class Driver:
     """Runs a sampler against the store, computing only what the store does not hold."""
 
     def __init__(self, settings: EvalSettings, store: Store, workers: int = 1,
-                 batch: int = 8, progress: Progress | None = None):
+                 batch: int = 8, progress: Progress | None = None,
+                 model: Segmenter | None = None):
         self.settings = settings
         self.store = store
         self.workers = workers
         self.batch = batch
-        self.progress = progress or Progress(None, quiet=True)
-        self.evaluations = 0
-        self.curve: list[float | None] = []   # car IoU per evaluation, in order
+        self.progress = progress or Progress(None)
+        self.model = model     # this process's open model (else loaded on entry)
         self._local: Evaluator | None = None
         self._pool: ProcessPoolExecutor | None = None
         self.model_hash = ""
 
     def __enter__(self) -> Driver:
         if self.workers <= 1:
-            self._local = Evaluator(self.settings)
+            self._local = Evaluator(self.settings, model=self.model)
             self.model_hash = self._local.model_hash
-        else:
-            from models.runner import load_segmenter
-            self.model_hash = load_segmenter(self.settings.model, backend=self.settings.backend,
-                                             threads=1).model_hash
+        else:   # each worker process opens the model once for itself
+            if self.model is None:
+                self.model = load_segmenter(self.settings.model, backend=self.settings.backend,
+                                            threads=1)
+            self.model_hash = self.model.model_hash
             ctx = mp.get_context("spawn")
             self._pool = ProcessPoolExecutor(self.workers, mp_context=ctx,
                                              initializer=_init_worker,
@@ -212,7 +184,8 @@ class Driver:
                 seen.add(s)
         known = [s for s in samples if s in self.store and s not in seen]
         if known:
-            self.progress.update([SampleResult(s, "ok", metrics={"car_iou": self.store.score(s)})
+            self.progress.update([SampleResult(s, Status.OK,
+                                               metrics={"car_iou": self.store.score(s)})
                                   for s in known], 0)
         chunks = [todo[i:i + self.batch] for i in range(0, len(todo), self.batch)]
         outputs = (map(self._local.evaluate, chunks) if self._local is not None
@@ -220,19 +193,4 @@ class Driver:
         for chunk_results in outputs:
             self.store.add(chunk_results, self.model_hash, self.settings.space.config_hash)
             self.progress.update(chunk_results, len(chunk_results))
-        scores = [self.store.score(s) for s in samples]
-        self.evaluations += len(samples)
-        self.curve.extend(scores)
-        return scores
-
-
-def lowest_curve(curve: Sequence[float | None]) -> list[float | None]:
-    """Running minimum of the scores (None until the first defined one)."""
-    out, best = [], math.inf
-    for s in curve:
-        if s is not None and s < best:
-            best = s
-        out.append(None if best == math.inf else best)
-    return out
-
-
+        return [self.store.score(s) for s in samples]

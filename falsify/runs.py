@@ -6,22 +6,28 @@ run directory is touched, so bad input leaves nothing half-written.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
-import json
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from falsify.errors import FalsifyError
+from falsify.fidelity import preset
 from falsify.fileio import write_bytes, write_json, write_npy
-from falsify.maps import CellMap, miou_map
-from falsify.pipeline import Driver, EvalSettings, Progress
+from falsify.maps import CellMap, miou_map, snap
+from falsify.metrics import Status
+from falsify.pipeline import Driver, EvalSettings, Progress, ProgressListener
+from falsify.replay import Replay
+from falsify.sensor import load_sensor
 from falsify.space import Space, load_space
-from falsify.store import STORE_NAME, Store, export, read_meta
+from falsify.store import STORE_NAME, RunData, Store, export, read_frame, read_meta
+from models.runner import Segmenter, load_segmenter
+from sampler.base import Sampler, SearchResult, make_sampler
 
 RESUME_KEYS = ("config_hash", "model_hash", "algorithm", "seed", "budget", "fidelity")
 
@@ -43,15 +49,22 @@ class RunRequest:
     threshold: float | None = None
     fidelity: str = "exact"
     report: bool = True
-    quiet: bool = False
 
 
-def prepare(req: RunRequest):
-    """Validate the request; returns (space, sampler, settings, seed) without writing anything."""
-    from falsify.fidelity import preset
-    from models.runner import load_segmenter
-    from sampler.base import make_sampler
+@dataclass(frozen=True)
+class Prepared:
+    """A checked request: what the run needs, with its model opened once for this process."""
 
+    space: Space
+    sampler: Sampler
+    settings: EvalSettings
+    seed: int
+    meta: dict
+    model: Segmenter
+
+
+def prepare(req: RunRequest) -> Prepared:
+    """Validate the request and open the model, without writing anything."""
     space = load_space(req.config)
     fid = preset(req.fidelity)
     if req.workers < 1 or req.workers > 64:
@@ -69,14 +82,10 @@ def prepare(req: RunRequest):
     threads = 2 if req.workers == 1 else 1
     settings = EvalSettings(space=space, model=model, backend=req.backend, threads=threads,
                             lod=fid.lod)
-    # Load the model once here: a missing, corrupt or mismatched model fails before any sample.
-    seg = load_segmenter(model, backend=req.backend, threads=1)
-    from falsify.sensor import load_sensor
+    # Open the model once here: a missing, corrupt or mismatched model fails before any sample.
+    seg = load_segmenter(model, backend=req.backend, threads=threads)
     sensor = load_sensor(space.sensor)
-    if (seg.spec.height, seg.spec.width) != sensor.shape:
-        raise FalsifyError(f"model {req.model or 'bundled'} takes {seg.spec.height}×"
-                           f"{seg.spec.width} range images but sensor {sensor.name} makes "
-                           f"{sensor.shape[0]}×{sensor.shape[1]}")
+    seg.spec.check_fits(sensor, req.model or "bundled")
     store_path = req.out / STORE_NAME
     meta = {
         "command": req.command, "config_path": str(req.config),
@@ -100,40 +109,76 @@ def prepare(req: RunRequest):
         raise FalsifyError(f"--resume: {req.out} holds no run to resume ({STORE_NAME} missing)")
     elif req.out.exists() and any(req.out.iterdir()):
         raise FalsifyError(f"--out {req.out}: directory exists and is not empty")
-    return space, sampler, settings, seed, meta
+    return Prepared(space, sampler, settings, seed, meta, seg)
 
 
-def execute(req: RunRequest) -> dict:
+@dataclass(frozen=True)
+class RunSummary:
+    """The outcome of a run (summary.json holds all but `report` and `search`)."""
+
+    run: str
+    command: str | None
+    algorithm: str | None
+    config: str | None
+    model: str | None
+    model_hash: str | None
+    samples: int
+    computed_this_time: int
+    ok: int
+    invalid: int
+    undefined: int
+    threshold: float
+    cells: int
+    blind_spots: int
+    blind_spot_cells: list[dict]
+    lowest: dict | None          # {"car_iou": ..., "sample": {dim: value}}
+    elapsed_s: float | None
+    retraining_samples: int
+    mean_car_iou: float | None
+    report: str | None = None
+    search: SearchResult | None = field(default=None, repr=False)
+
+    def to_json(self) -> dict:
+        """Plain JSON data; `report` only when one was written."""
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "search"}
+        if out["report"] is None:
+            del out["report"]
+        return out
+
+
+def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> RunSummary:
     """Run the sampler to the end, then write maps, retraining set, tables and report."""
-    space, sampler, settings, seed, meta = prepare(req)
+    p = prepare(req)
     req.out.mkdir(parents=True, exist_ok=True)
-    store = Store(req.out / STORE_NAME, space)
+    store = Store(req.out / STORE_NAME, p.space)
     old = store.meta()
     started = time.perf_counter()
     if not old:
-        store.set_meta(**meta, started=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        store.set_meta(**p.meta, started=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                        elapsed_s=0.0, curve=[])
     total = req.budget if req.budget is not None else (
-        len(space.grid()) if req.algorithm == "grid" else None)
-    progress = Progress(total, quiet=req.quiet)
+        len(p.space.grid()) if req.algorithm == "grid" else None)
+    progress = Progress(total, on_progress)
     try:
-        with Driver(settings, store, workers=req.workers, progress=progress) as driver:
-            sampler.run(space, driver.evaluate, req.budget, seed)
-            progress.draw(final=True)
+        with Driver(p.settings, store, workers=req.workers, progress=progress,
+                    model=p.model) as driver:
+            search = p.sampler.run(p.space, driver.evaluate, req.budget, p.seed)
+            progress.tell(final=True)
         elapsed = float(old.get("elapsed_s", 0.0)) + time.perf_counter() - started
-        store.set_meta(elapsed_s=round(elapsed, 3), curve=driver.curve,
+        store.set_meta(elapsed_s=round(elapsed, 3), curve=list(search.curve),
                        computed_last=progress.computed)
     finally:
         store.close()
-    return finish(req.out, space, threshold=req.threshold, report=req.report, settings=settings)
+    return finish(req.out, p.space, threshold=req.threshold, report=req.report,
+                  lod=p.settings.lod, model=p.model, search=search)
 
 
 def finish(run: Path, space: Space, threshold: float | None = None, report: bool = True,
-           settings: EvalSettings | None = None) -> dict:
+           lod: int = 2, model: Segmenter | None = None,
+           search: SearchResult | None = None) -> RunSummary:
     """Maps, blind spots, retraining set, CSV/Parquet, report and the summary of a run."""
-    from falsify.store import read_frame
-    meta = read_meta(run)
-    frame = read_frame(run)
+    data = RunData(run, read_meta(run), read_frame(run), space)
+    meta, frame = data.meta, data.frame
     thr = threshold if threshold is not None else float(meta.get("threshold", space.threshold))
     cmap = miou_map(frame, space, "x", "y")
     blind = cmap.blind_spots(thr)
@@ -143,35 +188,31 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
         write_bytes(maps_dir / f"miou_{a}_{b}.csv",
                     miou_map(frame, space, a, b).to_frame().to_csv(index=False).encode())
     export(frame, run / "results")
-    retrain = write_retraining_set(run, space, frame, cmap, thr, settings)
-    ok = frame[frame["status"] == "ok"]
+    retrain = write_retraining_set(data, cmap, thr, lod)
+    ok = data.ok
     lowest = None
     if len(ok):
         row = ok.loc[ok["car_iou"].astype(float).idxmin()]
         lowest = {"car_iou": round(float(row["car_iou"]), 4),
                   "sample": {d: _plain(row[d]) for d in space.dims}}
-    summary = {
-        "run": str(run), "command": meta.get("command"), "algorithm": meta.get("algorithm"),
-        "config": meta.get("config_path"), "model": meta.get("model_name"),
-        "model_hash": meta.get("model_hash"), "samples": int(len(frame)),
-        "computed_this_time": int(meta.get("computed_last", 0)),
-        "ok": int(len(ok)), "invalid": int((frame["status"] == "invalid").sum()),
-        "undefined": int((frame["status"] == "undefined").sum()),
-        "threshold": thr, "cells": int(np.isfinite(cmap.miou).sum()),
-        "blind_spots": len(blind),
-        "blind_spot_cells": [{"x": c.a, "y": c.b, "miou": round(c.miou, 4), "samples": c.samples}
-                             for c in blind],
-        "lowest": lowest, "elapsed_s": meta.get("elapsed_s"),
-        "retraining_samples": retrain,
-        "mean_car_iou": None if not len(ok) else round(float(ok["car_iou"].mean()), 4),
-    }
-    write_json(run / "summary.json", summary)
+    summary = RunSummary(
+        run=str(run), command=meta.get("command"), algorithm=meta.get("algorithm"),
+        config=meta.get("config_path"), model=meta.get("model_name"),
+        model_hash=meta.get("model_hash"), samples=int(len(frame)),
+        computed_this_time=int(meta.get("computed_last", 0)),
+        ok=int(len(ok)), invalid=int((frame["status"] == Status.INVALID).sum()),
+        undefined=int((frame["status"] == Status.UNDEFINED).sum()),
+        threshold=thr, cells=int(np.isfinite(cmap.miou).sum()),
+        blind_spots=len(blind),
+        blind_spot_cells=[{"x": c.a, "y": c.b, "miou": round(c.miou, 4), "samples": c.samples}
+                          for c in blind],
+        lowest=lowest, elapsed_s=meta.get("elapsed_s"), retraining_samples=retrain,
+        mean_car_iou=None if not len(ok) else round(float(ok["car_iou"].mean()), 4),
+        search=search)
+    write_json(run / "summary.json", summary.to_json())
     if report:
-        try:
-            from reports.html import write_report
-            summary["report"] = str(write_report(run))
-        except ImportError:  # reports not installed: the run itself is complete
-            summary["report"] = None
+        from falsify.reporting import write_report
+        summary = dataclasses.replace(summary, report=str(write_report(run, model=model)))
     return summary
 
 
@@ -186,32 +227,24 @@ def extra_map_pairs(space: Space) -> list[tuple[str, str]]:
     return pairs
 
 
-def write_retraining_set(run: Path, space: Space, frame: pd.DataFrame, cmap: CellMap,
-                         threshold: float, settings: EvalSettings | None) -> int:
+def write_retraining_set(data: RunData, cmap: CellMap, threshold: float, lod: int = 2) -> int:
     """Scans of every valid sample in a blind-spot cell, in SqueezeSeg's layout, plus index.csv."""
-    from falsify.maps import snap
-    out = run / "retrain"
+    space, frame = data.space, data.frame
+    out = data.path / "retrain"
     if out.exists():
         shutil.rmtree(out)
     blind = {(c.a, c.b) for c in cmap.blind_spots(threshold)}
     if not blind or not len(frame):
         return 0
-    ok = frame[frame["status"] == "ok"].copy()
+    ok = data.ok.copy()
     ok["_a"], ok["_b"] = snap(ok["x"], space, "x"), snap(ok["y"], space, "y")
     chosen = ok[[(a, b) in blind for a, b in zip(ok["_a"], ok["_b"], strict=True)]]
     if not len(chosen):
         return 0
-    if settings is None:
-        settings = EvalSettings(space=space)
-    from falsify.pipeline import sample_seed
-    from falsify.scene import Simulator
-    from falsify.sensor import load_sensor
-    sim = Simulator(load_sensor(space.sensor), space.user_cars,
-                    lod=settings.lod)
+    replay = Replay(space, lod=lod)
     rows = []
     for _, row in chosen.iterrows():
-        sample = space.make({d: _plain(row[d]) for d in space.dims})
-        scan = sim.scan(sample, rng=np.random.default_rng(sample_seed(space, sample)))
+        _, scan = replay.scan(row)
         name = f"{int(row['eval_index']):06d}.npy"
         write_npy(out / name, scan.image)
         rows.append({"file": name, "eval_index": int(row["eval_index"]),
@@ -226,24 +259,3 @@ def _plain(v):
     if isinstance(v, np.generic):
         return v.item()
     return v
-
-
-def summary_text(s: dict) -> str:
-    low = s["lowest"]
-    where = "" if low is None else ", ".join(f"{k}={v}" for k, v in low["sample"].items()
-                                             if k in ("x", "y", "yaw", "background",
-                                                      "car_model"))
-    lines = [
-        f"{s['samples']} samples ({s['computed_this_time']} computed now, {s['invalid']} invalid, "
-        f"{s['undefined']} undefined) in {s['elapsed_s']:.1f} s",
-        f"blind spots: {s['blind_spots']} of {s['cells']} cells below mIoU {s['threshold']}",
-        f"lowest car IoU: {'-' if low is None else low['car_iou']} at {where}",
-        f"mean car IoU: {s['mean_car_iou']}",
-        f"retraining set: {s['retraining_samples']} scans in {Path(s['run']) / 'retrain'}",
-    ]
-    if s.get("report"):
-        lines.append(f"report: {s['report']}")
-    return "\n".join(lines)
-
-
-__all__ = ["RunRequest", "execute", "finish", "summary_text", "json"]

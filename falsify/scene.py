@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -68,11 +69,26 @@ class _Layer:
     inst: np.ndarray
 
 
+class Scanner(Protocol):
+    """What scores samples needs from a scanner: its sensor, warm background hits, scans."""
+
+    sensor: Sensor
+
+    def background_hits(self, bg_id: int, pose: SensorPose) -> object: ...
+
+    def scan(self, sample: Sample, pose: SensorPose = ...,
+             rng: np.random.Generator | None = None) -> Scan: ...
+
+
 class Simulator:
-    """Holds the expensive state (BVHs, background hits) warm across many samples."""
+    """Holds the expensive state (BVHs, background hits) warm across many samples.
+
+    `background_source` builds a background from its id (default: the procedural streets);
+    `max_bvh` backgrounds' BVHs and `max_hits` cached (background, pose) casts are kept."""
 
     def __init__(self, sensor: Sensor, user_cars: dict[str, UserCar] | None = None,
-                 lod: int = 2, max_bvh: int = 2, max_hits: int = 256):
+                 lod: int = 2, max_bvh: int = 2, max_hits: int = 256,
+                 background_source: Callable[[int], backgrounds.Background] | None = None):
         self.sensor = sensor
         self.user_cars = dict(user_cars or {})
         self.lod = lod
@@ -81,7 +97,7 @@ class Simulator:
         self._cars: dict[str, tuple[MeshCaster, np.ndarray]] = {}
         self._obstacles: dict[int, Obstacles] = {}
         self._max_bvh, self._max_hits = max_bvh, max_hits
-        self.background_source = backgrounds.build_background
+        self.background_source = background_source or backgrounds.build_background
 
     # -- meshes ---------------------------------------------------------------------------
     def car_mesh(self, model: str):

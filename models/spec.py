@@ -59,6 +59,12 @@ class ModelSpec:
     notes: str = NORMALISATION_NOTE
     extra: Mapping[str, Any] = field(default_factory=dict)
 
+    def check_fits(self, sensor: Any, model: str) -> None:
+        """FalsifyError unless the sensor's range images have this model's H x W."""
+        if (self.height, self.width) != tuple(sensor.shape):
+            raise FalsifyError(f"model {model} takes {self.height}×{self.width} range images but "
+                               f"sensor {sensor.name} makes {sensor.shape[0]}×{sensor.shape[1]}")
+
     def to_json(self) -> str:
         """Deterministic JSON text (sorted keys) for the spec file."""
         d = asdict(self)

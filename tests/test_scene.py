@@ -176,8 +176,7 @@ def test_yaw_wraps_around(sim):
 
 def test_max_range_edge_and_beyond():
     sensor = load_sensor("kitti-hdl64e-front", max_range=40.0)
-    sim = Simulator(sensor)
-    sim.background_source = lambda _id: ground_only()
+    sim = Simulator(sensor, background_source=lambda _id: ground_only())
     inside = sim.render(0, [PlacedCar("van", 38.0, 0.0, 0.0, 1)])
     assert (inside.image[..., 5] == 1).sum() > 0
     assert inside.image[..., 4].max() <= 40.0
@@ -233,8 +232,7 @@ def test_world_shifted_by_1e5_gives_same_ranges(kitti):
     offset = np.array([1e5, -1e5, 0.0])
     base = build_background(4)
     shifted = dataclasses.replace(base, vertices=base.vertices + offset)
-    near, far = Simulator(kitti), Simulator(kitti)
-    far.background_source = lambda _id: shifted
+    near, far = Simulator(kitti), Simulator(kitti, background_source=lambda _id: shifted)
     cars = [PlacedCar("sedan", 11.0, -1.0, 15.0, 1)]
     cars_far = [dataclasses.replace(c, x=c.x + offset[0], y=c.y + offset[1]) for c in cars]
     a = near.render(4, cars)
@@ -245,8 +243,7 @@ def test_world_shifted_by_1e5_gives_same_ranges(kitti):
 
 def test_grazing_ground_rays_match_the_plane():
     sensor = load_sensor("kitti-hdl64e-front")
-    sim = Simulator(sensor)
-    sim.background_source = lambda _id: ground_only()
+    sim = Simulator(sensor, background_source=lambda _id: ground_only())
     scan = sim.render(0, [])
     el = np.radians(np.asarray(sensor.elevations_deg))
     expected = sensor.mount_height / np.sin(-el)  # range to the plane along each ray
