@@ -127,15 +127,14 @@ def batches(samples: Sequence[Sample], size: int) -> Iterator[Sequence[Sample]]:
         yield samples[start:start + size]
 
 
-def evaluate_all(evaluate: Evaluate, samples: Sequence[Sample], size: int) -> list[Score]:
-    """Evaluate `samples` in batches of `size`, in order; returns the scores in order."""
-    scores: list[Score] = []
+def evaluate_all(evaluate: Evaluate, samples: Sequence[Sample], size: int) -> SearchResult:
+    """Evaluate `samples` in batches of `size`, in order; returns what was found."""
+    rec = Recorder(evaluate)
     for batch in batches(samples, size):
-        got = evaluate(batch)
+        got = rec(batch)
         if len(got) != len(batch):
             raise RuntimeError(f"evaluate returned {len(got)} scores for {len(batch)} samples")
-        scores.extend(got)
-    return scores
+    return rec.result()
 
 
 def lowest_so_far(scores: Sequence[Score]) -> list[Score]:

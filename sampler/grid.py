@@ -5,15 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from falsify.space import Space
-from sampler.base import (
-    BATCH,
-    Evaluate,
-    Recorder,
-    SearchResult,
-    check_batch,
-    check_budget,
-    evaluate_all,
-)
+from sampler.base import BATCH, Evaluate, SearchResult, check_batch, check_budget, evaluate_all
 
 
 @dataclass(frozen=True)
@@ -29,6 +21,5 @@ class GridSampler:
         check_batch(self.name, self.batch_size)
         budget = check_budget(self.name, budget, required=False)
         samples = space.grid()
-        rec = Recorder(evaluate)
-        evaluate_all(rec, samples if budget is None else samples[:budget], self.batch_size)
-        return rec.result()
+        return evaluate_all(evaluate, samples if budget is None else samples[:budget],
+                            self.batch_size)

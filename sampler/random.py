@@ -8,15 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from falsify.space import Categorical, Sample, Space
-from sampler.base import (
-    BATCH,
-    Evaluate,
-    Recorder,
-    SearchResult,
-    check_batch,
-    check_budget,
-    evaluate_all,
-)
+from sampler.base import BATCH, Evaluate, SearchResult, check_batch, check_budget, evaluate_all
 
 
 @dataclass(frozen=True)
@@ -44,6 +36,4 @@ class RandomSampler:
         check_batch(self.name, self.batch_size)
         n = check_budget(self.name, budget, required=True)
         assert n is not None
-        rec = Recorder(evaluate)
-        evaluate_all(rec, self.samples(space, n, seed), self.batch_size)
-        return rec.result()
+        return evaluate_all(evaluate, self.samples(space, n, seed), self.batch_size)

@@ -10,15 +10,7 @@ import numpy as np
 from scipy.stats import qmc
 
 from falsify.space import Categorical, Continuous, Sample, Space
-from sampler.base import (
-    BATCH,
-    Evaluate,
-    Recorder,
-    SearchResult,
-    check_batch,
-    check_budget,
-    evaluate_all,
-)
+from sampler.base import BATCH, Evaluate, SearchResult, check_batch, check_budget, evaluate_all
 
 
 @dataclass(frozen=True)
@@ -53,6 +45,4 @@ class SobolSampler:
         check_batch(self.name, self.batch_size)
         n = check_budget(self.name, budget, required=True)
         assert n is not None
-        rec = Recorder(evaluate)
-        evaluate_all(rec, self.samples(space, n, seed), self.batch_size)
-        return rec.result()
+        return evaluate_all(evaluate, self.samples(space, n, seed), self.batch_size)
