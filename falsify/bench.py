@@ -80,9 +80,9 @@ def naive_scan(space: Space, sample: Sample):
     d = sensor.directions.reshape(-1, 3)
     o = np.tile([0.0, 0.0, sensor.mount_height], (len(d), 1))
     loc, idx, _ = merged.ray.intersects_location(o, d, multiple_hits=False)
-    rng = np.zeros(len(d))
-    rng[idx] = np.linalg.norm(loc - o[idx], axis=1)
-    return rng.reshape(sensor.shape)
+    ranges = np.zeros(len(d))
+    ranges[idx] = np.linalg.norm(loc - o[idx], axis=1)
+    return ranges.reshape(sensor.shape)
 
 
 def _pose_matrix(rot: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -300,10 +300,10 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
     # 1. In one process with 2 inference threads: the pipeline against inference alone.
     ev = Evaluator(EvalSettings(space=space, model=model, threads=2))
     _warm(ev.sim, picked)
-    ev.evaluate(picked[:batch])
+    ev.score_batch(picked[:batch])
     t0 = time.perf_counter()
     for i in range(0, samples, batch):
-        ev.evaluate(picked[i:i + batch])
+        ev.score_batch(picked[i:i + batch])
     t_pipeline = time.perf_counter() - t0
     images = [ev.scan(s).image for s in picked]
     t0 = time.perf_counter()

@@ -114,7 +114,7 @@ def _read_scans(paths: list[str], sensor_name: str):
     """Range images from .npy files (our layout) or KITTI .bin files (+ .label beside)."""
     import numpy as np
 
-    from falsify.scan import load_scan_npy, read_kitti
+    from falsify.kitti import load_scan_npy, read_kitti
     from falsify.sensor import load_sensor
 
     images = []
@@ -281,8 +281,8 @@ def cmd_bench(args) -> int:
     if args.what == "model":
         import numpy as np
 
-        from models.bench import bench_models
         from models.runner import BUNDLED_ONNX
+        from models.variants import bench_models
         files = sorted(Path(args.scans).glob("*.npy"))[: args.samples] if args.scans else []
         if args.scans and not files:
             raise UsageError(f"--scans {args.scans}: no .npy scans there")
@@ -348,9 +348,9 @@ def cmd_report(args) -> int:
 
 
 def cmd_gate(args) -> int:
-    from falsify.gate import evaluate, format_text, write_junit
+    from falsify.gate import format_text, judge, write_junit
 
-    result = evaluate(args.run, threshold=args.threshold,
+    result = judge(args.run, threshold=args.threshold,
                       max_blind_spots=args.max_blind_spots, baseline=args.baseline)
     if args.junit:
         write_junit(result, args.junit)

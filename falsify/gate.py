@@ -130,7 +130,7 @@ def read_baseline(source: str | Path, threshold: float) -> set[tuple[float, floa
     return keys
 
 
-def evaluate(run: str | Path, threshold: float | None = None, max_blind_spots: int | None = None,
+def judge(run: str | Path, threshold: float | None = None, max_blind_spots: int | None = None,
              baseline: str | Path | None = None) -> GateResult:
     """Judge a run; every input is checked before any result exists."""
     if max_blind_spots is not None and baseline is not None:

@@ -57,7 +57,7 @@ class Evaluator:
         rng = np.random.default_rng(sample_seed(self.space, sample))
         return self.sim.scan(sample, rng=rng)
 
-    def evaluate(self, samples: Sequence[Sample]) -> list[SampleResult]:
+    def score_batch(self, samples: Sequence[Sample]) -> list[SampleResult]:
         results: list[SampleResult | None] = [None] * len(samples)
         images, where, t_scans = [], [], []
         for i, sample in enumerate(samples):
@@ -105,7 +105,7 @@ def _init_worker(settings: EvalSettings) -> None:
 
 def _work(samples: list[Sample]) -> list[SampleResult]:
     assert _worker is not None
-    return _worker.evaluate(samples)
+    return _worker.score_batch(samples)
 
 
 ProgressListener = Callable[["Progress", bool], None]
@@ -188,7 +188,7 @@ class Driver:
                                                metrics={"car_iou": self.store.score(s)})
                                   for s in known], 0)
         chunks = [todo[i:i + self.batch] for i in range(0, len(todo), self.batch)]
-        outputs = (map(self._local.evaluate, chunks) if self._local is not None
+        outputs = (map(self._local.score_batch, chunks) if self._local is not None
                    else self._pool.map(_work, chunks))
         for chunk_results in outputs:
             self.store.add(chunk_results, self.model_hash, self.settings.space.config_hash)

@@ -10,7 +10,7 @@ from falsify.fileio import write_text
 from falsify.replay import Replay
 from falsify.store import RunData, open_run
 from models.runner import Segmenter, load_segmenter
-from reports.html import WORST, ReplayedScan, ReportInput, render
+from reports.run_page import WORST, ReplayedScan, ReportInput, render
 
 
 def open_model(meta: dict, predict: bool, model: Segmenter | None = None

@@ -64,7 +64,7 @@ def place(pose: CarPose, instance: int) -> PlacedCar:
 class _Layer:
     """Per-pixel nearest hit so far: range (inf = none), class and instance."""
 
-    rng: np.ndarray
+    dist: np.ndarray
     cls: np.ndarray
     inst: np.ndarray
 
@@ -148,7 +148,7 @@ class Simulator:
         inst[hit] = bg.face_instance[prim[hit]]
         shape = self.sensor.shape
         layer = _Layer(t.reshape(shape), cls.reshape(shape), inst.reshape(shape))
-        for a in (layer.rng, layer.cls, layer.inst):
+        for a in (layer.dist, layer.cls, layer.inst):
             a.setflags(write=False)
         self._hits[key] = layer
         while len(self._hits) > self._max_hits:
@@ -202,10 +202,10 @@ class Simulator:
         c_rot = car.rotation()
         dirs = self.sensor.directions[r_idx, c_idx] @ (c_rot.T @ s_rot).T
         origin = (pose.origin(self.sensor) - car.translation()) @ c_rot
-        current = layer.rng[r_idx, c_idx]
+        current = layer.dist[r_idx, c_idx]
         t, prim = caster.cast(origin, dirs, np.minimum(current, self.sensor.max_range))
         nearer = (prim >= 0) & (t < current)
-        layer.rng[r_idx[nearer], c_idx[nearer]] = t[nearer]
+        layer.dist[r_idx[nearer], c_idx[nearer]] = t[nearer]
         layer.cls[r_idx[nearer], c_idx[nearer]] = car.cls
         layer.inst[r_idx[nearer], c_idx[nearer]] = car.instance
         return len(t)
@@ -214,7 +214,7 @@ class Simulator:
                rng: np.random.Generator | None = None) -> Scan:
         """Compose the cached background with the cars and turn first returns into a Scan."""
         base = self.background_hits(bg_id, pose)
-        layer = _Layer(base.rng.copy(), base.cls.copy(), base.inst.copy())
+        layer = _Layer(base.dist.copy(), base.cls.copy(), base.inst.copy())
         for car in placed:
             self.cast_car(layer, car, pose)
         return self.to_scan(layer, rng)
@@ -222,7 +222,7 @@ class Simulator:
     def to_scan(self, layer: _Layer, rng: np.random.Generator | None) -> Scan:
         """Apply range limits and sensor effects, then build the H×W×6 image."""
         s = self.sensor
-        r = layer.rng
+        r = layer.dist
         if rng is not None and s.range_noise > 0:
             r = r + rng.normal(0.0, s.range_noise, r.shape)
         valid = np.isfinite(r) & (r >= s.min_range) & (r <= s.max_range)

@@ -80,7 +80,7 @@ class Scored:
     car_iou: float | None
 
 
-class Bench:
+class SettingScorer:
     """Scores samples under settings in this process (2 inference threads, 8 samples a call),
     caching results per (setting, sample), and times settings against each other."""
 
@@ -115,7 +115,7 @@ class Bench:
     def _run(self, s: Setting, samples: Sequence[Sample]) -> None:
         ev = self.evaluator(s)
         for i in range(0, len(samples), self.batch):
-            for r in ev.evaluate(samples[i:i + self.batch]):
+            for r in ev.score_batch(samples[i:i + self.batch]):
                 iou = r.metrics.get("car_iou") if r.status == Status.OK else None
                 self.results[(s, r.sample)] = Scored(r.status, iou)
 
@@ -131,7 +131,7 @@ class Bench:
                 ev = self.evaluator(s)
                 for bg in sorted({x.background for x in samples}):
                     ev.sim.background_hits(bg, SensorPose())
-                ev.evaluate(samples[: self.batch])
+                ev.score_batch(samples[: self.batch])
                 t0 = time.perf_counter()
                 self._run(s, samples)   # the results are kept: scoring reuses them
                 ms = (time.perf_counter() - t0) / len(samples) * 1e3
@@ -203,7 +203,7 @@ class Context:
 
     space: Space          # the config narrowed to the sample set
     samples: list[Sample]
-    bench: Bench
+    bench: SettingScorer
     reference: Setting
     out: Path
     ref_map: CellMap
@@ -425,7 +425,7 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
     from falsify.bench import machine
     from falsify.fileio import write_bytes, write_json
     from models.runner import BUNDLED_ONNX
-    from reports.tradeoff import write_page
+    from reports.tradeoff_page import write_page
 
     knobs = parse_knobs(",".join(knobs))
     out = Path(out)
@@ -444,7 +444,7 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
                                "grid-step and budget knobs")
     samples = space.grid()[:limit]
     t_start = time.perf_counter()
-    bench = Bench(narrow(space, samples))
+    bench = SettingScorer(narrow(space, samples))
     reference = Setting(model=onnx.resolve())
     # Loads and checks the model against the sensor: may raise, and nothing is written yet.
     ref_map = miou_map(bench.score(reference, samples), bench.space, "x", "y")

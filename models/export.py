@@ -108,7 +108,7 @@ def quantize_int8(onnx_in: str | Path, onnx_out: str | Path, scans: np.ndarray |
                              nodes_to_exclude=exclude, op_types_to_quantize=["Conv"])
         elif method == "static":
             if scans is None:
-                from models.bench import plausible_scans
+                from models.variants import plausible_scans
 
                 scans = plausible_scans(8, spec.height, spec.width, seed=123)
             quantize_static(str(onnx_in), str(onnx_out), _ScanReader(spec, scans),

@@ -129,7 +129,7 @@ def masked_loss(logits, labels, mask, weights):
     return (ce * weights[labels] * m).sum() / m.sum().clamp(min=1.0)
 
 
-def evaluate(model, files: list[Path], cfg: TrainConfig, shape, autocast) -> dict:
+def validate(model, files: list[Path], cfg: TrainConfig, shape, autocast) -> dict:
     """Pooled TP/FP/FN IoU per class over a validation folder (invalid pixels = unknown)."""
     import torch
 
@@ -301,7 +301,7 @@ def train(cfg: TrainConfig) -> dict:
                 "ms_per_frame_step": round(1e3 * sec / max(frames, 1), 1),
                 "precision": "bf16" if use_bf16 else "fp32"}
         if val_files and (end_of_epoch or stopped != "done"):
-            last.update(evaluate(model, val_files, cfg, shape, autocast))
+            last.update(validate(model, val_files, cfg, shape, autocast))
         if stopped != "done":
             last["stopped"] = stopped
         log(last)

@@ -20,7 +20,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
         "falsify/__init__", "falsify/errors", "falsify/classes", "falsify/fileio")),
     ("world: space, meshes, streets, sensor, casting, scans, metrics", (
         "falsify/space", "falsify/shapes", "falsify/cars", "falsify/backgrounds",
-        "falsify/sensor", "falsify/raycast", "falsify/scan", "falsify/scene",
+        "falsify/sensor", "falsify/raycast", "falsify/scan", "falsify/kitti", "falsify/scene",
         "falsify/dataset", "falsify/preview", "falsify/metrics")),
     ("network: SqueezeSeg, its spec, runners, export, training", (
         "models/*",)),

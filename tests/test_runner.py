@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from falsify.errors import FalsifyError
-from models.bench import plausible_scans
 from models.runner import load_segmenter, to_prediction
 from models.spec import load_spec, model_hash, spec_path_for
+from models.variants import plausible_scans
 
 KITTI = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti" / "squeezeseg"
 ROOT = Path(__file__).resolve().parents[1]
@@ -198,7 +198,7 @@ def test_runner_imports_and_runs_without_torch(exported):
         "import sys; sys.modules['torch'] = None\n"
         "import numpy as np\n"
         "from models.runner import load_segmenter\n"
-        "from models.bench import plausible_scans\n"
+        "from models.variants import plausible_scans\n"
         f"seg = load_segmenter({str(exported)!r}, threads=1)\n"
         "p = seg.predict(plausible_scans(1))\n"
         "assert 'torch' not in sys.modules or sys.modules['torch'] is None\n"

@@ -184,7 +184,7 @@ def test_max_range_edge_and_beyond():
     assert (beyond.image[..., 5] == 1).sum() == 0
     # A car wholly beyond max range is not in the scene: no ray is cast at it.
     layer = sim.background_hits(0, SensorPose())
-    copy = type(layer)(layer.rng.copy(), layer.cls.copy(), layer.inst.copy())
+    copy = type(layer)(layer.dist.copy(), layer.cls.copy(), layer.inst.copy())
     assert sim.cast_car(copy, PlacedCar("van", 200.0, 0.0, 0.0, 1), SensorPose()) == 0
 
 
@@ -195,7 +195,7 @@ def test_car_partly_outside_the_fov(sim):
     assert len(cols) > 0 and cols.min() == 0
     outside = PlacedCar("sedan", -5.0, 10.0, 0.0, 1)  # behind-left: no ray of the front view
     layer = sim.background_hits(0, SensorPose())
-    copy = type(layer)(layer.rng.copy(), layer.cls.copy(), layer.inst.copy())
+    copy = type(layer)(layer.dist.copy(), layer.cls.copy(), layer.inst.copy())
     assert sim.cast_car(copy, outside, SensorPose()) == 0
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from falsify.errors import ConfigError, FalsifyError
-from falsify.scan import load_scan_npy, read_kitti
+from falsify.kitti import load_scan_npy, read_kitti, write_kitti
 from falsify.scene import PlacedCar, Simulator
 from falsify.sensor import load_sensor, parse_sensor, preset_names
 
@@ -67,7 +67,7 @@ def test_kitti_bin_label_round_trip(tmp_path):
     sensor = load_sensor("kitti-hdl64e-front")
     sim = Simulator(sensor)
     scan = sim.render(2, [PlacedCar("van", 12.0, 1.0, 20.0, 1)])
-    scan.to_kitti(tmp_path / "s.bin", tmp_path / "s.label")
+    write_kitti(scan, tmp_path / "s.bin", tmp_path / "s.label")
     back = read_kitti(tmp_path / "s.bin", tmp_path / "s.label", sensor)
     np.testing.assert_array_equal(back.valid, scan.valid)
     np.testing.assert_array_equal(back.image[..., 5], scan.image[..., 5])

@@ -24,7 +24,7 @@ from falsify.tradeoff import (
     RESOLUTIONS,
     STEPS,
 )
-from reports.tradeoff import pareto
+from reports.tradeoff_page import pareto
 
 CONFIG = """name = "tiny"
 sensor = "kitti-hdl64e-front"

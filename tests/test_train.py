@@ -10,8 +10,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from falsify.errors import FalsifyError  # noqa: E402
-from models.bench import plausible_scans  # noqa: E402
 from models.train import flip, main  # noqa: E402
+from models.variants import plausible_scans  # noqa: E402
 
 
 @pytest.fixture(scope="module")

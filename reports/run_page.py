@@ -655,13 +655,13 @@ def _pictures(image: np.ndarray, car: tuple[float, float] | None = None) -> tupl
     """Range image (2 px per beam, at most 1024 columns) and a bird's-eye view with car 1
     bracketed, as PNG data URIs."""
     from falsify.preview import bev_rgb, range_image_rgb
-    rng = range_image_rgb(image, row_scale=2)
-    if rng.shape[1] > 1024:
-        rng = rng[:, :: math.ceil(rng.shape[1] / 1024)]
+    ranges = range_image_rgb(image, row_scale=2)
+    if ranges.shape[1] > 1024:
+        ranges = ranges[:, :: math.ceil(ranges.shape[1] / 1024)]
     bev = bev_rgb(image, size=BEV_SIZE, ahead=BEV_AHEAD, side=BEV_SIDE)
     if car is not None:
         _bracket(bev, *car)
-    return png_uri(rng), png_uri(bev)
+    return png_uri(ranges), png_uri(bev)
 
 
 def _bracket(bev: np.ndarray, x: float, y: float, half: float = 3.0) -> None:
@@ -728,8 +728,8 @@ def worst_section(data: RunData, scans: Mapping[int, ReplayedScan], note: str,
 </section>"""
 
 
-def _pics_html(rng: str, bev: str, what: str) -> str:
-    return (f'<div class="pic"><img src="{rng}" alt="range image, {what}" width="448">'
+def _pics_html(ranges: str, bev: str, what: str) -> str:
+    return (f'<div class="pic"><img src="{ranges}" alt="range image, {what}" width="448">'
             f'<img src="{bev}" alt="bird\'s-eye view, {what}" width="112" '
             f'height="112"></div>')
 

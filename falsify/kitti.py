@@ -1,0 +1,76 @@
+"""KITTI files: a .bin of N×4 float32 (x, y, z, remission), a SemanticKITTI .label of uint32
+(instance << 16 | class), and SqueezeSeg's .npy range images, read into and written from Scans.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from falsify.errors import FalsifyError
+from falsify.scan import CHANNELS, Scan, image_from_points
+from falsify.sensor import Sensor
+
+# Our classes as SemanticKITTI ids when writing .label files (unknown -> 0 "unlabeled").
+TO_SEMANTICKITTI = np.array([0, 10, 30, 31], dtype=np.uint32)
+# SemanticKITTI ids read as our classes (moving variants too); anything else is unknown.
+FROM_SEMANTICKITTI = {10: 1, 252: 1, 30: 2, 254: 2, 31: 3, 253: 3, 32: 3, 255: 3}
+
+
+def write_kitti(scan: Scan, bin_path: str | Path, label_path: str | Path) -> None:
+    """Write the valid points as KITTI .bin and SemanticKITTI-style .label."""
+    m = scan.valid
+    scan.image[m][:, :4].astype(np.float32).tofile(bin_path)
+    cls = scan.image[m][:, 5].astype(np.int64)
+    inst = scan.instance[m].astype(np.uint32) & 0xFFFF
+    ((inst << 16) | TO_SEMANTICKITTI[cls]).astype(np.uint32).tofile(label_path)
+
+
+def read_kitti(bin_path: str | Path, label_path: str | Path | None,
+               sensor: Sensor) -> Scan:
+    """Read a KITTI .bin (+ SemanticKITTI .label) and project it with `sensor`'s layout."""
+    bin_path = Path(bin_path)
+    try:
+        raw = np.fromfile(bin_path, dtype=np.float32)
+    except OSError as exc:
+        raise FalsifyError(f"{bin_path}: cannot read ({exc.strerror})") from None
+    if raw.size % 4:
+        raise FalsifyError(f"{bin_path}: size is not a multiple of 4 float32 (x, y, z, remission)")
+    pts = raw.reshape(-1, 4)
+    cls = np.zeros(len(pts), dtype=np.uint8)
+    inst = np.zeros(len(pts), dtype=np.int32)
+    if label_path is not None:
+        label_path = Path(label_path)
+        try:
+            lab = np.fromfile(label_path, dtype=np.uint32)
+        except OSError as exc:
+            raise FalsifyError(f"{label_path}: cannot read ({exc.strerror})") from None
+        if len(lab) != len(pts):
+            raise FalsifyError(f"{label_path}: {len(lab)} labels for {len(pts)} points in "
+                               f"{bin_path.name}")
+        sem = lab & 0xFFFF
+        lut = np.zeros(max(int(sem.max(initial=0)) + 1, 256), dtype=np.uint8)
+        for k, v in FROM_SEMANTICKITTI.items():
+            lut[k] = v
+        cls = lut[sem]
+        inst = (lab >> 16).astype(np.int32)
+    finite = np.isfinite(pts).all(axis=1)
+    return image_from_points(sensor, pts[finite, :3], cls[finite], inst[finite],
+                             intensity=pts[finite, 3])
+
+
+def load_scan_npy(path: str | Path) -> np.ndarray:
+    """Load an H×W×6 range image (ours or SqueezeSeg's KITTI files), checking shape and values."""
+    path = Path(path)
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise FalsifyError(f"{path}: not a readable .npy range image ({exc})") from None
+    if arr.ndim != 3 or arr.shape[2] != 6:
+        raise FalsifyError(f"{path}: shape {arr.shape}, expected (H, W, 6) with channels "
+                           f"{', '.join(CHANNELS)}")
+    arr = arr.astype(np.float32, copy=False)
+    if not np.isfinite(arr).all():
+        raise FalsifyError(f"{path}: contains NaN or inf")
+    return arr
