@@ -199,11 +199,11 @@ class Variant:
 
 @dataclass
 class Context:
-    """What every knob shares: the sample set, its map space, the bench and the reference."""
+    """What every knob shares: the sample set, its map space, the scorer and the reference."""
 
     space: Space          # the config narrowed to the sample set
     samples: list[Sample]
-    bench: SettingScorer
+    scorer: SettingScorer
     reference: Setting
     out: Path
     ref_map: CellMap
@@ -215,7 +215,7 @@ class Context:
 
     def map_of(self, s: Setting, samples: Sequence[Sample] | None = None,
                space: Space | None = None) -> CellMap:
-        return miou_map(self.bench.score(s, self.samples if samples is None else samples),
+        return miou_map(self.scorer.score(s, self.samples if samples is None else samples),
                         space or self.space, "x", "y")
 
     def row(self, v: Variant) -> Row:
@@ -225,10 +225,10 @@ class Context:
                        f"skipped: {v.notes}")
         err = map_error(self.ref_map, self.map_of(v.setting).miou, self.threshold)
         if v.setting != self.reference:
-            self.bench.drop(v.setting)   # its results are cached; free the session's memory
+            self.scorer.drop(v.setting)   # its results are cached; free the session's memory
         n = len(self.samples)
-        return make_row(v.knob, v.name, v.setting == self.reference, self.bench.ms[v.setting],
-                        self.bench.ms[self.reference], n, n, err, v.notes)
+        return make_row(v.knob, v.name, v.setting == self.reference, self.scorer.ms[v.setting],
+                        self.scorer.ms[self.reference], n, n, err, v.notes)
 
 
 def make_row(knob: str, name: str, is_ref: bool, ms: float, ref_ms: float, n: int, ref_n: int,
@@ -256,7 +256,7 @@ def _build(knob: str, name: str, make, notes: str = "") -> Variant:
 
 def knob_resolution(ctx: Context) -> list[Variant]:
     """Cast at other resolutions over the same FOV, projected into the network's 64×512."""
-    net = ctx.bench.evaluator(ctx.reference).sim.sensor.shape
+    net = ctx.scorer.evaluator(ctx.reference).sim.sensor.shape
     return [Variant("resolution", f"{r}x{c}" + (" (native)" if (r, c) == net else ""),
                     dataclasses.replace(ctx.reference, resolution=None if (r, c) == net
                                         else (r, c)))
@@ -319,7 +319,7 @@ def knob_step(ctx: Context) -> list[Row]:
         sp = with_step(ctx.space, step)
         maps[step] = (ctx.map_of(ctx.reference, sp.grid(), sp), len(sp.grid()))
     ref_map, ref_n = maps[min(STEPS)]
-    ms = ctx.bench.ms[ctx.reference]
+    ms = ctx.scorer.ms[ctx.reference]
     own = {getattr(ctx.space.dims[d], "step", None) for d in ("x", "y")}
     rows = []
     for step, (m, n) in maps.items():
@@ -335,7 +335,7 @@ def knob_budget(ctx: Context) -> list[Row]:
     cells take the nearest sampled cell's mIoU."""
     from sampler.base import make_sampler
 
-    ms, n = ctx.bench.ms[ctx.reference], len(ctx.samples)
+    ms, n = ctx.scorer.ms[ctx.reference], len(ctx.samples)
     xs, ys = ctx.space.dims["x"].grid(), ctx.space.dims["y"].grid()
     rows = [make_row("budget", "grid 100%", True, ms, ms, n, n,
                      map_error(ctx.ref_map, ctx.ref_map.miou, ctx.threshold))]
@@ -345,7 +345,7 @@ def knob_budget(ctx: Context) -> list[Row]:
 
             def evaluate(batch: Sequence[Sample], drawn=drawn) -> list[float | None]:
                 drawn.extend(batch)
-                f = ctx.bench.score(ctx.reference, batch)
+                f = ctx.scorer.score(ctx.reference, batch)
                 return [None if v is None else float(v) for v in f["car_iou"]]
 
             make_sampler(name).run(ctx.space, evaluate, max(1, round(frac * n)), ctx.space.seed)
@@ -444,32 +444,32 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
                                "grid-step and budget knobs")
     samples = space.grid()[:limit]
     t_start = time.perf_counter()
-    bench = SettingScorer(narrow(space, samples))
+    scorer = SettingScorer(narrow(space, samples))
     reference = Setting(model=onnx.resolve())
     # Loads and checks the model against the sensor: may raise, and nothing is written yet.
-    ref_map = miou_map(bench.score(reference, samples), bench.space, "x", "y")
-    ctx = Context(bench.space, samples, bench, reference, out, ref_map,
+    ref_map = miou_map(scorer.score(reference, samples), scorer.space, "x", "y")
+    ctx = Context(scorer.space, samples, scorer, reference, out, ref_map,
                   Path(model) if model else None)
     variants = {k: VARIANT_KNOBS[k](ctx) for k in knobs if k in VARIANT_KNOBS}
     settings = [reference] + [v.setting for vs in variants.values() for v in vs
                               if v.setting is not None and v.setting != reference]
     every = max(1, len(samples) // TIMING_SAMPLES)
-    bench.time(list(dict.fromkeys(settings)), samples[::every][:TIMING_SAMPLES])
+    scorer.time(list(dict.fromkeys(settings)), samples[::every][:TIMING_SAMPLES])
     rows: list[Row] = []
     for knob in knobs:
         rows.extend(map(ctx.row, variants[knob]) if knob in variants else MAP_KNOBS[knob](ctx))
     notes = [f"{r.knob} {r.setting}: {r.notes}" for r in rows if r.notes.startswith("skipped")]
 
-    ref_eval = bench.evaluator(reference)
+    ref_eval = scorer.evaluator(reference)
     summary = {
         "command": "tradeoff", "config": str(config), "model": str(onnx),
         "model_hash": ref_eval.model_hash, "samples": len(samples), "limit": limit,
-        "threshold": space.threshold, "knobs": list(knobs), "threads": bench.threads,
-        "batch": bench.batch, "machine": machine(),
+        "threshold": space.threshold, "knobs": list(knobs), "threads": scorer.threads,
+        "batch": scorer.batch, "machine": machine(),
         "reference": {"resolution": "x".join(map(str, ref_eval.sim.sensor.shape)),
                       "lod": reference.lod,
                       "precision": "onnx fp32", "crf": ref_eval.model.spec.crf_iterations,
-                      "grid": "the config's", "time_per_sample_ms": round(bench.ms[reference], 2),
+                      "grid": "the config's", "time_per_sample_ms": round(scorer.ms[reference], 2),
                       "blind_spots": len(ctx.ref_map.blind_spots(space.threshold)),
                       "lowest_cell_miou": _r(float(np.nanmin(ref_map.miou)))
                       if np.isfinite(ref_map.miou).any() else None},
