@@ -18,10 +18,10 @@ import numpy as np
 
 from falsify.errors import FalsifyError
 from falsify.metrics import Status
+from falsify.models.runner import BATCH
 from falsify.scene import Simulator
 from falsify.sensor import SensorPose, load_sensor
 from falsify.space import Sample, Space, load_space
-from models.runner import BATCH
 
 
 def machine() -> dict:

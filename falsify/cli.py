@@ -10,9 +10,9 @@ import time
 from pathlib import Path
 
 from falsify.errors import FalsifyError
+from falsify.paths import CONFIGS
 
-ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_CONFIG = ROOT / "configs" / "paper.toml"
+DEFAULT_CONFIG = CONFIGS / "paper.toml"
 
 
 class UsageError(FalsifyError):
@@ -139,7 +139,7 @@ def cmd_predict(args) -> int:
 
     from falsify.fileio import write_npy
     from falsify.metrics import CLASSES, class_scores, confusion, pooled
-    from models.runner import load_segmenter
+    from falsify.models.runner import load_segmenter
 
     scans = _read_scans(args.scans, args.sensor)
     model = load_segmenter(args.model, backend=args.backend)
@@ -177,7 +177,7 @@ def cmd_predict(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from models.train import main as train_main
+    from falsify.models.train import main as train_main
     return int(train_main(args.train_args) or 0)
 
 
@@ -277,12 +277,12 @@ def cmd_bench(args) -> int:
     from falsify import bench
 
     if args.what == "search" and Path(args.config) == DEFAULT_CONFIG:
-        args.config = str(ROOT / "configs" / "yaw.toml")
+        args.config = str(CONFIGS / "yaw.toml")
     if args.what == "model":
         import numpy as np
 
-        from models.runner import BUNDLED_ONNX
-        from models.variants import bench_models
+        from falsify.models.runner import BUNDLED_ONNX
+        from falsify.models.variants import bench_models
         files = sorted(Path(args.scans).glob("*.npy"))[: args.samples] if args.scans else []
         if args.scans and not files:
             raise UsageError(f"--scans {args.scans}: no .npy scans there")
@@ -425,8 +425,8 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("--json", action="store_true")
     pr.set_defaults(func=cmd_predict)
 
-    tr = sub.add_parser("train", help="train SqueezeSeg (same options as python -m models.train)",
-                        add_help=False)
+    tr = sub.add_parser("train", add_help=False,
+                        help="train SqueezeSeg (same options as python -m falsify.models.train)")
     tr.add_argument("train_args", nargs=argparse.REMAINDER)
     tr.set_defaults(func=cmd_train)
 
@@ -434,7 +434,7 @@ def build_parser() -> argparse.ArgumentParser:
     _run_options(g)
     g.set_defaults(func=cmd_grid)
 
-    from sampler.base import ALGORITHMS
+    from falsify.sampler.base import ALGORITHMS
     se = sub.add_parser("search", help="search a space for low car IoU within a budget")
     _run_options(se)
     se.add_argument("--algorithm", required=True, choices=[a for a in ALGORITHMS if a != "grid"],

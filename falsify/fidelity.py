@@ -9,11 +9,9 @@ only the car mesh level of detail follows the preset.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 from falsify.errors import FalsifyError
-
-WEIGHTS = Path(__file__).resolve().parent.parent / "models" / "weights"
+from falsify.models.runner import WEIGHTS_DIR
 
 
 @dataclass(frozen=True)
@@ -28,7 +26,7 @@ class Fidelity:
         """The model a run uses: the user's as given, else this preset's bundled variant."""
         if user_model is not None or self.bundled_model == "squeezeseg.onnx":
             return user_model
-        return str(WEIGHTS / self.bundled_model)
+        return str(WEIGHTS_DIR / self.bundled_model)
 
 
 PRESETS = {

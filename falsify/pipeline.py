@@ -17,11 +17,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from falsify.metrics import CLASSES, Status, class_scores, confusion
+from falsify.models.runner import Segmenter, load_segmenter
 from falsify.scene import InvalidSample, Scanner, Simulator
 from falsify.sensor import load_sensor
 from falsify.space import Sample, Space
 from falsify.store import SampleResult, Store, sample_seed
-from models.runner import Segmenter, load_segmenter
 
 
 @dataclass(frozen=True)

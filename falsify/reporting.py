@@ -7,10 +7,10 @@ from pathlib import Path
 
 from falsify.errors import FalsifyError
 from falsify.fileio import write_text
+from falsify.models.runner import Segmenter, load_segmenter
 from falsify.replay import Replay
+from falsify.reports.run_page import WORST, ReplayedScan, ReportInput, render
 from falsify.store import RunData, open_run
-from models.runner import Segmenter, load_segmenter
-from reports.run_page import WORST, ReplayedScan, ReportInput, render
 
 
 def open_model(meta: dict, predict: bool, model: Segmenter | None = None

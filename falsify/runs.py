@@ -21,13 +21,14 @@ from falsify.fidelity import preset
 from falsify.fileio import write_bytes, write_json, write_npy
 from falsify.maps import CellMap, miou_map, snap
 from falsify.metrics import Status
+from falsify.models.runner import Segmenter, load_segmenter
+from falsify.paths import config_path
 from falsify.pipeline import Driver, EvalSettings, Progress, ProgressListener
 from falsify.replay import Replay
+from falsify.sampler.base import Sampler, SearchResult, make_sampler
 from falsify.sensor import load_sensor
 from falsify.space import Space, load_space
 from falsify.store import STORE_NAME, RunData, Store, export, read_frame, read_meta
-from models.runner import Segmenter, load_segmenter
-from sampler.base import Sampler, SearchResult, make_sampler
 
 RESUME_KEYS = ("config_hash", "model_hash", "algorithm", "seed", "budget", "fidelity")
 
@@ -89,7 +90,7 @@ def prepare(req: RunRequest) -> Prepared:
     store_path = req.out / STORE_NAME
     meta = {
         "command": req.command, "config_path": str(req.config),
-        "config_text": Path(req.config).read_text(), "config_hash": space.config_hash,
+        "config_text": config_path(req.config).read_text(), "config_hash": space.config_hash,
         "space_name": space.name, "sensor": sensor.name, "model_path": model,
         "model_name": seg.spec.name, "model_hash": seg.model_hash, "backend": req.backend,
         "seed": seed, "algorithm": req.algorithm, "budget": req.budget,

@@ -17,8 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from falsify.errors import ConfigError
+from falsify.paths import SENSOR_PRESETS
 
-PRESET_DIR = Path(__file__).resolve().parent.parent / "configs" / "sensors"
+PRESET_DIR = SENSOR_PRESETS
 SENSOR_KEYS = {
     "name", "description", "elevations_deg", "vertical", "h_fov_deg", "columns", "pitch_deg",
     "mount_height", "max_range", "min_range", "rotation_hz", "ray_drop", "range_noise",

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from falsify.errors import ConfigError
+from falsify.paths import config_path
 
 CONTINUOUS_BASE = ("x", "y", "yaw")
 IMAGE_ONLY = ("colour", "weather", "time_of_day")
@@ -230,8 +231,9 @@ def car_index(name: str) -> int:
 
 
 def load_space(path: str | Path, builtin_cars: tuple[str, ...] | None = None) -> Space:
-    """Read and validate a space config; every problem names its key and the allowed values."""
-    path = Path(path)
+    """Read and validate a space config (a file, or a bundled config by its name); every problem
+    names its key and the allowed values."""
+    path = config_path(path)
     try:
         text = path.read_bytes()
     except OSError as exc:

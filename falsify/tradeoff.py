@@ -23,9 +23,9 @@ import pandas as pd
 from falsify.errors import FalsifyError
 from falsify.maps import CellMap, MapError, fill_nearest, map_error, miou_map
 from falsify.metrics import Status
+from falsify.models.spec import ModelSpec
 from falsify.sensor import Sensor, SensorPose, load_sensor
 from falsify.space import Categorical, Continuous, Sample, Space, UserCar, load_space
-from models.spec import ModelSpec
 
 if TYPE_CHECKING:   # the CLI imports this module for KNOBS: keep trimesh out of it
     from falsify.pipeline import Evaluator
@@ -277,7 +277,7 @@ def knob_precision(ctx: Context) -> list[Variant]:
     """torch fp32 on the .pt weights; ONNX Runtime fp32, fp16 and static int8 (variants
     written to DIR/models/)."""
     from falsify.dataset import calibration_scans
-    from models.export import convert_fp16, quantize_int8
+    from falsify.models.export import convert_fp16, quantize_int8
 
     ref, onnx = ctx.reference, ctx.reference.model
     models = ctx.out / "models"
@@ -297,7 +297,7 @@ def knob_precision(ctx: Context) -> list[Variant]:
 
 def knob_crf(ctx: Context) -> list[Variant]:
     """The same weights with 0..3 CRF iterations (0 skips the CRF), exported and run in ORT."""
-    from models.spec import load_spec, spec_path_for
+    from falsify.models.spec import load_spec, spec_path_for
 
     spec = load_spec(spec_path_for(ctx.reference.model))
     out = []
@@ -333,7 +333,7 @@ def knob_step(ctx: Context) -> list[Row]:
 def knob_budget(ctx: Context) -> list[Row]:
     """Random and Sobol samples (a fraction of the grid) snapped to the grid's cells; empty
     cells take the nearest sampled cell's mIoU."""
-    from sampler.base import make_sampler
+    from falsify.sampler.base import make_sampler
 
     ms, n = ctx.scorer.ms[ctx.reference], len(ctx.samples)
     xs, ys = ctx.space.dims["x"].grid(), ctx.space.dims["y"].grid()
@@ -394,8 +394,8 @@ def export_crf(pt: Path, spec: ModelSpec, k: int, out: Path) -> Path:
     """The model's weights in SqueezeSeg(crf_iterations=k), exported to out/<stem>-crf<k>.onnx."""
     import torch
 
-    from models.export import export_onnx
-    from models.squeezeseg import SqueezeSeg
+    from falsify.models.export import export_onnx
+    from falsify.models.squeezeseg import SqueezeSeg
 
     if spec.architecture != "squeezeseg":
         raise Unavailable(f"model architecture {spec.architecture!r} is not squeezeseg")
@@ -424,8 +424,8 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
     Bad input raises FalsifyError before anything is written."""
     from falsify.bench import machine
     from falsify.fileio import write_bytes, write_json
-    from models.runner import BUNDLED_ONNX
-    from reports.tradeoff_page import write_page
+    from falsify.models.runner import BUNDLED_ONNX
+    from falsify.reports.tradeoff_page import write_page
 
     knobs = parse_knobs(",".join(knobs))
     out = Path(out)
@@ -436,7 +436,7 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
     onnx = Path(model) if model else BUNDLED_ONNX
     if onnx.suffix != ".onnx" or not onnx.is_file():
         raise FalsifyError(f"--model {onnx}: not an existing .onnx file (with its .json spec "
-                           "beside it); train one with `python -m models.train`")
+                           "beside it); train one with `python -m falsify.models.train`")
     space = load_space(config)
     for d in ("x", "y"):
         if not isinstance(space.dims[d], Continuous):

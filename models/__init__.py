@@ -1,5 +1,5 @@
 """SqueezeSeg network, its recurrent CRF, ONNX export, runners and training.
 
-Importing ``models`` or ``models.runner`` does not import torch; ``models.squeezeseg``,
-``models.crf``, ``models.export`` and ``models.train`` do.
+Installed as ``falsify.models``. Importing it or ``falsify.models.runner`` does not import torch;
+``squeezeseg``, ``crf``, ``export`` and ``train`` do.
 """

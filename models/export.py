@@ -10,12 +10,19 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from falsify.models.spec import (
+    ModelSpec,
+    default_spec,
+    load_spec,
+    normalise,
+    save_spec,
+    spec_path_for,
+)
 
 from falsify.errors import FalsifyError
-from models.spec import ModelSpec, default_spec, load_spec, normalise, save_spec, spec_path_for
 
 if TYPE_CHECKING:
-    from models.squeezeseg import SqueezeSeg
+    from falsify.models.squeezeseg import SqueezeSeg
 
 OPSET = 17
 
@@ -108,7 +115,7 @@ def quantize_int8(onnx_in: str | Path, onnx_out: str | Path, scans: np.ndarray |
                              nodes_to_exclude=exclude, op_types_to_quantize=["Conv"])
         elif method == "static":
             if scans is None:
-                from models.variants import plausible_scans
+                from falsify.models.variants import plausible_scans
 
                 scans = plausible_scans(8, spec.height, spec.width, seed=123)
             quantize_static(str(onnx_in), str(onnx_out), _ScanReader(spec, scans),
@@ -145,12 +152,13 @@ def convert_fp16(onnx_in: str | Path, onnx_out: str | Path,
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """`python -m models.export WEIGHTS.pt --out MODEL.onnx`: export trained weights with spec."""
+    """`python -m falsify.models.export WEIGHTS.pt --out MODEL.onnx`: export trained weights
+    with their spec."""
     import argparse
     import json
     import sys
 
-    p = argparse.ArgumentParser(prog="python -m models.export", description=main.__doc__)
+    p = argparse.ArgumentParser(prog="python -m falsify.models.export", description=main.__doc__)
     p.add_argument("weights", help="a state dict (.pt) or a training checkpoint.pt")
     p.add_argument("--out", required=True, help="the .onnx to write (spec .json beside it)")
     p.add_argument("--crf-iterations", type=int, default=3, choices=range(4))
@@ -164,7 +172,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     a = p.parse_args(argv)
 
     def fail(message: str) -> int:
-        print(f"python -m models.export: error: {message}", file=sys.stderr)
+        print(f"python -m falsify.models.export: error: {message}", file=sys.stderr)
         return 2
 
     if a.int8 and (a.height, a.width) != (64, 512):
@@ -173,8 +181,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if bad:
         return fail(f"--note {bad[0]!r}: write KEY=VALUE")
     import torch
-
-    from models.squeezeseg import SqueezeSeg
+    from falsify.models.squeezeseg import SqueezeSeg
     try:
         state = torch.load(a.weights, map_location="cpu", weights_only=True)
     except Exception as exc:  # OSError, RuntimeError, pickle.UnpicklingError, ...

@@ -13,10 +13,10 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
+from falsify.models.spec import ModelSpec, load_spec, model_hash, normalise, spec_path_for
 
 from falsify.classes import CLASSES
 from falsify.errors import FalsifyError
-from models.spec import ModelSpec, load_spec, model_hash, normalise, spec_path_for
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 BUNDLED_ONNX = WEIGHTS_DIR / "squeezeseg.onnx"
@@ -218,8 +218,7 @@ class TorchSegmenter:
             raise FalsifyError(f"torch backend builds SqueezeSeg only; {spec_path} says "
                                f"architecture {self.spec.architecture!r}")
         import torch
-
-        from models.squeezeseg import SqueezeSeg
+        from falsify.models.squeezeseg import SqueezeSeg
 
         if threads:
             torch.set_num_threads(int(threads))
@@ -270,7 +269,7 @@ def load_segmenter(path: str | Path | None = None, backend: str = "onnx",
             p = p.with_suffix(".onnx")
         if path is None and not p.is_file():
             raise FalsifyError(f"bundled model {p} not found; train one with "
-                               "`python -m models.train --data DIR --out models/weights`")
+                               "`python -m falsify.models.train --data DIR --out models/weights`")
         return OnnxSegmenter(p, threads)
     if backend == "torch":
         p = BUNDLED_PT if path is None else Path(path)

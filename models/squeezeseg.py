@@ -11,10 +11,9 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 import torch.nn.functional as F
+from falsify.models.crf import NUM_CLASSES, RecurrentCRF
+from falsify.models.spec import ALL_CHANNELS, DEFAULT_CHANNELS
 from torch import nn
-
-from models.crf import NUM_CLASSES, RecurrentCRF
-from models.spec import ALL_CHANNELS, DEFAULT_CHANNELS
 
 
 def _same_pad_w(width: int, kernel: int, stride: int) -> tuple[int, int]:

@@ -1,7 +1,7 @@
 """Train SqueezeSeg on a directory of ``*.npy`` scans (H, W, 6) on the CPU, resumable exactly.
 
-    python -m models.train --data DIR --out DIR [--epochs N] [--batch B] [--resume] [--seed S]
-                           [--time-limit-min M] [--val-data DIR] [--precision auto|bf16|fp32]
+    python -m falsify.models.train --data DIR --out DIR [--epochs N] [--batch B] [--resume]
+        [--seed S] [--time-limit-min M] [--val-data DIR] [--precision auto|bf16|fp32]
 
 Writes into --out: ``checkpoint.pt`` (every epoch and at the time limit: model, optimiser, epoch,
 step, torch RNG), ``train_log.jsonl`` (one line per epoch), and at the end ``squeezeseg.pt``
@@ -20,9 +20,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from falsify.models.spec import ALL_CHANNELS, DEFAULT_CHANNELS, normalise
 
 from falsify.errors import FalsifyError
-from models.spec import ALL_CHANNELS, DEFAULT_CHANNELS, normalise
 
 CLASS_WEIGHTS = (1.0 / 15.0, 1.0, 10.0, 10.0)
 CHECKPOINT = "checkpoint.pt"
@@ -101,8 +101,7 @@ def bf16_supported() -> bool:
 def batch_tensors(scans: np.ndarray, channels: Sequence[str]):
     """Scans (B,H,W,6) -> x, xyz, mask, labels (torch), with the spec's normalisation."""
     import torch
-
-    from models.spec import INPUT_MEAN, INPUT_STD, SCAN_INDEX
+    from falsify.models.spec import INPUT_MEAN, INPUT_STD, SCAN_INDEX
 
     names = (*channels, "mask")
     mean = [INPUT_MEAN[SCAN_INDEX[c]] for c in channels] + [0.0]
@@ -182,9 +181,8 @@ def train(cfg: TrainConfig) -> dict:
     import contextlib
 
     import torch
-
-    from models.export import export_onnx
-    from models.squeezeseg import SqueezeSeg
+    from falsify.models.export import export_onnx
+    from falsify.models.squeezeseg import SqueezeSeg
 
     t_start = time.monotonic()
     out = Path(cfg.out)
@@ -324,7 +322,8 @@ def train(cfg: TrainConfig) -> dict:
 
 def parse_args(argv: Sequence[str] | None) -> TrainConfig:
     """CLI -> TrainConfig."""
-    p = argparse.ArgumentParser(prog="python -m models.train", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m falsify.models.train",
+                                description=__doc__.split("\n")[0])
     p.add_argument("--data", required=True, help="folder of *.npy scans (H, W, 6)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--epochs", type=int, default=30)

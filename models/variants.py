@@ -7,10 +7,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+from falsify.models.runner import OnnxSegmenter, Prediction, TorchSegmenter
+from falsify.models.spec import spec_path_for
 
 from falsify.errors import FalsifyError
-from models.runner import OnnxSegmenter, Prediction, TorchSegmenter
-from models.spec import spec_path_for
 
 
 def plausible_scans(n: int, H: int = 64, W: int = 512, seed: int = 0) -> np.ndarray:
@@ -86,7 +86,7 @@ def bench_models(scans: np.ndarray, onnx_path: str | Path, pt_path: str | Path |
     ``onnx-fp32-batch8`` feeds the network 8 frames a run instead of one, the batching the
     runners do not use; int8 is calibrated on ``calibration`` (never the scans measured).
     """
-    from models.export import convert_fp16, quantize_int8
+    from falsify.models.export import convert_fp16, quantize_int8
 
     scans = np.asarray(scans, np.float32)
     if scans.ndim == 3:

@@ -5,7 +5,7 @@ is deterministic given its inputs and the scores it is told, so a resumed run re
 store without recomputing.
 """
 
-from sampler.base import (
+from falsify.sampler.base import (
     ALGORITHMS,
     NLOPT_ALGORITHMS,
     Evaluate,

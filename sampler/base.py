@@ -84,10 +84,10 @@ class Sampler(Protocol):
 
 def make_sampler(name: str, **options: object) -> Sampler:
     """Build a sampler by name; an unknown name or option raises ConfigError listing the allowed."""
-    from sampler.grid import GridSampler
-    from sampler.nlopt import NloptSampler
-    from sampler.random import RandomSampler
-    from sampler.sobol import SobolSampler
+    from falsify.sampler.grid import GridSampler
+    from falsify.sampler.nlopt import NloptSampler
+    from falsify.sampler.random import RandomSampler
+    from falsify.sampler.sobol import SobolSampler
 
     classes: dict[str, type] = {"grid": GridSampler, "random": RandomSampler,
                                 "sobol": SobolSampler}

@@ -4,8 +4,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from falsify.sampler.base import (
+    BATCH,
+    Evaluate,
+    SearchResult,
+    check_batch,
+    check_budget,
+    evaluate_all,
+)
+
 from falsify.space import Space
-from sampler.base import BATCH, Evaluate, SearchResult, check_batch, check_budget, evaluate_all
 
 
 @dataclass(frozen=True)

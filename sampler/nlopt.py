@@ -27,10 +27,10 @@ from dataclasses import dataclass
 
 import nlopt
 import numpy as np
+from falsify.sampler.base import NLOPT_ALGORITHMS, Evaluate, Recorder, SearchResult, check_budget
 
 from falsify.errors import ConfigError
 from falsify.space import Categorical, Continuous, Sample, Space, Value
-from sampler.base import NLOPT_ALGORITHMS, Evaluate, Recorder, SearchResult, check_budget
 
 LOCAL_SUBOPTIMISERS = ("LN_BOBYQA", "LN_COBYLA")
 FTOL = 1e-9  # local runs also stop on an exactly flat score (e.g. the penalty plateau)

@@ -6,9 +6,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from falsify.sampler.base import (
+    BATCH,
+    Evaluate,
+    SearchResult,
+    check_batch,
+    check_budget,
+    evaluate_all,
+)
 
 from falsify.space import Categorical, Sample, Space
-from sampler.base import BATCH, Evaluate, SearchResult, check_batch, check_budget, evaluate_all
 
 
 @dataclass(frozen=True)

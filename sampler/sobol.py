@@ -7,10 +7,17 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+from falsify.sampler.base import (
+    BATCH,
+    Evaluate,
+    SearchResult,
+    check_batch,
+    check_budget,
+    evaluate_all,
+)
 from scipy.stats import qmc
 
 from falsify.space import Categorical, Continuous, Sample, Space
-from sampler.base import BATCH, Evaluate, SearchResult, check_batch, check_budget, evaluate_all
 
 
 @dataclass(frozen=True)

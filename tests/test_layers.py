@@ -17,7 +17,8 @@ PACKAGES = ("falsify", "models", "sampler", "reports")
 # Lowest first. A module may import from its own layer and the layers before it.
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("base: errors, class ids, atomic files", (
-        "falsify/__init__", "falsify/errors", "falsify/classes", "falsify/fileio")),
+        "falsify/__init__", "falsify/errors", "falsify/classes", "falsify/fileio",
+        "falsify/paths")),
     ("world: space, meshes, streets, sensor, casting, scans, metrics", (
         "falsify/space", "falsify/shapes", "falsify/cars", "falsify/backgrounds",
         "falsify/sensor", "falsify/raycast", "falsify/scan", "falsify/kitti", "falsify/scene",

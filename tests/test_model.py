@@ -9,8 +9,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from models.crf import ANGULAR_COEF, BILATERAL_COEF, THETA_A, THETA_R, RecurrentCRF  # noqa: E402
-from models.squeezeseg import (  # noqa: E402
+from falsify.models.crf import ANGULAR_COEF, BILATERAL_COEF, THETA_A, THETA_R, RecurrentCRF  # noqa: E402
+from falsify.models.squeezeseg import (  # noqa: E402
     Conv,
     Pool,
     SqueezeSeg,
@@ -71,7 +71,7 @@ def test_exported_graph_keeps_the_blocked_layout(tmp_path):
     # Speed guard without a timer: a Pad or a Softmax on axis 1 between layers makes ONNX
     # Runtime reorder the blocked layout around it. Only conv1's input pad may remain.
     onnx = pytest.importorskip("onnx")
-    from models.export import export_onnx
+    from falsify.models.export import export_onnx
 
     path, _ = export_onnx(SqueezeSeg(crf_iterations=3).eval(), tmp_path / "m.onnx")
     ops = [n.op_type for n in onnx.load(str(path)).graph.node]

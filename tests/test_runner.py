@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from falsify.models.runner import load_segmenter, to_prediction
+from falsify.models.spec import load_spec, model_hash, spec_path_for
+from falsify.models.variants import plausible_scans
 
 from falsify.errors import FalsifyError
-from models.runner import load_segmenter, to_prediction
-from models.spec import load_spec, model_hash, spec_path_for
-from models.variants import plausible_scans
 
 KITTI = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti" / "squeezeseg"
 ROOT = Path(__file__).resolve().parents[1]
@@ -23,8 +23,8 @@ ROOT = Path(__file__).resolve().parents[1]
 def exported(tmp_path_factory):
     """A seeded random SqueezeSeg with a 3-iteration CRF, exported to .onnx + .pt + .json."""
     torch = pytest.importorskip("torch")
-    from models.export import export_onnx
-    from models.squeezeseg import SqueezeSeg
+    from falsify.models.export import export_onnx
+    from falsify.models.squeezeseg import SqueezeSeg
 
     torch.manual_seed(1234)
     model = SqueezeSeg(crf_iterations=3).eval()
@@ -74,9 +74,8 @@ def test_single_scan_and_hash(exported):
 
 def test_export_is_deterministic(exported, tmp_path):
     import torch
-
-    from models.export import export_onnx
-    from models.squeezeseg import SqueezeSeg
+    from falsify.models.export import export_onnx
+    from falsify.models.squeezeseg import SqueezeSeg
 
     model = SqueezeSeg(crf_iterations=3)
     model.load_state_dict(torch.load(exported.with_suffix(".pt"), weights_only=True))
@@ -171,7 +170,7 @@ def test_class_mapping_folds_outputs(exported, tmp_path):
 
 
 def test_network_batch_size_does_not_change_predictions(exported):
-    from models.runner import OnnxSegmenter
+    from falsify.models.runner import OnnxSegmenter
 
     scans = plausible_scans(5, seed=8)
     one = OnnxSegmenter(exported, threads=1, batch=1).run_raw(scans)
@@ -197,8 +196,8 @@ def test_runner_imports_and_runs_without_torch(exported):
     code = (
         "import sys; sys.modules['torch'] = None\n"
         "import numpy as np\n"
-        "from models.runner import load_segmenter\n"
-        "from models.variants import plausible_scans\n"
+        "from falsify.models.runner import load_segmenter\n"
+        "from falsify.models.variants import plausible_scans\n"
         f"seg = load_segmenter({str(exported)!r}, threads=1)\n"
         "p = seg.predict(plausible_scans(1))\n"
         "assert 'torch' not in sys.modules or sys.modules['torch'] is None\n"
@@ -212,9 +211,9 @@ def test_runner_imports_and_runs_without_torch(exported):
 
 def test_export_cli_writes_model_and_int8_copy(exported, tmp_path, monkeypatch, capsys):
     pytest.importorskip("torch")
-    from models.export import main as export_main
+    from falsify.models.export import main as export_main
 
-    monkeypatch.setattr("falsify.tradeoff.CALIBRATION_SCANS", 2)   # a short calibration
+    monkeypatch.setattr("falsify.dataset.CALIBRATION_SCANS", 2)   # a short calibration
     out, q = tmp_path / "net.onnx", tmp_path / "int8" / "net-int8.onnx"   # folder made
     assert export_main([str(exported.with_suffix(".pt")), "--out", str(out), "--int8", str(q),
                         "--note", "data=test"]) == 0
@@ -227,7 +226,7 @@ def test_export_cli_writes_model_and_int8_copy(exported, tmp_path, monkeypatch, 
 
 def test_export_cli_rejects_bad_input_before_writing(exported, tmp_path, capsys):
     torch = pytest.importorskip("torch")
-    from models.export import main as export_main
+    from falsify.models.export import main as export_main
 
     out = tmp_path / "net.onnx"
     args = [str(exported.with_suffix(".pt")), "--out", str(out)]

@@ -8,11 +8,11 @@ import types
 from unittest import mock
 
 import pytest
+from falsify.sampler import ALGORITHMS, NLOPT_ALGORITHMS, lowest_so_far, make_sampler
+from falsify.sampler.nlopt import NloptSampler, discrete_combos
 
 from falsify.errors import ConfigError
 from falsify.space import Categorical, Continuous, Sample, Space, parse_space
-from sampler import ALGORITHMS, NLOPT_ALGORITHMS, lowest_so_far, make_sampler
-from sampler.nlopt import NloptSampler, discrete_combos
 
 CARS = ("sedan", "suv")
 

@@ -157,7 +157,7 @@ def test_yaw_wraps_around_by_whole_turns(yaw):
 
 
 def test_nlopt_at_bounds_and_zero_width_bounds():
-    from sampler.base import make_sampler
+    from falsify.sampler.base import make_sampler
     space = parse_space({"dims": {"car_model": {"values": ["sedan"]},
                                   "x": {"min": -5.0, "max": 4.0, "step": 1.0},
                                   "y": {"values": [7.0]},
@@ -201,7 +201,7 @@ BUNDLED = ROOT / "models" / "weights" / "squeezeseg.onnx"
 
 @pytest.mark.skipif(not BUNDLED.exists(), reason="bundled model not trained yet")
 def test_network_on_empty_far_and_non_finite_scans():
-    from models.runner import load_segmenter
+    from falsify.models.runner import load_segmenter
     model = load_segmenter()
     empty = np.zeros((1, 64, 512, 6), np.float32)
     pred = model.predict(empty)
@@ -245,7 +245,7 @@ def test_map_with_missing_cells_and_only_invalid_cells():
 
 
 def test_bad_threshold_and_unknown_sampler_are_clear_errors():
-    from sampler.base import make_sampler
+    from falsify.sampler.base import make_sampler
     with pytest.raises(ConfigError, match="allowed: grid, random, sobol"):
         make_sampler("GN_NOPE")
     with pytest.raises(ConfigError, match="threshold"):

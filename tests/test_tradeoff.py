@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from falsify.reports.tradeoff_page import pareto
 
 from falsify.cli import main
 from falsify.maps import CellMap, fill_nearest, jaccard, map_error
@@ -24,7 +25,6 @@ from falsify.tradeoff import (
     RESOLUTIONS,
     STEPS,
 )
-from reports.tradeoff_page import pareto
 
 CONFIG = """name = "tiny"
 sensor = "kitti-hdl64e-front"
@@ -49,8 +49,8 @@ values = [0]
 def model(tmp_path_factory) -> Path:
     """A seeded random SqueezeSeg (CRF 3) as .onnx + .json, with its state dict as .pt."""
     torch = pytest.importorskip("torch")
-    from models.export import export_onnx
-    from models.squeezeseg import SqueezeSeg
+    from falsify.models.export import export_onnx
+    from falsify.models.squeezeseg import SqueezeSeg
 
     torch.manual_seed(0)
     net = SqueezeSeg().eval()

@@ -9,9 +9,10 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from falsify.models.train import flip, main  # noqa: E402
+from falsify.models.variants import plausible_scans  # noqa: E402
+
 from falsify.errors import FalsifyError  # noqa: E402
-from models.train import flip, main  # noqa: E402
-from models.variants import plausible_scans  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +70,7 @@ def test_bad_data_dir_is_a_clear_error(tmp_path, capsys):
     assert main(["--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     assert "no *.npy scans" in capsys.readouterr().err
     with pytest.raises(FalsifyError):
-        from models.train import TrainConfig, train
+        from falsify.models.train import TrainConfig, train
 
         train(TrainConfig(data=str(tmp_path), out=str(tmp_path / "o")))
 
