@@ -1,0 +1,83 @@
+"""A clean install: the wheel puts sampler, models, reports and configs under falsify/ (no
+generic top-level package), ships the weights, sensor presets and bundled configs, and works
+from a directory outside the checkout."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import venv
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+GENERIC = ("models", "reports", "sampler", "configs")
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("dist")
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
+                        "-q", "-w", str(out), str(ROOT)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    (found,) = out.glob("falsify-*.whl")
+    return found
+
+
+def test_wheel_holds_only_the_falsify_package_and_its_data(wheel):
+    names = zipfile.ZipFile(wheel).namelist()
+    tops = {n.split("/")[0] for n in names}
+    assert not tops & set(GENERIC), sorted(tops)
+    assert {t for t in tops if not t.endswith(".dist-info")} == {"falsify"}
+    weights = "falsify/models/weights/"
+    for need in (weights + "squeezeseg.onnx", weights + "squeezeseg.json",
+                 weights + "squeezeseg-int8.onnx", weights + "squeezeseg.pt",
+                 "falsify/configs/sensors/kitti-hdl64e-front.toml", "falsify/configs/ci.toml",
+                 "falsify/configs/paper.toml", "falsify/configs/ci-baseline.json",
+                 "falsify/sampler/nlopt.py", "falsify/reports/run_page.py"):
+        assert need in names, need
+
+
+def test_installed_wheel_runs_outside_the_checkout(wheel, tmp_path):
+    env_dir = tmp_path / "venv"
+    # System site-packages give numpy, onnxruntime, ... without a download; the wheel goes into
+    # the venv itself, which comes first on sys.path (checked below).
+    venv.EnvBuilder(system_site_packages=True, with_pip=False).create(env_dir)
+    py = env_dir / "bin" / "python"
+    r = subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps", "--no-index",
+                        "--force-reinstall", str(wheel)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+
+    def run(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([str(py), *args], cwd=work, env=env, capture_output=True,
+                              text=True, timeout=600)
+
+    where = run("-c", "import json, falsify, falsify.models, falsify.sampler, falsify.reports; "
+                "print(json.dumps([m.__file__ for m in (falsify, falsify.models, "
+                "falsify.sampler, falsify.reports)]))")
+    assert where.returncode == 0, where.stderr
+    site = env_dir / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / \
+        "site-packages"
+    for f in json.loads(where.stdout):
+        assert Path(f).is_relative_to(site), f"{f} is not the installed wheel"
+    assert not [g for g in GENERIC if (site / g).exists()]
+    falsify_cmd = str(env_dir / "bin" / "falsify")
+    scan = subprocess.run([falsify_cmd, "scan", "configs/smoke.toml", "--out", "scan", "--json"],
+                          cwd=work, env=env, capture_output=True, text=True, timeout=600)
+    assert scan.returncode == 0, scan.stderr
+    assert json.loads(scan.stdout)["car_points"] > 0 and (work / "scan" / "scan.png").exists()
+    grid = subprocess.run([falsify_cmd, "grid", "configs/ci.toml", "--out", "run", "--workers",
+                           "2", "--quiet", "--json"], cwd=work, env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert grid.returncode == 0, grid.stderr
+    summary = json.loads(grid.stdout)
+    assert summary["samples"] == 75 and summary["ok"] == 75, summary
+    assert (work / "run" / "report.html").stat().st_size > 10_000
+    assert (work / "run" / "maps" / "miou_x_y.csv").exists()
