@@ -8,7 +8,6 @@ run (and the compared run): no render time, sorted data, fixed number formats.
 from __future__ import annotations
 
 import base64
-import html
 import json
 import math
 from collections.abc import Callable, Mapping, Sequence
@@ -16,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
+from falsify.reports.page import esc, head
 
 import falsify
 from falsify.maps import CellMap, fmt_value
@@ -36,11 +36,6 @@ FONT = 'system-ui, -apple-system, "Segoe UI", Roboto, Helvetica, Arial, sans-ser
 
 
 # -- small helpers ------------------------------------------------------------------------
-def esc(value: object) -> str:
-    """Escape any user-supplied value for HTML text or a quoted attribute."""
-    return html.escape(str(value), quote=True)
-
-
 def f3(value: float | None) -> str:
     """A number rounded to 3 places, or an em dash when undefined."""
     if value is None or (isinstance(value, float) and math.isnan(value)):
@@ -377,11 +372,7 @@ def distance_section(data: RunData, threshold: float) -> str:
     def sy(v: float) -> float:
         return top + (1 - v) * ph
 
-    out = [f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" class="frame"/>']
-    for v in (0.0, 0.25, 0.5, 0.75, 1.0):
-        out.append(f'<line class="grid" x1="{left}" x2="{left + pw}" y1="{_num(sy(v))}" '
-                   f'y2="{_num(sy(v))}"/><text x="{left - 6}" y="{_num(sy(v) + 4)}" '
-                   f'text-anchor="end">{v:.2f}</text>')
+    out = _iou_frame(left, top, pw, ph, sy)
     step = 5.0 if dmax > 10 else 1.0
     for k in range(int(dmax / step) + 1):
         v = k * step
@@ -414,6 +405,17 @@ distance (hypot(x, y) of car 1).</p>
 </section>"""
 
 
+def _iou_frame(left: float, top: float, pw: float, ph: float,
+               sy: Callable[[float], float]) -> list[str]:
+    """A plot's frame with IoU grid lines and labels at 0, 0.25, ..., 1."""
+    out = [f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" class="frame"/>']
+    for v in (0.0, 0.25, 0.5, 0.75, 1.0):
+        out.append(f'<line class="grid" x1="{left}" x2="{left + pw}" y1="{_num(sy(v))}" '
+                   f'y2="{_num(sy(v))}"/><text x="{left - 6}" y="{_num(sy(v) + 4)}" '
+                   f'text-anchor="end">{v:.2f}</text>')
+    return out
+
+
 def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     """Lowest IoU so far against evaluations, and where the search went on the map's axes."""
     curve = data.meta.get("curve")
@@ -431,11 +433,7 @@ def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     def sy(v: float) -> float:
         return top + (1 - v) * ph
 
-    out = [f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" class="frame"/>']
-    for v in (0.0, 0.25, 0.5, 0.75, 1.0):
-        out.append(f'<line class="grid" x1="{left}" x2="{left + pw}" y1="{_num(sy(v))}" '
-                   f'y2="{_num(sy(v))}"/><text x="{left - 6}" y="{_num(sy(v) + 4)}" '
-                   f'text-anchor="end">{v:.2f}</text>')
+    out = _iou_frame(left, top, pw, ph, sy)
     for k in sorted({0, n // 4, n // 2, 3 * n // 4, max(0, n - 1)}):
         out.append(f'<text x="{_num(sx(k))}" y="{top + ph + 15}" text-anchor="middle">{k}'
                    "</text>")
@@ -988,15 +986,7 @@ def render(report: ReportInput) -> str:
     sections.append(distance_section(data, threshold))
     sections.append(worst_section(data, report.scans, report.note, report.worst))
     payload = script_json({"samples": samples_json(data), "threshold": threshold})
-    return f"""<!DOCTYPE html>
-<html lang="en">
-<head>
-<meta charset="utf-8">
-<meta http-equiv="Content-Security-Policy" content="{CSP}">
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<title>falsify report: {esc(name)}</title>
-<style>{CSS}</style>
-</head>
+    return f"""{head(f"falsify report: {esc(name)}", CSP, CSS)}
 <body>
 {DEFS}
 <main>

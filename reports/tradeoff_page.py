@@ -6,10 +6,11 @@ forbids any fetch, every string escaped. Output bytes depend only on the measure
 
 from __future__ import annotations
 
-import html
 import math
 from collections.abc import Sequence
 from pathlib import Path
+
+from falsify.reports.page import esc, head
 
 from falsify.fileio import write_text
 
@@ -27,10 +28,6 @@ tr.ref td{font-weight:600;background:#f3f6fa}tr.skip td{color:#888}
 W, H = 760, 440
 LEFT, RIGHT, TOP, BOTTOM = 70, 170, 20, 50
 ERROR_FLOOR = 1e-4   # the log error axis starts here; zero-error points (references) sit on it
-
-
-def esc(value: object) -> str:
-    return html.escape(str(value), quote=True)
 
 
 def fmt(value: object, digits: int = 3) -> str:
@@ -170,15 +167,7 @@ def render(summary: dict) -> str:
     ref = summary["reference"]
     notes = "".join(f"<li>{esc(n)}</li>" for n in summary.get("notes", []))
     machine = summary.get("machine", {})
-    return f"""<!DOCTYPE html>
-<html lang="en">
-<head>
-<meta charset="utf-8">
-<meta http-equiv="Content-Security-Policy" content="{CSP}">
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<title>falsify tradeoff: {esc(summary["config"])}</title>
-<style>{CSS}</style>
-</head>
+    return f"""{head(f"falsify tradeoff: {esc(summary['config'])}", CSP, CSS)}
 <body>
 <h1>Speed against mIoU-map error</h1>
 <p class="note">Config {esc(summary["config"])}, {esc(summary["samples"])} samples

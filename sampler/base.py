@@ -127,8 +127,11 @@ def batches(samples: Sequence[Sample], size: int) -> Iterator[Sequence[Sample]]:
         yield samples[start:start + size]
 
 
-def evaluate_all(evaluate: Evaluate, samples: Sequence[Sample], size: int) -> SearchResult:
-    """Evaluate `samples` in batches of `size`, in order; returns what was found."""
+def evaluate_all(name: str, evaluate: Evaluate, samples: Sequence[Sample],
+                 size: int) -> SearchResult:
+    """Evaluate `samples` in batches of `size` (checked for sampler `name`), in order; returns
+    what was found."""
+    check_batch(name, size)
     rec = Recorder(evaluate)
     for batch in batches(samples, size):
         got = rec(batch)

@@ -4,14 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from falsify.sampler.base import (
-    BATCH,
-    Evaluate,
-    SearchResult,
-    check_batch,
-    check_budget,
-    evaluate_all,
-)
+from falsify.sampler.base import BATCH, Evaluate, SearchResult, check_budget, evaluate_all
 
 from falsify.space import Space
 
@@ -26,8 +19,7 @@ class GridSampler:
 
     def run(self, space: Space, evaluate: Evaluate, budget: int | None,
             seed: int) -> SearchResult:
-        check_batch(self.name, self.batch_size)
         budget = check_budget(self.name, budget, required=False)
         samples = space.grid()
-        return evaluate_all(evaluate, samples if budget is None else samples[:budget],
+        return evaluate_all(self.name, evaluate, samples if budget is None else samples[:budget],
                             self.batch_size)

@@ -6,14 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from falsify.sampler.base import (
-    BATCH,
-    Evaluate,
-    SearchResult,
-    check_batch,
-    check_budget,
-    evaluate_all,
-)
+from falsify.sampler.base import BATCH, Evaluate, SearchResult, check_budget, evaluate_all
 
 from falsify.space import Categorical, Sample, Space
 
@@ -40,7 +33,6 @@ class RandomSampler:
 
     def run(self, space: Space, evaluate: Evaluate, budget: int | None,
             seed: int) -> SearchResult:
-        check_batch(self.name, self.batch_size)
         n = check_budget(self.name, budget, required=True)
         assert n is not None
-        return evaluate_all(evaluate, self.samples(space, n, seed), self.batch_size)
+        return evaluate_all(self.name, evaluate, self.samples(space, n, seed), self.batch_size)

@@ -7,14 +7,7 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-from falsify.sampler.base import (
-    BATCH,
-    Evaluate,
-    SearchResult,
-    check_batch,
-    check_budget,
-    evaluate_all,
-)
+from falsify.sampler.base import BATCH, Evaluate, SearchResult, check_budget, evaluate_all
 from scipy.stats import qmc
 
 from falsify.space import Categorical, Continuous, Sample, Space
@@ -49,7 +42,6 @@ class SobolSampler:
 
     def run(self, space: Space, evaluate: Evaluate, budget: int | None,
             seed: int) -> SearchResult:
-        check_batch(self.name, self.batch_size)
         n = check_budget(self.name, budget, required=True)
         assert n is not None
-        return evaluate_all(evaluate, self.samples(space, n, seed), self.batch_size)
+        return evaluate_all(self.name, evaluate, self.samples(space, n, seed), self.batch_size)
