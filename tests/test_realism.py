@@ -12,7 +12,12 @@ import pytest
 from scipy.linalg import sqrtm
 
 from falsify.cli import main
-from falsify.realism import STATISTICS, frechet_distance, wasserstein_hist
+from falsify.realism import (
+    STATISTICS,
+    frechet_distance,
+    frechet_from_samples,
+    wasserstein_hist,
+)
 from falsify.scene import PlacedCar, Simulator
 from falsify.sensor import load_sensor
 from reports.realism import render_realism
@@ -66,6 +71,21 @@ def test_frechet_from_samples_approaches_the_closed_form() -> None:
     est = frechet_distance(x.mean(0), np.cov(x, rowvar=False), y.mean(0), np.cov(y, rowvar=False))
     exact = ((m1 - m2) ** 2).sum() + ((s1 - s2) ** 2).sum()
     assert est == pytest.approx(exact, abs=0.02)
+
+
+def test_frechet_in_sample_space_equals_the_full_form() -> None:
+    # fewer samples than dimensions on one side, as seven real scans give: the n x n form
+    # equals the d x d one (which loses ~1e-8 to the square roots of its null eigenvalues)
+    rng = np.random.default_rng(4)
+    few = rng.normal(size=(40, 64)) * rng.uniform(0.5, 2.0, 64)
+    many = rng.normal(0.3, 1.0, size=(500, 64))
+    full = frechet_distance(few.mean(0), np.cov(few, rowvar=False), many.mean(0),
+                            np.cov(many, rowvar=False))
+    assert frechet_from_samples(few, many) == pytest.approx(full, rel=1e-6)
+    assert frechet_from_samples(many, few) == pytest.approx(full, rel=1e-6)
+    assert frechet_from_samples(few, few) == pytest.approx(0.0, abs=1e-9)
+    with pytest.raises(ValueError):
+        frechet_from_samples(few[:1], many)
 
 
 def test_wasserstein_of_histograms() -> None:
