@@ -283,15 +283,13 @@ class Realism:
 
 def set_stats(name: str, images_or_set, features: EncoderFeatures) -> SetStats:
     """Statistics of a ScanSet or of a list of .npy paths (read CHUNK at a time)."""
-    from falsify.scan import load_scan_npy
-
     stats = SetStats(name)
     if isinstance(images_or_set, ScanSet):
         chunks = (images_or_set.images[i:i + CHUNK]
                   for i in range(0, len(images_or_set), CHUNK))
     else:
         paths = list(images_or_set)
-        chunks = (np.stack([load_scan_npy(p) for p in paths[i:i + CHUNK]])
+        chunks = (np.stack([_checked(p, features) for p in paths[i:i + CHUNK]])
                   for i in range(0, len(paths), CHUNK))
     for images in chunks:
         stats.add(images, features(images))
@@ -314,6 +312,18 @@ def compare(synthetic: dict[str, list[Path]], real: list[ScanSet],
     syn_stats = tuple(set_stats(name, paths, features) for name, paths in synthetic.items())
     dist = {s.name: {r.name: distances(s, r) for r in all_real} for s in syn_stats}
     return Realism(features.spec.name, features.model_hash, syn_stats, all_real, dist)
+
+
+def _checked(path: Path, features: EncoderFeatures) -> np.ndarray:
+    """A .npy scan in the network's grid, or FalsifyError naming the file."""
+    from falsify.scan import load_scan_npy
+
+    image = load_scan_npy(path)
+    want = (features.spec.height, features.spec.width)
+    if image.shape[:2] != want:
+        raise FalsifyError(f"{path}: shape {image.shape}, the network's grid is "
+                           f"{want[0]} x {want[1]} (use the KITTI front preset's dataset)")
+    return image
 
 
 def _hist(values: np.ndarray, edges: np.ndarray) -> np.ndarray:

@@ -20,7 +20,6 @@ from falsify.sensor import Sensor
 ROOT = Path(__file__).resolve().parent.parent
 # The shared real KITTI data beside the repository (evaluation only; never copied in).
 KITTI_DIR = ROOT.parent / "shared" / "data" / "kitti"
-FRONT_SENSOR = "kitti-hdl64e-front"
 
 
 @dataclass(frozen=True)

@@ -169,10 +169,14 @@ def test_realism_bad_inputs_exit_2(sets, tmp_path: Path, capsys) -> None:
     bad = tmp_path / "bad"
     bad.mkdir()
     np.save(bad / "000000.npy", np.zeros((3, 3)))
+    wide = tmp_path / "wide"
+    wide.mkdir()
+    np.save(wide / "000007.npy", np.zeros((64, 2048, 6), np.float32))
     cases = [
         ([str(tmp_path / "missing")], "missing"),
         ([str(empty)], "no .npy scans"),
         ([str(bad), "--real", str(sets["real"])], "000000.npy"),
+        ([str(wide), "--real", str(sets["real"])], "000007.npy"),
         ([str(sets["old"]), "--real", str(tmp_path / "nothing.bin")], "nothing.bin"),
         ([str(sets["old"]), "--scans", "0"], "--scans"),
         ([str(sets["old"]), "--real", str(sets["real"]), "--model", str(tmp_path / "m.onnx")],
