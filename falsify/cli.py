@@ -226,8 +226,9 @@ def _realism_text(doc: dict, out: Path) -> str:
         lines.append(f"{key:12s}" + "".join(f"{doc['distances'][n][ref][key]:26.4f}"
                                             for n in names))
     for name, cand in ((doc.get("comparison") or {}).get("candidates") or {}).items():
-        lines.append(f"{name}: closer than {doc['comparison']['baseline']} on every statistic: "
-                     f"{'yes' if cand['closer_on_every_statistic'] else 'no'}")
+        k, n = sum(cand["closer"].values()), len(cand["closer"])
+        lines.append(f"{name}: closer than {doc['comparison']['baseline']} on {k} of {n} "
+                     f"statistics; on every one: {'yes' if k == n else 'no'}")
     return "\n".join(lines)
 
 

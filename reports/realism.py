@@ -117,9 +117,10 @@ def distance_table(doc: dict) -> str:
                     f'({esc(info["unit"])})</span></th>{"".join(cells)}</tr>')
     verdict = ""
     for name, cand in comp.get("candidates", {}).items():
-        word = "closer" if cand["closer_on_every_statistic"] else "not closer"
-        verdict += (f'<p class="verdict">{esc(name)} is <b>{word}</b> to the real scans than '
-                    f'{esc(comp["baseline"])} on every statistic.</p>')
+        k, n = sum(cand["closer"].values()), len(cand["closer"])
+        every = " (every one)" if cand["closer_on_every_statistic"] else ""
+        verdict += (f'<p class="verdict">{esc(name)} is closer to the real scans than '
+                    f'{esc(comp["baseline"])} on <b>{k} of {n}</b> statistics{every}.</p>')
     return (f'<section id="distances"><h2>Distances (lower is closer)</h2>{verdict}'
             f'<table><thead><tr><th>statistic</th>{head}</tr></thead>'
             f'<tbody>{"".join(rows)}</tbody></table></section>')
