@@ -135,50 +135,106 @@ def _read_scans(paths: list[str], sensor_name: str):
 
 
 def cmd_predict(args) -> int:
-    import numpy as np
-
+    from falsify.evaluation import evaluate
     from falsify.fileio import write_npy
-    from falsify.metrics import CLASSES, class_scores, confusion, pooled
     from falsify.models.runner import load_segmenter
+    from falsify.scansets import load_sets
+    from falsify.sensor import load_sensor
 
-    scans = _read_scans(args.scans, args.sensor)
+    sets = load_sets(args.scans, load_sensor(args.sensor))
     model = load_segmenter(args.model, backend=args.backend)
+    result = evaluate(model, sets)
     out = Path(args.out)
-    counts = []
-    per_scan = []
-    labelled = bool((scans[..., 5] > 0).any())
-    for i in range(0, len(scans), 8):
-        pred = model.predict(scans[i:i + 8])
-        for k, cls in enumerate(pred.classes):
-            name = Path(args.scans[i + k]).stem
-            write_npy(out / f"{name}.pred.npy", cls.astype(np.uint8))
-            label = np.where(scans[i + k][..., 4] > 0, scans[i + k][..., 5], 0).astype(np.uint8)
-            c = confusion(cls, label, len(CLASSES))
-            counts.append(c)
-            per_scan.append({"scan": args.scans[i + k], "car_iou": class_scores(c)[1].iou})
-    summary: dict = {"model": model.spec.name, "model_hash": model.model_hash,
-                     "backend": args.backend, "scans": len(scans), "out": str(out)}
-    lines = [f"predicted {len(scans)} scans with {model.spec.name} "
-             f"({model.model_hash[:12]}, {args.backend}) into {out}"]
-    if labelled:
-        scores = class_scores(pooled(counts))
-        summary["pooled"] = {s.name: {"iou": s.iou, "precision": s.precision,
-                                      "recall": s.recall, "tp": s.tp, "fp": s.fp, "fn": s.fn,
-                                      "note": s.note} for s in scores}
-        summary["per_scan"] = per_scan
-        lines.append("class        IoU    precision  recall   (TP, FP, FN pooled over scans)")
-        for s in scores:
-            def f(v):
-                return "   -  " if v is None else f"{v:6.3f}"
-            lines.append(f"{s.name:11s} {f(s.iou)}  {f(s.precision)}    {f(s.recall)}"
-                         + (f"   ({s.note})" if s.note else ""))
-    emit(args, summary, "\n".join(lines))
+    for s in result.sets:
+        folder = out / s.name if len(result.sets) > 1 else out
+        for source, cls in zip(s.sources, s.predictions, strict=True):
+            write_npy(folder / f"{Path(source).stem}.pred.npy", cls)
+    summary = {**result.as_dict(), "backend": args.backend, "out": str(out)}
+    labelled = any(bool((s.images[..., 5] > 0).any()) for s in sets)
+    if not labelled:
+        summary = {k: v for k, v in summary.items() if k not in ("pooled", "sets")}
+    emit(args, summary, _predict_text(result, args.backend, out, labelled))
     return 0
+
+
+def _predict_text(result, backend: str, out: Path, labelled: bool) -> str:
+    """Per set: pooled scores per class, then car IoU, precision and recall per range band."""
+    def f(v):
+        return "   -  " if v is None else f"{v:6.3f}"
+
+    n = sum(len(s.sources) for s in result.sets)
+    lines = [f"predicted {n} scans with {result.model} ({result.model_hash[:12]}, {backend}) "
+             f"into {out}"]
+    if not labelled:
+        return lines[0]
+    for s in result.sets:
+        lines.append(f"\n{s.name}: {len(s.sources)} scans"
+                     + (f", {s.ignored_pixels} pixels ignored" if s.ignored_pixels else ""))
+        lines.append("class        IoU    precision  recall   (TP, FP, FN pooled over scans)")
+        for c in s.pooled.classes:
+            lines.append(f"{c.name:11s} {f(c.iou)}  {f(c.precision)}    {f(c.recall)}"
+                         + (f"   ({c.note})" if c.note else ""))
+        lines.append("car by range  IoU    precision  recall   TP      FP      FN")
+        for band, sc in s.bands:
+            c = sc.car()
+            lines.append(f"{band:11s} {f(c.iou)}  {f(c.precision)}    {f(c.recall)}  "
+                         f"{c.tp:6d}  {c.fp:6d}  {c.fn:6d}")
+    return "\n".join(lines)
 
 
 def cmd_train(args) -> int:
     from falsify.models.train import main as train_main
     return int(train_main(args.train_args) or 0)
+
+
+# -- realism --------------------------------------------------------------------------------
+def cmd_realism(args) -> int:
+    from falsify.fileio import write_json, write_text
+    from falsify.realism import EncoderFeatures, compare
+    from falsify.reports.realism import render_realism
+    from falsify.scansets import load_sets, npy_files, real_sets
+    from falsify.sensor import load_sensor
+
+    if args.scans is not None and args.scans < 1:
+        raise UsageError(f"--scans: {args.scans} must be >= 1")
+    synthetic: dict[str, list[Path]] = {}
+    for d in map(Path, args.synthetic):
+        if not d.is_dir():
+            raise UsageError(f"{d}: not a folder (expected a `falsify dataset` folder of .npy)")
+        files = npy_files(d)[: args.scans]
+        if not files:
+            raise UsageError(f"{d}: no .npy scans in this folder")
+        name = d.name if d.name not in synthetic and d.name else str(d)
+        synthetic[name] = files
+    sensor = load_sensor(args.sensor)
+    real = load_sets(args.real, sensor) if args.real else real_sets(sensor)
+    result = compare(synthetic, real, EncoderFeatures(args.model))
+    doc = result.as_dict()
+    page = render_realism(doc)
+    out = Path(args.out)
+    write_json(out / "realism.json", doc)
+    write_text(out / "realism.html", page)
+    summary = {**doc, "files": [str(out / "realism.json"), str(out / "realism.html")]}
+    emit(args, summary, _realism_text(doc, out))
+    return 0
+
+
+def _realism_text(doc: dict, out: Path) -> str:
+    """Distances to the pooled real scans, one line per statistic."""
+    ref = doc["real_pooled"]
+    names = [s["name"] for s in doc["synthetic"]]
+    parts = [r["name"] for r in doc["real"] if r["name"] != ref]
+    lines = [f"realism against {ref} ({', '.join(parts) or ref}), lower is "
+             f"closer; wrote {out / 'realism.json'} and {out / 'realism.html'}",
+             f"{'statistic':12s}" + "".join(f"{n[-24:]:>26s}" for n in names)]
+    for key in doc["statistics"]:
+        lines.append(f"{key:12s}" + "".join(f"{doc['distances'][n][ref][key]:26.4f}"
+                                            for n in names))
+    for name, cand in ((doc.get("comparison") or {}).get("candidates") or {}).items():
+        k, n = sum(cand["closer"].values()), len(cand["closer"])
+        lines.append(f"{name}: closer than {doc['comparison']['baseline']} on {k} of {n} "
+                     f"statistics; on every one: {'yes' if k == n else 'no'}")
+    return "\n".join(lines)
 
 
 # -- grid and search ------------------------------------------------------------------------
@@ -415,8 +471,12 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--json", action="store_true")
     d.set_defaults(func=cmd_dataset)
 
-    pr = sub.add_parser("predict", help="run the network on scans; IoU where labelled")
-    pr.add_argument("scans", nargs="+", help=".npy range images or KITTI .bin files")
+    pr = sub.add_parser("predict", help="run the network on scans; IoU, precision, recall per set "
+                        "and range band where labelled")
+    pr.add_argument("scans", nargs="+",
+                    help=".npy range images, KITTI .bin scans (+ .label), folders of .npy, or "
+                    "a KITTI object directory (velodyne/, label_2/, calib/: labelled from its "
+                    "3D boxes); scores are pooled per folder")
     pr.add_argument("--model", default=None)
     pr.add_argument("--backend", choices=["onnx", "torch"], default="onnx")
     pr.add_argument("--sensor", default="kitti-hdl64e-front",
@@ -424,6 +484,25 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("--out", required=True)
     pr.add_argument("--json", action="store_true")
     pr.set_defaults(func=cmd_predict)
+
+    re_ = sub.add_parser("realism", help="compare synthetic scans with real KITTI scans: "
+                         "statistics, distances, encoder-feature Frechet distance; JSON + HTML")
+    re_.add_argument("synthetic", nargs="+",
+                     help="`falsify dataset` folders of .npy scans (the first is the baseline "
+                     "the others are compared with)")
+    re_.add_argument("--out", required=True, help="folder for realism.json and realism.html")
+    re_.add_argument("--real", nargs="+", default=None,
+                     help="real scans as for predict (default: the SqueezeSeg-layout and "
+                     "SemanticKITTI sets in ../shared/data/kitti)")
+    re_.add_argument("--scans", type=int, default=None,
+                     help="use the first N scans of each synthetic folder")
+    re_.add_argument("--model", default=None,
+                     help="SqueezeSeg ONNX model whose fire9 features are compared "
+                     "(default: bundled)")
+    re_.add_argument("--sensor", default="kitti-hdl64e-front",
+                     help="preset used to project real .bin scans")
+    re_.add_argument("--json", action="store_true")
+    re_.set_defaults(func=cmd_realism)
 
     tr = sub.add_parser("train", add_help=False,
                         help="train SqueezeSeg (same options as python -m falsify.models.train)")

@@ -6,9 +6,10 @@ from pathlib import Path
 
 import pytest
 
+from falsify.scansets import KITTI_DIR as KITTI
+
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
-KITTI = ROOT.parent / "shared" / "data" / "kitti"
 
 
 @pytest.fixture

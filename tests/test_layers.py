@@ -22,7 +22,8 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("world: space, meshes, streets, sensor, casting, scans, metrics", (
         "falsify/space", "falsify/shapes", "falsify/cars", "falsify/backgrounds",
         "falsify/sensor", "falsify/raycast", "falsify/scan", "falsify/kitti", "falsify/scene",
-        "falsify/dataset", "falsify/preview", "falsify/metrics")),
+        "falsify/dataset", "falsify/preview", "falsify/metrics", "falsify/kittiobject",
+        "falsify/scansets")),
     ("network: SqueezeSeg, its spec, runners, export, training", (
         "models/*",)),
     ("results: maps, the store and its reader, replay, samplers", (
@@ -31,7 +32,8 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
         "reports/*",)),
     ("jobs: runs, pipeline, gate, report, trade-off, bench, presets", (
         "falsify/pipeline", "falsify/runs", "falsify/gate", "falsify/reporting",
-        "falsify/tradeoff", "falsify/bench", "falsify/fidelity")),
+        "falsify/tradeoff", "falsify/bench", "falsify/fidelity", "falsify/evaluation",
+        "falsify/realism")),
     ("command line", (
         "falsify/cli", "falsify/__main__")),
 )

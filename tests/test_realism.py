@@ -1,0 +1,241 @@
+"""`falsify realism`: the Fréchet distance against closed forms, histogram distances, the JSON's
+fields and determinism, bad inputs, and the page in headless Chromium."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from falsify.reports.realism import render_realism
+from scipy.linalg import sqrtm
+
+from falsify.cli import main
+from falsify.realism import (
+    STATISTICS,
+    frechet_distance,
+    frechet_from_samples,
+    wasserstein_hist,
+)
+from falsify.scene import PlacedCar, Simulator
+from falsify.sensor import load_sensor
+
+from .conftest import ROOT
+
+BUNDLED = ROOT / "models" / "weights" / "squeezeseg.onnx"
+EVIL = '<b>&"x'
+
+
+# -- distances ----------------------------------------------------------------------------------
+def test_frechet_closed_forms() -> None:
+    # 1D: (m1 - m2)² + (s1 - s2)²
+    assert frechet_distance([1.0], [[4.0]], [3.0], [[9.0]]) == pytest.approx(4.0 + 1.0)
+    # commuting (diagonal) covariances: |mu1 - mu2|² + sum (sqrt a - sqrt b)²
+    a, b = np.array([1.0, 4.0, 0.25]), np.array([9.0, 1.0, 0.25])
+    assert frechet_distance(np.zeros(3), np.diag(a), np.ones(3), np.diag(b)) == pytest.approx(
+        3.0 + ((np.sqrt(a) - np.sqrt(b)) ** 2).sum())
+    # general covariances: the textbook formula with scipy's matrix square root
+    rng = np.random.default_rng(1)
+    x, y = rng.normal(size=(6, 6)), rng.normal(size=(6, 6))
+    c1, c2 = x @ x.T + 0.1 * np.eye(6), y @ y.T + 0.1 * np.eye(6)
+    m1, m2 = rng.normal(size=6), rng.normal(size=6)
+    ref = ((m1 - m2) ** 2).sum() + np.trace(c1 + c2 - 2 * np.real(sqrtm(c1 @ c2)))
+    assert frechet_distance(m1, c1, m2, c2) == pytest.approx(ref, rel=1e-9)
+    assert frechet_distance(m1, c1, m1, c1) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_frechet_at_extremes() -> None:
+    # singular covariances (rank 1, zero): real, finite, non-negative, right value
+    v = np.array([[1.0], [2.0], [2.0]])
+    c1 = v @ v.T                                   # variance 9 along one axis
+    assert frechet_distance(np.zeros(3), c1, np.zeros(3), np.zeros((3, 3))) == pytest.approx(9.0)
+    assert frechet_distance(np.zeros(3), c1, np.zeros(3), c1) == pytest.approx(0.0, abs=1e-9)
+    # a 512-dimensional set with fewer samples than dimensions (rank-deficient, like 7 scans)
+    rng = np.random.default_rng(2)
+    f = rng.normal(size=(100, 512))
+    cov = np.cov(f, rowvar=False)
+    d = frechet_distance(f.mean(0), cov, f.mean(0), cov)
+    assert np.isfinite(d) and 0.0 <= d < 1e-6
+    big = frechet_distance(np.full(4, 1e6), np.eye(4) * 1e8, np.zeros(4), np.eye(4) * 1e-8)
+    assert big == pytest.approx(4e12 + 4 * 1e8, rel=1e-9)
+
+
+def test_frechet_from_samples_approaches_the_closed_form() -> None:
+    rng = np.random.default_rng(3)
+    m1, m2 = np.array([0.0, 1.0, -1.0]), np.array([0.5, 0.0, 0.0])
+    s1, s2 = np.array([1.0, 2.0, 0.5]), np.array([1.5, 1.0, 0.5])
+    x = rng.normal(m1, s1, size=(200_000, 3))
+    y = rng.normal(m2, s2, size=(200_000, 3))
+    est = frechet_distance(x.mean(0), np.cov(x, rowvar=False), y.mean(0), np.cov(y, rowvar=False))
+    exact = ((m1 - m2) ** 2).sum() + ((s1 - s2) ** 2).sum()
+    assert est == pytest.approx(exact, abs=0.02)
+
+
+def test_frechet_in_sample_space_equals_the_full_form() -> None:
+    # fewer samples than dimensions on one side, as seven real scans give: the n x n form
+    # equals the d x d one (which loses ~1e-8 to the square roots of its null eigenvalues)
+    rng = np.random.default_rng(4)
+    few = rng.normal(size=(40, 64)) * rng.uniform(0.5, 2.0, 64)
+    many = rng.normal(0.3, 1.0, size=(500, 64))
+    full = frechet_distance(few.mean(0), np.cov(few, rowvar=False), many.mean(0),
+                            np.cov(many, rowvar=False))
+    assert frechet_from_samples(few, many) == pytest.approx(full, rel=1e-6)
+    assert frechet_from_samples(many, few) == pytest.approx(full, rel=1e-6)
+    assert frechet_from_samples(few, few) == pytest.approx(0.0, abs=1e-9)
+    with pytest.raises(ValueError):
+        frechet_from_samples(few[:1], many)
+
+
+def test_wasserstein_of_histograms() -> None:
+    edges = np.linspace(0.0, 10.0, 11)
+    a, b = np.zeros(10), np.zeros(10)
+    a[2], b[7] = 5.0, 3.0                     # all mass at 2.5 m against all at 7.5 m
+    assert wasserstein_hist(a, b, edges) == pytest.approx(5.0)
+    assert wasserstein_hist(a, a * 7, edges) == pytest.approx(0.0)
+
+
+# -- the command ------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def sets(tmp_path_factory) -> dict[str, Path]:
+    """Three tiny 'dataset' folders: two synthetic worlds and a stand-in real set."""
+    root = tmp_path_factory.mktemp("realism")
+    sim = Simulator(load_sensor("kitti-hdl64e-front"))
+    scans = [sim.render(9100 + i, [PlacedCar("sedan", 8.0 + 4 * i, -1.0 + i, 20.0 * i, 1)])
+             for i in range(4)]
+    folders = {"old": root / "old", "new": root / EVIL, "real": root / "real"}
+    for k, folder in enumerate(folders.values()):
+        folder.mkdir()
+        for j, scan in enumerate(scans[k: k + 2]):
+            image = scan.image.copy()
+            if folder.name == "real":                 # drop the top rows: a different profile
+                image[:6] = 0
+            np.save(folder / f"{j:06d}.npy", image)
+    return folders
+
+
+def run(args: list[str], capsys) -> tuple[int, dict | None, str]:
+    code = main(args)
+    out = capsys.readouterr()
+    return code, (json.loads(out.out) if code == 0 and "--json" in args else None), out.err
+
+
+@pytest.mark.skipif(not BUNDLED.exists(), reason="bundled model not trained yet")
+def test_realism_json_fields_and_determinism(sets, tmp_path: Path, capsys) -> None:
+    args = ["realism", str(sets["old"]), str(sets["new"]), "--real", str(sets["real"]),
+            "--out", str(tmp_path / "a"), "--json"]
+    code, doc, err = run(args, capsys)
+    assert code == 0, err
+    assert [s["name"] for s in doc["synthetic"]] == ["old", EVIL]
+    assert [r["name"] for r in doc["real"]] == ["real"] and doc["real_pooled"] == "real"
+    for s in (*doc["synthetic"], *doc["real"]):
+        assert s["scans"] == 2 and len(s["row_valid"]) == 64
+        assert sum(s["range_hist"]) == pytest.approx(1.0, abs=1e-5)
+        assert sum(s["class_fraction"].values()) == pytest.approx(1.0, abs=1e-5)
+        assert s["feature_dims"] == 512 and s["feature_samples"] == 2 * 16
+    assert doc["real"][0]["row_valid"][:6] == [0.0] * 6
+    keys = [k for k, _, _ in STATISTICS]
+    assert set(doc["statistics"]) == set(keys)
+    for name in ("old", EVIL):
+        d = doc["distances"][name]["real"]
+        assert set(d) == set(keys) and all(v >= 0 for v in d.values())
+        assert d["row_valid"] > 0.05           # six empty rows of 64
+    cand = doc["comparison"]["candidates"][EVIL]
+    assert set(cand["closer"]) == set(keys)
+    assert cand["closer_on_every_statistic"] == all(cand["closer"].values())
+    # same inputs and model: the same bytes
+    args[-2] = str(tmp_path / "b")
+    assert run(args, capsys)[0] == 0
+    for f in ("realism.json", "realism.html"):
+        assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes()
+
+
+@pytest.mark.skipif(not BUNDLED.exists(), reason="bundled model not trained yet")
+def test_realism_default_real_sets(sets, tmp_path: Path, capsys, kitti_dir) -> None:
+    code, doc, err = run(["realism", str(sets["old"]), "--out", str(tmp_path), "--json"], capsys)
+    assert code == 0, err
+    assert [r["name"] for r in doc["real"]] == ["squeezeseg", "semantickitti", "pooled"]
+    assert [r["scans"] for r in doc["real"]] == [4, 3, 7]
+    assert doc["comparison"] is None
+    # real KITTI is about 85 % valid in the front view, our streets more
+    assert 0.75 < doc["real"][2]["valid_fraction"] < 0.92
+
+
+def test_realism_bad_inputs_exit_2(sets, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "out"
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    np.save(bad / "000000.npy", np.zeros((3, 3)))
+    wide = tmp_path / "wide"
+    wide.mkdir()
+    np.save(wide / "000007.npy", np.zeros((64, 2048, 6), np.float32))
+    cases = [
+        ([str(tmp_path / "missing")], "missing"),
+        ([str(empty)], "no .npy scans"),
+        ([str(bad), "--real", str(sets["real"])], "000000.npy"),
+        ([str(wide), "--real", str(sets["real"])], "000007.npy"),
+        ([str(sets["old"]), "--real", str(tmp_path / "nothing.bin")], "nothing.bin"),
+        ([str(sets["old"]), "--scans", "0"], "--scans"),
+        ([str(sets["old"]), "--real", str(sets["real"]), "--model", str(tmp_path / "m.onnx")],
+         "m.onnx"),
+    ]
+    for extra, message in cases:
+        code, _, err = run(["realism", *extra, "--out", str(out)], capsys)
+        assert code == 2 and message in err, (extra, err)
+        assert not out.exists()
+
+
+# -- the page ---------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def page_doc(sets, tmp_path_factory) -> dict:
+    if not BUNDLED.exists():
+        pytest.skip("bundled model not trained yet")
+    out = tmp_path_factory.mktemp("page")
+    assert main(["realism", str(sets["old"]), str(sets["new"]), "--real", str(sets["real"]),
+                 "--out", str(out)]) == 0
+    return json.loads((out / "realism.json").read_text())
+
+
+def test_page_escapes_and_is_self_contained(page_doc) -> None:
+    page = render_realism(page_doc)
+    assert EVIL not in page and "&lt;b&gt;&amp;&quot;x" in page
+    assert "<script" not in page
+    assert not re.search(r"""(src|href)\s*=\s*["']?(https?:|//)""", page)
+    assert "Content-Security-Policy" in page
+    assert page.count('class="chart"') == 4
+    assert page.count('class="series"') == 4 * 3          # 2 synthetic + 1 real per chart
+
+
+from .test_report import browser  # noqa: E402,F401  (the headless Chromium fixture)
+
+
+def test_page_in_chromium(browser, page_doc, tmp_path: Path) -> None:  # noqa: F811
+    from selenium.webdriver.common.by import By
+
+    path = tmp_path / "realism.html"
+    path.write_text(render_realism(page_doc), encoding="utf-8")
+    browser.get(path.as_uri())
+    charts = browser.find_elements(By.CSS_SELECTOR, "svg.chart")
+    assert len(charts) == 4 and all(c.size["width"] > 300 for c in charts)
+    lines = browser.find_elements(By.CSS_SELECTOR, "svg.chart polyline.series")
+    assert len(lines) == 12
+    # the evil set name is shown as text, not markup
+    assert EVIL in browser.find_element(By.ID, "distances").text
+    cells = browser.find_elements(By.CSS_SELECTOR, "#distances td[data-stat]")
+    assert len(cells) == len(STATISTICS) * 2
+    resources = browser.execute_script(
+        "return performance.getEntriesByType('resource').map(e => e.name)")
+    assert all(r.startswith("data:") for r in resources), resources
+    requested = []
+    for entry in browser.get_log("performance"):
+        msg = json.loads(entry["message"])["message"]
+        if msg.get("method") == "Network.requestWillBeSent":
+            requested.append(msg["params"]["request"]["url"])
+    assert any(u.startswith("file:") for u in requested)
+    assert not [u for u in requested if u.startswith(("http:", "https:", "ws:", "wss:"))]
+    assert not [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
+    shot = tmp_path / "page.png"
+    assert browser.save_screenshot(str(shot)) and shot.stat().st_size > 20_000
