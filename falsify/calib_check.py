@@ -18,21 +18,30 @@ from falsify.calibration import KITTI_PIXEL_SHIFT
 from falsify.errors import FalsifyError
 from falsify.fileio import write_bytes
 from falsify.kitti_object import frames, read_calib, read_labels, read_velodyne
-from falsify.overlay import (BOX_RGB, DONTCARE_RGB, INSIDE_RGB, OUTSIDE_RGB, depth_colours,
-                             draw_box, draw_points)
+from falsify.overlay import (
+    BOX_RGB,
+    DONTCARE_RGB,
+    INSIDE_RGB,
+    OUTSIDE_RGB,
+    depth_colours,
+    draw_box,
+    draw_points,
+)
+from falsify.pngread import png_size, read_png
 from falsify.preview import encode_png
-from falsify.pngread import read_png
 
 
 @dataclass(frozen=True)
 class ObjectCheck:
-    """One labelled object: how many points its 3D box holds and how many land in its 2D box."""
+    """One labelled object: how many of the points in its 3D box project into the image, and
+    how many of those land in its 2D box (points beyond the image's edges cannot be judged)."""
 
     frame: str
     index: int
     type: str
     points_in_box: int
     inside_2d: int
+    outside_image: int
 
     @property
     def fraction(self) -> float | None:
@@ -53,6 +62,7 @@ class CalibReport:
         n = sum(o.points_in_box for o in objs)
         k = sum(o.inside_2d for o in objs)
         return {"objects": len(objs), "points_in_boxes": n, "inside_2d": k,
+                "outside_image": sum(o.outside_image for o in objs),
                 "fraction": None if n == 0 else round(k / n, 5)}
 
     def as_dict(self) -> dict:
@@ -61,6 +71,7 @@ class CalibReport:
                 "pooled": self.pooled(), "by_type": {t: self.pooled((t,)) for t in types},
                 "objects": [{"frame": o.frame, "index": o.index, "type": o.type,
                              "points_in_box": o.points_in_box, "inside_2d": o.inside_2d,
+                             "outside_image": o.outside_image,
                              "fraction": None if o.fraction is None else round(o.fraction, 5)}
                             for o in self.objects],
                 "overlays": self.overlays}
@@ -76,24 +87,29 @@ def check_kitti_dir(directory: str | Path, out: str | Path | None) -> CalibRepor
         calib = read_calib(directory / "calib" / f"{fid}.txt")
         labels = read_labels(directory / "label_2" / f"{fid}.txt")
         pts = read_velodyne(directory / "velodyne" / f"{fid}.bin")
+        img_path = directory / "image_2" / f"{fid}.png"
+        if not img_path.exists():
+            raise FalsifyError(f"{img_path}: missing; a KITTI frame needs its camera image")
+        rgb = read_png(img_path) if out is not None else None
+        w, h = png_size(img_path)
         rect = calib.velo_to_rect(pts[:, :3])
         u, v, depth = calib.rect_to_image(rect)
+        # KITTI pixel k spans [k - 0.5, k + 0.5): the image is [-0.5, w - 0.5) x [-0.5, h - 0.5).
+        in_image = np.isfinite(u) & (u >= -KITTI_PIXEL_SHIFT) & (u < w - KITTI_PIXEL_SHIFT) \
+            & (v >= -KITTI_PIXEL_SHIFT) & (v < h - KITTI_PIXEL_SHIFT)
         flags = np.zeros(len(pts), np.int8)  # 0 not in a box, 1 inside its 2D box, 2 outside
         for k, obj in enumerate(labels):
             if obj.type == "DontCare":
                 continue
             inb = obj.contains(rect) & (depth > 0)
+            judged = inb & in_image
             left, top, right, bottom = obj.box2d
-            ok = inb & (u >= left) & (u <= right) & (v >= top) & (v <= bottom)
-            objects.append(ObjectCheck(fid, k, obj.type, int(inb.sum()), int(ok.sum())))
+            ok = judged & (u >= left) & (u <= right) & (v >= top) & (v <= bottom)
+            objects.append(ObjectCheck(fid, k, obj.type, int(judged.sum()), int(ok.sum()),
+                                       int((inb & ~in_image).sum())))
             flags[ok] = 1
-            flags[inb & ~ok] = 2
-        if out is not None:
-            img_path = directory / "image_2" / f"{fid}.png"
-            if not img_path.exists():
-                raise FalsifyError(f"{img_path}: missing; the overlay needs the camera image")
-            rgb = read_png(img_path)
-            h, w, _ = rgb.shape
+            flags[judged & ~ok] = 2
+        if rgb is not None:
             col = np.floor(np.nan_to_num(u, nan=-1) + KITTI_PIXEL_SHIFT).astype(np.int64)
             row = np.floor(np.nan_to_num(v, nan=-1) + KITTI_PIXEL_SHIFT).astype(np.int64)
             seen = np.isfinite(u) & (col >= 0) & (col < w) & (row >= 0) & (row < h)

@@ -16,8 +16,15 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from falsify.calibration import (LIDAR_TO_OPTICAL, MIN_DEPTH, Extrinsic, KittiCalib, Pinhole,
-                                 pixel_index, project_points)
+from falsify.calibration import (
+    LIDAR_TO_OPTICAL,
+    MIN_DEPTH,
+    Extrinsic,
+    KittiCalib,
+    Pinhole,
+    pixel_index,
+    project_points,
+)
 from falsify.errors import ConfigError
 from falsify.scene import PlacedCar, Simulator
 from falsify.sensor import SensorPose
@@ -236,7 +243,10 @@ class CameraRenderer:
         return (rows * w + cols).ravel()
 
     def render(self, bg_id: int, placed: Sequence[PlacedCar], pose: SensorPose = SensorPose(),
-               look: Look = Look()) -> CameraImage:
+               look: Look = Look(), paints: Sequence[tuple[float, float, float]] | None = None
+               ) -> CameraImage:
+        """The camera image of cars on a background; `paints` gives each car its own colour
+        (default: every car in `look.colour`)."""
         base = self._background(bg_id, pose)
         hits = _Hits(base.t.copy(), base.owner.copy(), base.prim.copy(), base.normal.copy())
         origin, rot = self.pose_of(pose)
@@ -256,7 +266,9 @@ class CameraRenderer:
             sel = idx[nearer]
             hits.t[sel], hits.owner[sel], hits.prim[sel] = t[nearer], k, prim[nearer]
             hits.normal[sel] = ng[nearer]
-        return self._finish(bg_id, placed, hits, origin, rot, look, unoccluded)
+        if paints is None:
+            paints = [look.colour] * len(placed)
+        return self._finish(bg_id, placed, hits, origin, rot, look, paints, unoccluded)
 
     def render_sample(self, sample: Sample, pose: SensorPose = SensorPose()) -> CameraImage:
         """The camera image of a sample (InvalidSample for impossible scenes, as for scans)."""
@@ -264,7 +276,7 @@ class CameraRenderer:
                            look_of(sample))
 
     # -- labels and shading -------------------------------------------------------------------
-    def _finish(self, bg_id, placed, hits: _Hits, origin, rot, look: Look,
+    def _finish(self, bg_id, placed, hits: _Hits, origin, rot, look: Look, paints,
                 unoccluded: dict[int, int]) -> CameraImage:
         caster, bg = self.sim.background(bg_id)
         h, w = self.camera.shape
@@ -279,7 +291,7 @@ class CameraRenderer:
             cls[mine], inst[mine] = car.cls, car.instance
         dirs = self._rays_cam @ rot.T
         depth = np.where(hit, hits.t * self._rays_cam[:, 2], 0.0)
-        rgb = _shade(self, caster, bg, placed, hits, hit, dirs, origin, rot[:, 2], look)
+        rgb = _shade(self, caster, bg, placed, paints, hits, hit, dirs, origin, rot[:, 2], look)
         return CameraImage(rgb.reshape(h, w, 3), cls.reshape(h, w), inst.reshape(h, w),
                            depth.reshape(h, w).astype(np.float32), unoccluded)
 
@@ -326,7 +338,7 @@ _PARKED = np.array([list(COLOURS[c]) for c in ("red", "white", "black", "silver"
                                                 "blue", "green")])
 
 
-def _shade(r: CameraRenderer, bg_caster, bg, placed, hits: _Hits, hit, dirs, origin,
+def _shade(r: CameraRenderer, bg_caster, bg, placed, paints, hits: _Hits, hit, dirs, origin,
            axis: np.ndarray, look: Look):
     """Lambert plus a sun highlight on paint, cast shadows, sky light, headlights at night,
     and weather as attenuation with depth and darkening; returns (H·W, 3) uint8."""
@@ -366,7 +378,7 @@ def _shade(r: CameraRenderer, bg_caster, bg, placed, hits: _Hits, hit, dirs, ori
         local = (pos[mine] - car.translation()) @ car.rotation()
         n_loc = normal[mine] / np.maximum(np.linalg.norm(normal[mine], axis=1,
                                                          keepdims=True), 1e-12)
-        paint = np.tile(np.asarray(look.colour), (len(mine), 1))
+        paint = np.tile(np.asarray(paints[k], np.float64), (len(mine), 1))
         glass = (local[:, 2] > 0.62 * height) & (local[:, 2] < 0.96 * height) \
             & (np.abs(n_loc[:, 2]) < 0.8)
         paint[glass] = (0.02, 0.025, 0.03)
@@ -454,3 +466,42 @@ def _rain_streaks(shape: tuple[int, int]) -> np.ndarray:
         ok = (rr < h) & (cc < w)
         out[rr[ok], cc[ok]] = 1.0
     return out
+
+
+def class_picture(image: CameraImage) -> np.ndarray:
+    """(H, W, 3) uint8 class image: classes in the preview colours, unknown shaded by depth,
+    sky dark."""
+    from falsify.preview import CLASS_RGB, EMPTY_RGB
+    rgb = CLASS_RGB[np.clip(image.cls, 0, 3)].astype(np.float32)
+    unknown = image.cls == 0
+    rgb[unknown] *= (1.0 - np.clip(image.depth[unknown] / 80.0, 0.0, 0.75))[:, None]
+    rgb[image.depth <= 0] = EMPTY_RGB
+    return rgb.astype(np.uint8)
+
+
+def overlay_picture(image: CameraImage, camera: Camera, points: np.ndarray) -> np.ndarray:
+    """The paper's figure 1b: LiDAR points (sensor frame) drawn on the RGB image, far first,
+    coloured by depth."""
+    from falsify.overlay import depth_colours, draw_points
+    u, v, depth = project_points(points, camera.intrinsics, camera.extrinsic)
+    col, row, inside = pixel_index(u, v, camera.intrinsics)
+    order = np.flatnonzero(inside)
+    order = order[np.argsort(-depth[order], kind="stable")]
+    return draw_points(image.rgb.copy(), col[order], row[order], depth_colours(depth[order]),
+                       size=2)
+
+
+def camera_files(image: CameraImage, prefix: str = "") -> dict[str, bytes]:
+    """The files that hold one camera frame: RGB and class PNGs, class, instance and depth."""
+    import io
+
+    from falsify.preview import encode_png
+
+    def npy(a: np.ndarray) -> bytes:
+        buf = io.BytesIO()
+        np.save(buf, a, allow_pickle=False)
+        return buf.getvalue()
+    return {f"{prefix}image.png": encode_png(image.rgb),
+            f"{prefix}class.png": encode_png(class_picture(image)),
+            f"{prefix}class.npy": npy(image.cls), f"{prefix}instance.npy": npy(image.instance),
+            f"{prefix}depth.npy": npy(image.depth)}

@@ -31,6 +31,20 @@ def read_png(path: str | Path) -> np.ndarray:
         raise FalsifyError(f"{path}: {exc}") from None
 
 
+def png_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) from a PNG's header, without decoding it."""
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(24)
+    except OSError as exc:
+        raise FalsifyError(f"{path}: cannot read ({exc.strerror})") from None
+    if head[:8] != _SIGNATURE or head[12:16] != b"IHDR":
+        raise FalsifyError(f"{path}: not a PNG file")
+    w, h = struct.unpack(">II", head[16:24])
+    return int(w), int(h)
+
+
 def decode_png(data: bytes) -> np.ndarray:
     """Decode PNG bytes to (H, W, 3) uint8; ValueError names what is not supported."""
     if data[:8] != _SIGNATURE:

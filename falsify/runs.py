@@ -44,6 +44,7 @@ class RunRequest:
     fidelity: str = "exact"
     report: bool = True
     quiet: bool = False
+    camera: str | None = None    # camera preset: render the retraining set's images too
 
 
 def prepare(req: RunRequest):
@@ -61,6 +62,10 @@ def prepare(req: RunRequest):
     if req.threshold is not None and not 0 < req.threshold <= 1:
         raise FalsifyError(f"--threshold: {req.threshold} must be in (0, 1]")
     sampler = make_sampler(req.algorithm)
+    if req.camera is not None:
+        from falsify.camera import camera_preset, check_looks
+        camera_preset(req.camera)
+        check_looks(space)
     if req.backend == "torch" and req.fidelity != "exact":
         raise FalsifyError(f"--fidelity {req.fidelity} runs an ONNX variant of the network; "
                            "use --backend onnx or --fidelity exact")
@@ -125,11 +130,12 @@ def execute(req: RunRequest) -> dict:
                        computed_last=progress.computed)
     finally:
         store.close()
-    return finish(req.out, space, threshold=req.threshold, report=req.report, settings=settings)
+    return finish(req.out, space, threshold=req.threshold, report=req.report, settings=settings,
+                  camera=req.camera)
 
 
 def finish(run: Path, space: Space, threshold: float | None = None, report: bool = True,
-           settings: EvalSettings | None = None) -> dict:
+           settings: EvalSettings | None = None, camera: str | None = None) -> dict:
     """Maps, blind spots, retraining set, CSV/Parquet, report and the summary of a run."""
     from falsify.store import read_frame
     meta = read_meta(run)
@@ -143,7 +149,7 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
         write_bytes(maps_dir / f"miou_{a}_{b}.csv",
                     miou_map(frame, space, a, b).to_frame().to_csv(index=False).encode())
     export(frame, run / "results")
-    retrain = write_retraining_set(run, space, frame, cmap, thr, settings)
+    retrain = write_retraining_set(run, space, frame, cmap, thr, settings, camera)
     ok = frame[frame["status"] == "ok"]
     lowest = None
     if len(ok):
@@ -162,7 +168,7 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
         "blind_spot_cells": [{"x": c.a, "y": c.b, "miou": round(c.miou, 4), "samples": c.samples}
                              for c in blind],
         "lowest": lowest, "elapsed_s": meta.get("elapsed_s"),
-        "retraining_samples": retrain,
+        "retraining_samples": retrain, "retraining_camera": camera,
         "mean_car_iou": None if not len(ok) else round(float(ok["car_iou"].mean()), 4),
     }
     write_json(run / "summary.json", summary)
@@ -187,8 +193,10 @@ def extra_map_pairs(space: Space) -> list[tuple[str, str]]:
 
 
 def write_retraining_set(run: Path, space: Space, frame: pd.DataFrame, cmap: CellMap,
-                         threshold: float, settings: EvalSettings | None) -> int:
-    """Scans of every valid sample in a blind-spot cell, in SqueezeSeg's layout, plus index.csv."""
+                         threshold: float, settings: EvalSettings | None,
+                         camera: str | None = None) -> int:
+    """Scans of every valid sample in a blind-spot cell, in SqueezeSeg's layout, plus index.csv;
+    with a camera preset, each scan's camera files (NNNNNN.image.png, ...) beside it."""
     from falsify.maps import snap
     out = run / "retrain"
     if out.exists():
@@ -208,12 +216,19 @@ def write_retraining_set(run: Path, space: Space, frame: pd.DataFrame, cmap: Cel
     from falsify.sensor import load_sensor
     sim = Simulator(load_sensor(space.sensor, **settings.sensor_overrides), space.user_cars,
                     lod=settings.lod)
+    renderer = None
+    if camera is not None:
+        from falsify.camera import CameraRenderer, camera_files, camera_preset
+        renderer = CameraRenderer(sim, camera_preset(camera))
     rows = []
     for _, row in chosen.iterrows():
         sample = space.make({d: _plain(row[d]) for d in space.dims})
         scan = sim.scan(sample, rng=np.random.default_rng(sample_seed(space, sample)))
         name = f"{int(row['eval_index']):06d}.npy"
         write_npy(out / name, scan.image)
+        if renderer is not None:
+            for fname, data in camera_files(renderer.render_sample(sample), name[:-3]).items():
+                write_bytes(out / fname, data)
         rows.append({"file": name, "eval_index": int(row["eval_index"]),
                      **{d: _plain(row[d]) for d in space.dims},
                      "car_iou": float(row["car_iou"])})
