@@ -83,10 +83,6 @@ class Pinhole:
     cx: float
     cy: float
 
-    @property
-    def matrix(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
     def paper_setup(self, f: float = 1.0) -> PaperSetup:
         """The paper's symbols for this camera; only valid with square pixels and the principal
         point at the image centre (the paper's set-up)."""
@@ -184,9 +180,6 @@ class KittiCalib:
         safe = np.where(front, w, 1.0)
         return (np.where(front, h[:, 0] / safe, np.nan), np.where(front, h[:, 1] / safe, np.nan),
                 w)
-
-    def project_velo(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return self.rect_to_image(self.velo_to_rect(points))
 
     def camera2(self, width: int, height: int) -> tuple[Pinhole, Extrinsic]:
         """Camera 2 as intrinsics (this module's pixel convention) and a Velodyne extrinsic."""

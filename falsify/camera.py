@@ -17,7 +17,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from falsify.calibration import (
-    LIDAR_TO_OPTICAL,
     MIN_DEPTH,
     Extrinsic,
     KittiCalib,
@@ -84,7 +83,7 @@ def camera_preset(name: str) -> Camera:
     if name == "kitti-centre":
         intr = Pinhole(KITTI_WIDTH, KITTI_HEIGHT, KITTI_FOCAL, KITTI_FOCAL, KITTI_WIDTH / 2,
                        KITTI_HEIGHT / 2)
-        return Camera(name, intr, Extrinsic(LIDAR_TO_OPTICAL.copy(), np.zeros(3)))
+        return Camera(name, intr, Extrinsic.shared_centre())
     if name == "kitti-rig":
         calib = KittiCalib((KITTI_P2,) * 4, KITTI_R0_RECT, KITTI_TR_VELO_TO_CAM)
         intr, ext = calib.camera2(KITTI_WIDTH, KITTI_HEIGHT)

@@ -99,5 +99,3 @@ def register(sub) -> None:
                    help="--scenes: the camera preset")
     c.add_argument("--json", action="store_true")
     c.set_defaults(func=cmd_calib)
-
-

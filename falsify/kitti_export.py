@@ -8,7 +8,7 @@ points, sensor frame), `image_2/N.png`, `calib/N.txt` (our camera as P2 with R0_
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -110,7 +110,7 @@ def write_kitti_object(sensor: Sensor, camera: Camera, out: Path, frames: int, s
         for box, visible, count, alone in boxes_in_view(sim, bg_id, placed, pose, image):
             obj = object_label(box, calib, visible, count, alone, (w, h))
             if alone < 0:  # occlusion of background objects is not computed: KITTI's "unknown"
-                obj = type(obj)(**{**obj.__dict__, "occluded": 3})
+                obj = replace(obj, occluded=3)
             lines.append(obj.line())
             counts[obj.type] = counts.get(obj.type, 0) + 1
         pts = scan.image[scan.valid][:, :4].astype(np.float32)

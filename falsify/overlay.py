@@ -8,7 +8,7 @@ import numpy as np
 _RAMP = np.array([[253, 231, 37], [94, 201, 98], [33, 145, 140], [59, 82, 139], [68, 1, 84]],
                  np.float64)
 INSIDE_RGB = (0, 255, 60)
-OUTSIDE_RGB = (255, 30, 30)
+OUTSIDE_RGB = (255, 0, 255)
 BOX_RGB = (255, 210, 0)
 DONTCARE_RGB = (150, 150, 150)
 
