@@ -178,7 +178,7 @@ class CameraImage:
 
 
 @dataclass
-class _Hits:
+class Hits:
     """Nearest hit per pixel (flat): distance, owner (-1 background, k = car k), primitive,
     unnormalised normal in the owner's frame."""
 
@@ -188,15 +188,41 @@ class _Hits:
     normal: np.ndarray
 
 
-class CameraRenderer:
-    """Renders samples with a Simulator's BVHs; background hits are cached per (background,
-    pose) like the LiDAR's."""
+@dataclass(frozen=True)
+class _Street:
+    """What one (background, pose) gives every image: its hits and their labels and depth."""
 
-    def __init__(self, sim: Simulator, camera: Camera, max_cached: int = 4):
+    hits: Hits
+    cls: np.ndarray
+    inst: np.ndarray
+    depth: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Shaded:
+    """The street shaded for one look with no car: RGB and which pixels the sun lights."""
+
+    rgb: np.ndarray
+    lit: np.ndarray
+    points: np.ndarray  # hit points of the lit pixels (world), for the cars' shadow test
+
+
+class CameraRenderer:
+    """Renders samples with a Simulator's BVHs. The street without cars is cast once per
+    (background, pose) and shaded once per look, like the LiDAR's cached background hits; an
+    image then re-shades only the pixels a car covers or may shade."""
+
+    def __init__(self, sim: Simulator, camera: Camera, max_cached: int = 4,
+                 incremental: bool = True):
+        """`incremental=False` shades every pixel of every image (the reference the incremental
+        path is tested against)."""
         self.sim = sim
         self.camera = camera
+        self.incremental = incremental
         self._rays_cam = camera.intrinsics.rays().reshape(-1, 3)
-        self._cache: OrderedDict[tuple, _Hits] = OrderedDict()
+        self.streaks = _rain_streaks(camera.shape).ravel()
+        self._streets: OrderedDict[tuple, _Street] = OrderedDict()
+        self._shaded: OrderedDict[tuple, _Shaded] = OrderedDict()
         self._max_cached = max_cached
 
     def pose_of(self, pose: SensorPose) -> tuple[np.ndarray, np.ndarray]:
@@ -205,22 +231,46 @@ class CameraRenderer:
         ext = self.camera.extrinsic
         return pose.origin(self.sim.sensor) + s_rot @ ext.centre, s_rot @ ext.rotation.T
 
-    def _background(self, bg_id: int, pose: SensorPose) -> _Hits:
-        key = (bg_id, pose)
-        if key in self._cache:
-            self._cache.move_to_end(key)
-            return self._cache[key]
-        caster, _ = self.sim.background(bg_id)
-        origin, rot = self.pose_of(pose)
-        t, prim, ng = caster.cast_with_normals(origin, self._rays_cam @ rot.T,
-                                               self.camera.max_depth)
-        hits = _Hits(t, np.full(t.shape, -1, np.int16), prim, ng)
-        for a in (hits.t, hits.owner, hits.prim, hits.normal):
-            a.setflags(write=False)
-        self._cache[key] = hits
-        while len(self._cache) > self._max_cached:
-            self._cache.popitem(last=False)
-        return hits
+    def _cached(self, cache: OrderedDict, key: tuple, make):
+        if key in cache:
+            cache.move_to_end(key)
+            return cache[key]
+        value = make()
+        cache[key] = value
+        while len(cache) > max(1, self._max_cached):
+            cache.popitem(last=False)
+        return value
+
+    def _street(self, bg_id: int, pose: SensorPose) -> _Street:
+        def make() -> _Street:
+            caster, bg = self.sim.background(bg_id)
+            origin, rot = self.pose_of(pose)
+            t, prim, ng = caster.cast_with_normals(origin, self._rays_cam @ rot.T,
+                                                   self.camera.max_depth)
+            hit = prim >= 0
+            cls = np.zeros(t.shape, np.uint8)
+            inst = np.zeros(t.shape, np.int32)
+            cls[hit] = bg.face_class[prim[hit]]
+            inst[hit] = bg.face_instance[prim[hit]]
+            depth = np.where(hit, t * self._rays_cam[:, 2], 0.0).astype(np.float32)
+            street = _Street(Hits(t, np.full(t.shape, -1, np.int16), prim, ng), cls, inst,
+                             depth)
+            for a in (t, prim, ng, street.hits.owner, cls, inst, depth):
+                a.setflags(write=False)
+            return street
+        return self._cached(self._streets, (bg_id, pose), make)
+
+    def _shaded_street(self, bg_id: int, pose: SensorPose, look: Look) -> _Shaded:
+        street = self._street(bg_id, pose)
+
+        def make() -> _Shaded:
+            h = street.hits
+            everything = np.arange(len(h.t))
+            rgb, lit, points = self._shade(bg_id, pose, [], [], h, everything, look)
+            for a in (rgb, lit, points):
+                a.setflags(write=False)
+            return _Shaded(rgb, lit, points)
+        return self._cached(self._shaded, (bg_id, pose, look), make)
 
     def window(self, car: PlacedCar, pose: SensorPose) -> np.ndarray:
         """Flat pixel indices whose rays can reach the car's bounding box."""
@@ -246,8 +296,9 @@ class CameraRenderer:
                ) -> CameraImage:
         """The camera image of cars on a background; `paints` gives each car its own colour
         (default: every car in `look.colour`)."""
-        base = self._background(bg_id, pose)
-        hits = _Hits(base.t.copy(), base.owner.copy(), base.prim.copy(), base.normal.copy())
+        street = self._street(bg_id, pose)
+        base = street.hits
+        hits = Hits(base.t.copy(), base.owner.copy(), base.prim.copy(), base.normal.copy())
         origin, rot = self.pose_of(pose)
         unoccluded = {}
         for k, car in enumerate(placed):
@@ -267,32 +318,66 @@ class CameraRenderer:
             hits.normal[sel] = ng[nearer]
         if paints is None:
             paints = [look.colour] * len(placed)
-        return self._finish(bg_id, placed, hits, origin, rot, look, paints, unoccluded)
+        on_car = np.flatnonzero(hits.owner >= 0)
+        cls, inst, depth = street.cls.copy(), street.inst.copy(), street.depth.copy()
+        owner = hits.owner[on_car]
+        cls[on_car] = np.array([c.cls for c in placed], np.uint8)[owner]
+        inst[on_car] = np.array([c.instance for c in placed], np.int32)[owner]
+        depth[on_car] = hits.t[on_car] * self._rays_cam[on_car, 2]
+        h, w = self.camera.shape
+        if not self.incremental:
+            rgb = self._shade(bg_id, pose, placed, paints, hits, np.arange(h * w), look)[0]
+            return CameraImage(rgb.reshape(h, w, 3), cls.reshape(h, w), inst.reshape(h, w),
+                               depth.reshape(h, w), unoccluded)
+        shaded = self._shaded_street(bg_id, pose, look)
+        redo = np.zeros(len(hits.t), bool)
+        redo[on_car] = True
+        if placed and len(shaded.points):
+            sun_d = _sun(look)[0]
+            lit_px = np.flatnonzero(shaded.lit)
+            for car in placed:  # street pixels whose sun ray passes a car's box
+                _, corners = self.sim.car_caster(car.model)
+                lo, hi = corners.min(axis=0), corners.max(axis=0)
+                # First a cheap bound: the box's shadow reaches no further than its height
+                # over the sun's slope beyond its footprint's circle.
+                p = shaded.points
+                reach = np.linalg.norm(hi[:2] - lo[:2]) / 2 + (hi[2] - lo[2] + 0.1) / max(
+                    sun_d[2], 1e-3) * math.hypot(sun_d[0], sun_d[1])
+                centre = car.translation()[:2] + car.rotation()[:2, :2] @ ((lo[:2] + hi[:2]) / 2)
+                close = np.flatnonzero((p[:, 0] - centre[0]) ** 2 + (p[:, 1] - centre[1]) ** 2
+                                       <= reach ** 2)
+                c_rot = car.rotation()
+                near = _slab((p[close] - car.translation()) @ c_rot, sun_d @ c_rot, lo, hi)
+                redo[lit_px[close[near]]] = True
+        redo = np.flatnonzero(redo)
+        rgb = shaded.rgb.copy()
+        if len(redo):
+            rgb[redo] = self._shade(bg_id, pose, placed, paints, hits, redo, look)[0]
+        return CameraImage(rgb.reshape(h, w, 3), cls.reshape(h, w), inst.reshape(h, w),
+                           depth.reshape(h, w), unoccluded)
 
     def render_sample(self, sample: Sample, pose: SensorPose = SensorPose()) -> CameraImage:
         """The camera image of a sample (InvalidSample for impossible scenes, as for scans)."""
         return self.render(sample.background, self.sim.placed_cars(sample), pose,
                            look_of(sample))
 
-    # -- labels and shading -------------------------------------------------------------------
-    def _finish(self, bg_id, placed, hits: _Hits, origin, rot, look: Look, paints,
-                unoccluded: dict[int, int]) -> CameraImage:
+    def _shade(self, bg_id: int, pose: SensorPose, placed, paints, hits: Hits,
+               idx: np.ndarray, look: Look) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """RGB (uint8) of pixels `idx`, which of them the sun lights, and those lit points."""
         caster, bg = self.sim.background(bg_id)
-        h, w = self.camera.shape
-        hit = np.isfinite(hits.t)
-        on_bg = hit & (hits.owner < 0)
-        cls = np.zeros(h * w, np.uint8)
-        inst = np.zeros(h * w, np.int32)
-        cls[on_bg] = bg.face_class[hits.prim[on_bg]]
-        inst[on_bg] = bg.face_instance[hits.prim[on_bg]]
-        for k, car in enumerate(placed):
-            mine = hits.owner == k
-            cls[mine], inst[mine] = car.cls, car.instance
-        dirs = self._rays_cam @ rot.T
-        depth = np.where(hit, hits.t * self._rays_cam[:, 2], 0.0)
-        rgb = _shade(self, caster, bg, placed, paints, hits, hit, dirs, origin, rot[:, 2], look)
-        return CameraImage(rgb.reshape(h, w, 3), cls.reshape(h, w), inst.reshape(h, w),
-                           depth.reshape(h, w).astype(np.float32), unoccluded)
+        origin, rot = self.pose_of(pose)
+        sub = Hits(hits.t[idx], hits.owner[idx], hits.prim[idx], hits.normal[idx])
+
+        def shadow_test(points: np.ndarray, sun_d: np.ndarray) -> np.ndarray:
+            return _shadowed(self, caster, placed, points, sun_d)
+        return shade(self, bg, placed, paints, sub, self._rays_cam[idx] @ rot.T, origin,
+                     rot[:, 2], look, self.streaks[idx], shadow_test)
+
+
+# Linear light to 8-bit sRGB-like values (gamma 2.2) through a table: 16 linear steps per code.
+_GAMMA = (np.linspace(0.0, 1.0, 4096) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
+# Fog and rain take the sky's colour 10 degrees above the horizon.
+_HAZE_RAY = np.array([[math.cos(math.radians(10)), 0.0, math.sin(math.radians(10))]])
 
 
 def _sun(look: Look) -> tuple[np.ndarray, float, np.ndarray]:
@@ -318,7 +403,7 @@ def _sky(look: Look, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     dusk = float(np.clip(1.0 - abs(sun_el) * 5.0, 0.0, 1.0))
     horizon = horizon * (1 - 0.5 * dusk) + 0.5 * dusk * np.array([0.95, 0.50, 0.30])
     night = np.array([0.004, 0.006, 0.02])
-    sky = (horizon + (zenith - horizon) * up ** 0.5) * day + night * (1 - day)
+    sky = (horizon + (zenith - horizon) * np.sqrt(up)) * day + night * (1 - day)
     ambient = horizon * (0.35 * day) + np.array([0.01, 0.012, 0.025])
     return sky, ambient
 
@@ -337,11 +422,15 @@ _PARKED = np.array([list(COLOURS[c]) for c in ("red", "white", "black", "silver"
                                                 "blue", "green")])
 
 
-def _shade(r: CameraRenderer, bg_caster, bg, placed, paints, hits: _Hits, hit, dirs, origin,
-           axis: np.ndarray, look: Look):
+def shade(r: CameraRenderer, bg, placed, paints, hits: Hits, dirs, origin, axis: np.ndarray,
+          look: Look, streaks: np.ndarray, shadow_test
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Lambert plus a sun highlight on paint, cast shadows, sky light, headlights at night,
-    and weather as attenuation with depth and darkening; returns (H·W, 3) uint8."""
+    and weather as attenuation with depth and darkening, for the rays `dirs` and their hits
+    (`shadow_test(points, sun_dir)` says which points the sun cannot see); returns RGB (N, 3)
+    uint8, which pixels the sun lights, and the lit hit points."""
     n = len(hits.t)
+    hit = np.isfinite(hits.t)
     pos = origin + dirs * np.where(hit, hits.t, 0.0)[:, None]
     normal = hits.normal.astype(np.float64)
     albedo = np.zeros((n, 3))
@@ -349,8 +438,8 @@ def _shade(r: CameraRenderer, bg_caster, bg, placed, paints, hits: _Hits, hit, d
     # Background surfaces, by class and shape.
     b = np.flatnonzero(hit & (hits.owner < 0))
     cls, inst = bg.face_class[hits.prim[b]], bg.face_instance[hits.prim[b]]
-    nb = normal[b] / np.maximum(np.linalg.norm(normal[b], axis=1, keepdims=True), 1e-12)
-    up = np.abs(nb[:, 2]) > 0.9
+    nb = normal[b]
+    up = np.abs(nb[:, 2]) > 0.9 * np.sqrt(np.einsum("ij,ij->i", nb, nb))
     z, y, x = pos[b, 2], pos[b, 1], pos[b, 0]
     col = _palette(hits.prim[b] // 12, _BUILDING)
     road = up & (z < 0.05) & (np.abs(y) < bg.road_half_width)
@@ -387,12 +476,15 @@ def _shade(r: CameraRenderer, bg_caster, bg, placed, paints, hits: _Hits, hit, d
         spec[mine] = np.where(low, 0.05, np.where(glass, 0.9, 0.5))
         normal[mine] = normal[mine] @ car.rotation().T
     # Light.
-    nrm = normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    nrm = normal / np.maximum(np.sqrt(np.einsum("ij,ij->i", normal, normal)), 1e-12)[:, None]
     nrm *= np.where(np.einsum("ij,ij->i", nrm, dirs) > 0, -1.0, 1.0)[:, None]
     sun_d, sun_k, sun_c = _sun(look)
     sky, ambient = _sky(look, dirs)
-    lit = hit & (nrm @ sun_d > 0) & (sun_k > 0)
-    lit[lit] = ~_shadowed(r, bg_caster, placed, pos[lit] + nrm[lit] * 0.02, sun_d)
+    facing = np.flatnonzero(hit & (nrm @ sun_d > 0) & (sun_k > 0))
+    points = pos[facing] + nrm[facing] * 0.02
+    free = ~shadow_test(points, sun_d)
+    lit = np.zeros(n, bool)
+    lit[facing[free]] = True
     lambert = np.where(lit, nrm @ sun_d, 0.0)
     sky_light = 0.6 + 0.4 * np.clip(nrm[:, 2], 0.0, 1.0)
     light = ambient[None, :] * sky_light[:, None] + sun_k * lambert[:, None] * sun_c
@@ -402,23 +494,28 @@ def _shade(r: CameraRenderer, bg_caster, bg, placed, paints, hits: _Hits, hit, d
         beam = np.clip((cos_axis - 0.9) * 10.0, 0.0, 1.0) * 40.0 / (dist ** 2 + 25.0)
         light = light + (beam * np.clip(-np.einsum("ij,ij->i", nrm, dirs), 0, 1))[:, None] \
             * np.array([1.0, 0.95, 0.85])
-    half = sun_d[None, :] - dirs
-    half /= np.linalg.norm(half, axis=1, keepdims=True)
-    highlight = spec * np.where(lit, np.clip(np.einsum("ij,ij->i", nrm, half), 0, 1) ** 60, 0.0)
-    out = albedo * light + highlight[:, None] * sun_k * sun_c
-    reflect = spec * 0.25 * (1 - np.clip(-np.einsum("ij,ij->i", nrm, dirs), 0, 1)) ** 2
-    out += reflect[:, None] * sky
+    out = albedo * light
+    shiny = np.flatnonzero(spec > 0)  # paint and glass: a sun highlight and the sky reflected
+    if len(shiny):
+        d, nr, sp = dirs[shiny], nrm[shiny], spec[shiny]
+        half = sun_d[None, :] - d
+        half /= np.sqrt(np.einsum("ij,ij->i", half, half))[:, None]
+        cos_h = np.clip(np.einsum("ij,ij->i", nr, half), 0, 1)
+        highlight = sp * np.where(lit[shiny], cos_h ** 60, 0.0)
+        reflect = sp * 0.25 * (1 - np.clip(-np.einsum("ij,ij->i", nr, d), 0, 1)) ** 2
+        out[shiny] += highlight[:, None] * sun_k * sun_c + reflect[:, None] * sky[shiny]
     if look.weather == "rain":
         out *= 0.8  # wet, dull surfaces
     out = np.where(hit[:, None], out, sky)
     # Weather: attenuation towards the horizon's colour with distance.
     dist = np.where(hit, hits.t, r.camera.max_depth * 4)
     keep = np.exp(-dist * _EXTINCTION[look.weather])[:, None]
-    haze = sky.mean(axis=0) if look.weather in ("fog", "rain") else sky
+    haze = _sky(look, _HAZE_RAY)[0] if look.weather in ("fog", "rain") else sky
     out = out * keep + haze * (1 - keep)
     if look.weather == "rain":
-        out = out + 0.08 * _rain_streaks(r.camera.shape).reshape(-1, 1) * haze
-    return (np.clip(out, 0.0, 1.0) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
+        out = out + 0.08 * streaks[:, None] * haze
+    rgb = _GAMMA[(np.clip(out, 0.0, 1.0) * (len(_GAMMA) - 1) + 0.5).astype(np.int64)]
+    return rgb, lit, points[free]
 
 
 def _shadowed(r: CameraRenderer, bg_caster, placed, points: np.ndarray,
@@ -442,13 +539,20 @@ def _shadowed(r: CameraRenderer, bg_caster, placed, points: np.ndarray,
 
 
 def _slab(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Which rays o + s d (s > 0) cross the box [lo, hi]."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / np.where(d == 0, 1e-30, d)
-        t1, t2 = (lo - o) * inv, (hi - o) * inv
-    tmin = np.minimum(t1, t2).max(axis=1)
-    tmax = np.maximum(t1, t2).min(axis=1)
-    return (tmax >= np.maximum(tmin, 0.0))
+    """Which rays o + s d (s > 0, one direction d for all) cross the box [lo, hi]."""
+    tmin = np.zeros(len(o))
+    tmax = np.full(len(o), np.inf)
+    for k in range(3):
+        if abs(d[k]) < 1e-12:  # parallel to this slab: inside it or never
+            outside = (o[:, k] < lo[k]) | (o[:, k] > hi[k])
+            tmax[outside] = -1.0
+            continue
+        t1, t2 = (lo[k] - o[:, k]) / d[k], (hi[k] - o[:, k]) / d[k]
+        if d[k] < 0:
+            t1, t2 = t2, t1
+        np.maximum(tmin, t1, out=tmin)
+        np.minimum(tmax, t2, out=tmax)
+    return tmax >= tmin
 
 
 def _rain_streaks(shape: tuple[int, int]) -> np.ndarray:

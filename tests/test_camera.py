@@ -236,3 +236,38 @@ def test_grid_camera_stores_retraining_images(tmp_path, capsys):
     assert main(["grid", str(bad), "--out", str(tmp_path / "bad"), "--quiet", "--camera"]) == 2
     assert "dims.weather: 'snow' is not a weather" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+
+
+def test_incremental_shading_equals_full_shading(sim):
+    """Re-shading only the car pixels and the street pixels a car may shade gives the same
+    bytes as shading every pixel, for sun, night and rain, several cars, and a moved ego."""
+    cam = camera_preset("kitti-centre").scaled(0.4)
+    fast = CameraRenderer(sim, cam)
+    full = CameraRenderer(sim, cam, incremental=False)
+    cars = [PlacedCar("suv", 9.0, 3.0, 200.0, 1), PlacedCar("van", 16.0, -4.0, 10.0, 2),
+            PlacedCar("sedan", 25.0, 1.0, 90.0, 3)]
+    for look, pose in ((Look(hour=16.5), SensorPose()), (Look(hour=9.0), SensorPose(5.0, 1.0)),
+                       (parse_look({"weather": "rain", "time_of_day": "night"}), SensorPose()),
+                       (Look(hour=12.0, weather="fog"), SensorPose(-3.0, 0.0, 4.0))):
+        for placed in (cars, cars[:1], []):
+            a = fast.render(2, placed, pose, look)
+            b = full.render(2, placed, pose, look)
+            assert np.array_equal(a.rgb, b.rgb), (look, pose, len(placed))
+            assert np.array_equal(a.cls, b.cls) and np.array_equal(a.depth, b.depth)
+
+
+def test_naive_path_renders_the_same_image(sim):
+    """`bench camera`'s naive path (one merged trimesh scene, trimesh's ray queries, every pixel
+    shaded) makes the image the fast path makes: the speed ratio compares like with like."""
+    from falsify.bench_camera import naive_image
+
+    space = load_space(CONFIGS / "paper.toml")
+    cam = camera_preset("kitti-centre").scaled(0.3)
+    r = CameraRenderer(sim, cam)
+    s = space.make({"x": -3, "y": 8, "background": 4})
+    fast = r.render_sample(s)
+    rgb, owner = naive_image(space, s, r)
+    assert np.mean(owner == np.where(fast.instance == 1, 0, np.where(fast.depth > 0, -1, -2))) \
+        > 0.995
+    close = np.abs(rgb.astype(int) - fast.rgb.astype(int)).max(axis=2) <= 2
+    assert close.mean() > 0.99, close.mean()
