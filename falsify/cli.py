@@ -56,18 +56,30 @@ def cmd_scan(args) -> int:
     sample = space.make(_set_pairs(args.set or []))
     sensor = load_sensor(space.sensor)
     sim = Simulator(sensor, space.user_cars)
+    camera = None
+    if args.camera is not None:
+        from falsify.camera import camera_preset, look_of
+        camera = camera_preset(args.camera)
+        look_of(sample)  # a value the camera cannot render fails before anything is written
     try:
         scan = sim.scan(sample)
     except InvalidSample as exc:
         raise FalsifyError(f"invalid sample: {exc}") from None
     out = Path(args.out)
-    write_npy(out / "scan.npy", scan.image)
-    write_bytes(out / "scan.png", encode_png(scan_picture(scan.image)))
     summary = {
         "sample": sample.as_dict(), "sensor": sensor.name, "shape": list(scan.image.shape),
         "points": int(scan.valid.sum()), "car_points": scan.count(1),
         "files": [str(out / "scan.npy"), str(out / "scan.png")],
     }
+    extra: dict[str, bytes] = {}
+    if camera is not None:
+        from falsify.camera_cli import scan_camera_files
+        extra, summary["camera"] = scan_camera_files(sim, camera, sample, scan)
+    write_npy(out / "scan.npy", scan.image)
+    write_bytes(out / "scan.png", encode_png(scan_picture(scan.image)))
+    for name, data in extra.items():
+        write_bytes(out / name, data)
+        summary["files"].append(str(out / name))
     emit(args, summary, f"wrote {out / 'scan.npy'} and {out / 'scan.png'}: "
          f"{summary['points']} points, {summary['car_points']} on cars")
     return 0
@@ -99,6 +111,12 @@ def cmd_dataset(args) -> int:
     sensor = load_sensor(space.sensor, ray_drop=args.ray_drop, range_noise=args.range_noise)
     opts = TrafficOptions(max_cars=args.max_cars, backgrounds=args.backgrounds,
                           first_background=args.first_background)
+    if args.format == "kitti-object":
+        from falsify.camera_cli import dataset_kitti_object
+        summary, text = dataset_kitti_object(sensor, args.camera, Path(args.out), args.scans,
+                                             args.seed, opts)
+        emit(args, summary, text)
+        return 0
     def progress(done: int, total: int) -> None:
         print(f"  {done}/{total} scans", flush=True)
 
@@ -295,7 +313,8 @@ def _run(args, command: str, algorithm: str) -> int:
         config=Path(args.config), out=Path(args.out), command=command, algorithm=algorithm,
         budget=getattr(args, "budget", None), seed=args.seed, model=args.model,
         backend=args.backend, workers=args.workers, resume=args.resume,
-        threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report)
+        threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
+        camera=args.camera)
     summary = execute(req, on_progress=None if args.quiet else ProgressBar())
     emit(args, summary.to_json(), summary_text(summary))
     return 0
@@ -325,7 +344,15 @@ def _run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fidelity", default="exact", choices=["fast", "balanced", "exact"])
     p.add_argument("--no-report", action="store_true")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _camera_option(p, "also store the camera images of the retraining set beside its scans")
     p.add_argument("--json", action="store_true")
+
+
+def _camera_option(p: argparse.ArgumentParser, help_text: str) -> None:
+    from falsify.camera import CAMERA_PRESETS, DEFAULT_CAMERA
+    p.add_argument("--camera", nargs="?", const=DEFAULT_CAMERA, default=None, metavar="PRESET",
+                   help=f"{help_text} (presets: {', '.join(CAMERA_PRESETS)}; "
+                   f"default {DEFAULT_CAMERA})")
 
 
 # -- bench ----------------------------------------------------------------------------------
@@ -384,6 +411,9 @@ def cmd_bench(args) -> int:
         text = (f"scan: {round(sb.fast_n, 1)} scans/s on {sb.workers} processes "
                 f"({round(sb.fast_1, 1)} on 1), naive {round(sb.naive, 3)} scans/s: "
                 f"{round(sb.fast_n / sb.naive, 1)}x")
+    elif args.what == "camera":
+        from falsify.camera_cli import bench_camera_text
+        result, text = bench_camera_text(args)
     else:
         raise UsageError(f"bench {args.what}: not available")
     emit(args, result, text)
@@ -454,6 +484,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True)
     s.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="fix a dimension (repeatable); other dims take their first value")
+    _camera_option(s, "also render the camera: image.png, class.png/.npy, instance.npy, "
+                   "depth.npy and overlay.png")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_scan)
 
@@ -468,6 +500,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--ray-drop", type=float, default=0.05,
                    help="probability that a return is dropped (real sensors lose some)")
     d.add_argument("--range-noise", type=float, default=0.02, help="range noise sigma, m")
+    d.add_argument("--format", choices=["npy", "kitti-object"], default="npy",
+                   help="npy: range images; kitti-object: velodyne, image_2, calib, label_2")
+    d.add_argument("--camera", default="kitti-centre", metavar="PRESET",
+                   help="kitti-object: the camera preset (kitti-centre or kitti-rig)")
     d.add_argument("--json", action="store_true")
     d.set_defaults(func=cmd_dataset)
 
@@ -524,7 +560,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from falsify.tradeoff import KNOBS
     b = sub.add_parser("bench", help="measure a fast path beside its naive path")
-    b.add_argument("what", choices=["scan", "model", "pipeline", "search"])
+    b.add_argument("what", choices=["scan", "model", "pipeline", "search", "camera"])
     b.add_argument("--config", default=str(DEFAULT_CONFIG))
     b.add_argument("--samples", type=int, default=1000)
     b.add_argument("--naive-samples", type=int, default=5)
@@ -538,6 +574,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", default=None, help="bench search: where its runs go")
     b.add_argument("--fraction", type=float, default=0.2,
                    help="bench search: budget as a fraction of the dense grid")
+    b.add_argument("--camera-preset", default="kitti-centre",
+                   help="bench camera: the camera preset")
     b.add_argument("--json", action="store_true")
     b.set_defaults(func=cmd_bench)
 
@@ -580,6 +618,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="use only the first N samples of the grid (quick runs)")
     t.add_argument("--json", action="store_true")
     t.set_defaults(func=cmd_tradeoff)
+
+    from falsify.camera_cli import register as register_camera
+    register_camera(sub)
     return p
 
 

@@ -40,9 +40,17 @@ class MeshCaster:
 
         Directions must be unit vectors so that the returned distance is the range in metres.
         """
+        t, prim, _ = self.cast_with_normals(origins, directions, max_dist)
+        return t, prim
+
+    def cast_with_normals(self, origins: np.ndarray, directions: np.ndarray,
+                          max_dist: np.ndarray | float
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """As `cast`, plus each hit's unnormalised geometric normal (N×3 float32, the camera
+        shades with it)."""
         n = len(directions)
         if n == 0:
-            return np.empty(0), np.empty(0, dtype=np.int32)
+            return np.empty(0), np.empty(0, dtype=np.int32), np.empty((0, 3), np.float32)
         o = np.ascontiguousarray(np.broadcast_to(origins - self.anchor, (n, 3)), dtype=np.float32)
         d = np.ascontiguousarray(directions, dtype=np.float32)
         dist = np.ascontiguousarray(np.broadcast_to(max_dist, (n,)), dtype=np.float32)
@@ -51,4 +59,4 @@ class MeshCaster:
         t = res["tfar"].astype(np.float64)
         hit = prim >= 0
         t[~hit] = MISS
-        return t, prim
+        return t, prim, res["Ng"]

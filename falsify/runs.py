@@ -50,6 +50,7 @@ class RunRequest:
     threshold: float | None = None
     fidelity: str = "exact"
     report: bool = True
+    camera: str | None = None    # camera preset: render the retraining set's images too
 
 
 @dataclass(frozen=True)
@@ -75,6 +76,10 @@ def prepare(req: RunRequest) -> Prepared:
     if req.threshold is not None and not 0 < req.threshold <= 1:
         raise FalsifyError(f"--threshold: {req.threshold} must be in (0, 1]")
     sampler = make_sampler(req.algorithm)
+    if req.camera is not None:
+        from falsify.camera import camera_preset, check_looks
+        camera_preset(req.camera)
+        check_looks(space)
     if req.backend == "torch" and req.fidelity != "exact":
         raise FalsifyError(f"--fidelity {req.fidelity} runs an ONNX variant of the network; "
                            "use --backend onnx or --fidelity exact")
@@ -137,13 +142,15 @@ class RunSummary:
     retraining_samples: int
     mean_car_iou: float | None
     report: str | None = None
+    retraining_camera: str | None = None   # the camera preset whose images sit beside the scans
     search: SearchResult | None = field(default=None, repr=False)
 
     def to_json(self) -> dict:
         """Plain JSON data; `report` only when one was written."""
         out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "search"}
-        if out["report"] is None:
-            del out["report"]
+        for optional in ("report", "retraining_camera"):
+            if out[optional] is None:
+                del out[optional]
         return out
 
 
@@ -171,12 +178,14 @@ def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> Run
     finally:
         store.close()
     return finish(req.out, p.space, threshold=req.threshold, report=req.report,
-                  lod=p.settings.lod, model=p.model, search=search)
+                  lod=p.settings.lod, model=p.model, search=search,
+                  camera=req.camera)
 
 
 def finish(run: Path, space: Space, threshold: float | None = None, report: bool = True,
            lod: int = 2, model: Segmenter | None = None,
-           search: SearchResult | None = None) -> RunSummary:
+           search: SearchResult | None = None,
+           camera: str | None = None) -> RunSummary:
     """Maps, blind spots, retraining set, CSV/Parquet, report and the summary of a run."""
     data = RunData(run, read_meta(run), read_frame(run), space)
     meta, frame = data.meta, data.frame
@@ -189,7 +198,7 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
         write_bytes(maps_dir / f"miou_{a}_{b}.csv",
                     miou_map(frame, space, a, b).to_frame().to_csv(index=False).encode())
     export(frame, run / "results")
-    retrain = write_retraining_set(data, cmap, thr, lod)
+    retrain = write_retraining_set(data, cmap, thr, lod, camera)
     ok = data.ok
     lowest = None
     if len(ok):
@@ -208,6 +217,7 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
         blind_spot_cells=[{"x": c.a, "y": c.b, "miou": round(c.miou, 4), "samples": c.samples}
                           for c in blind],
         lowest=lowest, elapsed_s=meta.get("elapsed_s"), retraining_samples=retrain,
+        retraining_camera=camera,
         mean_car_iou=None if not len(ok) else round(float(ok["car_iou"].mean()), 4),
         search=search)
     write_json(run / "summary.json", summary.to_json())
@@ -228,8 +238,10 @@ def extra_map_pairs(space: Space) -> list[tuple[str, str]]:
     return pairs
 
 
-def write_retraining_set(data: RunData, cmap: CellMap, threshold: float, lod: int = 2) -> int:
-    """Scans of every valid sample in a blind-spot cell, in SqueezeSeg's layout, plus index.csv."""
+def write_retraining_set(data: RunData, cmap: CellMap, threshold: float, lod: int = 2,
+                         camera: str | None = None) -> int:
+    """Scans of every valid sample in a blind-spot cell, in SqueezeSeg's layout, plus index.csv;
+    with a camera preset, each scan's camera files (NNNNNN.image.png, ...) beside it."""
     space, frame = data.space, data.frame
     out = data.path / "retrain"
     if out.exists():
@@ -243,11 +255,18 @@ def write_retraining_set(data: RunData, cmap: CellMap, threshold: float, lod: in
     if not len(chosen):
         return 0
     replay = Replay(space, lod=lod)
+    renderer = None
+    if camera is not None:
+        from falsify.camera import CameraRenderer, camera_files, camera_preset
+        renderer = CameraRenderer(replay.sim, camera_preset(camera))
     rows = []
     for _, row in chosen.iterrows():
-        _, scan = replay.scan(row)
+        sample, scan = replay.scan(row)
         name = f"{int(row['eval_index']):06d}.npy"
         write_npy(out / name, scan.image)
+        if renderer is not None:
+            for fname, data in camera_files(renderer.render_sample(sample), name[:-3]).items():
+                write_bytes(out / fname, data)
         rows.append({"file": name, "eval_index": int(row["eval_index"]),
                      **{d: _plain(row[d]) for d in space.dims},
                      "car_iou": float(row["car_iou"])})

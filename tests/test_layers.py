@@ -23,7 +23,8 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
         "falsify/space", "falsify/shapes", "falsify/cars", "falsify/backgrounds",
         "falsify/sensor", "falsify/raycast", "falsify/scan", "falsify/kitti", "falsify/scene",
         "falsify/dataset", "falsify/preview", "falsify/metrics", "falsify/kittiobject",
-        "falsify/scansets")),
+        "falsify/scansets", "falsify/calibration", "falsify/camera", "falsify/kitti_object",
+        "falsify/kitti_export", "falsify/overlay", "falsify/pngread")),
     ("network: SqueezeSeg, its spec, runners, export, training", (
         "models/*",)),
     ("results: maps, the store and its reader, replay, samplers", (
@@ -33,9 +34,9 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("jobs: runs, pipeline, gate, report, trade-off, bench, presets", (
         "falsify/pipeline", "falsify/runs", "falsify/gate", "falsify/reporting",
         "falsify/tradeoff", "falsify/bench", "falsify/fidelity", "falsify/evaluation",
-        "falsify/realism")),
+        "falsify/realism", "falsify/calib_check", "falsify/bench_camera")),
     ("command line", (
-        "falsify/cli", "falsify/__main__")),
+        "falsify/cli", "falsify/__main__", "falsify/camera_cli")),
 )
 
 
