@@ -17,7 +17,7 @@ import numpy as np
 from falsify.calibration import KITTI_PIXEL_SHIFT
 from falsify.errors import FalsifyError
 from falsify.fileio import write_bytes
-from falsify.kitti_object import frames, read_calib, read_labels, read_velodyne
+from falsify.kitti_object import frames, in_rect, read_calib, read_labels, read_velodyne
 from falsify.overlay import (
     BOX_RGB,
     DONTCARE_RGB,
@@ -88,8 +88,6 @@ def check_kitti_dir(directory: str | Path, out: str | Path | None) -> CalibRepor
         labels = read_labels(directory / "label_2" / f"{fid}.txt")
         pts = read_velodyne(directory / "velodyne" / f"{fid}.bin")
         img_path = directory / "image_2" / f"{fid}.png"
-        if not img_path.exists():
-            raise FalsifyError(f"{img_path}: missing; a KITTI frame needs its camera image")
         rgb = read_png(img_path) if out is not None else None
         w, h = png_size(img_path)
         rect = calib.velo_to_rect(pts[:, :3])
@@ -103,8 +101,7 @@ def check_kitti_dir(directory: str | Path, out: str | Path | None) -> CalibRepor
                 continue
             inb = obj.contains(rect) & (depth > 0)
             judged = inb & in_image
-            left, top, right, bottom = obj.box2d
-            ok = judged & (u >= left) & (u <= right) & (v >= top) & (v <= bottom)
+            ok = judged & in_rect(u, v, obj.box2d)
             objects.append(ObjectCheck(fid, k, obj.type, int(judged.sum()), int(ok.sum()),
                                        int((inb & ~in_image).sum())))
             flags[ok] = 1

@@ -27,17 +27,24 @@ def write_kitti(scan: Scan, bin_path: str | Path, label_path: str | Path) -> Non
     ((inst << 16) | TO_SEMANTICKITTI[cls]).astype(np.uint32).tofile(label_path)
 
 
+def read_bin(path: str | Path) -> np.ndarray:
+    """(N, 4) float32 x, y, z, remission of a KITTI .bin as stored (non-finite rows kept, so a
+    .label's rows still line up); FalsifyError naming the file when it is not N x 4."""
+    path = Path(path)
+    try:
+        raw = np.fromfile(path, dtype=np.float32)
+    except OSError as exc:
+        raise FalsifyError(f"{path}: cannot read ({exc.strerror})") from None
+    if raw.size % 4:
+        raise FalsifyError(f"{path}: size is not a multiple of 4 float32 (x, y, z, remission)")
+    return raw.reshape(-1, 4)
+
+
 def read_kitti(bin_path: str | Path, label_path: str | Path | None,
                sensor: Sensor) -> Scan:
     """Read a KITTI .bin (+ SemanticKITTI .label) and project it with `sensor`'s layout."""
     bin_path = Path(bin_path)
-    try:
-        raw = np.fromfile(bin_path, dtype=np.float32)
-    except OSError as exc:
-        raise FalsifyError(f"{bin_path}: cannot read ({exc.strerror})") from None
-    if raw.size % 4:
-        raise FalsifyError(f"{bin_path}: size is not a multiple of 4 float32 (x, y, z, remission)")
-    pts = raw.reshape(-1, 4)
+    pts = read_bin(bin_path)
     cls = np.zeros(len(pts), dtype=np.uint8)
     inst = np.zeros(len(pts), dtype=np.int32)
     if label_path is not None:

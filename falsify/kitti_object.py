@@ -4,6 +4,9 @@ of our scenes as `velodyne/*.bin`, `image_2/*.png`, `calib/*.txt`, `label_2/*.tx
 Label boxes live in the rectified camera-0 frame (x right, y down, z forward): `location` is the
 bottom centre of the box, `rotation_y` turns the box's length axis about y (0 = along x). 2D
 boxes and P matrices use KITTI's pixel convention (pixel centres on integers).
+
+Box geometry lives here too: which Velodyne points lie inside a label's 3D box (tested in the
+rectified frame, through `KittiCalib.velo_to_rect`) and which project into an image rectangle.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import numpy as np
 
 from falsify.calibration import KITTI_PIXEL_SHIFT, KittiCalib
 from falsify.errors import FalsifyError
+from falsify.kitti import read_bin
 
 TYPES = ("Car", "Van", "Truck", "Pedestrian", "Person_sitting", "Cyclist", "Tram", "Misc",
          "DontCare")
@@ -79,6 +83,11 @@ class KittiObject:
     location: tuple[float, float, float]      # bottom centre, rectified camera frame (m)
     rotation_y: float
 
+    @property
+    def has_3d(self) -> bool:
+        """False for DontCare lines, whose dimensions are -1: only an image region."""
+        return min(self.dimensions) > 0
+
     def line(self) -> str:
         b, d, p = self.box2d, self.dimensions, self.location
         return (f"{self.type} {self.truncated:.2f} {self.occluded:d} {self.alpha:.2f} "
@@ -105,6 +114,27 @@ def rot_y(ry: float) -> np.ndarray:
     """KITTI's rotation about the camera's y axis."""
     c, s = math.cos(ry), math.sin(ry)
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def in_rect(u: np.ndarray, v: np.ndarray, rect: tuple[float, float, float, float]
+            ) -> np.ndarray:
+    """Which pixel coordinates lie in a (left, top, right, bottom) rectangle, edges included;
+    NaN (a point behind the camera) lies in none."""
+    left, top, right, bottom = rect
+    return (u >= left) & (u <= right) & (v >= top) & (v <= bottom)
+
+
+def points_in_box(points: np.ndarray, obj: KittiObject, calib: KittiCalib) -> np.ndarray:
+    """Bool per Velodyne-frame point: inside the label's 3D box (boundary included)."""
+    return obj.contains(calib.velo_to_rect(points))
+
+
+def points_in_rect(points: np.ndarray, rect: tuple[float, float, float, float],
+                   calib: KittiCalib) -> np.ndarray:
+    """Bool per Velodyne-frame point: in front of camera 2 and projected (P2) into `rect`; how a
+    DontCare region, which has no 3D extent, selects points."""
+    u, v, _ = calib.rect_to_image(calib.velo_to_rect(points))
+    return in_rect(u, v, rect)
 
 
 def read_labels(path: str | Path) -> list[KittiObject]:
@@ -134,30 +164,35 @@ def read_labels(path: str | Path) -> list[KittiObject]:
 
 def read_velodyne(path: str | Path) -> np.ndarray:
     """(N, 4) float32 x, y, z, reflectance; non-finite rows dropped."""
-    path = Path(path)
-    try:
-        raw = np.fromfile(path, dtype=np.float32)
-    except OSError as exc:
-        raise FalsifyError(f"{path}: cannot read ({exc.strerror})") from None
-    if raw.size % 4:
-        raise FalsifyError(f"{path}: size is not a multiple of 4 float32 (x, y, z, reflectance)")
-    pts = raw.reshape(-1, 4)
+    pts = read_bin(path)
     return pts[np.isfinite(pts).all(axis=1)]
 
 
+_FILES = (("velodyne", "bin"), ("calib", "txt"), ("label_2", "txt"), ("image_2", "png"))
+
+
+def is_object_dir(path: Path) -> bool:
+    """A folder laid out as KITTI's objects (velodyne/ and label_2/ beside each other)."""
+    return (path / "velodyne").is_dir() and (path / "label_2").is_dir()
+
+
 def frames(directory: Path) -> list[str]:
-    """Frame ids present in all four folders of a KITTI object directory."""
-    missing = [d for d in ("velodyne", "image_2", "calib", "label_2")
-               if not (directory / d).is_dir()]
+    """Frame ids of a KITTI object directory (its velodyne/*.bin), sorted; FalsifyError naming
+    the folder or file when one is missing: every frame needs all four files."""
+    missing = [d for d, _ in _FILES if not (directory / d).is_dir()]
     if missing:
         raise FalsifyError(f"{directory}: not a KITTI object directory (missing "
                            f"{', '.join(missing)}/; expected velodyne, image_2, calib, label_2)")
     ids = sorted(p.stem for p in (directory / "velodyne").glob("*.bin"))
-    ids = [i for i in ids if (directory / "calib" / f"{i}.txt").exists()
-           and (directory / "label_2" / f"{i}.txt").exists()]
     if not ids:
-        raise FalsifyError(f"{directory}: no frame has velodyne/N.bin, calib/N.txt and "
-                           "label_2/N.txt")
+        raise FalsifyError(f"{directory}: no velodyne/*.bin frames in this KITTI object "
+                           "directory")
+    for i in ids:
+        for d, ext in _FILES:
+            if not (directory / d / f"{i}.{ext}").is_file():
+                raise FalsifyError(f"{directory / d / f'{i}.{ext}'}: missing (a KITTI object "
+                                   "frame needs velodyne/, calib/, label_2/ and image_2/ files "
+                                   "of the same name)")
     return ids
 
 

@@ -14,7 +14,8 @@ import numpy as np
 
 from falsify.errors import FalsifyError
 from falsify.kitti import load_scan_npy, read_kitti
-from falsify.kittiobject import frame_names, is_object_dir, read_object_frame
+from falsify.kitti_frames import read_object_frame
+from falsify.kitti_object import frames, is_object_dir
 from falsify.sensor import Sensor
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -53,11 +54,9 @@ def read_set(name: str, paths: list[Path], sensor: Sensor) -> ScanSet:
 
 def read_object_set(root: Path, sensor: Sensor) -> ScanSet:
     """All frames of a KITTI object directory, labelled from their boxes."""
-    names = frame_names(root)
-    if not names:
-        raise FalsifyError(f"{root}: no velodyne/*.bin frames in this KITTI object directory")
-    frames = [read_object_frame(root, n, sensor) for n in names]
-    return _stack(root.name, [f.scan.image for f in frames], [f.ignore for f in frames],
+    names = frames(root)
+    read = [read_object_frame(root, n, sensor) for n in names]
+    return _stack(root.name, [f.scan.image for f in read], [f.ignore for f in read],
                   [str(root / "velodyne" / f"{n}.bin") for n in names])
 
 

@@ -1,19 +1,37 @@
-"""`falsify dataset --format kitti-object`: KITTI's layout, readable by our own KITTI reader,
-deterministic, and consistent (points in 3D boxes land in the 2D boxes); label I/O."""
+"""KITTI's object layout: label, calib and velodyne files read and written, boxes in the camera
+frame holding their Velodyne points (the camera-to-Velodyne transform), and
+`falsify dataset --format kitti-object`: readable by our own reader, deterministic, and
+consistent (points in 3D boxes land in the 2D boxes)."""
 
 from __future__ import annotations
 
 import json
+import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from falsify.calib_check import check_kitti_dir
+from falsify.calibration import KittiCalib
 from falsify.cli import main
 from falsify.errors import FalsifyError
-from falsify.kitti_object import KittiObject, read_calib, read_labels, read_velodyne
+from falsify.kitti_object import (
+    KittiObject,
+    format_calib,
+    frames,
+    points_in_box,
+    points_in_rect,
+    read_calib,
+    read_labels,
+    read_velodyne,
+)
 
 from .conftest import CONFIGS
+
+P2 = np.array([[700.0, 0, 600, 0], [0, 700, 180, 0], [0, 0, 1, 0]])
+# Velodyne (x fwd, y left, z up) -> camera (x right, y down, z fwd), no rectification.
+AXES = KittiCalib((P2,) * 4, np.eye(3), np.array([[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]]))
 
 
 @pytest.fixture(scope="module")
@@ -74,16 +92,91 @@ def test_label_line_round_trip(tmp_path):
     assert inside.tolist() == [True, False]
 
 
-@pytest.mark.parametrize(("line", "message"), [
-    ("Tank 0 0 0 1 2 3 4 1 1 1 0 0 5 0", "unknown type 'Tank'; allowed: Car"),
-    ("Car 0 0 0 1 2 3", "7 fields, expected 15"),
-    ("Car 0 0 0 1 2 3 4 1 1 x 0 0 5 0", "must be numbers"),
+def test_points_inside_a_rotated_box() -> None:
+    # A 4 m long, 2 m wide, 1.5 m high box, bottom centre 10 m ahead and 2 m left of the sensor
+    # at ground level (camera y = +1.7 m: down), turned by rotation_y = 0.6 rad.
+    ry = 0.6
+    box = KittiObject("Car", 0, 0, 0, (0, 0, 0, 0), (1.5, 2.0, 4.0), (-2.0, 1.7, 10.0), ry)
+    rng = np.random.default_rng(0)
+    pts = rng.uniform([6, -2, -3], [14, 6, 1], size=(20000, 3))
+    inside = points_in_box(pts, box, AXES)
+    # Expected, worked out by hand in the Velodyne frame: the length axis is the camera x axis
+    # turned by rotation_y about the camera's y (down) axis, then mapped to Velodyne axes.
+    c, s = math.cos(ry), math.sin(ry)
+    length_cam = np.array([c, 0.0, -s])                  # R_y @ (1, 0, 0)
+    length_velo = np.array([length_cam[2], -length_cam[0], -length_cam[1]])
+    width_velo = np.cross([0.0, 0.0, 1.0], length_velo)
+    d = pts - np.array([10.0, 2.0, -1.7 + 0.75])
+    expected = ((np.abs(d @ length_velo) <= 2.0) & (np.abs(d @ width_velo) <= 1.0)
+                & (np.abs(d[:, 2]) <= 0.75))
+    assert expected.sum() > 500
+    assert (inside == expected).all()
+    # the corners, back in the Velodyne frame, span the ground (-1.7 m) to 1.5 m above it
+    corners = np.linalg.solve(AXES.Tr_velo_to_cam[:, :3], box.corners().T).T
+    assert corners[:, 2].min() == pytest.approx(-1.7) and corners[:, 2].max() == pytest.approx(
+        -0.2)
+    assert corners.mean(axis=0) == pytest.approx([10.0, 2.0, -0.95])
+
+
+def test_image_rectangle_selects_the_frustum() -> None:
+    pts = np.array([[10.0, 0.0, 0.0], [10.0, 5.0, 0.0], [-10.0, 0.0, 0.0]])
+    # straight ahead projects to the principal point (600, 180); left and behind do not
+    assert points_in_rect(pts, (590.0, 170.0, 610.0, 190.0), AXES).tolist() == [True, False,
+                                                                               False]
+
+
+def test_frame_000001_boxes_hold_their_points(kitti_dir: Path) -> None:
+    root = kitti_dir / "object"
+    pts = read_velodyne(root / "velodyne" / "000001.bin")[:, :3]
+    calib = read_calib(root / "calib" / "000001.txt")
+    boxes = {b.type: b for b in read_labels(root / "label_2" / "000001.txt") if b.has_3d}
+    counts = {k: int(points_in_box(pts, b, calib).sum()) for k, b in boxes.items()}
+    # The car is 58 m away and sparsely hit (9 points); the truck at 69 m holds 70.
+    assert counts["Car"] >= 5 and counts["Truck"] >= 50 and counts["Cyclist"] >= 10, counts
+    # Each box's points project into the object's 2D box in the image: the transform is right.
+    for kind, box in boxes.items():
+        inside = pts[points_in_box(pts, box, calib)]
+        u, v, _ = calib.rect_to_image(calib.velo_to_rect(inside))
+        left, top, right, bottom = box.box2d
+        assert (u > left - 5).all() and (u < right + 5).all(), kind
+        assert (v > top - 5).all() and (v < bottom + 5).all(), kind
+    # Read as if label_2 were in the Velodyne frame, the boxes miss their points entirely.
+    naive = KittiCalib(calib.P, np.eye(3), np.eye(3, 4))
+    assert all(points_in_box(pts, b, naive).sum() == 0 for b in boxes.values())
+
+
+_CALIB = format_calib(AXES)
+
+
+@pytest.mark.parametrize(("name", "text", "message"), [
+    ("l.txt", "Tank 0 0 0 1 2 3 4 1 1 1 0 0 5 0", "unknown type 'Tank'; allowed: Car"),
+    ("l.txt", "Car 0 0 0 1 2 3", "7 fields, expected 15"),
+    ("l.txt", "Car 0 0 0 1 2 3 4 1 1 x 0 0 5 0", "must be numbers"),
+    ("c.txt", "P2: 1 2 3\n", "missing P0"),
+    ("c.txt", _CALIB.replace("P2: ", "P2: 1 2 3 #"), "P2: not a list of numbers"),
+    ("c.txt", _CALIB.replace("R0_rect: ", "R0_rect: 1 "), "R0_rect has 10 values, expected 9"),
 ])
-def test_bad_label_line_names_file_and_line(tmp_path, line, message):
-    path = tmp_path / "l.txt"
-    path.write_text(line + "\n")
-    with pytest.raises(FalsifyError, match=message):
-        read_labels(path)
+def test_bad_files_name_themselves(tmp_path, name, text, message):
+    path = tmp_path / name
+    path.write_text(text + "\n")
+    reader = read_labels if name == "l.txt" else read_calib
+    with pytest.raises(FalsifyError, match=message) as err:
+        reader(path)
+    assert str(path) in str(err.value)
+
+
+def test_frames_name_a_frame_missing_a_file(tmp_path):
+    for d, ext in (("velodyne", "bin"), ("image_2", "png"), ("calib", "txt"), ("label_2", "txt")):
+        (tmp_path / d).mkdir()
+        (tmp_path / d / f"000000.{ext}").write_bytes(b"")
+    assert frames(tmp_path) == ["000000"]
+    (tmp_path / "label_2" / "000000.txt").unlink()
+    with pytest.raises(FalsifyError, match="label_2/000000.txt: missing"):
+        frames(tmp_path)
+    for f in (tmp_path / "velodyne").iterdir():
+        f.unlink()
+    with pytest.raises(FalsifyError, match="no velodyne/"):
+        frames(tmp_path)
 
 
 def test_dataset_bad_camera_exits_2(tmp_path, capsys):

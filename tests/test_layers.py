@@ -22,7 +22,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("world: space, meshes, streets, sensor, casting, scans, metrics", (
         "falsify/space", "falsify/shapes", "falsify/cars", "falsify/backgrounds",
         "falsify/sensor", "falsify/raycast", "falsify/scan", "falsify/kitti", "falsify/scene",
-        "falsify/dataset", "falsify/preview", "falsify/metrics", "falsify/kittiobject",
+        "falsify/dataset", "falsify/preview", "falsify/metrics", "falsify/kitti_frames",
         "falsify/scansets", "falsify/calibration", "falsify/camera", "falsify/kitti_object",
         "falsify/kitti_export", "falsify/overlay", "falsify/pngread")),
     ("network: SqueezeSeg, its spec, runners, export, training", (
