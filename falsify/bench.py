@@ -74,7 +74,7 @@ def naive_scan(space: Space, sample: Sample):
     for i, car in enumerate(sample.cars):
         pc = place(car, i + 1)
         m = sim.car_mesh(car.model).copy()
-        m.apply_transform(_pose_matrix(pc.rotation(), pc.translation()))
+        m.apply_transform(pc.matrix())
         meshes.append(m)
     merged = trimesh.util.concatenate(meshes)
     d = sensor.directions.reshape(-1, 3)
@@ -83,12 +83,6 @@ def naive_scan(space: Space, sample: Sample):
     ranges = np.zeros(len(d))
     ranges[idx] = np.linalg.norm(loc - o[idx], axis=1)
     return ranges.reshape(sensor.shape)
-
-
-def _pose_matrix(rot: np.ndarray, t: np.ndarray) -> np.ndarray:
-    m = np.eye(4)
-    m[:3, :3], m[:3, 3] = rot, t
-    return m
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from falsify.bench import _pose_matrix, machine
+from falsify.bench import machine
 from falsify.camera import CameraRenderer, Hits, camera_preset, look_of, shade
 from falsify.errors import FalsifyError
 from falsify.scene import Simulator
@@ -38,7 +38,7 @@ def naive_image(space: Space, sample: Sample, renderer: CameraRenderer
     offsets = [len(bg.faces)]
     for car in placed:
         m = sim.car_mesh(car.model).copy()
-        m.apply_transform(_pose_matrix(car.rotation(), car.translation()))
+        m.apply_transform(car.matrix())
         meshes.append(m)
         offsets.append(offsets[-1] + len(m.faces))
     merged = trimesh.util.concatenate(meshes)

@@ -53,6 +53,13 @@ class PlacedCar:
     def translation(self) -> np.ndarray:
         return np.array([self.x, self.y, 0.0])
 
+    def matrix(self) -> np.ndarray:
+        """4x4 homogeneous car-to-world transform (rotation, then translation): the pose as a
+        mesh library such as trimesh takes it, for the naive paths that merge posed meshes."""
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = self.rotation(), self.translation()
+        return m
+
 
 def place(pose: CarPose, instance: int) -> PlacedCar:
     """Space coordinates (x to the right, y forward, yaw 0 = facing forward) to the world frame."""

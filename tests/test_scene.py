@@ -73,6 +73,15 @@ def assert_same_as_full(sim, bg_id, cars, pose=SensorPose()):
     return scan
 
 
+def test_pose_matrix_is_rotation_then_translation():
+    car = place(CarPose("box", -2.0, 10.0, 30.0), 1)
+    pts = np.array([[1.0, 0.0, 0.0], [0.5, -2.0, 1.5]])
+    moved = trimesh.transform_points(pts, car.matrix())
+    assert moved == pytest.approx(pts @ car.rotation().T + car.translation())
+    assert moved[0] == pytest.approx([10.0 + np.cos(np.radians(30.0)), 2.0
+                                      + np.sin(np.radians(30.0)), 0.0])
+
+
 def test_composed_scan_equals_full_recast_pixel_for_pixel(sim):
     cars = [PlacedCar("sedan", 10.0, 1.0, 0.0, 1), PlacedCar("van", 14.0, -0.5, 30.0, 2),
             PlacedCar("pickup", 22.0, 3.0, -100.0, 3), PlacedCar("coupe", 40.0, -6.0, 180.0, 4)]
