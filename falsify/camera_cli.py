@@ -38,12 +38,11 @@ def dataset_kitti_object(sensor, camera: str, out: Path, frames: int, seed: int,
                      f"set, camera {res.camera}); labelled objects {res.objects}")
 
 
-def bench_camera_text(args) -> tuple[dict, str]:
+def bench_camera_text(config: str, camera: str, **options) -> tuple[dict, str]:
+    """`bench camera`'s result and its line; `options` (samples, naive_samples) as given."""
     from falsify.bench_camera import bench_camera
 
-    samples = args.samples if args.samples != 1000 else 10  # bench's shared default is scans'
-    r = bench_camera(args.config, args.camera_preset, samples=samples,
-                     naive_samples=args.naive_samples)
+    r = bench_camera(config, camera, **options)
     return r, (f"camera {r['image']}: {r['ms_per_image_cold']} ms/image cold, "
                f"{r['ms_per_image_warm']} ms warm; naive {r['naive_ms_per_image']} ms: "
                f"{r['speedup_cold']}x cold, {r['speedup_warm']}x warm")

@@ -356,6 +356,16 @@ def _camera_option(p: argparse.ArgumentParser, help_text: str) -> None:
 
 
 # -- bench ----------------------------------------------------------------------------------
+# Held-out frames `bench model` measures unless --samples says otherwise.
+MODEL_BENCH_FRAMES = 1000
+
+
+def given_options(args, *names: str) -> dict:
+    """The named options the user gave (not None): each benchmark's own defaults stand for the
+    rest, since one shared parser default cannot suit scans, pipelines and camera images."""
+    return {n: getattr(args, n) for n in names if getattr(args, n) is not None}
+
+
 def cmd_bench(args) -> int:
     from falsify import bench
 
@@ -366,7 +376,8 @@ def cmd_bench(args) -> int:
 
         from falsify.models.runner import BUNDLED_ONNX
         from falsify.models.variants import bench_models
-        files = sorted(Path(args.scans).glob("*.npy"))[: args.samples] if args.scans else []
+        frames = MODEL_BENCH_FRAMES if args.samples is None else args.samples
+        files = sorted(Path(args.scans).glob("*.npy"))[:frames] if args.scans else []
         if args.scans and not files:
             raise UsageError(f"--scans {args.scans}: no .npy scans there")
         if files:
@@ -374,7 +385,7 @@ def cmd_bench(args) -> int:
         else:
             from falsify.dataset import held_out_scans
             from falsify.sensor import load_sensor
-            scans = held_out_scans(load_sensor("kitti-hdl64e-front"), args.samples)
+            scans = held_out_scans(load_sensor("kitti-hdl64e-front"), frames)
         onnx = Path(args.model) if args.model else BUNDLED_ONNX
         from falsify.dataset import calibration_scans
         from falsify.sensor import load_sensor
@@ -387,8 +398,8 @@ def cmd_bench(args) -> int:
                          f"{r['fps']:6.1f} fps  car IoU diff {r['car_iou_diff']:+.4f}"
                          for r in rows)
     elif args.what == "pipeline":
-        pipe = bench.bench_pipeline(args.config, samples=args.samples, workers=args.workers,
-                                    model=args.model)
+        pipe = bench.bench_pipeline(args.config, workers=args.workers, model=args.model,
+                                    **given_options(args, "samples"))
         result = pipe.to_json()
         one = result["one_process"]
         text = (f"pipeline: {pipe.samples_per_s} samples/s on {pipe.workers} workers; one "
@@ -405,15 +416,16 @@ def cmd_bench(args) -> int:
             f"within 0.02 of the grid's {result['grid_lowest']} after "
             f"{r['evaluations_to_target']}" for r in result["algorithms"])
     elif args.what == "scan":
-        sb = bench.bench_scan(args.config, samples=args.samples, workers=args.workers,
-                              naive_samples=args.naive_samples)
+        sb = bench.bench_scan(args.config, workers=args.workers,
+                              **given_options(args, "samples", "naive_samples"))
         result = sb.to_json()
         text = (f"scan: {round(sb.fast_n, 1)} scans/s on {sb.workers} processes "
                 f"({round(sb.fast_1, 1)} on 1), naive {round(sb.naive, 3)} scans/s: "
                 f"{round(sb.fast_n / sb.naive, 1)}x")
     elif args.what == "camera":
         from falsify.camera_cli import bench_camera_text
-        result, text = bench_camera_text(args)
+        result, text = bench_camera_text(args.config, args.camera_preset,
+                                         **given_options(args, "samples", "naive_samples"))
     else:
         raise UsageError(f"bench {args.what}: not available")
     emit(args, result, text)
@@ -562,8 +574,10 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="measure a fast path beside its naive path")
     b.add_argument("what", choices=["scan", "model", "pipeline", "search", "camera"])
     b.add_argument("--config", default=str(DEFAULT_CONFIG))
-    b.add_argument("--samples", type=int, default=1000)
-    b.add_argument("--naive-samples", type=int, default=5)
+    b.add_argument("--samples", type=int, default=None,
+                   help="how many samples (default: each benchmark's own)")
+    b.add_argument("--naive-samples", type=int, default=None,
+                   help="samples through the naive path (default: each benchmark's own)")
     b.add_argument("--workers", type=int, default=2)
     b.add_argument("--model", default=None, help="bench model: an ONNX model (default bundled)")
     b.add_argument("--scans", default=None,

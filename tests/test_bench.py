@@ -10,7 +10,7 @@ import json
 
 import pytest
 
-from falsify.cli import main
+from falsify.cli import build_parser, given_options, main
 
 from .conftest import CONFIGS, ROOT
 
@@ -56,3 +56,22 @@ def test_bad_bench_options_exit_2(capsys, args, message):
         code = main(args)
         raise SystemExit(code)
     assert exc.value.code == 2 and message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("what", ["scan", "pipeline", "camera"])
+def test_bench_samples_given_are_honoured_and_defaults_are_each_benchmarks(what):
+    """`--samples 1000` reaches the benchmark as 1000 (camera once read it as 10); left out,
+    nothing is passed and the benchmark's own default stands."""
+    parse = build_parser().parse_args
+    given = given_options(parse(["bench", what, "--samples", "1000", "--naive-samples", "2"]),
+                          "samples", "naive_samples")
+    assert given == {"samples": 1000, "naive_samples": 2}
+    assert given_options(parse(["bench", what]), "samples", "naive_samples") == {}
+
+
+
+def test_bench_camera_runs_the_samples_given(capsys):
+    r = _json(capsys, ["bench", "camera", "--config", str(CONFIGS / "smoke.toml"),
+                       "--samples", "2", "--naive-samples", "1", "--json"])
+    assert r["samples"] == 2 and r["naive_samples"] == 1
+    assert r["ms_per_image_cold"] > 0 and r["naive_ms_per_image"] > 0
