@@ -1,7 +1,9 @@
-"""Shared fixtures: repo paths, the real KITTI data folder (skipped with a message if absent)."""
+"""Shared fixtures: repo paths, the real KITTI data folder (skipped with a message if absent) and a
+headless Chromium with the check that a page it loaded made no network request."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -17,3 +19,45 @@ def kitti_dir() -> Path:
     if not (KITTI / "squeezeseg").is_dir():
         pytest.skip(f"real KITTI scans not found at {KITTI} (shared/data/ is beside the repo)")
     return KITTI
+
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMEDRIVER = Path("/usr/bin/chromedriver")
+
+
+@pytest.fixture
+def browser(tmp_path: Path):
+    """Headless Chromium logging its network and console (skipped when it is not installed)."""
+    if not CHROMIUM.exists() or not CHROMEDRIVER.exists():
+        pytest.skip(f"headless browser test needs {CHROMIUM} and {CHROMEDRIVER}")
+    webdriver = pytest.importorskip("selenium.webdriver")
+    from selenium.webdriver.chrome.service import Service
+
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = str(CHROMIUM)
+    for arg in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                "--no-first-run", "--disable-component-update", "--disable-sync",
+                f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1300,1000"):
+        opts.add_argument(arg)
+    opts.set_capability("goog:loggingPrefs", {"performance": "ALL", "browser": "ALL"})
+    driver = webdriver.Chrome(options=opts, service=Service(str(CHROMEDRIVER)))
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+def assert_offline(browser) -> None:
+    """The loaded page fetched nothing but data: URIs and its own file, and logged no error."""
+    resources = browser.execute_script(
+        "return performance.getEntriesByType('resource').map(e => e.name)")
+    assert all(r.startswith("data:") for r in resources), resources
+    requested = []
+    for entry in browser.get_log("performance"):
+        msg = json.loads(entry["message"])["message"]
+        if msg.get("method") == "Network.requestWillBeSent":
+            requested.append(msg["params"]["request"]["url"])
+    assert any(u.startswith("file:") for u in requested)     # the log works: it saw the page
+    assert not [u for u in requested if u.startswith(("http:", "https:", "ws:", "wss:"))]
+    errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
+    assert not errors, errors

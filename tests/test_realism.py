@@ -22,7 +22,7 @@ from falsify.realism import (
 from falsify.scene import PlacedCar, Simulator
 from falsify.sensor import load_sensor
 
-from .conftest import ROOT
+from .conftest import ROOT, assert_offline
 
 BUNDLED = ROOT / "models" / "weights" / "squeezeseg.onnx"
 EVIL = '<b>&"x'
@@ -209,10 +209,7 @@ def test_page_escapes_and_is_self_contained(page_doc) -> None:
     assert page.count('class="series"') == 4 * 3          # 2 synthetic + 1 real per chart
 
 
-from .test_report import browser  # noqa: E402,F401  (the headless Chromium fixture)
-
-
-def test_page_in_chromium(browser, page_doc, tmp_path: Path) -> None:  # noqa: F811
+def test_page_in_chromium(browser, page_doc, tmp_path: Path) -> None:
     from selenium.webdriver.common.by import By
 
     path = tmp_path / "realism.html"
@@ -226,16 +223,6 @@ def test_page_in_chromium(browser, page_doc, tmp_path: Path) -> None:  # noqa: F
     assert EVIL in browser.find_element(By.ID, "distances").text
     cells = browser.find_elements(By.CSS_SELECTOR, "#distances td[data-stat]")
     assert len(cells) == len(STATISTICS) * 2
-    resources = browser.execute_script(
-        "return performance.getEntriesByType('resource').map(e => e.name)")
-    assert all(r.startswith("data:") for r in resources), resources
-    requested = []
-    for entry in browser.get_log("performance"):
-        msg = json.loads(entry["message"])["message"]
-        if msg.get("method") == "Network.requestWillBeSent":
-            requested.append(msg["params"]["request"]["url"])
-    assert any(u.startswith("file:") for u in requested)
-    assert not [u for u in requested if u.startswith(("http:", "https:", "ws:", "wss:"))]
-    assert not [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
+    assert_offline(browser)
     shot = tmp_path / "page.png"
     assert browser.save_screenshot(str(shot)) and shot.stat().st_size > 20_000

@@ -12,6 +12,7 @@ import pytest
 
 from falsify.cli import main
 from falsify.reporting import render_report, write_report
+from tests.conftest import assert_offline
 from tests.runfixture import PAPER, write_run
 
 EVIL_NAME = "<script>alert(1)</script>"
@@ -131,9 +132,6 @@ def test_paper_size(tmp_path: Path) -> None:
 
 
 # -- headless Chromium ---------------------------------------------------------------------------
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMEDRIVER = Path("/usr/bin/chromedriver")
-
 COUNT_COLOURS = """
 const done = arguments[arguments.length - 1];
 const img = new Image();
@@ -148,27 +146,6 @@ img.onload = () => {
 img.onerror = () => done(-1);
 img.src = arguments[0];
 """
-
-
-@pytest.fixture
-def browser(tmp_path: Path):
-    if not CHROMIUM.exists() or not CHROMEDRIVER.exists():
-        pytest.skip(f"headless browser test needs {CHROMIUM} and {CHROMEDRIVER}")
-    webdriver = pytest.importorskip("selenium.webdriver")
-    from selenium.webdriver.chrome.service import Service
-
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = str(CHROMIUM)
-    for arg in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                "--no-first-run", "--disable-component-update", "--disable-sync",
-                f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1300,1000"):
-        opts.add_argument(arg)
-    opts.set_capability("goog:loggingPrefs", {"performance": "ALL", "browser": "ALL"})
-    driver = webdriver.Chrome(options=opts, service=Service(str(CHROMEDRIVER)))
-    try:
-        yield driver
-    finally:
-        driver.quit()
 
 
 def test_in_chromium(browser, runs, tmp_path: Path) -> None:
@@ -200,18 +177,7 @@ def test_in_chromium(browser, runs, tmp_path: Path) -> None:
     assert "selected" in cell.get_attribute("class")
 
     # no network: no resource entries except data: URIs, no http(s) request in the log
-    resources = browser.execute_script(
-        "return performance.getEntriesByType('resource').map(e => e.name)")
-    assert all(r.startswith("data:") for r in resources), resources
-    requested = []
-    for entry in browser.get_log("performance"):
-        msg = json.loads(entry["message"])["message"]
-        if msg.get("method") == "Network.requestWillBeSent":
-            requested.append(msg["params"]["request"]["url"])
-    assert any(u.startswith("file:") for u in requested)     # the log works: it saw the page
-    assert not [u for u in requested if u.startswith(("http:", "https:", "ws:", "wss:"))]
-    errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
-    assert not errors, errors
+    assert_offline(browser)
 
     # screenshot: saved, and far from blank (count colours with the browser's own decoder)
     shot = tmp_path / "report.png"
