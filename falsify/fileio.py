@@ -1,4 +1,5 @@
-"""Atomic file writes: a reader or a crash never sees half a file."""
+"""File I/O: atomic writes (a reader or a crash never sees half a file) and reads whose failure
+names the file, as one line for the user."""
 
 from __future__ import annotations
 
@@ -10,8 +11,27 @@ from pathlib import Path
 
 import numpy as np
 
+from falsify.errors import FalsifyError
+
 _UMASK = os.umask(0)
 os.umask(_UMASK)
+
+
+def read_bytes(path: str | Path, what: str = "",
+               error: type[FalsifyError] = FalsifyError) -> bytes:
+    """A file's bytes; `error` naming the file (and `what` it should hold) if it cannot be read."""
+    try:
+        return Path(path).read_bytes()
+    except OSError as exc:
+        raise error(f"{path}: cannot read{' ' + what if what else ''} ({exc.strerror})") from None
+
+
+def read_text(path: str | Path, what: str = "", error: type[FalsifyError] = FalsifyError) -> str:
+    """A UTF-8 text file's text; `error` naming the file if it cannot be read or decoded."""
+    try:
+        return read_bytes(path, what, error).decode("utf-8")
+    except UnicodeDecodeError:
+        raise error(f"{path}: not UTF-8 text{' (' + what + ')' if what else ''}") from None
 
 
 def write_bytes(path: str | Path, data: bytes) -> None:

@@ -19,6 +19,7 @@ import numpy as np
 
 from falsify.calibration import KITTI_PIXEL_SHIFT, KittiCalib
 from falsify.errors import FalsifyError
+from falsify.fileio import read_text
 from falsify.kitti import read_bin
 
 TYPES = ("Car", "Van", "Truck", "Pedestrian", "Person_sitting", "Cyclist", "Tram", "Misc",
@@ -30,11 +31,7 @@ _CALIB_KEYS = ("P0", "P1", "P2", "P3", "R0_rect", "Tr_velo_to_cam")
 # -- calib ------------------------------------------------------------------------------------
 def read_calib(path: str | Path) -> KittiCalib:
     """Parse a KITTI object calib file; a missing or malformed entry names the key and file."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise FalsifyError(f"{path}: cannot read calib ({exc.strerror})") from None
+    text = read_text(path, "calib")
     rows: dict[str, np.ndarray] = {}
     for line in text.splitlines():
         if ":" not in line:
@@ -139,11 +136,7 @@ def points_in_rect(points: np.ndarray, rect: tuple[float, float, float, float],
 
 def read_labels(path: str | Path) -> list[KittiObject]:
     """Parse a label_2 file; a bad line names the file, its number and the allowed types."""
-    path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except OSError as exc:
-        raise FalsifyError(f"{path}: cannot read labels ({exc.strerror})") from None
+    lines = read_text(path, "labels").splitlines()
     out = []
     for k, line in enumerate(lines, 1):
         f = line.split()

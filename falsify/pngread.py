@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from falsify.errors import FalsifyError
+from falsify.fileio import read_bytes
 
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}
@@ -20,11 +21,7 @@ _CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}
 
 def read_png(path: str | Path) -> np.ndarray:
     """(H, W, 3) uint8 RGB of a PNG file (grey is repeated, alpha dropped)."""
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise FalsifyError(f"{path}: cannot read ({exc.strerror})") from None
+    data = read_bytes(path)
     try:
         return decode_png(data)
     except ValueError as exc:

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from falsify.errors import ConfigError
+from falsify.fileio import read_bytes
 from falsify.paths import config_path
 
 CONTINUOUS_BASE = ("x", "y", "yaw")
@@ -234,10 +235,7 @@ def load_space(path: str | Path, builtin_cars: tuple[str, ...] | None = None) ->
     """Read and validate a space config (a file, or a bundled config by its name); every problem
     names its key and the allowed values."""
     path = config_path(path)
-    try:
-        text = path.read_bytes()
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read config ({exc.strerror})") from None
+    text = read_bytes(path, "config", ConfigError)
     try:
         raw = tomllib.loads(text.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
