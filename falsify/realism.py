@@ -65,7 +65,7 @@ class EncoderFeatures:
         except ImportError:
             raise FalsifyError("falsify realism reads encoder features with the onnx package: "
                                "pip install 'onnx>=1.15'") from None
-        import onnxruntime as ort
+        from falsify.models.runner import cpu_session
 
         try:
             graph = onnx.load(str(self.path))
@@ -81,13 +81,7 @@ class EncoderFeatures:
         except Exception as exc:  # onnx raises its own types
             raise FalsifyError(f"model {self.path}: cannot cut the graph at "
                                f"{FEATURE_TENSOR} ({exc})") from None
-        opts = ort.SessionOptions()
-        if threads:
-            opts.intra_op_num_threads = int(threads)
-            opts.inter_op_num_threads = 1
-        opts.log_severity_level = 3
-        self.session = ort.InferenceSession(cut.SerializeToString(), opts,
-                                            providers=["CPUExecutionProvider"])
+        self.session = cpu_session(cut.SerializeToString(), threads)
 
     def __call__(self, scans: np.ndarray) -> np.ndarray:
         """(B, H, W, 6) scans -> (B * TILE_ROWS * TILE_COLS, C) float64 tile features."""

@@ -139,6 +139,19 @@ def _open(path: str | Path, spec_path: str | Path | None
     return path, spec_path, load_spec(spec_path), model_hash(path, spec_path)
 
 
+def cpu_session(model: str | bytes, threads: int | None = None):
+    """An ONNX Runtime CPU session for a model file (path) or serialised graph (bytes): `threads`
+    intra-op threads and one inter-op thread (None: ONNX Runtime's default), warnings off."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    if threads:
+        opts.intra_op_num_threads = int(threads)
+        opts.inter_op_num_threads = 1
+    opts.log_severity_level = 3
+    return ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
+
+
 class OnnxSegmenter:
     """ONNX Runtime on the CPU; the CRF (if any) is part of the graph."""
 
@@ -146,16 +159,8 @@ class OnnxSegmenter:
                  spec_path: str | Path | None = None, batch: int = BATCH) -> None:
         self.path, spec_path, self.spec, self.model_hash = _open(path, spec_path)
         self.batch = max(1, int(batch))
-        import onnxruntime as ort
-
-        opts = ort.SessionOptions()
-        if threads:
-            opts.intra_op_num_threads = int(threads)
-            opts.inter_op_num_threads = 1
-        opts.log_severity_level = 3
         try:
-            self.session = ort.InferenceSession(str(self.path), opts,
-                                                providers=["CPUExecutionProvider"])
+            self.session = cpu_session(str(self.path), threads)
         except Exception as e:  # onnxruntime raises its own exception types
             raise FalsifyError(f"cannot load ONNX model {self.path}: {e}") from e
         self._check()
