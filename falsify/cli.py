@@ -128,30 +128,6 @@ def cmd_dataset(args) -> int:
 
 
 # -- predict and train ----------------------------------------------------------------------
-def _read_scans(paths: list[str], sensor_name: str):
-    """Range images from .npy files (our layout) or KITTI .bin files (+ .label beside)."""
-    import numpy as np
-
-    from falsify.kitti import load_scan_npy, read_kitti
-    from falsify.sensor import load_sensor
-
-    images = []
-    sensor = None
-    for p in map(Path, paths):
-        if p.suffix == ".bin":
-            sensor = sensor or load_sensor(sensor_name)
-            label = p.with_suffix(".label")
-            images.append(read_kitti(p, label if label.exists() else None, sensor).image)
-        elif p.suffix == ".npy":
-            images.append(load_scan_npy(p))
-        else:
-            raise UsageError(f"{p}: expected a .npy range image or a KITTI .bin scan")
-    shapes = {im.shape for im in images}
-    if len(shapes) > 1:
-        raise UsageError(f"scans have different shapes: {sorted(shapes)}")
-    return np.stack(images)
-
-
 def cmd_predict(args) -> int:
     from falsify.evaluation import evaluate
     from falsify.fileio import write_npy
@@ -374,24 +350,21 @@ def cmd_bench(args) -> int:
     if args.what == "model":
         import numpy as np
 
+        from falsify.dataset import calibration_scans, held_out_scans
         from falsify.models.runner import BUNDLED_ONNX
         from falsify.models.variants import bench_models
+        from falsify.scansets import npy_files, read_set
+        from falsify.sensor import load_sensor
+        sensor = load_sensor("kitti-hdl64e-front")
         frames = MODEL_BENCH_FRAMES if args.samples is None else args.samples
-        files = sorted(Path(args.scans).glob("*.npy"))[:frames] if args.scans else []
+        files = npy_files(Path(args.scans))[:frames] if args.scans else []
         if args.scans and not files:
             raise UsageError(f"--scans {args.scans}: no .npy scans there")
-        if files:
-            scans = _read_scans([str(f) for f in files], "kitti-hdl64e-front")
-        else:
-            from falsify.dataset import held_out_scans
-            from falsify.sensor import load_sensor
-            scans = held_out_scans(load_sensor("kitti-hdl64e-front"), frames)
+        scans = (read_set(args.scans, files, sensor).images if files
+                 else held_out_scans(sensor, frames))
         onnx = Path(args.model) if args.model else BUNDLED_ONNX
-        from falsify.dataset import calibration_scans
-        from falsify.sensor import load_sensor
         rows = bench_models(np.asarray(scans), onnx, repeats=args.repeats,
-                            threads=args.threads,
-                            calibration=calibration_scans(load_sensor("kitti-hdl64e-front")))
+                            threads=args.threads, calibration=calibration_scans(sensor))
         result = {"benchmark": "model", "model": str(onnx), "frames": len(scans),
                   "machine": bench.machine(), "variants": rows}
         text = "\n".join(f"{r['variant']:16s} {r['ms_per_frame']:8.1f} ms/frame "
