@@ -75,6 +75,14 @@ def naive_image(space: Space, sample: Sample, renderer: CameraRenderer
     return rgb.reshape(*renderer.camera.shape, 3), owner.reshape(renderer.camera.shape)
 
 
+def _seconds_each(renderer: CameraRenderer, samples: list[Sample]) -> float:
+    """Mean wall-clock seconds per image of rendering `samples` in order."""
+    t0 = time.perf_counter()
+    for s in samples:
+        renderer.render_sample(s)
+    return (time.perf_counter() - t0) / len(samples)
+
+
 def bench_camera(config: str | Path, camera: str = "kitti-centre", samples: int = 10,
                  naive_samples: int = 3) -> dict:
     """ms per image: cold (every pixel cast and shaded: each image on another background than
@@ -93,17 +101,11 @@ def bench_camera(config: str | Path, camera: str = "kitti-centre", samples: int 
         sim.background(s.background)
         sim.placed_cars(s)
     renderer.render_sample(picked[0])
-    t0 = time.perf_counter()
-    for s in picked:
-        renderer.render_sample(s)
-    cold = (time.perf_counter() - t0) / len(picked)
+    cold = _seconds_each(renderer, picked)
     warm_renderer = CameraRenderer(sim, cam, max_cached=len(picked))
     for s in picked:
         warm_renderer.render_sample(s)
-    t0 = time.perf_counter()
-    for s in picked:
-        warm_renderer.render_sample(s)
-    warm = (time.perf_counter() - t0) / len(picked)
+    warm = _seconds_each(warm_renderer, picked)
     naive_times = []
     for s in picked[:naive_samples]:
         t0 = time.perf_counter()

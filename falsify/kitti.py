@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from falsify.errors import FalsifyError
+from falsify.fileio import read_bytes
 from falsify.scan import CHANNELS, Scan, image_from_points
 from falsify.sensor import Sensor
 
@@ -28,16 +29,12 @@ def write_kitti(scan: Scan, bin_path: str | Path, label_path: str | Path) -> Non
 
 
 def read_bin(path: str | Path) -> np.ndarray:
-    """(N, 4) float32 x, y, z, remission of a KITTI .bin as stored (non-finite rows kept, so a
-    .label's rows still line up); FalsifyError naming the file when it is not N x 4."""
-    path = Path(path)
-    try:
-        raw = np.fromfile(path, dtype=np.float32)
-    except OSError as exc:
-        raise FalsifyError(f"{path}: cannot read ({exc.strerror})") from None
-    if raw.size % 4:
+    """(N, 4) float32 x, y, z, remission of a KITTI .bin as stored (read-only; non-finite rows
+    kept, so a .label's rows still line up); FalsifyError naming the file when it is not N x 4."""
+    data = read_bytes(path)
+    if len(data) % 16:
         raise FalsifyError(f"{path}: size is not a multiple of 4 float32 (x, y, z, remission)")
-    return raw.reshape(-1, 4)
+    return np.frombuffer(data, np.float32).reshape(-1, 4)
 
 
 def read_kitti(bin_path: str | Path, label_path: str | Path | None,
@@ -48,11 +45,11 @@ def read_kitti(bin_path: str | Path, label_path: str | Path | None,
     cls = np.zeros(len(pts), dtype=np.uint8)
     inst = np.zeros(len(pts), dtype=np.int32)
     if label_path is not None:
-        label_path = Path(label_path)
-        try:
-            lab = np.fromfile(label_path, dtype=np.uint32)
-        except OSError as exc:
-            raise FalsifyError(f"{label_path}: cannot read ({exc.strerror})") from None
+        data = read_bytes(label_path)
+        if len(data) % 4:
+            raise FalsifyError(f"{label_path}: size is not a multiple of 4 bytes (uint32 "
+                               "labels)")
+        lab = np.frombuffer(data, np.uint32)
         if len(lab) != len(pts):
             raise FalsifyError(f"{label_path}: {len(lab)} labels for {len(pts)} points in "
                                f"{bin_path.name}")

@@ -8,14 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from falsify.calibration import KittiCalib
 from falsify.kitti_frames import _IGNORE_ID, label_points, read_object_frame
 from falsify.kitti_object import KittiObject
 from falsify.sensor import load_sensor
 
-P2 = np.array([[700.0, 0, 600, 0], [0, 700, 180, 0], [0, 0, 1, 0]])
-# Velodyne (x fwd, y left, z up) -> camera (x right, y down, z fwd), no rectification.
-AXES = KittiCalib((P2,) * 4, np.eye(3), np.array([[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]]))
+from .test_kitti_object import AXES
 
 
 def test_ignored_regions_win_and_unseen_points_are_ignored() -> None:
