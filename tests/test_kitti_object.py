@@ -165,6 +165,19 @@ def test_bad_files_name_themselves(tmp_path, name, text, message):
     assert str(path) in str(err.value)
 
 
+def test_unreadable_files_name_themselves(tmp_path):
+    binary = tmp_path / "l.txt"
+    binary.write_bytes(b"Car \xff\xfe")
+    with pytest.raises(FalsifyError, match="l.txt: not UTF-8 text .labels."):
+        read_labels(binary)
+    with pytest.raises(FalsifyError, match="nope.txt: cannot read calib"):
+        read_calib(tmp_path / "nope.txt")
+    torn = tmp_path / "v.bin"
+    torn.write_bytes(np.zeros(9, np.float32).tobytes())  # two points and a quarter
+    with pytest.raises(FalsifyError, match="v.bin: size is not a multiple of 4 float32"):
+        read_velodyne(torn)
+
+
 def test_frames_name_a_frame_missing_a_file(tmp_path):
     for d, ext in (("velodyne", "bin"), ("image_2", "png"), ("calib", "txt"), ("label_2", "txt")):
         (tmp_path / d).mkdir()
