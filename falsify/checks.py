@@ -9,6 +9,7 @@ from pathlib import Path
 from falsify.errors import FalsifyError
 
 SEED_MAX = 2**32 - 1   # seeds are 32-bit: numpy, NLopt and the stored runs agree on them
+MAX_SAMPLES = 1_000_000   # default limit on the samples one run or benchmark may take
 
 
 def check_range(value: int | None, option: str, lo: int, hi: int | None = None) -> None:

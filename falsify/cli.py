@@ -9,7 +9,13 @@ import sys
 import time
 from pathlib import Path
 
-from falsify.checks import check_out_dir, check_out_file, check_range, check_seed
+from falsify.checks import (
+    MAX_SAMPLES,
+    check_out_dir,
+    check_out_file,
+    check_range,
+    check_seed,
+)
 from falsify.errors import FalsifyError
 from falsify.paths import CONFIGS
 
@@ -274,8 +280,8 @@ def _run_options(p: argparse.ArgumentParser) -> None:
                    help="mIoU below which a cell is a blind spot (default: config, 0.65)")
     p.add_argument("--fidelity", default="exact", choices=["fast", "balanced", "exact"])
     p.add_argument("--no-report", action="store_true")
-    p.add_argument("--max-samples", type=int, default=1_000_000,
-                   help="refuse a grid larger than this (default 1,000,000)")
+    p.add_argument("--max-samples", type=int, default=MAX_SAMPLES,
+                   help=f"refuse a grid or budget larger than this (default {MAX_SAMPLES:,})")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true")
 
@@ -284,7 +290,7 @@ def _run_options(p: argparse.ArgumentParser) -> None:
 def cmd_bench(args) -> int:
     from falsify import bench
 
-    check_range(args.samples, "--samples", 1)
+    check_range(args.samples, "--samples", 1, MAX_SAMPLES)
     check_range(args.workers, "--workers", 1, 64)
     check_range(args.naive_samples, "--naive-samples", 1)
     check_range(args.repeats, "--repeats", 1)

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from falsify.cars import load_user_car
-from falsify.checks import check_out_dir, check_range, check_seed
+from falsify.checks import MAX_SAMPLES, check_out_dir, check_range, check_seed
 from falsify.errors import FalsifyError
 from falsify.fidelity import preset
 from falsify.fileio import write_bytes, write_json, write_npy
@@ -52,7 +52,7 @@ class RunRequest:
     threshold: float | None = None
     fidelity: str = "exact"
     report: bool = True
-    max_samples: int = 1_000_000   # a grid larger than this is refused before it starts
+    max_samples: int = MAX_SAMPLES   # a grid or budget larger than this is refused up front
 
 
 @dataclass(frozen=True)
@@ -75,6 +75,9 @@ def prepare(req: RunRequest) -> Prepared:
     check_range(req.budget, "--budget", 1)
     check_seed(req.seed)
     check_range(req.max_samples, "--max-samples", 1)
+    if req.budget is not None and req.budget > req.max_samples:
+        raise FalsifyError(f"--budget: {req.budget:,} is more than --max-samples "
+                           f"{req.max_samples:,}; raise --max-samples to run it")
     check_out_dir(req.out)
     if req.algorithm == "grid" and req.budget is None and space.size() > req.max_samples:
         raise FalsifyError(f"{req.config}: the grid holds {space.size():,} samples, more than "
