@@ -79,10 +79,8 @@ def prepare(req: RunRequest) -> Prepared:
         raise FalsifyError(f"--budget: {req.budget:,} is more than --max-samples "
                            f"{req.max_samples:,}; raise --max-samples to run it")
     check_out_dir(req.out)
-    if req.algorithm == "grid" and req.budget is None and space.size() > req.max_samples:
-        raise FalsifyError(f"{req.config}: the grid holds {space.size():,} samples, more than "
-                           f"--max-samples {req.max_samples:,}; take larger steps or fewer "
-                           "values, or raise --max-samples")
+    if req.algorithm == "grid" and req.budget is None:
+        space.check_size(req.max_samples)
     if req.threshold is not None and not 0 < req.threshold <= 1:
         raise FalsifyError(f"--threshold: {req.threshold} must be in (0, 1]")
     sampler = make_sampler(req.algorithm)

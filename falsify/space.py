@@ -226,6 +226,13 @@ class Space:
             total += n
         return total
 
+    def check_size(self, limit: int, option: str = "--max-samples") -> None:
+        """ConfigError unless the grid holds at most `limit` samples (counted, not made)."""
+        n = self.size()
+        if n > limit:
+            raise ConfigError(f"{self.source}: the grid holds {n:,} samples, more than {option} "
+                              f"{limit:,}; take larger steps or fewer values")
+
     def grid(self) -> list[Sample]:
         """The full factorial set at the configured steps, no duplicates, in a fixed order.
 

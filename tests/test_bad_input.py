@@ -99,6 +99,8 @@ CASES = [   # (id, command line after `falsify`, a word the message must name)
     ("a car 1e9 m away", ["grid", "far.toml", "--out", "r"], "dims.x"),
     ("a step making 1e6 values", ["grid", "huge.toml", "--out", "r"], "dims.x"),
     ("a grid of 2e6 samples", ["grid", "biggrid.toml", "--out", "r"], "--max-samples"),
+    ("tradeoff on a 2e6 grid", ["tradeoff", "biggrid.toml", "--out", "t"], "biggrid.toml"),
+    ("bench scan on a 2e6 grid", ["bench", "scan", "--config", "biggrid.toml"], "biggrid.toml"),
     ("1e9 backgrounds", ["grid", "bgs.toml", "--out", "r"], "dims.background"),
     ("user mesh missing", ["grid", "nomesh.toml", "--out", "r"], "missing.glb"),
     ("user mesh random bytes", ["grid", "bytesmesh.toml", "--out", "r"], "bytes.glb"),
