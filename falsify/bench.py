@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from falsify.checks import MAX_SAMPLES
 from falsify.errors import FalsifyError
 from falsify.metrics import Status
 from falsify.models.runner import BATCH
@@ -122,6 +123,7 @@ def bench_scan(config: str | Path, samples: int = 1000, naive_samples: int = 5,
     if samples <= 0 or samples < workers:
         raise FalsifyError(f"--samples: {samples} must be at least the number of workers")
     space = load_space(config)
+    space.check_size(MAX_SAMPLES, "the benchmark's limit")
     grid = space.grid()
     picked = [grid[i % len(grid)] for i in range(samples)]
     single = _scan_rate(space, picked)
@@ -286,6 +288,7 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
     from falsify.store import Store
 
     space = load_space(config)
+    space.check_size(MAX_SAMPLES, "the benchmark's limit")
     grid = space.grid()
     if samples <= 0:
         raise FalsifyError(f"--samples: {samples} must be > 0")
@@ -339,6 +342,7 @@ def bench_search(config: str | Path, out: str | Path, algorithms=SEARCH_ALGORITH
 
     out = Path(out)
     space = load_space(config)
+    space.check_size(MAX_SAMPLES, "the benchmark's limit")
     n_grid = len(space.grid())
     budget = max(1, int(n_grid * fraction))
 

@@ -9,6 +9,13 @@ import sys
 import time
 from pathlib import Path
 
+from falsify.checks import (
+    MAX_SAMPLES,
+    check_out_dir,
+    check_out_file,
+    check_range,
+    check_seed,
+)
 from falsify.errors import FalsifyError
 from falsify.paths import CONFIGS
 
@@ -52,6 +59,7 @@ def cmd_scan(args) -> int:
     from falsify.sensor import load_sensor
     from falsify.space import load_space
 
+    check_out_dir(args.out)
     space = load_space(args.config)
     sample = space.make(_set_pairs(args.set or []))
     sensor = load_sensor(space.sensor)
@@ -91,6 +99,8 @@ def cmd_dataset(args) -> int:
     from falsify.sensor import load_sensor
     from falsify.space import load_space
 
+    check_out_dir(args.out)
+    check_seed(args.seed)
     space = load_space(args.config)
     if args.scans <= 0:
         raise UsageError(f"--scans: {args.scans} must be > 0")
@@ -135,6 +145,7 @@ def cmd_predict(args) -> int:
     from falsify.scansets import load_sets
     from falsify.sensor import load_sensor
 
+    check_out_dir(args.out)
     sets = load_sets(args.scans, load_sensor(args.sensor))
     model = load_segmenter(args.model, backend=args.backend)
     result = evaluate(model, sets)
@@ -290,7 +301,7 @@ def _run(args, command: str, algorithm: str) -> int:
         budget=getattr(args, "budget", None), seed=args.seed, model=args.model,
         backend=args.backend, workers=args.workers, resume=args.resume,
         threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
-        camera=args.camera)
+        camera=args.camera, max_samples=args.max_samples)
     summary = execute(req, on_progress=None if args.quiet else ProgressBar())
     emit(args, summary.to_json(), summary_text(summary))
     return 0
@@ -319,6 +330,8 @@ def _run_options(p: argparse.ArgumentParser) -> None:
                    help="mIoU below which a cell is a blind spot (default: config, 0.65)")
     p.add_argument("--fidelity", default="exact", choices=["fast", "balanced", "exact"])
     p.add_argument("--no-report", action="store_true")
+    p.add_argument("--max-samples", type=int, default=MAX_SAMPLES,
+                   help=f"refuse a grid or budget larger than this (default {MAX_SAMPLES:,})")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _camera_option(p, "also store the camera images of the retraining set beside its scans")
     p.add_argument("--json", action="store_true")
@@ -345,6 +358,14 @@ def given_options(args, *names: str) -> dict:
 def cmd_bench(args) -> int:
     from falsify import bench
 
+    check_range(args.samples, "--samples", 1, MAX_SAMPLES)
+    check_range(args.workers, "--workers", 1, 64)
+    check_range(args.naive_samples, "--naive-samples", 1)
+    check_range(args.repeats, "--repeats", 1)
+    if not 0 < args.fraction <= 1:
+        raise UsageError(f"--fraction: {args.fraction} must be in (0, 1]")
+    if args.out:
+        check_out_dir(args.out)
     if args.what == "search" and Path(args.config) == DEFAULT_CONFIG:
         args.config = str(CONFIGS / "yaw.toml")
     if args.what == "model":
@@ -409,6 +430,8 @@ def cmd_bench(args) -> int:
 def cmd_report(args) -> int:
     from falsify.reporting import write_report
 
+    if args.out:
+        check_out_file(args.out)
     out = write_report(Path(args.run), Path(args.out) if args.out else None,
                        Path(args.compare) if args.compare else None,
                        predict=not args.no_predict)
@@ -612,6 +635,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["train"]:   # training parses its own options (and its --help)
+        from falsify.models.train import main as train_main
+        return int(train_main(argv[1:]) or 0)
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -42,6 +42,8 @@ def read_kitti(bin_path: str | Path, label_path: str | Path | None,
     """Read a KITTI .bin (+ SemanticKITTI .label) and project it with `sensor`'s layout."""
     bin_path = Path(bin_path)
     pts = read_bin(bin_path)
+    if len(pts) == 0:
+        raise FalsifyError(f"{bin_path}: empty scan (no points)")
     cls = np.zeros(len(pts), dtype=np.uint8)
     inst = np.zeros(len(pts), dtype=np.int32)
     if label_path is not None:
@@ -60,6 +62,8 @@ def read_kitti(bin_path: str | Path, label_path: str | Path | None,
         cls = lut[sem]
         inst = (lab >> 16).astype(np.int32)
     finite = np.isfinite(pts).all(axis=1)
+    if not finite.any():
+        raise FalsifyError(f"{bin_path}: no point with finite x, y, z and remission")
     return image_from_points(sensor, pts[finite, :3], cls[finite], inst[finite],
                              intensity=pts[finite, 3])
 
@@ -69,11 +73,14 @@ def load_scan_npy(path: str | Path) -> np.ndarray:
     path = Path(path)
     try:
         arr = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise FalsifyError(f"{path}: not a readable .npy range image ({exc})") from None
+    except (OSError, ValueError, EOFError) as exc:
+        raise FalsifyError(f"{path}: not a readable .npy range image "
+                           f"({exc or type(exc).__name__})") from None
     if arr.ndim != 3 or arr.shape[2] != 6:
         raise FalsifyError(f"{path}: shape {arr.shape}, expected (H, W, 6) with channels "
                            f"{', '.join(CHANNELS)}")
+    if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+        raise FalsifyError(f"{path}: dtype {arr.dtype}, expected real numbers")
     arr = arr.astype(np.float32, copy=False)
     if not np.isfinite(arr).all():
         raise FalsifyError(f"{path}: contains NaN or inf")

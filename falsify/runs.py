@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from falsify.cars import load_user_car
+from falsify.checks import MAX_SAMPLES, check_out_dir, check_range, check_seed
 from falsify.errors import FalsifyError
 from falsify.fidelity import preset
 from falsify.fileio import write_bytes, write_json, write_npy
@@ -51,6 +53,7 @@ class RunRequest:
     fidelity: str = "exact"
     report: bool = True
     camera: str | None = None    # camera preset: render the retraining set's images too
+    max_samples: int = MAX_SAMPLES   # a grid or budget larger than this is refused up front
 
 
 @dataclass(frozen=True)
@@ -69,10 +72,16 @@ def prepare(req: RunRequest) -> Prepared:
     """Validate the request and open the model, without writing anything."""
     space = load_space(req.config)
     fid = preset(req.fidelity)
-    if req.workers < 1 or req.workers > 64:
-        raise FalsifyError(f"--workers: {req.workers} must be between 1 and 64")
-    if req.budget is not None and req.budget < 1:
-        raise FalsifyError(f"--budget: {req.budget} must be >= 1")
+    check_range(req.workers, "--workers", 1, 64)
+    check_range(req.budget, "--budget", 1)
+    check_seed(req.seed)
+    check_range(req.max_samples, "--max-samples", 1)
+    if req.budget is not None and req.budget > req.max_samples:
+        raise FalsifyError(f"--budget: {req.budget:,} is more than --max-samples "
+                           f"{req.max_samples:,}; raise --max-samples to run it")
+    check_out_dir(req.out)
+    if req.algorithm == "grid" and req.budget is None:
+        space.check_size(req.max_samples)
     if req.threshold is not None and not 0 < req.threshold <= 1:
         raise FalsifyError(f"--threshold: {req.threshold} must be in (0, 1]")
     sampler = make_sampler(req.algorithm)
@@ -92,6 +101,8 @@ def prepare(req: RunRequest) -> Prepared:
     seg = load_segmenter(model, backend=req.backend, threads=threads)
     sensor = load_sensor(space.sensor)
     seg.spec.check_fits(sensor, req.model or "bundled")
+    for car in space.user_cars.values():   # a missing or broken mesh fails before the run dir
+        load_user_car(car.file, car.scale, car.forward, car.up)
     store_path = req.out / STORE_NAME
     meta = {
         "command": req.command, "config_path": str(req.config),
@@ -157,7 +168,10 @@ class RunSummary:
 def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> RunSummary:
     """Run the sampler to the end, then write maps, retraining set, tables and report."""
     p = prepare(req)
-    req.out.mkdir(parents=True, exist_ok=True)
+    try:
+        req.out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FalsifyError(f"--out {req.out}: cannot be made ({exc.strerror})") from None
     store = Store(req.out / STORE_NAME, p.space)
     old = store.meta()
     started = time.perf_counter()

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from falsify.checks import SEED_MAX
 from falsify.errors import ConfigError
 from falsify.fileio import read_bytes
 from falsify.paths import config_path
@@ -24,6 +25,10 @@ CONTINUOUS_BASE = ("x", "y", "yaw")
 IMAGE_ONLY = ("colour", "weather", "time_of_day")
 TOP_KEYS = {"name", "description", "sensor", "seed", "threshold", "dims", "car_models"}
 MAX_CARS = 8
+# How far a coordinate may reach: metres for x and y (far beyond any sensor's range), degrees
+# for yaw (one turn either way; the scene wraps any angle, a config needs no more).
+LIMITS = {"x": 1000.0, "y": 1000.0, "yaw": 360.0}
+MAX_VALUES = 1_000_000   # values one dim may list or range over
 DEFAULT_THRESHOLD = 0.65   # mIoU below which a cell is a blind spot (the paper's)
 CAR_FILE_KEYS = {"file", "scale", "forward", "up"}
 
@@ -39,9 +44,13 @@ class Continuous:
     hi: float
     step: float
 
+    @property
+    def size(self) -> int:
+        """How many values the grid takes, computed without making them."""
+        return int(math.floor((self.hi - self.lo) / self.step + 1e-9)) + 1
+
     def grid(self) -> tuple[float, ...]:
-        n = int(math.floor((self.hi - self.lo) / self.step + 1e-9))
-        return tuple(round(self.lo + i * self.step, 10) for i in range(n + 1))
+        return tuple(round(self.lo + i * self.step, 10) for i in range(self.size))
 
     def contains(self, value: float) -> bool:
         return self.lo - 1e-9 <= value <= self.hi + 1e-9
@@ -53,6 +62,10 @@ class Categorical:
 
     name: str
     values: tuple[Value, ...]
+
+    @property
+    def size(self) -> int:
+        return len(self.values)
 
     def grid(self) -> tuple[Value, ...]:
         return self.values
@@ -203,6 +216,24 @@ class Space:
         raise ConfigError(
             f"{name}: {raw!r} is not one of {', '.join(str(v) for v in dim.values)}")
 
+    def size(self) -> int:
+        """How many samples `grid()` holds, computed without enumerating them."""
+        total = 0
+        for count in self.dims["count"].grid():
+            n = 1
+            for name, dim in self.dims.items():
+                if name != "count" and self.active(name, int(count)):
+                    n *= dim.size
+            total += n
+        return total
+
+    def check_size(self, limit: int, option: str = "--max-samples") -> None:
+        """ConfigError unless the grid holds at most `limit` samples (counted, not made)."""
+        n = self.size()
+        if n > limit:
+            raise ConfigError(f"{self.source}: the grid holds {n:,} samples, more than {option} "
+                              f"{limit:,}; take larger steps or fewer values")
+
     def grid(self) -> list[Sample]:
         """The full factorial set at the configured steps, no duplicates, in a fixed order.
 
@@ -260,6 +291,8 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
     name = _typed(raw, "name", str, where, default=Path(source).stem)
     sensor = _typed(raw, "sensor", str, where, default="kitti-hdl64e-front")
     seed = _typed(raw, "seed", int, where, default=0)
+    if not 0 <= seed <= SEED_MAX:
+        raise ConfigError(f"{where}seed: {seed} must be between 0 and {SEED_MAX}")
     threshold = float(_typed(raw, "threshold", (int, float), where, default=DEFAULT_THRESHOLD))
     if not 0.0 < threshold <= 1.0:
         raise ConfigError(f"{where}threshold: {threshold} must be in (0, 1]")
@@ -345,6 +378,9 @@ def _categorical(name: str, spec: Any, where: str, kind: type) -> Categorical:
         if (not isinstance(r, list) or len(r) != 2
                 or not all(isinstance(v, int) and not isinstance(v, bool) for v in r)):
             raise ConfigError(f"{where}{key}.range: expected [start, stop] integers")
+        if not 0 < r[1] - r[0] <= MAX_VALUES:
+            raise ConfigError(f"{where}{key}.range: [{r[0]}, {r[1]}) holds {r[1] - r[0]} values; "
+                              f"allowed 1 to {MAX_VALUES}")
         values = list(range(r[0], r[1]))
     elif "values" in spec:
         values = spec["values"]
@@ -352,6 +388,8 @@ def _categorical(name: str, spec: Any, where: str, kind: type) -> Categorical:
         raise ConfigError(f"{where}{key}: needs 'values'" + (" or 'range'" if kind is int else ""))
     if not isinstance(values, list) or not values:
         raise ConfigError(f"{where}{key}.values: expected a non-empty list")
+    if len(values) > MAX_VALUES:
+        raise ConfigError(f"{where}{key}.values: {len(values)} values; at most {MAX_VALUES}")
     for v in values:
         if isinstance(v, bool) or not isinstance(v, kind):
             raise ConfigError(f"{where}{key}.values: {v!r} is not {kind.__name__}")
@@ -361,8 +399,16 @@ def _categorical(name: str, spec: Any, where: str, kind: type) -> Categorical:
 
 
 def _continuous_or_values(name: str, spec: Any, where: str) -> Dim:
-    """`{min, max, step}` for a range, or `{values = [...]}` for fixed values (all numbers)."""
+    """`{min, max, step}` for a range, or `{values = [...]}` for fixed values (all numbers),
+    within the dim's limit (LIMITS) and at most MAX_VALUES of them."""
     key = f"dims.{name}"
+    limit = LIMITS[name.split("_")[0]]
+    unit = "degrees" if name.startswith("yaw") else "m"
+
+    def within(v: float, what: str) -> None:
+        if abs(v) > limit:
+            raise ConfigError(f"{where}{what}: {v:g} is beyond the allowed -{limit:g} to "
+                              f"{limit:g} {unit}")
     if not isinstance(spec, dict):
         raise ConfigError(f"{where}{key}: expected a table with min, max, step (or values)")
     if "values" in spec:
@@ -374,6 +420,9 @@ def _continuous_or_values(name: str, spec: Any, where: str) -> Dim:
         for v in values:
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
                 raise ConfigError(f"{where}{key}.values: {v!r} is not a finite number")
+            within(float(v), f"{key}.values")
+        if len(values) > MAX_VALUES:
+            raise ConfigError(f"{where}{key}.values: {len(values)} values; at most {MAX_VALUES}")
         if len(values) == 1:
             v = float(values[0])
             return Continuous(name, v, v, 1.0)
@@ -395,7 +444,13 @@ def _continuous_or_values(name: str, spec: Any, where: str) -> Dim:
         raise ConfigError(f"{where}{key}.step: {nums['step']:g} must be > 0")
     if nums["max"] < nums["min"]:
         raise ConfigError(f"{where}{key}: empty range, max {nums['max']:g} < min {nums['min']:g}")
-    return Continuous(name, nums["min"], nums["max"], nums["step"])
+    within(nums["min"], f"{key}.min")
+    within(nums["max"], f"{key}.max")
+    dim = Continuous(name, nums["min"], nums["max"], nums["step"])
+    if dim.size > MAX_VALUES:
+        raise ConfigError(f"{where}{key}.step: {nums['step']:g} makes {dim.size} values; at most "
+                          f"{MAX_VALUES} (take a larger step)")
+    return dim
 
 
 def _user_cars(raw: Any, where: str, base_dir: Path, builtin: tuple[str, ...]) -> dict:

@@ -136,8 +136,12 @@ def _read_only(path: str | Path, query):
         path = path / STORE_NAME
     if not path.exists():
         raise FalsifyError(f"{path}: no results file (is this a run directory?)")
+    # Without a -wal beside it the file is complete: open it immutable, so that reading never
+    # creates -wal or -shm files in a run the reader did not make.
+    wal = path.with_name(path.name + "-wal")
+    uri = path.absolute().as_uri() + "?mode=ro" + ("" if wal.exists() else "&immutable=1")
     try:
-        with closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as db:
+        with closing(sqlite3.connect(uri, uri=True)) as db:
             return query(db)
     except (sqlite3.DatabaseError, pd.errors.DatabaseError) as exc:
         raise FalsifyError(f"{path}: not a readable results file ({exc})") from None

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
+from falsify.checks import MAX_SAMPLES, check_out_dir
 from falsify.errors import FalsifyError
 from falsify.maps import CellMap, MapError, fill_nearest, map_error, miou_map
 from falsify.metrics import Status
@@ -428,9 +429,7 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
     from falsify.reports.tradeoff_page import write_page
 
     knobs = parse_knobs(",".join(knobs))
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise FalsifyError(f"--out {out}: exists and is not a directory")
+    out = check_out_dir(out)
     if limit is not None and limit < 1:
         raise FalsifyError(f"--limit: {limit} must be >= 1")
     onnx = Path(model) if model else BUNDLED_ONNX
@@ -442,6 +441,7 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
         if not isinstance(space.dims[d], Continuous):
             raise FalsifyError(f"{config}: dims.{d} must be a range (min, max, step) for the "
                                "grid-step and budget knobs")
+    space.check_size(MAX_SAMPLES, "the trade-off's limit")
     samples = space.grid()[:limit]
     t_start = time.perf_counter()
     scorer = SettingScorer(narrow(space, samples))

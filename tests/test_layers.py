@@ -18,7 +18,7 @@ PACKAGES = ("falsify", "models", "sampler", "reports")
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("base: errors, class ids, atomic files", (
         "falsify/__init__", "falsify/errors", "falsify/classes", "falsify/fileio",
-        "falsify/paths")),
+        "falsify/paths", "falsify/checks")),
     ("world: space, meshes, streets, sensor, casting, scans, metrics", (
         "falsify/space", "falsify/shapes", "falsify/cars", "falsify/backgrounds",
         "falsify/sensor", "falsify/raycast", "falsify/scan", "falsify/kitti", "falsify/scene",

@@ -1,0 +1,67 @@
+"""Checks of command arguments and paths, run before anything is created: a bad value or path
+raises FalsifyError naming the option (or file) and what is allowed."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from falsify.errors import FalsifyError
+
+SEED_MAX = 2**32 - 1   # seeds are 32-bit: numpy, NLopt and the stored runs agree on them
+MAX_SAMPLES = 1_000_000   # default limit on the samples one run or benchmark may take
+
+
+def check_range(value: int | None, option: str, lo: int, hi: int | None = None) -> None:
+    """`value` (when given) is an integer in lo..hi (hi None: no upper bound)."""
+    if value is None:
+        return
+    if hi is None and value < lo:
+        raise FalsifyError(f"{option}: {value} must be >= {lo}")
+    if hi is not None and not lo <= value <= hi:
+        raise FalsifyError(f"{option}: {value} must be between {lo} and {hi}")
+
+
+def check_seed(value: int | None, option: str = "--seed") -> None:
+    check_range(value, option, 0, SEED_MAX)
+
+
+def check_out_dir(path: str | Path, option: str = "--out") -> Path:
+    """An output directory that exists, or can be made, and can be written; creates nothing."""
+    path = Path(path)
+    if path.exists():
+        if not path.is_dir():
+            raise FalsifyError(f"{option} {path}: is a file, not a directory")
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise FalsifyError(f"{option} {path}: directory is not writable")
+        return path
+    parent = path.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise FalsifyError(f"{option} {path}: {parent} is a file, so no directory can be made "
+                           "there")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise FalsifyError(f"{option} {path}: cannot be made ({parent} is not writable)")
+    return path
+
+
+def check_out_file(path: str | Path, option: str = "--out") -> Path:
+    """An output file: not a directory, in a directory that exists or can be made."""
+    path = Path(path)
+    if path.is_dir():
+        raise FalsifyError(f"{option} {path}: is a directory")
+    check_out_dir(path.parent, option)
+    return path
+
+
+def check_in_file(path: str | Path, option: str) -> Path:
+    """An input file that exists and can be read."""
+    path = Path(path)
+    if not path.exists():
+        raise FalsifyError(f"{option} {path}: no such file")
+    if not path.is_file():
+        raise FalsifyError(f"{option} {path}: not a file")
+    if not os.access(path, os.R_OK):
+        raise FalsifyError(f"{option} {path}: not readable")
+    return path
