@@ -4,6 +4,7 @@ raises FalsifyError naming the option (or file) and what is allowed."""
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 from falsify.errors import FalsifyError
@@ -27,22 +28,26 @@ def check_seed(value: int | None, option: str = "--seed") -> None:
 
 
 def check_out_dir(path: str | Path, option: str = "--out") -> Path:
-    """An output directory that exists, or can be made, and can be written; creates nothing."""
+    """An output directory that exists, or can be made, and can be written; leaves nothing.
+
+    Writability is tried, not inferred from permission bits (root ignores those, a read-only
+    file system does not): a probe file is made in the nearest existing directory and removed."""
     path = Path(path)
-    if path.exists():
-        if not path.is_dir():
-            raise FalsifyError(f"{option} {path}: is a file, not a directory")
-        if not os.access(path, os.W_OK | os.X_OK):
-            raise FalsifyError(f"{option} {path}: directory is not writable")
-        return path
-    parent = path.absolute().parent
+    if path.exists() and not path.is_dir():
+        raise FalsifyError(f"{option} {path}: is a file, not a directory")
+    parent = path.absolute()
     while not parent.exists():
         parent = parent.parent
     if not parent.is_dir():
         raise FalsifyError(f"{option} {path}: {parent} is a file, so no directory can be made "
                            "there")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise FalsifyError(f"{option} {path}: cannot be made ({parent} is not writable)")
+    try:
+        fd, probe = tempfile.mkstemp(dir=parent, prefix=".falsify-probe-")
+    except OSError as exc:
+        raise FalsifyError(f"{option} {path}: cannot be written ({parent}: "
+                           f"{exc.strerror})") from None
+    os.close(fd)
+    os.unlink(probe)
     return path
 
 
