@@ -96,7 +96,7 @@ def cmd_dataset(args) -> int:
                          "choose ids disjoint from the falsification space")
     sensor = load_sensor(space.sensor, ray_drop=args.ray_drop, range_noise=args.range_noise)
     opts = TrafficOptions(max_cars=args.max_cars, backgrounds=args.backgrounds,
-                          first_background=args.first_background)
+                          first_background=args.first_background, traffic=args.traffic)
     summary = write_dataset(sensor, Path(args.out), args.scans, seed=args.seed, opts=opts,
                             progress=not args.json)
     emit(args, summary, f"wrote {summary['written']} scans to {args.out} "
@@ -276,6 +276,28 @@ def cmd_bench(args) -> int:
     return 0
 
 
+# -- retrain --------------------------------------------------------------------------------
+def cmd_retrain(args) -> int:
+    from falsify.retrain import RetrainJob, RetrainRequest, parse_ids, result_text
+
+    model = Path(args.model)
+    if not model.suffix and not model.exists():  # a bundled name, e.g. squeezeseg-drive
+        model = ROOT / "models" / "weights" / f"{args.model}.onnx"
+    req = RetrainRequest(
+        config=Path(args.config), model=model, train_data=Path(args.train_data),
+        out=Path(args.out), validation=parse_ids(args.validation_backgrounds,
+                                                 "--validation-backgrounds"),
+        retraining=parse_ids(args.retraining_backgrounds, "--retraining-backgrounds"),
+        threshold=args.threshold, epochs=args.epochs, time_limit_min=args.time_limit_min,
+        precision=args.precision, batch=args.batch, lr=args.lr, seed=args.seed,
+        oversample=args.oversample, train_scans=args.train_scans,
+        held_out_scans=args.held_out_scans, kitti=Path(args.kitti) if args.kitti else None,
+        workers=args.workers, resume=args.resume)
+    result = RetrainJob(req, progress=not args.json).run()
+    emit(args, result.to_json(), result_text(result))
+    return 0
+
+
 def _held_out_scans(n: int):
     """Labelled synthetic scans on backgrounds no training or test config uses (ids 9000+)."""
     import numpy as np
@@ -316,6 +338,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--ray-drop", type=float, default=0.05,
                    help="probability that a return is dropped (real sensors lose some)")
     d.add_argument("--range-noise", type=float, default=0.02, help="range noise sigma, m")
+    from falsify.dataset import TRAFFIC_KINDS
+    d.add_argument("--traffic", choices=TRAFFIC_KINDS, default="scattered",
+                   help="scattered: cars anywhere on the road; drive: lane-following traffic "
+                   "like a driving log")
     d.add_argument("--json", action="store_true")
     d.set_defaults(func=cmd_dataset)
 
@@ -364,6 +390,35 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bench search: budget as a fraction of the dense grid")
     b.add_argument("--json", action="store_true")
     b.set_defaults(func=cmd_bench)
+
+    rt = sub.add_parser("retrain", help="the paper's experiment: blind spots on V, fine-tune on "
+                        "R's scans there, re-test V and held-out sets (resumable)")
+    rt.add_argument("config")
+    rt.add_argument("--model", required=True, help="an .onnx with its .pt beside it, or a "
+                    "bundled name such as squeezeseg-drive")
+    rt.add_argument("--train-data", required=True, help="the model's training scans")
+    rt.add_argument("--validation-backgrounds", required=True, metavar="IDS", help="V, e.g. 0-6")
+    rt.add_argument("--retraining-backgrounds", required=True, metavar="IDS",
+                    help="R, e.g. 7-14")
+    rt.add_argument("--out", required=True)
+    rt.add_argument("--resume", action="store_true", help="continue at the unfinished stage")
+    rt.add_argument("--threshold", type=float, default=None)
+    rt.add_argument("--epochs", type=int, default=1)
+    rt.add_argument("--time-limit-min", type=float, default=None)
+    rt.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp32"])
+    rt.add_argument("--batch", type=int, default=8)
+    rt.add_argument("--lr", type=float, default=3e-4)
+    rt.add_argument("--seed", type=int, default=0)
+    rt.add_argument("--oversample", type=int, default=20,
+                    help="times each selected scan appears in the fine-tuning set")
+    rt.add_argument("--train-scans", type=int, default=None,
+                    help="use only the first N training scans")
+    rt.add_argument("--held-out-scans", type=int, default=200)
+    rt.add_argument("--kitti", default=str(ROOT.parent / "shared" / "data" / "kitti"),
+                    help="real KITTI sets for the checks (skipped where absent)")
+    rt.add_argument("--workers", type=int, default=2)
+    rt.add_argument("--json", action="store_true")
+    rt.set_defaults(func=cmd_retrain)
 
     from reports.cli import register
     register(sub)
