@@ -10,9 +10,21 @@ def cmd_report(args) -> int:
     from falsify.cli import emit
     from reports.html import write_report
 
+    retrain = None
+    if args.retrain:
+        from falsify.errors import FalsifyError
+        if not args.compare:
+            raise FalsifyError("--retrain needs --compare RUN_BEFORE (the run before retraining)")
+        try:
+            retrain = json.loads(Path(args.retrain).read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise FalsifyError(f"--retrain {args.retrain}: not a readable summary ({exc})") \
+                from None
+        if not isinstance(retrain, dict) or "blind_before" not in retrain:
+            raise FalsifyError(f"--retrain {args.retrain}: not a `falsify retrain` summary.json")
     out = write_report(Path(args.run), Path(args.out) if args.out else None,
                        Path(args.compare) if args.compare else None,
-                       predict=not args.no_predict)
+                       predict=not args.no_predict, retrain=retrain)
     size = out.stat().st_size
     summary = {"run": args.run, "out": str(out), "bytes": size, "compare": args.compare}
     emit(args, summary, f"wrote {out} ({size / 1024:.0f} KiB)")
@@ -39,6 +51,8 @@ def register(sub) -> None:
     r.add_argument("run", help="run directory (holding results.sqlite)")
     r.add_argument("--compare", metavar="RUN_BEFORE",
                    help="an earlier run (e.g. before retraining): adds the difference map")
+    r.add_argument("--retrain", metavar="SUMMARY_JSON",
+                   help="a `falsify retrain` summary.json: adds the experiment's section")
     r.add_argument("--out", metavar="FILE", help="output file (default RUN/report.html)")
     r.add_argument("--no-predict", action="store_true",
                    help="show label-only previews (do not load the model)")

@@ -529,8 +529,9 @@ marks the lowest.</p>
 
 
 def compare_section(before: RunData, after: RunData, after_map: CellMap,
-                    threshold: float) -> str:
-    """The difference map (after − before) and the paper's sorted per-cell change plot."""
+                    threshold: float, ascending: bool = False) -> str:
+    """The difference map (after − before) and the paper's sorted per-cell change plot
+    (ascending, as the paper draws it, when `ascending`)."""
     bmap = before.cell_map()
     bidx = {cell_key(x, y): (i, j) for j, y in enumerate(bmap.b_values)
             for i, x in enumerate(bmap.a_values)}
@@ -562,6 +563,8 @@ def compare_section(before: RunData, after: RunData, after_map: CellMap,
     legend = diverging_legend(span)
 
     table = compare_maps(bmap, after_map)
+    if ascending:
+        table = table.iloc[::-1].reset_index(drop=True)
     changes = table["change"].to_numpy(dtype=float)
     plot = improvement_svg(table, span)
     before_blind = {cell_key(x, y) for x, y in _blind_keys(bmap, threshold)}
@@ -580,7 +583,8 @@ Over {changes.size} cells scored in both runs the mIoU changed by {mean} on aver
 <div class="row">
 <figure><figcaption>Difference map (after − before)</figcaption>{diff_svg}</figure>
 <figure>{legend}</figure>
-<figure><figcaption>Per-cell change, sorted (the paper's improvement plot)</figcaption>
+<figure><figcaption>Per-cell change, sorted {"ascending" if ascending else "descending"}
+(the paper's improvement plot)</figcaption>
 {plot}</figure>
 </div>
 </section>"""
@@ -1039,8 +1043,9 @@ DEFS = ('<svg width="0" height="0" style="position:absolute" aria-hidden="true">
 
 
 def render_report(run: Path, compare: Path | None = None, predict: bool = True,
-                  worst: int = WORST) -> str:
-    """The report of `run` as one self-contained HTML string (deterministic for its inputs)."""
+                  worst: int = WORST, retrain: dict | None = None) -> str:
+    """The report of `run` as one self-contained HTML string (deterministic for its inputs);
+    `retrain` (a `falsify retrain` summary) adds the retraining experiment's section."""
     data = open_run(run)
     before = open_run(compare) if compare is not None else None
     threshold = data.threshold
@@ -1050,8 +1055,12 @@ def render_report(run: Path, compare: Path | None = None, predict: bool = True,
     sections = [summary_section(data, cmap, threshold), heatmap_section(data, cmap, threshold)]
     if meta.get("command") == "search":
         sections.append(search_section(data, cmap, threshold))
+    if before is not None and retrain is not None:
+        from reports.retrain import retrain_section
+        sections.append(retrain_section(before, data, cmap, threshold, retrain))
     if before is not None:
-        sections.append(compare_section(before, data, cmap, threshold))
+        sections.append(compare_section(before, data, cmap, threshold,
+                                        ascending=retrain is not None))
     sections.append(distance_section(data, threshold))
     sections.append(worst_section(data, predict, worst))
     payload = script_json({"samples": samples_json(data), "threshold": threshold})
@@ -1085,12 +1094,12 @@ car IoU of {esc(meta.get("model_name", "the model"))} per sample · threshold
 
 
 def write_report(run: Path, out: Path | None = None, compare: Path | None = None,
-                 predict: bool = True) -> Path:
+                 predict: bool = True, retrain: dict | None = None) -> Path:
     """Render and write the report atomically (default RUN/report.html); returns the path."""
     from falsify.errors import FalsifyError
 
     text = render_report(Path(run), compare=None if compare is None else Path(compare),
-                         predict=predict)
+                         predict=predict, retrain=retrain)
     path = Path(out) if out is not None else Path(run) / "report.html"
     if path.is_dir():
         raise FalsifyError(f"--out {path}: is a directory")
