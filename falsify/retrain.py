@@ -6,18 +6,20 @@ was in; the grids and the fine-tuning resume inside their stage too):
   before    grid over the validation backgrounds V with the model
   rows      grid over the retraining backgrounds R with the model (the rows to re-cast)
   selected  the V cells below the threshold; the scans of R at those cells, re-cast from the
-            rows by falsify.runs.write_retraining_set
-  finetune  models.train from the model's weights on the training data plus the selected scans,
-            each repeated `oversample` times so a few dozen scans weigh against thousands
+            rows by falsify.runs.write_retraining_set (which replays them by falsify.replay)
+  finetune  falsify.models.train from the model's weights on the training data plus the
+            selected scans, each repeated `oversample` times so a few dozen scans weigh against
+            thousands
   after     grid over V with the fine-tuned model
-  checks    pooled car IoU before and after on held-out drive-style synthetic scans and on the
-            real KITTI sets (evaluation only)
+  checks    pooled car IoU before and after (falsify.evaluation.evaluate) on held-out
+            drive-style synthetic scans and on the real KITTI sets (evaluation only)
   report    maps as CSV, summary.json and the comparison page
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import math
 import shutil
@@ -28,7 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
+from falsify.checks import check_out_dir, check_range, check_seed
 from falsify.errors import ConfigError
+from falsify.pipeline import ProgressListener
+from falsify.store import open_run
 
 STAGES = ("before", "rows", "selected", "finetune", "after", "checks", "report")
 STAGE_FILE = "stages.json"
@@ -203,21 +208,30 @@ def subset_config(config: Path, backgrounds: Sequence[int], suffix: str) -> str:
 # -- the job ----------------------------------------------------------------------------------
 class RetrainJob:
     """Runs the stages in order; `on_stage(name)` is called before a stage is computed (the
-    seam tests use to simulate a kill)."""
+    seam tests use to simulate a kill); `on_progress` is handed to each grid run."""
 
     def __init__(self, req: RetrainRequest, on_stage: Callable[[str], None] | None = None,
-                 progress: bool = False):
+                 on_progress: ProgressListener | None = None):
         self.req = req
         self.on_stage = on_stage
-        self.quiet = not progress
+        self.on_progress = on_progress
 
     # checks before anything is written
     def prepare(self) -> dict:
+        from falsify.gate import check_threshold
+        from falsify.models.runner import load_segmenter
+        from falsify.models.train import list_scans
         from falsify.space import load_space
-        from models.runner import load_segmenter
-        from models.train import list_scans
 
         req = self.req
+        check_threshold(req.threshold)
+        for option, value, lo in (("--epochs", req.epochs, 1), ("--oversample", req.oversample, 1),
+                                  ("--batch", req.batch, 1), ("--workers", req.workers, 1),
+                                  ("--held-out-scans", req.held_out_scans, 0),
+                                  ("--train-scans", req.train_scans, 1)):
+            check_range(value, option, lo)
+        check_seed(req.seed)
+        check_out_dir(req.out)
         space = load_space(req.config)
         used = {int(b) for b in space.dims["background"].grid()}
         for option, ids in (("--validation-backgrounds", req.validation),
@@ -232,19 +246,12 @@ class RetrainJob:
         if both:
             raise ConfigError(f"--validation-backgrounds and --retraining-backgrounds share "
                               f"background {both[0]}; V and R must be disjoint")
-        if req.threshold is not None and not 0 < req.threshold <= 1:
-            raise ConfigError(f"--threshold: {req.threshold} must be in (0, 1]")
-        for option, value, lo in (("--epochs", req.epochs, 1), ("--oversample", req.oversample, 1),
-                                  ("--batch", req.batch, 1), ("--workers", req.workers, 1),
-                                  ("--held-out-scans", req.held_out_scans, 0)):
-            if value < lo:
-                raise ConfigError(f"{option}: {value} must be >= {lo}")
-        if req.train_scans is not None and req.train_scans < 1:
-            raise ConfigError(f"--train-scans: {req.train_scans} must be >= 1")
         if req.precision not in ("auto", "bf16", "fp32"):
             raise ConfigError(f"--precision: {req.precision!r}; allowed: auto, bf16, fp32")
         if not req.lr > 0:
             raise ConfigError(f"--lr: {req.lr} must be > 0")
+        if req.time_limit_min is not None and not req.time_limit_min > 0:
+            raise ConfigError(f"--time-limit-min: {req.time_limit_min} must be > 0")
         if req.model.suffix != ".onnx" or not req.model.is_file():
             raise ConfigError(f"--model {req.model}: expected an existing .onnx file")
         weights = req.model.with_suffix(".pt")
@@ -326,9 +333,10 @@ class RetrainJob:
         s = execute(RunRequest(config=self.req.out / config, out=out, command="grid",
                                model=str(model), workers=self.req.workers,
                                resume=(out / STORE_NAME).exists(), threshold=threshold,
-                               report=False, quiet=self.quiet))
-        return {k: s[k] for k in ("run", "samples", "ok", "invalid", "cells", "blind_spots",
-                                  "mean_car_iou", "elapsed_s", "model_hash")}
+                               report=False), on_progress=self.on_progress)
+        return {k: getattr(s, k) for k in ("run", "samples", "ok", "invalid", "cells",
+                                           "blind_spots", "mean_car_iou", "elapsed_s",
+                                           "model_hash")}
 
     def _before(self, ctx: dict, done: dict) -> dict:
         return self._grid("before", "config-validation.toml", self.req.model, ctx["threshold"])
@@ -337,20 +345,20 @@ class RetrainJob:
         return self._grid("rows", "config-retraining.toml", self.req.model, ctx["threshold"])
 
     def _selected(self, ctx: dict, done: dict) -> dict:
-        from falsify.gate import open_run
         from falsify.runs import write_retraining_set
 
         v = open_run(self.req.out / "before")
         r = open_run(self.req.out / "rows")
         cmap = v.cell_map()
         blind = cmap.blind_spots(ctx["threshold"])
-        n = write_retraining_set(self.req.out / "selected", r.space, r.frame, cmap,
-                                 ctx["threshold"], None)
+        # R's rows at V's blind cells, exported into OUT/selected/retrain
+        n = write_retraining_set(dataclasses.replace(r, path=self.req.out / "selected"), cmap,
+                                 ctx["threshold"])
         return {"cells": [{"x": c.a, "y": c.b, "miou": round(c.miou, 4)} for c in blind],
                 "scans": n, "folder": str(self.req.out / "selected" / "retrain")}
 
     def _finetune(self, ctx: dict, done: dict) -> dict:
-        from models.train import CHECKPOINT, TrainConfig, train
+        from falsify.models.train import CHECKPOINT, TrainConfig, train
 
         req = self.req
         data = req.out / "finetune-data"
@@ -386,44 +394,50 @@ class RetrainJob:
                           ctx["threshold"])
 
     def _checks(self, ctx: dict, done: dict) -> dict:
+        from falsify.evaluation import evaluate
+        from falsify.models.runner import load_segmenter
+        from falsify.scansets import ScanSet, read_set
         from falsify.sensor import load_sensor
 
         req = self.req
-        space = ctx["space"]
-        sets: list[tuple[str, np.ndarray | None, str]] = []
+        sets: list[tuple[str, ScanSet | None, str]] = []
         if req.held_out_scans:
             sets.append(("held-out drive-style synthetic", self._held_out(ctx),
                          f"streets {HELD_OUT_FIRST_BACKGROUND}.."
                          f"{HELD_OUT_FIRST_BACKGROUND + HELD_OUT_BACKGROUNDS - 1}, seed "
                          f"{HELD_OUT_SEED}, drive traffic"))
         kitti = req.kitti
+        sensor = load_sensor(ctx["space"].sensor)
         sq = sorted((kitti / "squeezeseg").glob("*.npy")) if kitti else []
-        sets.append(("real KITTI, SqueezeSeg layout", np.stack([np.load(p) for p in sq])
-                     if sq else None, "kitti/squeezeseg/*.npy" if sq
+        sets.append(("real KITTI, SqueezeSeg layout",
+                     read_set("squeezeseg", sq, sensor) if sq else None,
+                     "kitti/squeezeseg/*.npy" if sq
                      else f"skipped: no scans in {kitti}/squeezeseg"))
         bins = sorted((kitti / "semantickitti").glob("*.bin")) if kitti else []
-        if bins:
-            from falsify.scan import read_kitti
-            sensor = load_sensor(space.sensor)
-            sem = np.stack([read_kitti(b, b.with_suffix(".label"), sensor).image for b in bins])
-        sets.append(("real SemanticKITTI seq. 00", sem if bins else None,
+        sets.append(("real SemanticKITTI seq. 00",
+                     read_set("semantickitti", bins, sensor) if bins else None,
                      "kitti/semantickitti/*.bin projected with the config's sensor" if bins
                      else f"skipped: no scans in {kitti}/semantickitti"))
-        after_model = Path(done["finetune"]["model"])
-        checks = []
+        present = [s for _, s, _ in sets if s is not None]
+        scores = {}
+        for when, model in (("before", req.model), ("after", Path(done["finetune"]["model"]))):
+            result = evaluate(load_segmenter(model, threads=2), present) if present else None
+            scores[when] = [] if result is None else [e.pooled.car().iou for e in result.sets]
+        checks, k = [], 0
         for name, scans, note in sets:
             if scans is None:
                 checks.append(Check(name, 0, None, None, note))
                 continue
-            checks.append(Check(name, len(scans), _r(pooled_car_iou(req.model, scans)),
-                                _r(pooled_car_iou(after_model, scans)), note))
+            checks.append(Check(name, len(scans), _r(scores["before"][k]),
+                                _r(scores["after"][k]), note))
+            k += 1
         return {"checks": [asdict(c) for c in checks]}
 
-    def _held_out(self, ctx: dict) -> np.ndarray:
+    def _held_out(self, ctx: dict):
         """Drive-style held-out scans with the training set's sensor effects (written once)."""
         from falsify.dataset import TrafficOptions, write_dataset
+        from falsify.scansets import npy_files, read_set
         from falsify.sensor import load_sensor
-        from models.train import list_scans, load_scan
 
         idx = ctx["train_index"] or {}
         effects = {k: float(idx[k]) for k in ("ray_drop", "range_noise") if k in idx}
@@ -431,9 +445,8 @@ class RetrainJob:
         folder = self.req.out / "held-out"
         opts = TrafficOptions(first_background=HELD_OUT_FIRST_BACKGROUND,
                               backgrounds=HELD_OUT_BACKGROUNDS, traffic="drive")
-        write_dataset(sensor, folder, self.req.held_out_scans, seed=HELD_OUT_SEED, opts=opts,
-                      progress=False)
-        return np.stack([load_scan(f) for f in list_scans(folder)])
+        write_dataset(sensor, folder, self.req.held_out_scans, seed=HELD_OUT_SEED, opts=opts)
+        return read_set("held-out", npy_files(folder), sensor)
 
     def _report(self, ctx: dict, done: dict) -> dict:
         from falsify.fileio import write_bytes, write_json
@@ -453,18 +466,15 @@ class RetrainJob:
         result = self._result(ctx, {**done, "report": {"files": files}}, (), ())
         write_json(out / "summary.json", result.to_json())
         if "after" in done:
-            from reports.html import write_report
+            from falsify.reporting import write_report
             # the page reads the summary as written, so `falsify report --retrain` rebuilds it
             write_report(out / "after", out / "comparison.html", compare=out / "before",
-                         predict=False, retrain=json.loads((out / "summary.json").read_text(
-                             encoding="utf-8")))
+                         predict=False, retrain=read_summary(out / "summary.json", "summary"))
         return {"files": files}
 
     # -- result ---------------------------------------------------------------------------
     def _result(self, ctx: dict, done: dict, computed: tuple[str, ...],
                 reused: tuple[str, ...]) -> RetrainResult:
-        from falsify.gate import open_run
-
         thr = ctx["threshold"]
         out = self.req.out
         before = done.get("before", {})
@@ -513,20 +523,15 @@ def _cell_mean(cmap) -> float | None:
     return float(v.mean()) if v.size else None
 
 
-def pooled_car_iou(model: Path, scans: np.ndarray) -> float | None:
-    """Car IoU pooled over scans (TP, FP, FN summed), invalid pixels counted as unknown."""
-    from falsify.metrics import CAR, CLASSES, class_iou, confusion, pooled
-    from models.runner import load_segmenter
-
-    seg = load_segmenter(model, threads=2)
-    counts = []
-    for i in range(0, len(scans), 8):
-        batch = scans[i:i + 8]
-        pred = seg.predict(batch)
-        for k, cls in enumerate(pred.classes):
-            label = np.where(batch[k][..., 4] > 0, batch[k][..., 5], 0).astype(np.uint8)
-            counts.append(confusion(cls, label, len(CLASSES)))
-    return class_iou(pooled(counts), CAR)
+def read_summary(path: Path, option: str) -> dict:
+    """A `falsify retrain` summary.json; FalsifyError naming the option and file otherwise."""
+    try:
+        summary = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{option} {path}: not a readable summary ({exc})") from None
+    if not isinstance(summary, dict) or "blind_before" not in summary:
+        raise ConfigError(f"{option} {path}: not a `falsify retrain` summary.json")
+    return summary
 
 
 def _read_index(folder: Path) -> dict | None:
@@ -564,4 +569,4 @@ def result_text(r: RetrainResult) -> str:
 
 
 __all__ = ["RetrainRequest", "RetrainJob", "RetrainResult", "Check", "parse_ids",
-           "result_text"]
+           "read_summary", "result_text"]

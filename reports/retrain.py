@@ -4,10 +4,11 @@ the selected cells, the regression checks and the issue's criteria (from `falsif
 from __future__ import annotations
 
 import numpy as np
+from falsify.reports.page import esc
+from falsify.reports.run_page import Grid, _svg, axes_svg, cells_svg, f3, legend_svg, viridis
 
-from falsify.gate import RunData, fmt_value
-from falsify.maps import CellMap
-from reports.html import Grid, _svg, axes_svg, cells_svg, esc, f3, legend_svg, viridis
+from falsify.maps import CellMap, fmt_value
+from falsify.store import RunData
 
 
 def _map_svg(cmap: CellMap, threshold: float, ident: str, title: str) -> str:

@@ -10,32 +10,25 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from falsify.models.runner import BUNDLED_ONNX
 
 from falsify.cli import main
 from falsify.dataset import TrafficOptions, write_dataset
 from falsify.retrain import STAGES, RetrainJob, RetrainRequest, parse_ids, subset_config
 from falsify.sensor import load_sensor
 from falsify.space import load_space
-from tests.conftest import CONFIGS, KITTI, ROOT
-from tests.test_report import browser  # noqa: F401  (the headless Chromium fixture)
+from falsify.store import sample_seed
+from tests.conftest import CONFIGS, KITTI, assert_offline
 
-MODEL = ROOT / "models" / "weights" / "squeezeseg.onnx"
+MODEL = BUNDLED_ONNX
 TINY = """name = "tiny"
 sensor = "kitti-hdl64e-front"
 seed = 0
 threshold = 0.99
-
-[dims.car_model]
-values = ["sedan"]
-
-[dims.x]
-values = [-3.0, 1.0]
-
-[dims.y]
-values = [8.0]
-
-[dims.background]
-values = [0, 5]
+dims.car_model.values = ["sedan"]
+dims.x.values = [-3.0, 1.0]
+dims.y.values = [8.0]
+dims.background.values = [0, 5]
 """
 
 
@@ -49,7 +42,7 @@ def inputs(tmp_path_factory) -> dict:
     (root / "tiny.toml").write_text(TINY)
     sensor = load_sensor("kitti-hdl64e-front", ray_drop=0.05, range_noise=0.02)
     write_dataset(sensor, root / "train", 2, seed=1,
-                  opts=TrafficOptions(backgrounds=1, traffic="drive"), progress=False)
+                  opts=TrafficOptions(backgrounds=1, traffic="drive"))
     return {"root": root, "config": root / "tiny.toml", "train": root / "train"}
 
 
@@ -142,7 +135,7 @@ def test_cli_json_and_gate_on_the_pair(experiment, capsys) -> None:
     assert code == (1 if verdict["new_blind_spots"] else 0)
 
 
-def test_comparison_page_in_chromium(browser, experiment) -> None:  # noqa: F811
+def test_comparison_page_in_chromium(browser, experiment) -> None:
     from selenium.webdriver.common.by import By
 
     out, r = experiment["out"], experiment["result"]
@@ -156,14 +149,7 @@ def test_comparison_page_in_chromium(browser, experiment) -> None:  # noqa: F811
     checks = browser.find_elements(By.CSS_SELECTOR, "#checks tbody tr")
     assert len(checks) == len(r.checks)
     assert len(browser.find_elements(By.CSS_SELECTOR, "#improvement rect.bar")) == 2
-    resources = browser.execute_script(
-        "return performance.getEntriesByType('resource').map(e => e.name)")
-    assert all(u.startswith("data:") for u in resources), resources
-    requested = [json.loads(e["message"])["message"] for e in browser.get_log("performance")]
-    urls = [m["params"]["request"]["url"] for m in requested
-            if m.get("method") == "Network.requestWillBeSent"]
-    assert not [u for u in urls if u.startswith(("http:", "https:", "ws:", "wss:"))]
-    assert not [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
+    assert_offline(browser)
 
 
 def test_report_cli_rebuilds_the_page(experiment, tmp_path, capsys) -> None:
@@ -231,6 +217,5 @@ def test_parse_ids_and_subset_config(tmp_path) -> None:
     raw, raw_full = tomllib.loads(text), tomllib.loads((CONFIGS / "paper.toml").read_text())
     assert raw["dims"]["x"] == raw_full["dims"]["x"] and raw["seed"] == raw_full["seed"]
     # the subset's samples are exactly the full grid's samples on those backgrounds
-    from falsify.pipeline import sample_seed
     wanted = [s for s in full.grid() if int(s["background"]) < 7]
     assert [sample_seed(sub, s) for s in sub.grid()] == [sample_seed(full, s) for s in wanted]

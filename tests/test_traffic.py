@@ -50,7 +50,7 @@ def test_drive_is_deterministic(sim, tmp_path) -> None:
     assert scene_for(17, 3, sim, DRIVE) != scene_for(17, 4, sim, DRIVE)
     sensor = load_sensor("kitti-hdl64e-front", ray_drop=0.05, range_noise=0.02)
     for d in ("a", "b"):
-        write_dataset(sensor, tmp_path / d, 2, seed=3, opts=DRIVE, progress=False)
+        write_dataset(sensor, tmp_path / d, 2, seed=3, opts=DRIVE)
     for name in ("000000.npy", "000001.npy", "index.json"):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
     assert b'"traffic": "drive"' in (tmp_path / "a" / "index.json").read_bytes()
