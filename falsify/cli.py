@@ -17,7 +17,7 @@ from falsify.checks import (
     check_seed,
 )
 from falsify.errors import FalsifyError
-from falsify.paths import CONFIGS
+from falsify.paths import CONFIGS, config_path
 
 DEFAULT_CONFIG = CONFIGS / "paper.toml"
 
@@ -120,7 +120,7 @@ def cmd_dataset(args) -> int:
                          "choose ids disjoint from the falsification space")
     sensor = load_sensor(space.sensor, ray_drop=args.ray_drop, range_noise=args.range_noise)
     opts = TrafficOptions(max_cars=args.max_cars, backgrounds=args.backgrounds,
-                          first_background=args.first_background)
+                          first_background=args.first_background, traffic=args.traffic)
     if args.format == "kitti-object":
         from falsify.camera_cli import dataset_kitti_object
         summary, text = dataset_kitti_object(sensor, args.camera, Path(args.out), args.scans,
@@ -426,15 +426,46 @@ def cmd_bench(args) -> int:
     return 0
 
 
+# -- retrain --------------------------------------------------------------------------------
+def cmd_retrain(args) -> int:
+    from falsify.models.runner import WEIGHTS_DIR
+    from falsify.retrain import RetrainJob, RetrainRequest, parse_ids, result_text
+    from falsify.scansets import KITTI_DIR
+
+    model = Path(args.model)
+    if not model.suffix and not model.exists():  # a bundled name, e.g. squeezeseg-drive
+        model = WEIGHTS_DIR / f"{args.model}.onnx"
+    req = RetrainRequest(
+        config=config_path(args.config), model=model, train_data=Path(args.train_data),
+        out=Path(args.out), validation=parse_ids(args.validation_backgrounds,
+                                                 "--validation-backgrounds"),
+        retraining=parse_ids(args.retraining_backgrounds, "--retraining-backgrounds"),
+        threshold=args.threshold, epochs=args.epochs, time_limit_min=args.time_limit_min,
+        precision=args.precision, batch=args.batch, lr=args.lr, seed=args.seed,
+        oversample=args.oversample, train_scans=args.train_scans,
+        held_out_scans=args.held_out_scans,
+        kitti=KITTI_DIR if args.kitti is None else Path(args.kitti) if args.kitti else None,
+        workers=args.workers, resume=args.resume)
+    result = RetrainJob(req, on_progress=None if args.json else ProgressBar()).run()
+    emit(args, result.to_json(), result_text(result))
+    return 0
+
+
 # -- report, gate and tradeoff ----------------------------------------------------------------
 def cmd_report(args) -> int:
     from falsify.reporting import write_report
 
+    retrain = None
+    if args.retrain:
+        from falsify.retrain import read_summary
+        if not args.compare:
+            raise UsageError("--retrain needs --compare RUN_BEFORE (the run before retraining)")
+        retrain = read_summary(Path(args.retrain), "--retrain")
     if args.out:
         check_out_file(args.out)
     out = write_report(Path(args.run), Path(args.out) if args.out else None,
                        Path(args.compare) if args.compare else None,
-                       predict=not args.no_predict)
+                       predict=not args.no_predict, retrain=retrain)
     size = out.stat().st_size
     summary = {"run": args.run, "out": str(out), "bytes": size, "compare": args.compare}
     emit(args, summary, f"wrote {out} ({size / 1024:.0f} KiB)")
@@ -508,6 +539,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--ray-drop", type=float, default=0.05,
                    help="probability that a return is dropped (real sensors lose some)")
     d.add_argument("--range-noise", type=float, default=0.02, help="range noise sigma, m")
+    from falsify.dataset import TRAFFIC_KINDS
+    d.add_argument("--traffic", choices=TRAFFIC_KINDS, default="scattered",
+                   help="scattered: cars anywhere on the road; drive: lane-following traffic "
+                   "like a driving log")
     d.add_argument("--format", choices=["npy", "kitti-object"], default="npy",
                    help="npy: range images; kitti-object: velodyne, image_2, calib, label_2")
     d.add_argument("--camera", default="kitti-centre", metavar="PRESET",
@@ -593,6 +628,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("run", help="run directory (holding results.sqlite)")
     r.add_argument("--compare", metavar="RUN_BEFORE",
                    help="an earlier run (e.g. before retraining): adds the difference map")
+    r.add_argument("--retrain", metavar="SUMMARY_JSON",
+                   help="a `falsify retrain` summary.json: adds the experiment's section")
     r.add_argument("--out", metavar="FILE", help="output file (default RUN/report.html)")
     r.add_argument("--no-predict", action="store_true",
                    help="show label-only previews (do not load the model)")
@@ -628,6 +665,36 @@ def build_parser() -> argparse.ArgumentParser:
                    help="use only the first N samples of the grid (quick runs)")
     t.add_argument("--json", action="store_true")
     t.set_defaults(func=cmd_tradeoff)
+
+    rt = sub.add_parser("retrain", help="the paper's experiment: blind spots on V, fine-tune on "
+                        "R's scans there, re-test V and held-out sets (resumable)")
+    rt.add_argument("config")
+    rt.add_argument("--model", required=True, help="an .onnx with its .pt beside it, or a "
+                    "bundled name such as squeezeseg-drive")
+    rt.add_argument("--train-data", required=True, help="the model's training scans")
+    rt.add_argument("--validation-backgrounds", required=True, metavar="IDS", help="V, e.g. 0-6")
+    rt.add_argument("--retraining-backgrounds", required=True, metavar="IDS",
+                    help="R, e.g. 7-14")
+    rt.add_argument("--out", required=True)
+    rt.add_argument("--resume", action="store_true", help="continue at the unfinished stage")
+    rt.add_argument("--threshold", type=float, default=None)
+    rt.add_argument("--epochs", type=int, default=1)
+    rt.add_argument("--time-limit-min", type=float, default=None)
+    rt.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp32"])
+    rt.add_argument("--batch", type=int, default=8)
+    rt.add_argument("--lr", type=float, default=3e-4)
+    rt.add_argument("--seed", type=int, default=0)
+    rt.add_argument("--oversample", type=int, default=20,
+                    help="times each selected scan appears in the fine-tuning set")
+    rt.add_argument("--train-scans", type=int, default=None,
+                    help="use only the first N training scans")
+    rt.add_argument("--held-out-scans", type=int, default=200)
+    rt.add_argument("--kitti", default=None,
+                    help="real KITTI sets for the checks (default: ../shared/data/kitti beside "
+                    "the checkout; skipped where absent)")
+    rt.add_argument("--workers", type=int, default=2)
+    rt.add_argument("--json", action="store_true")
+    rt.set_defaults(func=cmd_retrain)
 
     from falsify.camera_cli import register as register_camera
     register_camera(sub)

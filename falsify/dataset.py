@@ -26,6 +26,7 @@ TRAIN_BACKGROUND_FIRST = 1000
 SCANS_PER_BACKGROUND = 8
 HELD_OUT_BACKGROUND_FIRST = 9000
 CALIBRATION_SCANS = 16
+TRAFFIC_KINDS = ("scattered", "drive")  # drive: lane-following traffic (falsify.traffic)
 
 
 @dataclass(frozen=True)
@@ -36,13 +37,20 @@ class TrafficOptions:
     ahead: tuple[float, float] = (-15.0, 60.0)   # car positions relative to the ego, metres
     backgrounds: int = 1000                       # distinct backgrounds to draw from
     first_background: int = TRAIN_BACKGROUND_FIRST
+    traffic: str = "scattered"                    # one of TRAFFIC_KINDS
 
 
 def scene_for(index: int, seed: int, sim: Simulator,
               opts: TrafficOptions) -> tuple[int, SensorPose, list[PlacedCar]]:
     """The background, ego pose and traffic of training scan `index` (deterministic)."""
-    rng = np.random.default_rng([seed, index])
     bg_id = opts.first_background + (index // SCANS_PER_BACKGROUND) % opts.backgrounds
+    if opts.traffic == "drive":
+        from falsify.traffic import drive_scene
+
+        return (bg_id, *drive_scene(index, seed, sim, bg_id, opts.max_cars))
+    if opts.traffic != "scattered":
+        raise ConfigError(f"--traffic: {opts.traffic!r} is not one of {list(TRAFFIC_KINDS)}")
+    rng = np.random.default_rng([seed, index])
     bg = sim.background(bg_id)[1]
     half = float(getattr(bg, "road_half_width", 9.0))
     lane = rng.uniform(-min(half - 2.5, 5.0), min(half - 2.5, 5.0))
@@ -105,6 +113,8 @@ def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
              "first_background": opts.first_background, "backgrounds": opts.backgrounds,
              "max_cars": opts.max_cars, "ray_drop": sensor.ray_drop,
              "range_noise": sensor.range_noise}
+    if opts.traffic != "scattered":  # scattered sets keep their index byte for byte
+        index["traffic"] = opts.traffic
     write_json(out / "index.json", index)
     return {**index, "written": written, "points_per_class": dict(
         zip(CLASSES, counts.tolist(), strict=True))}

@@ -71,19 +71,22 @@ def replay_worst(data: RunData, worst: int, predict: bool, model: Segmenter | No
 
 
 def render_report(run: Path, compare: Path | None = None, predict: bool = True,
-                  worst: int = WORST, model: Segmenter | None = None) -> str:
-    """The report of `run` as one self-contained HTML string (deterministic for its inputs)."""
+                  worst: int = WORST, model: Segmenter | None = None,
+                  retrain: dict | None = None) -> str:
+    """The report of `run` as one self-contained HTML string (deterministic for its inputs);
+    `retrain` (a `falsify retrain` summary, with `compare`) adds the experiment's section."""
     data = open_run(run)
     before = open_run(compare) if compare is not None else None
     scans, note = replay_worst(data, worst, predict, model)
-    return render(ReportInput(data, before, scans, note, worst))
+    return render(ReportInput(data, before, scans, note, worst, retrain))
 
 
 def write_report(run: Path, out: Path | None = None, compare: Path | None = None,
-                 predict: bool = True, model: Segmenter | None = None) -> Path:
+                 predict: bool = True, model: Segmenter | None = None,
+                 retrain: dict | None = None) -> Path:
     """Render and write the report atomically (default RUN/report.html); returns the path."""
     text = render_report(Path(run), compare=None if compare is None else Path(compare),
-                         predict=predict, model=model)
+                         predict=predict, model=model, retrain=retrain)
     path = Path(out) if out is not None else Path(run) / "report.html"
     if path.is_dir():
         raise FalsifyError(f"--out {path}: is a directory")

@@ -492,8 +492,9 @@ marks the lowest.</p>
 
 
 def compare_section(before: RunData, after: RunData, after_map: CellMap,
-                    threshold: float) -> str:
-    """The difference map (after − before) and the paper's sorted per-cell change plot."""
+                    threshold: float, ascending: bool = False) -> str:
+    """The difference map (after − before) and the paper's sorted per-cell change plot
+    (ascending, as the paper draws it, when `ascending`)."""
     bmap = before.cell_map()
     bidx = {cell_key(x, y): (i, j) for j, y in enumerate(bmap.b_values)
             for i, x in enumerate(bmap.a_values)}
@@ -525,6 +526,8 @@ def compare_section(before: RunData, after: RunData, after_map: CellMap,
     legend = diverging_legend(span)
 
     table = compare_maps(bmap, after_map)
+    if ascending:
+        table = table.iloc[::-1].reset_index(drop=True)
     changes = table["change"].to_numpy(dtype=float)
     plot = improvement_svg(table, span)
     before_blind = {cell_key(x, y) for x, y in _blind_keys(bmap, threshold)}
@@ -543,7 +546,8 @@ Over {changes.size} cells scored in both runs the mIoU changed by {mean} on aver
 <div class="row">
 <figure><figcaption>Difference map (after − before)</figcaption>{diff_svg}</figure>
 <figure>{legend}</figure>
-<figure><figcaption>Per-cell change, sorted (the paper's improvement plot)</figcaption>
+<figure><figcaption>Per-cell change, sorted {"ascending" if ascending else "descending"}
+(the paper's improvement plot)</figcaption>
 {plot}</figure>
 </div>
 </section>"""
@@ -631,6 +635,7 @@ class ReportInput:
     scans: Mapping[int, ReplayedScan] = field(default_factory=dict)   # by eval index
     note: str = ""
     worst: int = WORST
+    retrain: dict | None = None   # a `falsify retrain` summary: adds the experiment's section
 
 
 BEV_AHEAD, BEV_SIDE, BEV_SIZE = 32.0, 16.0, 128
@@ -972,8 +977,9 @@ DEFS = ('<svg width="0" height="0" style="position:absolute" aria-hidden="true">
 
 
 def render(report: ReportInput) -> str:
-    """The report as one self-contained HTML string (deterministic for its input)."""
-    data, before = report.run, report.before
+    """The report as one self-contained HTML string (deterministic for its input); a
+    `falsify retrain` summary in `report.retrain` adds the retraining experiment's section."""
+    data, before, retrain = report.run, report.before, report.retrain
     threshold = data.threshold
     cmap = data.cell_map()
     meta = data.meta
@@ -981,8 +987,12 @@ def render(report: ReportInput) -> str:
     sections = [summary_section(data, cmap, threshold), heatmap_section(data, cmap, threshold)]
     if meta.get("command") == "search":
         sections.append(search_section(data, cmap, threshold))
+    if before is not None and retrain is not None:
+        from falsify.reports.retrain import retrain_section
+        sections.append(retrain_section(before, data, cmap, threshold, retrain))
     if before is not None:
-        sections.append(compare_section(before, data, cmap, threshold))
+        sections.append(compare_section(before, data, cmap, threshold,
+                                        ascending=retrain is not None))
     sections.append(distance_section(data, threshold))
     sections.append(worst_section(data, report.scans, report.note, report.worst))
     payload = script_json({"samples": samples_json(data), "threshold": threshold})

@@ -67,6 +67,10 @@ SETUP = {   # file name: content (bytes or str); made in the scratch directory b
     "run/results.sqlite": b"SQLite format 3\x00" + b"\x00" * 84,   # truncated: header only
 }
 
+# `falsify retrain` on the smoke config, V = background 0, R = background 1 (add --out)
+RETRAIN = ["retrain", "SMOKE", "--model", "squeezeseg", "--train-data", "afile",
+           "--validation-backgrounds", "0", "--retraining-backgrounds", "1"]
+
 CASES = [   # (id, command line after `falsify`, a word the message must name)
     ("grid --out is a file", ["grid", "SMOKE", "--out", "afile"], "--out afile"),
     ("grid --out under a file", ["grid", "SMOKE", "--out", "afile/run"], "--out afile/run"),
@@ -112,6 +116,17 @@ CASES = [   # (id, command line after `falsify`, a word the message must name)
     ("scan with a missing mesh", ["scan", "nomesh.toml", "--out", "s"], "missing.glb"),
     ("gate on a truncated store", ["gate", "run"], "results.sqlite"),
     ("report on a truncated store", ["report", "run"], "results.sqlite"),
+    ("dataset --traffic unknown", ["dataset", "SMOKE", "--scans", "1", "--traffic", "jam",
+                                   "--out", "d"], "--traffic"),
+    ("report --retrain without --compare", ["report", "run", "--retrain", "afile"],
+     "--compare"),
+    ("retrain --out is a file", [*RETRAIN, "--out", "afile"], "--out afile"),
+    ("retrain --seed -1", [*RETRAIN, "--seed", "-1", "--out", "r"], "--seed"),
+    ("retrain --epochs 0", [*RETRAIN, "--epochs", "0", "--out", "r"], "--epochs"),
+    ("retrain --threshold 2", [*RETRAIN, "--threshold", "2", "--out", "r"], "--threshold"),
+    ("retrain V outside the config", [*RETRAIN[:-3], "7", *RETRAIN[-2:], "--out", "r"],
+     "--validation-backgrounds"),
+    ("retrain --train-data a file", [*RETRAIN, "--out", "r"], "--train-data"),
 ]
 
 

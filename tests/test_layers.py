@@ -24,7 +24,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
         "falsify/sensor", "falsify/raycast", "falsify/scan", "falsify/kitti", "falsify/scene",
         "falsify/dataset", "falsify/preview", "falsify/metrics", "falsify/kitti_frames",
         "falsify/scansets", "falsify/calibration", "falsify/camera", "falsify/kitti_object",
-        "falsify/kitti_export", "falsify/overlay", "falsify/pngread")),
+        "falsify/kitti_export", "falsify/overlay", "falsify/pngread", "falsify/traffic")),
     ("network: SqueezeSeg, its spec, runners, export, training", (
         "models/*",)),
     ("results: maps, the store and its reader, replay, samplers", (
@@ -34,7 +34,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("jobs: runs, pipeline, gate, report, trade-off, bench, presets", (
         "falsify/pipeline", "falsify/runs", "falsify/gate", "falsify/reporting",
         "falsify/tradeoff", "falsify/bench", "falsify/fidelity", "falsify/evaluation",
-        "falsify/realism", "falsify/calib_check", "falsify/bench_camera")),
+        "falsify/realism", "falsify/calib_check", "falsify/bench_camera", "falsify/retrain")),
     ("command line", (
         "falsify/cli", "falsify/__main__", "falsify/camera_cli")),
 )

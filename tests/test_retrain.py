@@ -1,0 +1,221 @@
+"""`falsify retrain`: stages recorded and resumed after a simulated kill without recomputing
+finished ones, the comparison page in headless Chromium, the gate on the before/after pair, and
+bad input exiting 2 with nothing written. Tiny: 2 cells, 1 background each for V and R, one
+training step of 3 scans."""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+
+import pytest
+from falsify.models.runner import BUNDLED_ONNX
+
+from falsify.cli import main
+from falsify.dataset import TrafficOptions, write_dataset
+from falsify.retrain import STAGES, RetrainJob, RetrainRequest, parse_ids, subset_config
+from falsify.sensor import load_sensor
+from falsify.space import load_space
+from falsify.store import sample_seed
+from tests.conftest import CONFIGS, KITTI, assert_offline
+
+MODEL = BUNDLED_ONNX
+TINY = """name = "tiny"
+sensor = "kitti-hdl64e-front"
+seed = 0
+threshold = 0.99
+dims.car_model.values = ["sedan"]
+dims.x.values = [-3.0, 1.0]
+dims.y.values = [8.0]
+dims.background.values = [0, 5]
+"""
+
+
+class Killed(Exception):
+    """Stands for the process being killed at the start of a stage."""
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory) -> dict:
+    root = tmp_path_factory.mktemp("retrain")
+    (root / "tiny.toml").write_text(TINY)
+    sensor = load_sensor("kitti-hdl64e-front", ray_drop=0.05, range_noise=0.02)
+    write_dataset(sensor, root / "train", 2, seed=1,
+                  opts=TrafficOptions(backgrounds=1, traffic="drive"))
+    return {"root": root, "config": root / "tiny.toml", "train": root / "train"}
+
+
+def request(inputs: dict, out: Path, **kw) -> RetrainRequest:
+    args = dict(config=inputs["config"], model=MODEL, train_data=inputs["train"], out=out,
+                validation=(0,), retraining=(5,), epochs=1, batch=8, oversample=1,
+                train_scans=1, held_out_scans=2, kitti=KITTI if KITTI.is_dir() else None,
+                workers=1)
+    args.update(kw)
+    return RetrainRequest(**args)
+
+
+@pytest.fixture(scope="module")
+def experiment(inputs) -> dict:
+    """Run the experiment, killed when the 'after' grid starts, then resumed."""
+    out = inputs["root"] / "exp"
+
+    def kill_at_after(stage: str) -> None:
+        if stage == "after":
+            raise Killed
+
+    with pytest.raises(Killed):
+        RetrainJob(request(inputs, out), on_stage=kill_at_after).run()
+    state = json.loads((out / "stages.json").read_text())
+    stamps = {p: (out / p).stat().st_mtime_ns for p in
+              ("before/results.sqlite", "rows/results.sqlite", "finetune/squeezeseg.pt",
+               "finetune/squeezeseg.onnx", "selected/retrain/index.csv")}
+    result = RetrainJob(request(inputs, out, resume=True)).run()
+    return {"out": out, "killed_state": state, "stamps": stamps, "result": result}
+
+
+def test_resume_after_kill_recomputes_nothing_finished(experiment) -> None:
+    out, result = experiment["out"], experiment["result"]
+    assert sorted(experiment["killed_state"]["done"]) == ["before", "finetune", "rows", "selected"]
+    assert result.reused == ("before", "rows", "selected", "finetune")
+    assert result.computed == ("after", "checks", "report")
+    for p, stamp in experiment["stamps"].items():
+        assert (out / p).stat().st_mtime_ns == stamp, p
+    # one training run only: its log has one line
+    assert len((out / "finetune" / "train_log.jsonl").read_text().splitlines()) == 1
+    state = json.loads((out / "stages.json").read_text())
+    assert sorted(state["done"]) == sorted(STAGES)
+    # a second resume has nothing left to do and gives the same summary
+    again = RetrainJob(request(_inputs_of(out), out, resume=True)).run()
+    assert again.computed == () and again.reused == STAGES
+    assert again.criteria == result.criteria
+
+
+def _inputs_of(out: Path) -> dict:
+    root = out.parent
+    return {"config": root / "tiny.toml", "train": root / "train"}
+
+
+def test_result_and_files(experiment) -> None:
+    out, r = experiment["out"], experiment["result"]
+    assert r.cells == 2 and r.threshold == 0.99
+    assert len(r.blind_before) >= 1 and r.retraining_scans == len(r.blind_before)
+    assert r.fixed is not None and 0 <= r.fixed <= len(r.blind_before)
+    assert r.mean_before is not None and r.mean_after is not None
+    names = [c.name for c in r.checks]
+    assert names[0] == "held-out drive-style synthetic" and r.checks[0].scans == 2
+    assert r.checks[0].before is not None and r.checks[0].after is not None
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["blind_before"] == [c.as_dict() for c in r.blind_before]
+    assert summary["checks"][0]["change"] == round(r.checks[0].after - r.checks[0].before, 4)
+    for name in ("miou_before.csv", "miou_after.csv", "comparison.html"):
+        assert (out / name).is_file()
+    # the selected scans are R's (background 5) at V's blind cells, re-cast from R's rows
+    import csv
+    with open(out / "selected" / "retrain" / "index.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == r.retraining_scans and {row["background"] for row in rows} == {"5"}
+    blind = {(c.x, c.y) for c in r.blind_before}
+    assert {(float(row["x"]), float(row["y"])) for row in rows} == blind
+
+
+def test_cli_json_and_gate_on_the_pair(experiment, capsys) -> None:
+    out = experiment["out"]
+    root = out.parent
+    assert main(["retrain", str(root / "tiny.toml"), "--model", str(MODEL), "--train-data",
+                 str(root / "train"), "--validation-backgrounds", "0",
+                 "--retraining-backgrounds", "5", "--out", str(out), "--resume", "--epochs",
+                 "1", "--oversample", "1", "--train-scans", "1", "--held-out-scans", "2",
+                 "--workers", "1", "--json"]) == 0
+    shown = json.loads(capsys.readouterr().out)
+    assert shown["computed"] == [] and shown["fixed"] == experiment["result"].fixed
+    code = main(["gate", str(out / "after"), "--baseline", str(out / "before"), "--json"])
+    verdict = json.loads(capsys.readouterr().out)
+    assert verdict["baseline"] == str(out / "before")
+    assert code == (1 if verdict["new_blind_spots"] else 0)
+
+
+def test_comparison_page_in_chromium(browser, experiment) -> None:
+    from selenium.webdriver.common.by import By
+
+    out, r = experiment["out"], experiment["result"]
+    page = (out / "comparison.html").read_text()
+    assert "sorted ascending" in page and 'id="retrain-section"' in page
+    browser.get((out / "comparison.html").as_uri())
+    for ident in ("before-map", "after-map", "diffmap"):
+        assert len(browser.find_elements(By.CSS_SELECTOR, f"#{ident} rect[data-tip]")) == 2
+    rows = browser.find_elements(By.CSS_SELECTOR, "#selected-cells tbody tr")
+    assert len(rows) == len(r.blind_before)
+    checks = browser.find_elements(By.CSS_SELECTOR, "#checks tbody tr")
+    assert len(checks) == len(r.checks)
+    assert len(browser.find_elements(By.CSS_SELECTOR, "#improvement rect.bar")) == 2
+    assert_offline(browser)
+
+
+def test_report_cli_rebuilds_the_page(experiment, tmp_path, capsys) -> None:
+    out = experiment["out"]
+    page = tmp_path / "page.html"
+    assert main(["report", str(out / "after"), "--compare", str(out / "before"), "--retrain",
+                 str(out / "summary.json"), "--no-predict", "--out", str(page)]) == 0
+    assert page.read_bytes() == (out / "comparison.html").read_bytes()
+    assert main(["report", str(out / "after"), "--retrain", str(out / "summary.json"),
+                 "--out", str(tmp_path / "x.html")]) == 2
+    assert "--retrain needs --compare" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"--validation-backgrounds": "0,5"}, "share background 5"),
+    ({"--retraining-backgrounds": "9"}, "background 9 is not in"),
+    ({"--retraining-backgrounds": "x-y"}, "--retraining-backgrounds 'x-y'"),
+    ({"--model": "MISSING_PT"}, "fine-tuning starts from"),
+    ({"--train-data": "NOWHERE"}, "--train-data"),
+    ({"--epochs": "0"}, "--epochs: 0"),
+    ({"--resume": None}, "holds no retraining run"),
+])
+def test_bad_input_exits_2_and_writes_nothing(inputs, tmp_path, capsys, change,
+                                              message) -> None:
+    out = tmp_path / "out"
+    onnx = tmp_path / "m.onnx"
+    onnx.write_bytes(MODEL.read_bytes())
+    (tmp_path / "m.json").write_bytes(MODEL.with_suffix(".json").read_bytes())
+    args = {"--model": str(MODEL), "--train-data": str(inputs["train"]),
+            "--validation-backgrounds": "0", "--retraining-backgrounds": "5",
+            "--out": str(out)}
+    subs = {"MISSING_PT": str(onnx), "NOWHERE": str(tmp_path / "nowhere")}
+    args.update({k: subs.get(v, v) for k, v in change.items()})
+    argv = ["retrain", str(inputs["config"])]
+    for k, v in args.items():
+        argv += [k] if v is None else [k, v]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("falsify: error:") and message in err and err.count("\n") == 1
+    assert not out.exists()
+
+
+def test_existing_out_needs_resume(experiment, capsys) -> None:
+    out = experiment["out"]
+    root = out.parent
+    assert main(["retrain", str(root / "tiny.toml"), "--model", str(MODEL), "--train-data",
+                 str(root / "train"), "--validation-backgrounds", "0",
+                 "--retraining-backgrounds", "5", "--out", str(out)]) == 2
+    assert "pass --resume" in capsys.readouterr().err
+    # resuming with a different experiment is refused, naming the key
+    assert main(["retrain", str(root / "tiny.toml"), "--model", str(MODEL), "--train-data",
+                 str(root / "train"), "--validation-backgrounds", "0",
+                 "--retraining-backgrounds", "5", "--out", str(out), "--resume",
+                 "--oversample", "3", "--train-scans", "1", "--held-out-scans", "2"]) == 2
+    assert "--resume: oversample differs" in capsys.readouterr().err
+
+
+def test_parse_ids_and_subset_config(tmp_path) -> None:
+    assert parse_ids("0-3,9", "--v") == (0, 1, 2, 3, 9)
+    assert parse_ids(" 7 - 8 ".replace(" ", ""), "--v") == (7, 8)
+    text = subset_config(CONFIGS / "paper.toml", (0, 1, 2, 3, 4, 5, 6), "validation")
+    (tmp_path / "v.toml").write_text(text)
+    sub, full = load_space(tmp_path / "v.toml"), load_space(CONFIGS / "paper.toml")
+    assert sub.dims["background"].grid() == tuple(range(7))
+    raw, raw_full = tomllib.loads(text), tomllib.loads((CONFIGS / "paper.toml").read_text())
+    assert raw["dims"]["x"] == raw_full["dims"]["x"] and raw["seed"] == raw_full["seed"]
+    # the subset's samples are exactly the full grid's samples on those backgrounds
+    wanted = [s for s in full.grid() if int(s["background"]) < 7]
+    assert [sample_seed(sub, s) for s in sub.grid()] == [sample_seed(full, s) for s in wanted]
