@@ -44,7 +44,8 @@ def scene_for(index: int, seed: int, sim: Simulator,
     bg_id = opts.first_background + (index // SCANS_PER_BACKGROUND) % opts.backgrounds
     bg = sim.background(bg_id)[1]
     half = float(getattr(bg, "road_half_width", 9.0))
-    lane = rng.uniform(-min(half - 2.5, 5.0), min(half - 2.5, 5.0))
+    # Any lane, up to beside the parked cars, so the roadside is seen from close by too.
+    lane = rng.uniform(-(half - 3.3), half - 3.3)
     heading = rng.normal(0.0, 2.0) + (180.0 if rng.random() < 0.3 else 0.0)
     ego_x = rng.uniform(-20.0, 40.0) if heading < 90 else rng.uniform(10.0, 70.0)
     pose = sim.ego_pose(bg_id, SensorPose(ego_x, lane, heading))
