@@ -130,7 +130,7 @@ class Bench:
                 self.drop(s)
                 ev = self.evaluator(s)
                 for bg in sorted({x.background for x in samples}):
-                    ev.sim.background_hits(bg, SensorPose())
+                    ev.sim.background_hits(bg, ev.sim.ego_pose(bg))
                 ev.evaluate(samples[: self.batch])
                 t0 = time.perf_counter()
                 self._run(s, samples)   # the results are kept: scoring reuses them
