@@ -81,13 +81,6 @@ class Background:
             return self.face_material
         return np.full(len(self.faces), _DEFAULT_MAT, np.uint8)
 
-    def pose_on(self, x: float, y: float, heading_deg: float, half_length: float = 1.4,
-                half_width: float = 0.8) -> tuple[float, float, float]:
-        """(z, pitch_deg, roll_deg) of a vehicle standing at (x, y) on this street's ground."""
-        if self.terrain is None:
-            return 0.0, 0.0, 0.0
-        return self.terrain.pose_on(x, y, heading_deg, half_length, half_width)
-
 
 def _rect(x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
     """Counter-clockwise axis-aligned rectangle polygon."""

@@ -165,11 +165,12 @@ def scene_size_effect(space: Space, samples: list[Sample]) -> dict:
 
     def subdivided(bg):
         v, f = bg.vertices, bg.faces
-        cls, inst = bg.face_class, bg.face_instance
+        cls, inst, mat = bg.face_class, bg.face_instance, bg.materials()
         for _ in range(2):
             v, f, idx = _subdivide(v, f)
-            cls, inst = cls[idx], inst[idx]
-        return dataclasses.replace(bg, vertices=v, faces=f, face_class=cls, face_instance=inst)
+            cls, inst, mat = cls[idx], inst[idx], mat[idx]
+        return dataclasses.replace(bg, vertices=v, faces=f, face_class=cls, face_instance=inst,
+                                   face_material=mat)
 
     def far_objects(bg):
         v, f = [bg.vertices], [bg.faces]
@@ -179,7 +180,8 @@ def scene_size_effect(space: Space, samples: list[Sample]) -> dict:
             f.append(bg.faces + n * k)
         return dataclasses.replace(
             bg, vertices=np.concatenate(v), faces=np.concatenate(f).astype(np.int32),
-            face_class=np.tile(bg.face_class, 10), face_instance=np.tile(bg.face_instance, 10))
+            face_class=np.tile(bg.face_class, 10), face_instance=np.tile(bg.face_instance, 10),
+            face_material=np.tile(bg.materials(), 10))
 
     # Best of three, interleaved, so a busy moment of the machine does not land on one variant.
     runs = [(rate(lambda b: b), rate(subdivided), rate(far_objects)) for _ in range(3)]

@@ -24,6 +24,7 @@ from falsify.raycast import MeshCaster
 from falsify.scan import Scan
 from falsify.sensor import Sensor, SensorPose, rot_x, rot_y, rot_z
 from falsify.space import CarPose, Sample, UserCar
+from falsify.terrain import Terrain
 
 # The ego vehicle's footprint around the sensor (KITTI's Passat, sensor behind the front axle);
 # a sampled car that overlaps it cannot exist. It is not drawn: real scans filter the ego car.
@@ -126,6 +127,7 @@ class Simulator:
         self._hits: OrderedDict[tuple, _Layer] = OrderedDict()
         self._cars: dict[str, tuple[_Caster, np.ndarray]] = {}
         self._obstacles: dict[int, Obstacles] = {}
+        self._terrain: dict[int, Terrain | None] = {}
         self._max_bvh, self._max_hits = max_bvh, max_hits
         self.background_source = backgrounds.build_background
         self.returns = load_return_model(sensor.returns) if sensor.returns else None
@@ -168,6 +170,7 @@ class Simulator:
         bg = self.background_source(bg_id)
         entry = (_Caster.of(bg.vertices, bg.faces, bg.materials()), bg)
         self._obstacles[bg_id] = Obstacles.of(bg.obstacles)
+        self._terrain[bg_id] = bg.terrain
         self._bvh[bg_id] = entry
         while len(self._bvh) > self._max_bvh:
             self._bvh.popitem(last=False)
@@ -314,15 +317,26 @@ class Simulator:
         """The car standing on the background's ground (z, pitch, roll from its wheelbase)."""
         _, corners = self.car_caster(car.model)
         lo, hi = corners.min(axis=0), corners.max(axis=0)
-        z, pitch, roll = self.background(bg_id)[1].pose_on(
-            car.x, car.y, car.heading_deg, max((hi[0] - lo[0]) / 2 - 0.6, 0.3),
+        z, pitch, roll = self.pose_on(
+            bg_id, car.x, car.y, car.heading_deg, max((hi[0] - lo[0]) / 2 - 0.6, 0.3),
             max((hi[1] - lo[1]) / 2 - 0.15, 0.3))
         return replace(car, z=z, pitch_deg=pitch, roll_deg=roll)
 
     def ego_pose(self, bg_id: int, pose: SensorPose = SensorPose()) -> SensorPose:
         """The ego vehicle standing on the background's ground at the pose's x, y, heading."""
-        z, pitch, roll = self.background(bg_id)[1].pose_on(pose.x, pose.y, pose.heading_deg)
+        z, pitch, roll = self.pose_on(bg_id, pose.x, pose.y, pose.heading_deg)
         return replace(pose, z=z, pitch_deg=pitch, roll_deg=roll)
+
+    def pose_on(self, bg_id: int, x: float, y: float, heading_deg: float,
+                half_length: float = 1.4, half_width: float = 0.8) -> tuple[float, float, float]:
+        """(z, pitch, roll) of a vehicle on the background's terrain (kept after its BVH is
+        dropped; a background without terrain is the plane z = 0)."""
+        if bg_id not in self._terrain:
+            self.background(bg_id)
+        t = self._terrain[bg_id]
+        if t is None:
+            return 0.0, 0.0, 0.0
+        return t.pose_on(x, y, heading_deg, half_length, half_width)
 
     def obstacles(self, bg_id: int) -> Obstacles:
         """The background's obstacle outlines, kept after its BVH is dropped."""

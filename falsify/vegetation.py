@@ -8,7 +8,6 @@ builds only what a ray can reach (nothing behind a closed row of buildings, noth
 
 from __future__ import annotations
 
-import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -124,12 +123,3 @@ def tree_band(st, t: Terrain, rng: np.random.Generator, side: int, u_near: float
             x += spacing * float(rng.uniform(0.6, 1.4))
     return made
 
-
-def crown_clearance(off: float, road_half: float) -> float:
-    """Largest crown radius that keeps a tree at lateral offset `off` off the road's free zone."""
-    return max(0.0, (off - road_half + 0.1) / 1.12)
-
-
-def canopy_porosity_through(crossings: int, pass_prob: float) -> float:
-    """Probability that a ray crossing `crossings` foliage surfaces goes through them all."""
-    return math.pow(pass_prob, crossings)
