@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -148,19 +149,21 @@ class ReturnModel:
     blocked_rows: tuple[int, ...]
     blocked: tuple[tuple[float, ...], ...]
 
-    @property
+    @cached_property
     def material_reflectivity(self) -> np.ndarray:
-        return np.array([self.reflectivity[m.level] for m in MATERIALS], dtype=np.float64)
+        return np.array([self.reflectivity[m.level] for m in MATERIALS], dtype=np.float32)
 
     def intensity(self, mat: np.ndarray, cos: np.ndarray, rng: np.ndarray) -> np.ndarray:
+        """float32 intensity in [0, 1] per hit."""
         refl = self.material_reflectivity[mat]
-        c = np.clip(cos, 0.0, 1.0)
-        gain = np.where(RETRO[mat], self.retro_gain, c ** self.cos_exp)
-        return np.clip(refl * gain * np.exp(-rng / self.atten_m), 0.0, 1.0)
+        c = np.clip(np.asarray(cos, np.float32), 0.0, 1.0)
+        gain = np.where(RETRO[mat], np.float32(self.retro_gain), c ** np.float32(self.cos_exp))
+        att = np.exp(np.asarray(rng, np.float32) * np.float32(-1.0 / self.atten_m))
+        return np.clip(refl * gain * att, 0.0, 1.0)
 
     def p_return(self, intensity: np.ndarray) -> np.ndarray:
-        x = np.maximum(intensity, 0.0) / self.i0
-        return self.p_min + (self.p_max - self.p_min) * (1.0 - np.exp(-(x ** self.k)))
+        x = np.maximum(intensity, 0.0) / np.float32(self.i0)
+        return self.p_min + (self.p_max - self.p_min) * (1.0 - np.exp(-(x ** np.float32(self.k))))
 
     def keep_map(self, rows: int, azimuths_deg: np.ndarray) -> np.ndarray:
         """(rows, W) per-pixel factor of the return probability: the laser's own factor per

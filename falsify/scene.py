@@ -290,12 +290,14 @@ class Simulator:
             valid &= rng.random(r.shape) >= s.ray_drop
         intensity = None
         if self.returns is not None:
-            glass = GLASS[layer.mat]
-            valid &= ~glass
-            intensity = self.returns.intensity(layer.mat, layer.cos, np.where(valid, r, 0.0))
+            valid &= ~GLASS[layer.mat]
+            intensity = np.zeros(r.shape, np.float32)
+            intensity[valid] = self.returns.intensity(layer.mat[valid], layer.cos[valid],
+                                                      r[valid])
             if rng is not None:
-                p = self.returns.p_return(intensity) * self._keep
-                valid &= rng.random(r.shape) < p
+                u = rng.random(r.shape)[valid]
+                p = self.returns.p_return(intensity[valid]) * self._keep[valid]
+                valid[valid] = u < p
         image = np.zeros((*s.shape, 6), dtype=np.float32)
         rv = np.where(valid, r, 0.0)
         image[..., 0:3] = s.directions * rv[..., None]
