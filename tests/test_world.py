@@ -204,3 +204,10 @@ def test_fit_refuses_evaluation_scans(tmp_path):
                        capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 2 and "object" in r.stderr
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("bad", ["nope", 3])
+def test_unknown_return_model_names_the_key(bad):
+    from falsify.errors import ConfigError
+    with pytest.raises(ConfigError, match="returns: .*kitti-hdl64e"):
+        load_sensor("kitti-hdl64e-front", returns=bad)
