@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from falsify.cars import BUILTIN_MODELS
-from falsify.classes import CLASSES
+from falsify.classes import CAR, CLASSES, UNKNOWN
 from falsify.errors import ConfigError
 from falsify.fileio import write_json, write_npy
 from falsify.materials import PAINTS
@@ -74,7 +74,7 @@ def scene_for(index: int, seed: int, sim: Simulator,
         else:
             car_heading = rng.uniform(-180.0, 180.0)
         car = PlacedCar(model, float(cx), float(cy), float(car_heading), 1 + len(placed),
-                        cls=0 if other else 1, paint=paint)
+                        cls=UNKNOWN if other else CAR, paint=paint)
         outline = sim.footprint(car)
         try:
             check_placement([*placed, car], [*outlines, outline], sim.obstacles(bg_id), ego)

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize
 
-from falsify.scan import read_kitti
+from falsify.kitti import read_kitti
 from falsify.sensor import load_sensor
 
 BLOCKED_FIRST_ROW = 55  # rows from here down are checked for the ego body's shadow
