@@ -1,31 +1,49 @@
 """Procedural street backgrounds: one straight road along world x, fully determined by an id.
 
-World frame: metres, origin on the road below the sensor, +x forward, +y left, +z up; the road
-surface is z = 0. Every background keeps the free zone (x in [0, 25], y in [-8.5, 7.5]) flat,
-empty road so sampled cars can go anywhere in it, and nothing but road lies within 3 m of the
-sensor. Curbs stand at y = ±road_half_width (always ≥ 9 m); sidewalks, buildings, trees, poles,
-fences, parked cars, pedestrians and cyclists lie beyond them or outside the free zone.
+World frame: metres, origin on the road's crown below the sensor, +x forward, +y left, +z up.
+The ground is a seeded `falsify.terrain.Terrain`: the road has a grade, long crests and a
+crowned camber; kerbs, sidewalks, then per side a roadside (grass verge, ditch, embankment up
+or down, rising fields) with height noise. Every background keeps the free zone (x in [0, 25],
+y in [-8.5, 7.5]) empty road so sampled cars can go anywhere in it (they stand on the terrain),
+and nothing but road lies within 3 m of the sensor. Kerbs stand at y = ±road_half_width (always
+≥ 9 m); sidewalks, buildings, walls, fences, railings, guard rails, hedges, bushes, trees (and
+the far band of trees), poles, signs, parked cars, vans, trucks, buses, trailers, bicycles,
+pedestrians and cyclists lie beyond them or outside the free zone. Every triangle carries a
+class and a material (falsify.materials). Which mix a street gets is drawn from its id, so the
+15 backgrounds of configs/paper.toml are different places.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from falsify import shapes
-from falsify.cars import BUILTIN_MODELS, car_mesh
+from falsify import shapes, structures, vegetation
+from falsify.cars import BUILTIN_MODELS, car_parts
 from falsify.classes import CAR, CYCLIST, PEDESTRIAN, UNKNOWN
 from falsify.errors import ConfigError
+from falsify.materials import PAINTS, mid
+from falsify.road_users import (
+    OTHER_VEHICLES,
+    bicycle_parts,
+    merge_parts,
+    pedestrian_parts,
+    vehicle_parts,
+)
+from falsify.sensor import rot_x, rot_y, rot_z
+from falsify.terrain import Terrain, draw_terrain, terrain_meshes
 
 MAX_BACKGROUND_ID: int = 999_999
 ROAD_X: tuple[float, float] = (-170.0, 230.0)  # road, sidewalks and terrain span this x range
 FREE_ZONE: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 25.0), (-8.5, 7.5))
 SENSOR_CLEARANCE: float = 3.0  # metres around (0, 0) holding nothing but road
-TERRAIN_HALF_WIDTH: float = 300.0  # flat ground beyond the curbs out to |y| = this
+TERRAIN_HALF_WIDTH: float = 300.0  # the ground reaches out to |y| = this
 
 _FIRST_INSTANCE = 1000
+_DEFAULT_MAT = mid("concrete")
 
 
 @dataclass(frozen=True)
@@ -38,9 +56,10 @@ class Footprint:
 
 @dataclass(frozen=True)
 class Background:
-    """The static street around the sensor: one triangle soup with per-face class and instance.
+    """The static street around the sensor: one triangle soup with per-face class, instance and
+    material, and the terrain it stands on.
 
-    ``road_half_width``: the curbs stand at y = ±road_half_width; the drivable road is
+    ``road_half_width``: the kerbs stand at y = ±road_half_width; the drivable road is
     |y| < road_half_width for x in ``road_x``. Arrays are read-only (the object is cached).
     """
 
@@ -53,6 +72,14 @@ class Background:
     road_half_width: float
     curb_height: float = 0.15
     road_x: tuple[float, float] = ROAD_X
+    face_material: np.ndarray | None = None  # (M,) uint8 falsify.materials ids; None: concrete
+    terrain: Terrain | None = None  # None: the flat plane z = 0
+
+    def materials(self) -> np.ndarray:
+        """Per-face material ids (concrete everywhere for a background built without them)."""
+        if self.face_material is not None:
+            return self.face_material
+        return np.full(len(self.faces), _DEFAULT_MAT, np.uint8)
 
 
 def _rect(x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
@@ -60,27 +87,25 @@ def _rect(x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
     return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=np.float64)
 
 
-def _quad(p0, p1, p2, p3) -> shapes.Mesh:
-    """One planar quad; corners in counter-clockwise order seen from the front side."""
-    v = np.array([p0, p1, p2, p3], dtype=np.float64)
-    return v, np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int64)
-
-
 class _Street:
-    """Accumulates meshes with labels, and the footprints used for placement and obstacles."""
+    """Accumulates meshes with labels and materials, and the footprints used for placement."""
 
     def __init__(self) -> None:
         self.meshes: list[shapes.Mesh] = []
         self.cls: list[int] = []
         self.inst: list[int] = []
+        self.mat: list[np.ndarray] = []
         self.obstacles: list[Footprint] = []
         self.boxes: list[np.ndarray] = []  # (4,) x0, x1, y0, y1 of placed objects
         self.next_id = _FIRST_INSTANCE
 
-    def add(self, mesh: shapes.Mesh, cls: int = UNKNOWN, instance: int = 0) -> None:
+    def add(self, mesh: shapes.Mesh, cls: int = UNKNOWN, instance: int = 0,
+            mat: int | np.ndarray = _DEFAULT_MAT) -> None:
+        """Add a mesh; `mat` is one material id or one per face."""
         self.meshes.append(mesh)
         self.cls.append(cls)
         self.inst.append(instance)
+        self.mat.append(np.broadcast_to(np.asarray(mat, np.uint8), (len(mesh[1]),)))
 
     def new_instance(self) -> int:
         self.next_id += 1
@@ -118,6 +143,7 @@ class _Layout:
     curb_h: float
     sidewalk: tuple[float, float]  # sidewalk width on the left (+y) and right (-y) side
     parking: bool
+    terrain: Terrain
 
 
 def _rng(bg_id: int, stream: int) -> np.random.Generator:
@@ -131,35 +157,48 @@ def _layout(bg_id: int) -> _Layout:
     lane_w = rng.uniform(3.0, 3.7)
     parking = bool(rng.random() < 0.6)
     half = lanes * lane_w / 2 + (rng.uniform(2.2, 2.6) if parking else rng.uniform(0.0, 0.8))
-    return _Layout(
-        half_width=float(np.clip(half, 9.0, 15.0)),
-        curb_h=float(rng.uniform(0.12, 0.18)),
-        sidewalk=(float(rng.uniform(2.5, 6.0)), float(rng.uniform(2.5, 6.0))),
-        parking=parking,
-    )
+    half = float(np.clip(half, 9.0, 15.0))
+    curb_h = float(rng.uniform(0.1, 0.18))
+    sidewalk = (float(rng.uniform(1.5, 6.0)), float(rng.uniform(1.5, 6.0)))
+    terrain = draw_terrain(_rng(bg_id, 7), half, curb_h, sidewalk)
+    return _Layout(half_width=half, curb_h=curb_h, sidewalk=sidewalk, parking=parking,
+                   terrain=terrain)
+
+
+def _side_kind(lay: _Layout, side: int) -> str:
+    return lay.terrain.sides[0 if side > 0 else 1].kind
 
 
 def _ground(st: _Street, lay: _Layout) -> None:
-    """Road at z = 0, vertical curb faces, and raised sidewalk/terrain out to the far field."""
+    """Road, kerb faces, sidewalks and the roadsides out to the far field."""
     x0, x1 = ROAD_X
-    hw, ch, far = lay.half_width, lay.curb_h, TERRAIN_HALF_WIDTH
-    st.add(_quad([x0, -hw, 0], [x1, -hw, 0], [x1, hw, 0], [x0, hw, 0]))
-    st.add(_quad([x0, hw, 0], [x1, hw, 0], [x1, hw, ch], [x0, hw, ch]))  # faces -y
-    st.add(_quad([x1, -hw, 0], [x0, -hw, 0], [x0, -hw, ch], [x1, -hw, ch]))  # faces +y
-    st.add(_quad([x0, hw, ch], [x1, hw, ch], [x1, far, ch], [x0, far, ch]))
-    st.add(_quad([x0, -far, ch], [x1, -far, ch], [x1, -hw, ch], [x0, -hw, ch]))
+    for mesh, mat in terrain_meshes(lay.terrain, ROAD_X, TERRAIN_HALF_WIDTH):
+        st.add(mesh, UNKNOWN, 0, mat)
+    hw, far = lay.half_width, TERRAIN_HALF_WIDTH
     st.obstacles.append(Footprint("curb left", _rect(x0, x1, hw, far)))
     st.obstacles.append(Footprint("curb right", _rect(x0, x1, -far, -hw)))
 
 
+def _slope_top(lay: _Layout, side: int) -> float:
+    """u (beyond the sidewalk) where an embankment's slope ends; 0 for level roadsides."""
+    s = lay.terrain.sides[0 if side > 0 else 1]
+    if s.kind == "embankment up":
+        return float(s.knots[3][0])
+    return 0.0
+
+
 def _buildings(st: _Street, lay: _Layout, bg_id: int) -> None:
-    """Facade boxes with window frames, set back 2–15 m behind both sidewalks, gaps between."""
+    """Blocks with recessed glass windows behind level sidewalks or on top of embankments."""
     rng = _rng(bg_id, 1)
     mean_h = rng.uniform(6.0, 22.0)
     gap_p = rng.uniform(0.1, 0.7)
     n_built = 0
     for side, sw in ((1, lay.sidewalk[0]), (-1, lay.sidewalk[1])):
-        base_setback = rng.uniform(2.0, 15.0)
+        kind = _side_kind(lay, side)
+        build_p = {"flat": 0.9, "ditch": 0.35, "embankment up": 0.3, "hill": 0.25}.get(kind, 0.0)
+        if rng.random() >= build_p:
+            continue
+        base_setback = rng.uniform(2.0, 15.0) + _slope_top(lay, side)
         x = ROAD_X[0] - rng.uniform(0.0, 20.0)
         while x < ROAD_X[1]:
             width = rng.uniform(8.0, 35.0)
@@ -169,88 +208,64 @@ def _buildings(st: _Street, lay: _Layout, bg_id: int) -> None:
             x = xb
             if xb - xa < 4.0:
                 continue
-            setback = float(np.clip(base_setback + rng.normal(0.0, 2.0), 2.0, 15.0))
+            setback = float(np.clip(base_setback + rng.normal(0.0, 2.0), 2.0, 40.0))
             depth = rng.uniform(8.0, 20.0)
             height = float(np.clip(rng.normal(mean_h, 0.35 * mean_h), 4.0, 30.0))
             near = lay.half_width + sw + setback
             ya, yb = (near, near + depth) if side > 0 else (-near - depth, -near)
-            st.add(shapes.boxes([xa, ya, 0.0], [xb, yb, height]))
-            st.occupy(f"building {n_built}", _rect(xa, xb, ya, yb))
+            if not st.fits(_rect(xa, xb, ya, yb), margin=0.0):
+                continue
+            structures.building(st, lay.terrain, rng, xa, xb, near, depth, height, side,
+                                f"building {n_built}")
             n_built += 1
-            _facade(st, rng, xa, xb, side * near, side, height)
 
 
-def _facade(st: _Street, rng: np.random.Generator, xa: float, xb: float, y_front: float,
-            side: int, height: float) -> None:
-    """Window frames and floor ledges standing out of the road-facing wall."""
-    floor_h = rng.uniform(2.8, 3.6)
-    floors = int((height - 1.0) // floor_h)
-    pitch = rng.uniform(2.2, 3.6)
-    n_win = int((xb - xa - 1.0) // pitch)
-    if floors < 1 or n_win < 1:
-        return
-    win_w, win_h = min(1.4, pitch - 0.6), min(1.6, floor_h - 1.0)
-    out = rng.uniform(0.06, 0.25)
-    xc = xa + (xb - xa - (n_win - 1) * pitch) / 2 + pitch * np.arange(n_win)
-    zc = 1.0 + floor_h * (np.arange(floors) + 0.5)
-    gx, gz = np.meshgrid(xc, zc)
-    gx, gz = gx.ravel(), gz.ravel()
-    y0, y1 = sorted((y_front + 0.02 * side, y_front - out * side))
-    lo = np.stack([gx - win_w / 2, np.full_like(gx, y0), gz - win_h / 2], axis=1)
-    hi = np.stack([gx + win_w / 2, np.full_like(gx, y1), gz + win_h / 2], axis=1)
-    # Sills under every window, standing out a little further than the frames.
-    ys0, ys1 = sorted((y_front, y_front - (out + 0.12) * side))
-    lo_s = np.stack([gx - win_w / 2 - 0.1, np.full_like(gx, ys0), gz - win_h / 2 - 0.1], axis=1)
-    hi_s = np.stack([gx + win_w / 2 + 0.1, np.full_like(gx, ys1), gz - win_h / 2], axis=1)
-    lo, hi = np.concatenate([lo, lo_s]), np.concatenate([hi, hi_s])
-    # Floor ledges between storeys.
-    lz = 1.0 + floor_h * np.arange(1, floors + 1) - 0.1
-    lo2 = np.stack([np.full_like(lz, xa), np.full_like(lz, y0), lz], axis=1)
-    hi2 = np.stack([np.full_like(lz, xb), np.full_like(lz, y1), lz + 0.2], axis=1)
-    st.add(shapes.boxes(np.concatenate([lo, lo2]), np.concatenate([hi, hi2])))
-
-
-def _fences(st: _Street, lay: _Layout, bg_id: int) -> None:
-    """Walls, fences or hedges along the back of the sidewalk in some backgrounds."""
+def _boundaries(st: _Street, lay: _Layout, bg_id: int) -> None:
+    """Along the back of each sidewalk: walls, chain-link fences, railings, hedges, or a guard
+    rail at the road edge where the ground falls away."""
     rng = _rng(bg_id, 2)
     for side, sw in ((1, lay.sidewalk[0]), (-1, lay.sidewalk[1])):
-        kind = rng.choice(["none", "wall", "fence", "hedge"], p=[0.4, 0.2, 0.2, 0.2])
-        if kind == "none":
+        kind = _side_kind(lay, side)
+        if kind in ("embankment down", "ditch") and rng.random() < 0.7:
+            y = side * (lay.half_width + min(0.6, sw / 2))
+            x = ROAD_X[0] + rng.uniform(0.0, 20.0)
+            n = 0
+            while x < ROAD_X[1] - 5.0:
+                xa, xb = x, min(x + rng.uniform(30.0, 120.0), ROAD_X[1])
+                if xb - xa > 6.0 and st.fits(_rect(xa, xb, y - 0.3, y + 0.3), 0.0):
+                    structures.guard_rail(st, lay.terrain, rng, xa, xb, y, side,
+                                          f"guard rail {n}")
+                    n += 1
+                x = xb + rng.uniform(3.0, 40.0)
+        what = str(rng.choice(["none", "wall", "fence", "railing", "hedge"],
+                              p=[0.25, 0.2, 0.2, 0.15, 0.2]))
+        if what == "none":
             continue
         y_in = side * (lay.half_width + sw + 0.1)
         x = ROAD_X[0] + rng.uniform(0.0, 10.0)
         n = 0
         while x < ROAD_X[1] - 5.0:
-            length = rng.uniform(8.0, 40.0)
-            xa, xb = x, min(x + length, ROAD_X[1])
+            xa, xb = x, min(x + rng.uniform(8.0, 40.0), ROAD_X[1])
             x = xb + rng.uniform(1.5, 12.0)
-            thick = 0.2 if kind != "hedge" else rng.uniform(0.6, 1.2)
-            ya, yb = sorted((y_in, y_in + side * thick))
-            if kind == "wall":
-                st.add(shapes.boxes([xa, ya, 0.0], [xb, yb, rng.uniform(0.6, 2.2)]))
-            elif kind == "hedge":
-                st.add(shapes.boxes([xa, ya, 0.0], [xb, yb, rng.uniform(0.8, 1.8)]))
-            else:
-                h = rng.uniform(1.0, 1.8)
-                px = np.arange(xa, xb, 2.5)
-                lo = np.stack([px, np.full_like(px, ya), np.zeros_like(px)], axis=1)
-                hi = np.stack([px + 0.08, np.full_like(px, yb), np.full_like(px, h)], axis=1)
-                rails = np.array([[xa, ya + 0.05, 0.35 * h], [xa, ya + 0.05, 0.9 * h]])
-                rails_hi = np.array([[xb, yb - 0.05, 0.35 * h + 0.06], [xb, yb - 0.05, 0.9 * h]])
-                rails_hi[1, 2] += 0.06
-                st.add(shapes.boxes(np.concatenate([lo, rails]), np.concatenate([hi, rails_hi])))
-            st.obstacles.append(Footprint(f"{kind} {n}", _rect(xa, xb, ya, yb)))
+            lo, hi = sorted((y_in, y_in + side * 1.3))
+            if not st.fits(_rect(xa, xb, lo, hi), 0.0):
+                continue
+            build = {"wall": structures.wall, "fence": structures.fence,
+                     "railing": structures.railing, "hedge": vegetation.hedge}[what]
+            build(st, lay.terrain, rng, xa, xb, y_in, side, f"{what} {n}")
             n += 1
 
 
-def _trees(st: _Street, lay: _Layout, bg_id: int) -> None:
-    """Street trees on the sidewalks and in the front yards: trunk plus a round or conical crown."""
+def _plants(st: _Street, lay: _Layout, bg_id: int) -> None:
+    """Street trees on sidewalks and verges, bushes on the roadsides (thick on embankments),
+    and the far band of trees toward the horizon."""
     rng = _rng(bg_id, 3)
     density = rng.uniform(0.0, 1.0)
     conifer_p = rng.uniform(0.0, 0.5)
+    t = lay.terrain
     n = 0
     for side, sw in ((1, lay.sidewalk[0]), (-1, lay.sidewalk[1])):
-        for zone in ("sidewalk", "yard"):
+        for zone in ("sidewalk", "verge"):
             if rng.random() > density:
                 continue
             x = ROAD_X[0] + rng.uniform(0.0, 10.0)
@@ -261,38 +276,29 @@ def _trees(st: _Street, lay: _Layout, bg_id: int) -> None:
                         break
                     off = lay.half_width + rng.uniform(1.5, sw - 0.8)
                 else:
-                    off = lay.half_width + sw + rng.uniform(0.8, 2.0)
-                y = side * off
-                trunk_r = rng.uniform(0.1, 0.25)
-                poly = _rect(x - trunk_r, x + trunk_r, y - trunk_r, y + trunk_r)
-                if not st.fits(poly, margin=0.2):
-                    continue
-                # Crowns overhang the road but stop 0.4 m short of the free zone (jitter ≤ 12 %).
-                crown = min(rng.uniform(1.2, 3.2), (off - 8.9) / 1.12)
+                    off = lay.half_width + sw + rng.uniform(0.8, 4.0)
+                # Crowns overhang the road but stop short of the free zone (jitter <= 15 %).
+                crown = min(rng.uniform(1.2, 3.5), (off - 8.9) / 1.2)
                 if crown < 0.8:
                     continue
-                trunk_h = rng.uniform(1.8, 3.5)
-                iid = st.new_instance()
-                ground = lay.curb_h
-                st.add(shapes.cylinder([x, y, ground - 0.05], [x, y, ground + trunk_h + crown],
-                                       trunk_r, 8, 0.6 * trunk_r), UNKNOWN, iid)
-                if rng.random() < conifer_p:
-                    top = ground + trunk_h + rng.uniform(2.5, 3.5) * crown
-                    st.add(shapes.cylinder([x, y, ground + trunk_h], [x, y, top], crown, 10,
-                                           0.0), UNKNOWN, iid)
-                else:
-                    v, f = shapes.icosphere([0, 0, 0], [crown, crown, crown * 0.9], 2)
-                    v = v * rng.uniform(0.88, 1.12, size=(len(v), 1))
-                    v += [x, y, ground + trunk_h + 0.8 * crown]
-                    st.add((v, f), UNKNOWN, iid)
-                st.occupy(f"tree {n}", poly)
-                n += 1
+                if vegetation.tree(st, t, rng, x, side * off, crown, rng.random() < conifer_p,
+                                   f"tree {n}"):
+                    n += 1
+        kind = _side_kind(lay, side)
+        bush_density = {"flat": 0.01, "ditch": 0.03, "embankment up": 0.08,
+                        "embankment down": 0.05, "hill": 0.04}[kind] * rng.uniform(0.3, 1.5)
+        vegetation.bushes(st, t, rng, side, (0.5, 35.0), (-60.0, 130.0), bush_density)
+        if rng.random() < 0.8:
+            near = rng.uniform(12.0, 40.0) + _slope_top(lay, side)
+            vegetation.tree_band(st, t, rng, side, near, (-90.0, 160.0),
+                                 rng.uniform(6.0, 30.0), rng.uniform(4.0, 9.0))
 
 
 def _poles(st: _Street, lay: _Layout, bg_id: int) -> None:
-    """Street lights with arms over the road, and sign posts, along both curbs."""
+    """Street lights with arms over the road, and signs with retro-reflective plates."""
     rng = _rng(bg_id, 4)
     spacing = rng.uniform(18.0, 45.0)
+    t = lay.terrain
     n = 0
     for side in (1, -1):
         x = ROAD_X[0] + rng.uniform(0.0, spacing)
@@ -300,37 +306,38 @@ def _poles(st: _Street, lay: _Layout, bg_id: int) -> None:
             off = lay.half_width + rng.uniform(0.35, 0.7)
             y = side * off
             poly = _rect(x - 0.15, x + 0.15, y - 0.15, y + 0.15)
-            if st.fits(poly, margin=0.1):
-                iid = st.new_instance()
-                base = lay.curb_h
-                if rng.random() < 0.75:
+            if rng.random() < 0.7:
+                if st.fits(poly, margin=0.1):
+                    iid = st.new_instance()
+                    base = float(t.height(np.array([x]), np.array([y]))[0])
                     h = rng.uniform(6.0, 10.0)
                     arm_end = max(off - rng.uniform(1.0, 2.5), 8.8)
-                    st.add(shapes.cylinder([x, y, base], [x, y, base + h], 0.1, 8, 0.07),
-                           UNKNOWN, iid)
+                    st.add(shapes.cylinder([x, y, base - 0.1], [x, y, base + h], 0.1, 8, 0.07),
+                           UNKNOWN, iid, mid("metal"))
                     st.add(shapes.boxes([x - 0.05, min(y, side * arm_end), base + h - 0.3],
                                         [x + 0.05, max(y, side * arm_end), base + h - 0.2]),
-                           UNKNOWN, iid)
+                           UNKNOWN, iid, mid("metal"))
                     ye = side * arm_end
                     st.add(shapes.boxes([x - 0.3, ye - 0.15, base + h - 0.45],
-                                        [x + 0.3, ye + 0.15, base + h - 0.25]), UNKNOWN, iid)
-                else:
-                    h = rng.uniform(2.2, 3.2)
-                    st.add(shapes.cylinder([x, y, base], [x, y, base + h], 0.04, 6), UNKNOWN,
-                           iid)
-                    st.add(shapes.boxes([x - 0.02, y - 0.35, base + h - 0.7],
-                                        [x + 0.02, y + 0.35, base + h]), UNKNOWN, iid)
-                st.occupy(f"pole {n}", poly)
+                                        [x + 0.3, ye + 0.15, base + h - 0.25]), UNKNOWN, iid,
+                           mid("metal"))
+                    st.occupy(f"pole {n}", poly)
+                    n += 1
+            elif structures.sign(st, t, rng, x, y, side, f"sign {n}"):
                 n += 1
             x += spacing * rng.uniform(0.7, 1.3)
 
 
-def _place_mesh(st: _Street, v: np.ndarray, f: np.ndarray, x: float, y: float, z: float,
-                yaw: float, cls: int, label: str) -> None:
-    """Add one labelled object instance turned by ``yaw`` and record its footprint."""
-    v = shapes.rotate_z(v, yaw) + [x, y, z]
+def _place(st: _Street, t: Terrain, v: np.ndarray, f: np.ndarray, mat: np.ndarray | int,
+           x: float, y: float, yaw: float, cls: int, label: str, on_road: bool = True) -> None:
+    """Add one labelled object instance turned by ``yaw`` (radians), standing on the ground."""
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    hl, hw = max((hi[0] - lo[0]) / 2 - 0.3, 0.2), max((hi[1] - lo[1]) / 2 - 0.1, 0.2)
+    z, pitch, roll = t.pose_on(x, y, math.degrees(yaw), hl, hw)
+    rot = rot_z(math.degrees(yaw)) @ rot_y(pitch) @ rot_x(roll)
+    v = v @ rot.T + [x, y, z]
     iid = st.new_instance()
-    st.add((v, f), cls, iid)
+    st.add((v, f), cls, iid, mat)
     st.occupy(label, _footprint(v))
 
 
@@ -358,40 +365,49 @@ def _candidate_footprint(length: float, width: float, x: float, y: float,
     return loc @ np.array([[c, s], [-s, c]]) + [x, y]
 
 
-def _parked_cars(st: _Street, lay: _Layout, bg_id: int) -> None:
-    """Cars parked along both curbs, at least one 30–60 m ahead; lod 1 within x in
-    (-100, 140), lod 0 beyond (those are seen by few rays and cost BVH build time)."""
+def _parked_vehicles(st: _Street, lay: _Layout, bg_id: int) -> None:
+    """Cars (and vans, trucks, buses, trailers: class 0) parked along both kerbs, at least one
+    car 30-60 m ahead; lod 1 within x in (-100, 140), lod 0 beyond (seen by few rays)."""
     rng = _rng(bg_id, 5)
     occupancy = rng.uniform(0.3, 0.7)
+    other_p = rng.uniform(0.05, 0.3)
     forced_side = int(rng.choice([1, -1]))
     n = 0
     for side in (1, -1):
         forced = side == forced_side
         x = -120.0 + rng.uniform(0.0, 6.0)
         while x < 175.0:
-            name = str(rng.choice(BUILTIN_MODELS))
             lod = 1 if -100.0 < x < 140.0 else 0
-            mesh = car_mesh(name, lod)
-            length, width = float(mesh.extents[0]), float(mesh.extents[1])
+            if rng.random() < other_p and not (forced and x > 20.0):
+                kind = str(rng.choice(OTHER_VEHICLES))
+                v, f, mat = merge_parts(vehicle_parts(kind, rng))
+                cls, label = UNKNOWN, f"parked {kind} {n}"
+            else:
+                name = str(rng.choice(BUILTIN_MODELS))
+                v, f, mat = car_parts(name, lod)
+                mat = np.where(mat == mid("paint mid"), PAINTS[int(rng.integers(3))], mat)
+                cls, label = CAR, f"parked car {n}"
+            length, width = float(np.ptp(v[:, 0])), float(np.ptp(v[:, 1]))
             cx = x + length / 2
             x += length + rng.uniform(0.8, 6.0)
             want = rng.random() < occupancy
-            if forced and 30.0 < cx < 60.0:
+            if forced and cls == CAR and 30.0 < cx < 60.0:
                 want, forced = True, False
-            # Right-hand traffic: most cars on the left curb face -x.
+            # Right-hand traffic: most vehicles on the left kerb face -x.
             heading = 0.0 if (side < 0) != (rng.random() < 0.15) else np.pi
             yaw = heading + rng.normal(0.0, 0.03)
             cy = side * (lay.half_width - 0.25 - width / 2 - rng.uniform(0.0, 0.3))
             if not want or not st.fits(_candidate_footprint(length, width, cx, cy, yaw), 0.2):
                 continue
-            _place_mesh(st, np.asarray(mesh.vertices), np.asarray(mesh.faces), cx, cy, 0.0,
-                        yaw, CAR, f"parked car {n}")
+            _place(st, lay.terrain, np.asarray(v), np.asarray(f), mat, cx, cy, yaw, cls, label)
             n += 1
 
 
 def _people(st: _Street, lay: _Layout, bg_id: int) -> None:
-    """Pedestrians on the sidewalks (a few crossing far ahead) and cyclists at the road edge."""
+    """Pedestrians on the sidewalks (a few crossing far ahead), cyclists at the road edge and
+    bicycles parked on the sidewalks (class 0: no rider)."""
     rng = _rng(bg_id, 6)
+    t = lay.terrain
     n_ped = int(rng.integers(2, 15))
     placed = 0
     for i in range(n_ped * 4):
@@ -401,17 +417,16 @@ def _people(st: _Street, lay: _Layout, bg_id: int) -> None:
         sw = lay.sidewalk[0] if side > 0 else lay.sidewalk[1]
         crossing = i > 0 and rng.random() < 0.12
         if crossing:
-            x, y, z = rng.uniform(32.0, 90.0), rng.uniform(-lay.half_width + 1,
-                                                          lay.half_width - 1), 0.0
+            x, y = rng.uniform(32.0, 90.0), rng.uniform(-lay.half_width + 1, lay.half_width - 1)
         else:
             x = rng.uniform(8.0, 45.0) if placed == 0 else rng.uniform(-60.0, 120.0)
-            y, z = side * (lay.half_width + rng.uniform(0.5, sw - 0.5)), lay.curb_h
+            y = side * (lay.half_width + rng.uniform(0.4, max(sw - 0.4, 0.5)))
         poly = _rect(x - 0.4, x + 0.4, y - 0.4, y + 0.4)
         if not st.fits(poly, 0.2):
             continue
-        v, f = shapes.person(rng.uniform(1.5, 1.95), rng.uniform(0.0, 0.55), rng.uniform(0, 0.3))
-        yaw = rng.uniform(-np.pi, np.pi)
-        _place_mesh(st, v, f, x, y, z, yaw, PEDESTRIAN, f"pedestrian {placed}")
+        v, f, mat = merge_parts(pedestrian_parts(rng))
+        _place(st, t, v, f, mat, x, y, rng.uniform(-np.pi, np.pi), PEDESTRIAN,
+               f"pedestrian {placed}")
         placed += 1
 
     n_cyc = int(rng.integers(1, 5))
@@ -426,15 +441,27 @@ def _people(st: _Street, lay: _Layout, bg_id: int) -> None:
         else:
             x = rng.uniform(-60.0, -6.0) if rng.random() < 0.3 else rng.uniform(28.0, 120.0)
         if rng.random() < 0.7 or sw < 3.0:
-            y, z = side * (lay.half_width - rng.uniform(0.6, 1.3)), 0.0
+            y = side * (lay.half_width - rng.uniform(0.6, 1.3))
         else:
-            y, z = side * (lay.half_width + rng.uniform(1.0, sw - 1.0)), lay.curb_h
+            y = side * (lay.half_width + rng.uniform(1.0, sw - 1.0))
         heading = (0.0 if side < 0 else np.pi) + rng.normal(0.0, 0.08)
         if not st.fits(_candidate_footprint(1.8, 0.7, x, y, heading), 0.3):
             continue
         v, f = shapes.cyclist(rng.uniform(1.6, 1.9))
-        _place_mesh(st, v, f, x, y, z, heading, CYCLIST, f"cyclist {placed}")
+        _place(st, t, v, f, mid("clothing"), x, y, heading, CYCLIST, f"cyclist {placed}")
         placed += 1
+
+    n_bikes = int(rng.integers(0, 8))
+    for i in range(n_bikes):
+        side = 1 if rng.random() < 0.5 else -1
+        sw = lay.sidewalk[0] if side > 0 else lay.sidewalk[1]
+        x = rng.uniform(-50.0, 100.0)
+        y = side * (lay.half_width + rng.uniform(0.5, max(sw - 0.5, 0.6)))
+        yaw = rng.uniform(-np.pi, np.pi)
+        if not st.fits(_candidate_footprint(1.8, 0.6, x, y, yaw), 0.2):
+            continue
+        v, f, mat = merge_parts(bicycle_parts(rng))
+        _place(st, t, v, f, mat, x, y, yaw, UNKNOWN, f"bicycle {i}")
 
 
 def _assemble(bg_id: int, st: _Street, lay: _Layout) -> Background:
@@ -446,13 +473,15 @@ def _assemble(bg_id: int, st: _Street, lay: _Layout) -> Background:
     keep = shapes.drop_degenerate(v, f)  # lofts and lathes leave collapsed triangles
     cls = np.repeat(np.array(st.cls, dtype=np.uint8), counts)[keep]
     inst = np.repeat(np.array(st.inst, dtype=np.int32), counts)[keep]
+    mat = np.concatenate(st.mat).astype(np.uint8)[keep]
     f = f[keep]
     faces = f.astype(np.int32)
-    for arr in (v, faces, cls, inst):
+    for arr in (v, faces, cls, inst, mat):
         arr.setflags(write=False)
     return Background(bg_id=bg_id, vertices=v, faces=faces, face_class=cls,
                       face_instance=inst, obstacles=tuple(st.obstacles),
-                      road_half_width=lay.half_width, curb_height=lay.curb_h)
+                      road_half_width=lay.half_width, curb_height=lay.curb_h,
+                      face_material=mat, terrain=lay.terrain)
 
 
 def build_background(bg_id: int) -> Background:
@@ -473,10 +502,10 @@ def _build(bg_id: int) -> Background:
     st = _Street()
     _ground(st, lay)
     # Dynamic objects first (they are guaranteed their slots), then street furniture.
-    _parked_cars(st, lay, bg_id)
+    _parked_vehicles(st, lay, bg_id)
     _people(st, lay, bg_id)
     _poles(st, lay, bg_id)
-    _trees(st, lay, bg_id)
-    _fences(st, lay, bg_id)
+    _plants(st, lay, bg_id)
+    _boundaries(st, lay, bg_id)
     _buildings(st, lay, bg_id)
     return _assemble(bg_id, st, lay)

@@ -21,7 +21,7 @@ from falsify.errors import FalsifyError
 from falsify.metrics import Status
 from falsify.models.runner import BATCH
 from falsify.scene import Simulator
-from falsify.sensor import SensorPose, load_sensor
+from falsify.sensor import load_sensor
 from falsify.space import Sample, Space, load_space
 
 
@@ -33,7 +33,7 @@ def machine() -> dict:
 def _warm(sim: Simulator, samples: list[Sample]) -> None:
     """Build every background's hits and the car BVHs before the clock starts."""
     for bg in sorted({s.background for s in samples}):
-        sim.background_hits(bg, SensorPose())
+        sim.background_hits(bg, sim.ego_pose(bg))
     for s in samples[:4]:
         sim.scan(s)
 
@@ -62,27 +62,43 @@ def _scan_worker(args) -> tuple[int, float, float]:
 
 def naive_scan(space: Space, sample: Sample):
     """The naive path: rebuild the merged scene for the sample and cast every ray with trimesh's
-    exact `intersects_location` (a new BVH per sample)."""
+    exact `intersects_location` (a new BVH per sample), re-casting past porous and glass
+    surfaces with the same hash-decided passes as the fast path."""
     import trimesh
 
     from falsify.backgrounds import build_background
-    from falsify.scene import place
+    from falsify.materials import PASS_PROB, STEP, unit_hash
+    from falsify.scene import porosity_seed
 
     sensor = load_sensor(space.sensor)
     sim = Simulator(sensor, space.user_cars)
     bg = build_background(sample.background)
     meshes = [trimesh.Trimesh(bg.vertices, bg.faces, process=False)]
-    for i, car in enumerate(sample.cars):
-        pc = place(car, i + 1)
-        m = sim.car_mesh(car.model).copy()
+    mats = [bg.materials()]
+    for pc in sim.placed_cars(sample):
+        m = sim.car_mesh(pc.model).copy()
         m.apply_transform(pc.matrix())
         meshes.append(m)
+        mats.append(sim.car_materials(pc.model))
     merged = trimesh.util.concatenate(meshes)
-    d = sensor.directions.reshape(-1, 3)
-    o = np.tile([0.0, 0.0, sensor.mount_height], (len(d), 1))
-    loc, idx, _ = merged.ray.intersects_location(o, d, multiple_hits=False)
+    face_pass = PASS_PROB[np.concatenate(mats)]
+    pose = sim.ego_pose(sample.background)
+    d = sensor.directions.reshape(-1, 3) @ pose.rotation(sensor).T
+    o = np.tile(pose.origin(sensor), (len(d), 1))
     ranges = np.zeros(len(d))
-    ranges[idx] = np.linalg.norm(loc - o[idx], axis=1)
+    todo, start = np.arange(len(d)), np.zeros(len(d))
+    for _ in range(16):
+        loc, idx, tri = merged.ray.intersects_location(o[todo] + d[todo] * start[todo, None],
+                                                       d[todo], multiple_hits=False)
+        ray = todo[idx]
+        t = start[ray] + np.linalg.norm(loc - (o[ray] + d[ray] * start[ray, None]), axis=1)
+        passed = unit_hash(ray, tri, porosity_seed(sample.background)) < face_pass[tri]
+        ranges[ray[~passed]] = t[~passed]
+        todo = ray[passed]
+        start[todo] = t[passed] + STEP
+        if len(todo) == 0:
+            break
+    ranges[ranges > sensor.max_range] = 0.0
     return ranges.reshape(sensor.shape)
 
 
@@ -169,11 +185,12 @@ def scene_size_effect(space: Space, samples: list[Sample]) -> dict:
 
     def subdivided(bg):
         v, f = bg.vertices, bg.faces
-        cls, inst = bg.face_class, bg.face_instance
+        cls, inst, mat = bg.face_class, bg.face_instance, bg.materials()
         for _ in range(2):
             v, f, idx = _subdivide(v, f)
-            cls, inst = cls[idx], inst[idx]
-        return dataclasses.replace(bg, vertices=v, faces=f, face_class=cls, face_instance=inst)
+            cls, inst, mat = cls[idx], inst[idx], mat[idx]
+        return dataclasses.replace(bg, vertices=v, faces=f, face_class=cls, face_instance=inst,
+                                   face_material=mat)
 
     def far_objects(bg):
         v, f = [bg.vertices], [bg.faces]
@@ -183,7 +200,8 @@ def scene_size_effect(space: Space, samples: list[Sample]) -> dict:
             f.append(bg.faces + n * k)
         return dataclasses.replace(
             bg, vertices=np.concatenate(v), faces=np.concatenate(f).astype(np.int32),
-            face_class=np.tile(bg.face_class, 10), face_instance=np.tile(bg.face_instance, 10))
+            face_class=np.tile(bg.face_class, 10), face_instance=np.tile(bg.face_instance, 10),
+            face_material=np.tile(bg.materials(), 10))
 
     # Best of three, interleaved, so a busy moment of the machine does not land on one variant.
     runs = [(rate(lambda b: b), rate(subdivided), rate(far_objects)) for _ in range(3)]

@@ -19,7 +19,7 @@ from falsify.bench import machine
 from falsify.camera import CameraRenderer, Hits, camera_preset, look_of, shade
 from falsify.errors import FalsifyError
 from falsify.scene import Simulator
-from falsify.sensor import SensorPose, load_sensor
+from falsify.sensor import load_sensor
 from falsify.space import Sample, Space, load_space
 
 
@@ -42,7 +42,7 @@ def naive_image(space: Space, sample: Sample, renderer: CameraRenderer
         meshes.append(m)
         offsets.append(offsets[-1] + len(m.faces))
     merged = trimesh.util.concatenate(meshes)
-    origin, rot = renderer.pose_of(SensorPose())
+    origin, rot = renderer.pose_of(sim.ego_pose(sample.background))
     rays = renderer.camera.intrinsics.rays().reshape(-1, 3)
     d = rays @ rot.T
     o = np.tile(origin, (len(d), 1))

@@ -245,8 +245,8 @@ class CameraRenderer:
         def make() -> _Street:
             caster, bg = self.sim.background(bg_id)
             origin, rot = self.pose_of(pose)
-            t, prim, ng = caster.cast_with_normals(origin, self._rays_cam @ rot.T,
-                                                   self.camera.max_depth)
+            t, prim, ng = caster.bvh.cast_with_normals(origin, self._rays_cam @ rot.T,
+                                                       self.camera.max_depth)
             hit = prim >= 0
             cls = np.zeros(t.shape, np.uint8)
             inst = np.zeros(t.shape, np.int32)
@@ -309,8 +309,8 @@ class CameraRenderer:
             caster, _ = self.sim.car_caster(car.model)
             c_rot = car.rotation()
             dirs = self._rays_cam[idx] @ (c_rot.T @ rot).T
-            t, prim, ng = caster.cast_with_normals((origin - car.translation()) @ c_rot, dirs,
-                                                   self.camera.max_depth)
+            t, prim, ng = caster.bvh.cast_with_normals((origin - car.translation()) @ c_rot, dirs,
+                                                       self.camera.max_depth)
             unoccluded[car.instance] = int((prim >= 0).sum())
             nearer = (prim >= 0) & (t < hits.t[idx])
             sel = idx[nearer]
@@ -357,9 +357,10 @@ class CameraRenderer:
                            depth.reshape(h, w), unoccluded)
 
     def render_sample(self, sample: Sample, pose: SensorPose = SensorPose()) -> CameraImage:
-        """The camera image of a sample (InvalidSample for impossible scenes, as for scans)."""
-        return self.render(sample.background, self.sim.placed_cars(sample), pose,
-                           look_of(sample))
+        """The camera image of a sample from the ego vehicle standing on the street, as its scan
+        (InvalidSample for impossible scenes, as for scans)."""
+        return self.render(sample.background, self.sim.placed_cars(sample),
+                           self.sim.ego_pose(sample.background, pose), look_of(sample))
 
     def _shade(self, bg_id: int, pose: SensorPose, placed, paints, hits: Hits,
                idx: np.ndarray, look: Look) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -524,7 +525,7 @@ def _shadowed(r: CameraRenderer, bg_caster, placed, points: np.ndarray,
     blocked = np.zeros(len(points), bool)
     if len(points) == 0:
         return blocked
-    t, _ = bg_caster.cast(points, np.broadcast_to(sun_d, points.shape), 1000.0)
+    t, _ = bg_caster.bvh.cast(points, np.broadcast_to(sun_d, points.shape), 1000.0)
     blocked |= np.isfinite(t)
     for car in placed:
         caster, corners = r.sim.car_caster(car.model)
@@ -533,7 +534,7 @@ def _shadowed(r: CameraRenderer, bg_caster, placed, points: np.ndarray,
         d = sun_d @ c_rot
         near = _slab(o, d, corners.min(axis=0), corners.max(axis=0)) & ~blocked
         if near.any():
-            t, _ = caster.cast(o[near], np.broadcast_to(d, (int(near.sum()), 3)), 1000.0)
+            t, _ = caster.bvh.cast(o[near], np.broadcast_to(d, (int(near.sum()), 3)), 1000.0)
             blocked[np.flatnonzero(near)[np.isfinite(t)]] = True
     return blocked
 

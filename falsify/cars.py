@@ -18,6 +18,7 @@ import trimesh
 
 from falsify import shapes
 from falsify.errors import ConfigError
+from falsify.materials import mid
 
 LOD_LEVELS: tuple[int, ...] = (0, 1, 2)
 
@@ -94,6 +95,22 @@ _SPECS: dict[str, CarSpec] = {
         body_bottom=((-2.25, 0.42), (-2.05, 0.22), (1.95, 0.16), (2.25, 0.3)),
         cabin_top=((-1.55, 0.0), (-0.5, 1.28), (0.05, 1.3), (1.0, 0.0)),
         cabin_taper=0.25,
+    ),
+    "compact": CarSpec(
+        3.6, 1.66, 0.29, (1.18, -1.12),
+        body_top=((-1.8, 0.86), (-1.76, 1.0), (-1.6, 1.0), (0.85, 0.95), (1.5, 0.84),
+                  (1.8, 0.62)),
+        body_bottom=((-1.8, 0.42), (-1.65, 0.2), (1.6, 0.18), (1.8, 0.36)),
+        cabin_top=((-1.72, 0.0), (-1.62, 1.46), (-1.35, 1.52), (0.1, 1.53), (0.9, 0.0)),
+        cabin_taper=0.16,
+    ),
+    "roadster": CarSpec(
+        4.3, 1.8, 0.32, (1.35, -1.25),
+        body_top=((-2.15, 0.76), (-2.1, 0.88), (-1.2, 0.9), (0.8, 0.84), (1.75, 0.7),
+                  (2.15, 0.5)),
+        body_bottom=((-2.15, 0.38), (-1.95, 0.16), (1.9, 0.14), (2.15, 0.28)),
+        cabin_top=((-1.1, 0.0), (-0.45, 1.2), (0.0, 1.22), (0.75, 0.0)),
+        cabin_taper=0.28,
     ),
 }
 
@@ -224,15 +241,66 @@ def car_mesh(name: str, lod: int = 2) -> trimesh.Trimesh:
         raise ConfigError(f"car_model: unknown model {name!r}; allowed: {', '.join(_SPECS)}")
     if isinstance(lod, bool) or lod not in LOD_LEVELS:
         raise ConfigError(f"lod: {lod!r} is not a level of detail; allowed: {LOD_LEVELS}")
+    v, f, _ = car_parts(name, lod)
+    return trimesh.Trimesh(vertices=v, faces=f.astype(np.int64), process=False)
+
+
+@functools.lru_cache(maxsize=64)
+def car_parts(name: str, lod: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices, faces and per-face material of built-in car ``name``: paint body, glass
+    windows (the cabin's sides and screens), rubber tyres, and at lod >= 1 mirrors and the
+    seats a ray through the glass ends on. Same face order as ``car_mesh``."""
+    if name not in _SPECS:
+        raise ConfigError(f"car_model: unknown model {name!r}; allowed: {', '.join(_SPECS)}")
+    if isinstance(lod, bool) or lod not in LOD_LEVELS:
+        raise ConfigError(f"lod: {lod!r} is not a level of detail; allowed: {LOD_LEVELS}")
     spec = _SPECS[name]
     params = _LOD[lod]
-    parts = [_body(spec, params), _cabin(spec, params), *_wheels(spec, params)]
+    paint, glass, rubber = mid("paint mid"), mid("glass"), mid("rubber")
+    cv, cf = _cabin(spec, params)
+    tri = cv[cf]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    nz = np.abs(n[:, 2]) / np.maximum(np.linalg.norm(n, axis=1), 1e-12)
+    cen = tri.mean(axis=1)
+    belt = _interp(spec.body_top, cen[:, 0])
+    cabin_mat = np.where((nz < 0.8) & (cen[:, 2] > belt + 0.04), glass, paint)
+    parts = [(*_body(spec, params), paint), (cv, cf, cabin_mat)]
+    parts += [(*w, rubber) for w in _wheels(spec, params)]
     if spec.bed is not None:
-        parts += _bed(spec)
-    v, f = shapes.merge(parts)
+        parts += [(*b, paint) for b in _bed(spec)]
+    if lod >= 1:
+        parts += _mirrors_and_seats(spec)
+    verts, faces, mats, offset = [], [], [], 0
+    for v, f, m in parts:
+        verts.append(v)
+        faces.append(np.asarray(f, np.int64) + offset)
+        mats.append(np.broadcast_to(np.asarray(m, np.uint8), (len(f),)))
+        offset += len(v)
+    v = np.concatenate(verts).astype(np.float64)
+    f = np.concatenate(faces)
+    mat = np.concatenate(mats)
+    keep = shapes.drop_degenerate(v, f)
     v = _to_footprint_frame(v)
-    mesh = trimesh.Trimesh(vertices=v, faces=f.astype(np.int64), process=False)
-    return mesh
+    f, mat = f[keep], np.ascontiguousarray(mat[keep])
+    for a in (v, f, mat):
+        a.setflags(write=False)
+    return v, f, mat
+
+
+def _mirrors_and_seats(spec: CarSpec) -> list:
+    """Door mirrors at the windscreen's foot and a seat block inside the glasshouse."""
+    x0, x1 = spec.cabin_top[0][0], spec.cabin_top[-1][0]
+    belt = float(_interp(spec.body_top, np.array([x1]))[0])
+    hw = spec.width / 2
+    out = []
+    for s in (1.0, -1.0):
+        lo = [x1 - 0.2, s * (hw + 0.02) - (0.2 if s < 0 else 0.0), belt + 0.02]
+        hi = [x1 - 0.08, s * (hw + 0.02) + (0.2 if s > 0 else 0.0), belt + 0.16]
+        out.append((*shapes.boxes(lo, hi), mid("paint mid")))
+    seat_belt = float(_interp(spec.body_top, np.array([(x0 + x1) / 2]))[0])
+    out.append((*shapes.boxes([x0 + 0.35, -hw + 0.3, seat_belt - 0.45],
+                              [x1 - 0.45, hw - 0.3, seat_belt + 0.3]), mid("interior")))
+    return out
 
 
 def _to_footprint_frame(v: np.ndarray) -> np.ndarray:

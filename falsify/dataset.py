@@ -16,9 +16,11 @@ from pathlib import Path
 import numpy as np
 
 from falsify.cars import BUILTIN_MODELS
-from falsify.classes import CLASSES
+from falsify.classes import CAR, CLASSES, UNKNOWN
 from falsify.errors import ConfigError
 from falsify.fileio import write_json, write_npy
+from falsify.materials import PAINTS
+from falsify.road_users import OTHER_VEHICLES
 from falsify.scene import InvalidSample, PlacedCar, Simulator, check_placement, ego_outline
 from falsify.sensor import Sensor, SensorPose
 
@@ -53,10 +55,11 @@ def scene_for(index: int, seed: int, sim: Simulator,
     rng = np.random.default_rng([seed, index])
     bg = sim.background(bg_id)[1]
     half = float(getattr(bg, "road_half_width", 9.0))
-    lane = rng.uniform(-min(half - 2.5, 5.0), min(half - 2.5, 5.0))
+    # Any lane, up to beside the parked cars, so the roadside is seen from close by too.
+    lane = rng.uniform(-(half - 3.3), half - 3.3)
     heading = rng.normal(0.0, 2.0) + (180.0 if rng.random() < 0.3 else 0.0)
     ego_x = rng.uniform(-20.0, 40.0) if heading < 90 else rng.uniform(10.0, 70.0)
-    pose = SensorPose(ego_x, lane, heading)
+    pose = sim.ego_pose(bg_id, SensorPose(ego_x, lane, heading))
     ego = ego_outline(pose)
     forward = np.array([math.cos(math.radians(heading)), math.sin(math.radians(heading))])
     placed: list[PlacedCar] = []
@@ -65,7 +68,10 @@ def scene_for(index: int, seed: int, sim: Simulator,
     for _ in range(wanted * 4):
         if len(placed) == wanted:
             break
-        model = str(rng.choice(BUILTIN_MODELS))
+        # Hard negatives: about one vehicle in eight is a van, truck, bus or trailer (class 0).
+        other = rng.random() < 0.12
+        model = str(rng.choice(OTHER_VEHICLES if other else BUILTIN_MODELS))
+        paint = int(PAINTS[int(rng.integers(len(PAINTS)))])
         along = rng.uniform(*opts.ahead)
         across = rng.uniform(-(half - 1.0), half - 1.0)
         cx = ego_x + along * forward[0]
@@ -75,7 +81,8 @@ def scene_for(index: int, seed: int, sim: Simulator,
             car_heading = rng.normal(0.0, 4.0) + (180.0 if across > 0 and r < 0.35 else 0.0)
         else:
             car_heading = rng.uniform(-180.0, 180.0)
-        car = PlacedCar(model, float(cx), float(cy), float(car_heading), 1 + len(placed))
+        car = PlacedCar(model, float(cx), float(cy), float(car_heading), 1 + len(placed),
+                        cls=UNKNOWN if other else CAR, paint=paint)
         outline = sim.footprint(car)
         try:
             check_placement([*placed, car], [*outlines, outline], sim.obstacles(bg_id), ego)
@@ -83,7 +90,7 @@ def scene_for(index: int, seed: int, sim: Simulator,
             continue
         placed.append(car)
         outlines.append(outline)
-    return bg_id, pose, placed
+    return bg_id, pose, [sim.settle(bg_id, c) for c in placed]
 
 
 def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,

@@ -1,4 +1,4 @@
-"""Where the files read at run time live: the bundled configs and sensor presets.
+"""Where the files read at run time live: the bundled configs, sensor presets and return models.
 
 Installed, they are package data in falsify/configs; in a source checkout, the configs/ folder
 beside falsify/. The bundled weights live with the network (falsify.models.runner.WEIGHTS_DIR).
@@ -11,6 +11,7 @@ from pathlib import Path
 _HERE = Path(__file__).resolve().parent
 CONFIGS = _HERE / "configs" if (_HERE / "configs").is_dir() else _HERE.parent / "configs"
 SENSOR_PRESETS = CONFIGS / "sensors"
+RETURN_MODELS = CONFIGS / "returns"  # fitted sensor return models (falsify.fit_returns)
 
 
 def config_path(path: str | Path) -> Path:

@@ -12,23 +12,33 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
 
 import falsify.backgrounds as backgrounds  # noqa: I001
 import falsify.cars as cars
+import falsify.road_users as road_users
 from falsify.classes import CAR
+from falsify.materials import GLASS, PAINTS, PASS_PROB, cast_through, load_return_model, mid
 from falsify.raycast import MeshCaster
 from falsify.scan import Scan
-from falsify.sensor import Sensor, SensorPose, rot_z
+from falsify.sensor import Sensor, SensorPose, rot_x, rot_y, rot_z
 from falsify.space import CarPose, Sample, UserCar
+from falsify.terrain import Terrain
 
 # The ego vehicle's footprint around the sensor (KITTI's Passat, sensor behind the front axle);
 # a sampled car that overlaps it cannot exist. It is not drawn: real scans filter the ego car.
 EGO_FOOTPRINT = np.array([[-2.8, -0.95], [1.9, -0.95], [1.9, 0.95], [-2.8, 0.95]])
 FIRST_CAR_INSTANCE = 1
+PAINT_IDS = np.array(PAINTS, dtype=np.uint8)
+
+
+def porosity_seed(bg_id: int) -> int:
+    """The seed of a background's pass-through decisions (fixed per street, so cached hits and a
+    full re-cast agree)."""
+    return 0x5EED0000 + int(bg_id)
 
 
 class InvalidSample(Exception):
@@ -46,12 +56,19 @@ class PlacedCar:
     heading_deg: float
     instance: int
     cls: int = CAR
+    z: float = 0.0  # ground height, pitch and roll where it stands (Background.pose_on)
+    pitch_deg: float = 0.0
+    roll_deg: float = 0.0
+    paint: int | None = None  # material id replacing the model's paint; None keeps it
 
     def rotation(self) -> np.ndarray:
-        return rot_z(self.heading_deg)
+        r = rot_z(self.heading_deg)
+        if self.pitch_deg or self.roll_deg:
+            r = r @ rot_y(self.pitch_deg) @ rot_x(self.roll_deg)
+        return r
 
     def translation(self) -> np.ndarray:
-        return np.array([self.x, self.y, 0.0])
+        return np.array([self.x, self.y, self.z])
 
     def matrix(self) -> np.ndarray:
         """4x4 homogeneous car-to-world transform (rotation, then translation): the pose as a
@@ -69,17 +86,50 @@ def place(pose: CarPose, instance: int) -> PlacedCar:
 
 @dataclass
 class _Layer:
-    """Per-pixel nearest hit so far: range (inf = none), class and instance."""
+    """Per-pixel nearest hit so far: range (inf = none), class, instance, material and the
+    cosine of the incidence angle (for the sensor's return model)."""
 
     dist: np.ndarray
     cls: np.ndarray
     inst: np.ndarray
+    mat: np.ndarray
+    cos: np.ndarray
+
+    def copy(self) -> _Layer:
+        return _Layer(self.dist.copy(), self.cls.copy(), self.inst.copy(), self.mat.copy(),
+                      self.cos.copy())
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit normals per triangle (float64; zero for degenerate ones)."""
+    tri = np.asarray(vertices, np.float64)[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+@dataclass(frozen=True)
+class _Caster:
+    """A BVH with what the sensor model needs per triangle: material, pass probability, normal."""
+
+    bvh: MeshCaster
+    material: np.ndarray
+    face_pass: np.ndarray
+    normals: np.ndarray
+
+    @classmethod
+    def of(cls, vertices, faces, material, anchor=None) -> _Caster:
+        mat = np.asarray(material, np.uint8)
+        return cls(MeshCaster(vertices, faces, anchor=anchor), mat, PASS_PROB[mat],
+                   face_normals(vertices, faces))
 
 
 class Scanner(Protocol):
-    """What scores samples needs from a scanner: its sensor, warm background hits, scans."""
+    """What scores samples needs from a scanner: its sensor, the ego pose on a street, warm
+    background hits, scans."""
 
     sensor: Sensor
+
+    def ego_pose(self, bg_id: int, pose: SensorPose = ...) -> SensorPose: ...
 
     def background_hits(self, bg_id: int, pose: SensorPose) -> object: ...
 
@@ -99,29 +149,43 @@ class Simulator:
         self.sensor = sensor
         self.user_cars = dict(user_cars or {})
         self.lod = lod
-        self._bvh: OrderedDict[int, tuple[MeshCaster, object]] = OrderedDict()
+        self._bvh: OrderedDict[int, tuple[_Caster, object]] = OrderedDict()
         self._hits: OrderedDict[tuple, _Layer] = OrderedDict()
-        self._cars: dict[str, tuple[MeshCaster, np.ndarray]] = {}
+        self._cars: dict[str, tuple[_Caster, np.ndarray]] = {}
         self._obstacles: dict[int, Obstacles] = {}
+        self._terrain: dict[int, Terrain | None] = {}
         self._max_bvh, self._max_hits = max_bvh, max_hits
         self.background_source = background_source or backgrounds.build_background
+        self.returns = load_return_model(sensor.returns) if sensor.returns else None
+        self._keep = (None if self.returns is None else
+                      self.returns.keep_map(sensor.rows, sensor.azimuths_deg))
 
     # -- meshes ---------------------------------------------------------------------------
     def car_mesh(self, model: str):
         if model in self.user_cars:
             u = self.user_cars[model]
             return cars.load_user_car(u.file, u.scale, u.forward, u.up)
+        if model in road_users.OTHER_VEHICLES:
+            return road_users.vehicle_model(model)[0]
         return cars.car_mesh(model, lod=self.lod)
 
-    def car_caster(self, model: str) -> tuple[MeshCaster, np.ndarray]:
+    def car_materials(self, model: str) -> np.ndarray:
+        """Per-face materials of a model (user meshes: mid paint everywhere)."""
+        if model in self.user_cars:
+            return np.full(len(self.car_mesh(model).faces), mid("paint mid"), np.uint8)
+        if model in road_users.OTHER_VEHICLES:
+            return road_users.vehicle_model(model)[1]
+        return cars.car_parts(model, self.lod)[2]
+
+    def car_caster(self, model: str) -> tuple[_Caster, np.ndarray]:
         """The car's BVH in its own frame and its bounding box corners (8×3)."""
         if model not in self._cars:
             mesh = self.car_mesh(model)
             lo, hi = np.asarray(mesh.bounds[0]), np.asarray(mesh.bounds[1])
             corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                                 for z in (lo[2], hi[2])])
-            self._cars[model] = (MeshCaster(mesh.vertices, mesh.faces, anchor=np.zeros(3)),
-                                 corners)
+            self._cars[model] = (_Caster.of(mesh.vertices, mesh.faces, self.car_materials(model),
+                                            anchor=np.zeros(3)), corners)
         return self._cars[model]
 
     def background(self, bg_id: int):
@@ -130,8 +194,9 @@ class Simulator:
             self._bvh.move_to_end(bg_id)
             return self._bvh[bg_id]
         bg = self.background_source(bg_id)
-        entry = (MeshCaster(bg.vertices, bg.faces), bg)
+        entry = (_Caster.of(bg.vertices, bg.faces, bg.materials()), bg)
         self._obstacles[bg_id] = Obstacles.of(bg.obstacles)
+        self._terrain[bg_id] = bg.terrain
         self._bvh[bg_id] = entry
         while len(self._bvh) > self._max_bvh:
             self._bvh.popitem(last=False)
@@ -147,15 +212,22 @@ class Simulator:
         caster, bg = self.background(bg_id)
         rot = pose.rotation(self.sensor)
         dirs = self.sensor.directions.reshape(-1, 3) @ rot.T
-        t, prim = caster.cast(pose.origin(self.sensor), dirs, self.sensor.max_range)
+        t, prim = cast_through(caster.bvh, pose.origin(self.sensor), dirs,
+                               self.sensor.max_range, caster.face_pass,
+                               np.arange(len(dirs)), porosity_seed(bg_id))
         hit = prim >= 0
         cls = np.zeros(t.shape, dtype=np.uint8)
         inst = np.zeros(t.shape, dtype=np.int32)
+        mat = np.zeros(t.shape, dtype=np.uint8)
+        cos = np.zeros(t.shape, dtype=np.float32)
         cls[hit] = bg.face_class[prim[hit]]
         inst[hit] = bg.face_instance[prim[hit]]
+        mat[hit] = caster.material[prim[hit]]
+        cos[hit] = np.abs((caster.normals[prim[hit]] * dirs[hit]).sum(axis=1))
         shape = self.sensor.shape
-        layer = _Layer(t.reshape(shape), cls.reshape(shape), inst.reshape(shape))
-        for a in (layer.dist, layer.cls, layer.inst):
+        layer = _Layer(t.reshape(shape), cls.reshape(shape), inst.reshape(shape),
+                       mat.reshape(shape), cos.reshape(shape))
+        for a in (layer.dist, layer.cls, layer.inst, layer.mat, layer.cos):
             a.setflags(write=False)
         self._hits[key] = layer
         while len(self._hits) > self._max_hits:
@@ -210,18 +282,25 @@ class Simulator:
         dirs = self.sensor.directions[r_idx, c_idx] @ (c_rot.T @ s_rot).T
         origin = (pose.origin(self.sensor) - car.translation()) @ c_rot
         current = layer.dist[r_idx, c_idx]
-        t, prim = caster.cast(origin, dirs, np.minimum(current, self.sensor.max_range))
+        ray_ids = r_idx * self.sensor.columns + c_idx
+        t, prim = cast_through(caster.bvh, origin, dirs, np.minimum(current, self.sensor.max_range),
+                               caster.face_pass, ray_ids, 0)
         nearer = (prim >= 0) & (t < current)
-        layer.dist[r_idx[nearer], c_idx[nearer]] = t[nearer]
-        layer.cls[r_idx[nearer], c_idx[nearer]] = car.cls
-        layer.inst[r_idx[nearer], c_idx[nearer]] = car.instance
+        rn, cn, pn = r_idx[nearer], c_idx[nearer], prim[nearer]
+        layer.dist[rn, cn] = t[nearer]
+        layer.cls[rn, cn] = car.cls
+        layer.inst[rn, cn] = car.instance
+        mat = caster.material[pn]
+        if car.paint is not None:
+            mat = np.where(np.isin(mat, PAINT_IDS), car.paint, mat)
+        layer.mat[rn, cn] = mat
+        layer.cos[rn, cn] = np.abs((caster.normals[pn] * dirs[nearer]).sum(axis=1))
         return len(t)
 
     def render(self, bg_id: int, placed: Sequence[PlacedCar], pose: SensorPose = SensorPose(),
                rng: np.random.Generator | None = None) -> Scan:
         """Compose the cached background with the cars and turn first returns into a Scan."""
-        base = self.background_hits(bg_id, pose)
-        layer = _Layer(base.dist.copy(), base.cls.copy(), base.inst.copy())
+        layer = self.background_hits(bg_id, pose).copy()
         for car in placed:
             self.cast_car(layer, car, pose)
         return self.to_scan(layer, rng)
@@ -235,9 +314,21 @@ class Simulator:
         valid = np.isfinite(r) & (r >= s.min_range) & (r <= s.max_range)
         if rng is not None and s.ray_drop > 0:
             valid &= rng.random(r.shape) >= s.ray_drop
+        intensity = None
+        if self.returns is not None:
+            valid &= ~GLASS[layer.mat]
+            intensity = np.zeros(r.shape, np.float32)
+            intensity[valid] = self.returns.intensity(layer.mat[valid], layer.cos[valid],
+                                                      r[valid])
+            if rng is not None:
+                u = rng.random(r.shape)[valid]
+                p = self.returns.p_return(intensity[valid]) * self._keep[valid]
+                valid[valid] = u < p
         image = np.zeros((*s.shape, 6), dtype=np.float32)
         rv = np.where(valid, r, 0.0)
         image[..., 0:3] = s.directions * rv[..., None]
+        if intensity is not None:
+            image[..., 3] = np.where(valid, intensity, 0.0)
         image[..., 4] = rv
         image[..., 5] = np.where(valid, layer.cls, 0)
         return Scan(image, np.where(valid, layer.inst, 0).astype(np.int32))
@@ -248,7 +339,32 @@ class Simulator:
         placed = [place(c, FIRST_CAR_INSTANCE + i) for i, c in enumerate(sample.cars)]
         check_placement(placed, [self.footprint(c) for c in placed],
                         self.obstacles(sample.background))
-        return placed
+        return [self.settle(sample.background, c) for c in placed]
+
+    def settle(self, bg_id: int, car: PlacedCar) -> PlacedCar:
+        """The car standing on the background's ground (z, pitch, roll from its wheelbase)."""
+        _, corners = self.car_caster(car.model)
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        z, pitch, roll = self.pose_on(
+            bg_id, car.x, car.y, car.heading_deg, max((hi[0] - lo[0]) / 2 - 0.6, 0.3),
+            max((hi[1] - lo[1]) / 2 - 0.15, 0.3))
+        return replace(car, z=z, pitch_deg=pitch, roll_deg=roll)
+
+    def ego_pose(self, bg_id: int, pose: SensorPose = SensorPose()) -> SensorPose:
+        """The ego vehicle standing on the background's ground at the pose's x, y, heading."""
+        z, pitch, roll = self.pose_on(bg_id, pose.x, pose.y, pose.heading_deg)
+        return replace(pose, z=z, pitch_deg=pitch, roll_deg=roll)
+
+    def pose_on(self, bg_id: int, x: float, y: float, heading_deg: float,
+                half_length: float = 1.4, half_width: float = 0.8) -> tuple[float, float, float]:
+        """(z, pitch, roll) of a vehicle on the background's terrain (kept after its BVH is
+        dropped; a background without terrain is the plane z = 0)."""
+        if bg_id not in self._terrain:
+            self.background(bg_id)
+        t = self._terrain[bg_id]
+        if t is None:
+            return 0.0, 0.0, 0.0
+        return t.pose_on(x, y, heading_deg, half_length, half_width)
 
     def obstacles(self, bg_id: int) -> Obstacles:
         """The background's obstacle outlines, kept after its BVH is dropped."""
@@ -266,7 +382,8 @@ class Simulator:
     def scan(self, sample: Sample, pose: SensorPose = SensorPose(),
              rng: np.random.Generator | None = None) -> Scan:
         """The labelled scan of a sample; raises InvalidSample for impossible scenes."""
-        return self.render(sample.background, self.placed_cars(sample), pose, rng)
+        return self.render(sample.background, self.placed_cars(sample),
+                           self.ego_pose(sample.background, pose), rng)
 
 
 @dataclass(frozen=True)

@@ -17,12 +17,13 @@ from pathlib import Path
 import numpy as np
 
 from falsify.errors import ConfigError
-from falsify.paths import SENSOR_PRESETS
+from falsify.paths import RETURN_MODELS, SENSOR_PRESETS
 
 PRESET_DIR = SENSOR_PRESETS
 SENSOR_KEYS = {
     "name", "description", "elevations_deg", "vertical", "h_fov_deg", "columns", "pitch_deg",
     "mount_height", "max_range", "min_range", "rotation_hz", "ray_drop", "range_noise",
+    "returns",
 }
 
 
@@ -43,6 +44,7 @@ class Sensor:
     ray_drop: float = 0.0
     range_noise: float = 0.0
     description: str = ""
+    returns: str = ""  # a fitted return model in configs/returns/ ("" = every hit returns)
 
     @property
     def rows(self) -> int:
@@ -109,18 +111,26 @@ class Sensor:
 
 @dataclass(frozen=True)
 class SensorPose:
-    """Where the sensor's ground point stands in the world and which way it looks."""
+    """Where the sensor's ground point stands in the world and which way it looks; z, pitch
+    and roll are the ego vehicle's on uneven ground (falsify.terrain.Terrain.pose_on)."""
 
     x: float = 0.0
     y: float = 0.0
     heading_deg: float = 0.0
+    z: float = 0.0
+    pitch_deg: float = 0.0
+    roll_deg: float = 0.0
 
     def rotation(self, sensor: Sensor) -> np.ndarray:
-        """3×3 rotation taking sensor-frame vectors to world-frame vectors (yaw, then pitch)."""
-        return rot_z(self.heading_deg) @ rot_y(sensor.pitch_deg)
+        """3×3 rotation taking sensor-frame vectors to world-frame vectors (vehicle yaw, pitch,
+        roll, then the sensor's own mounting pitch)."""
+        r = rot_z(self.heading_deg)
+        if self.pitch_deg or self.roll_deg:
+            r = r @ rot_y(self.pitch_deg) @ rot_x(self.roll_deg)
+        return r @ rot_y(sensor.pitch_deg)
 
     def origin(self, sensor: Sensor) -> np.ndarray:
-        return np.array([self.x, self.y, sensor.mount_height], dtype=np.float64)
+        return np.array([self.x, self.y, self.z + sensor.mount_height], dtype=np.float64)
 
 
 def rot_z(deg: float) -> np.ndarray:
@@ -132,6 +142,12 @@ def rot_y(deg: float) -> np.ndarray:
     """Rotation about y; positive pitch tilts the sensor's forward axis down."""
     c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_x(deg: float) -> np.ndarray:
+    """Rotation about x; positive roll lifts the left (+y) side."""
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
 def preset_names() -> list[str]:
@@ -236,4 +252,16 @@ def parse_sensor(raw: dict, source: str = "<sensor>") -> Sensor:
         rotation_hz=num("rotation_hz", 10.0, lo=0.0, lo_open=True),
         ray_drop=num("ray_drop", 0.0, lo=0.0, hi=1.0),
         range_noise=num("range_noise", 0.0, lo=0.0, hi=1.0),
+        returns=_returns_name(raw.get("returns", ""), where),
     )
+
+
+def _returns_name(value, where: str) -> str:
+    """A return model name that exists in configs/returns/ (or "" for none)."""
+    if value == "":
+        return ""
+    allowed = sorted(p.stem for p in RETURN_MODELS.glob("*.json"))
+    if not isinstance(value, str) or value not in allowed:
+        raise ConfigError(f"{where}returns: {value!r} is not a fitted return model; allowed: "
+                          f"{', '.join(allowed) or 'none'} (configs/returns/) or \"\"")
+    return value

@@ -131,7 +131,7 @@ class SettingScorer:
                 self.drop(s)
                 ev = self.evaluator(s)
                 for bg in sorted({x.background for x in samples}):
-                    ev.sim.background_hits(bg, SensorPose())
+                    ev.sim.background_hits(bg, ev.sim.ego_pose(bg))
                 ev.score_batch(samples[: self.batch])
                 t0 = time.perf_counter()
                 self._run(s, samples)   # the results are kept: scoring reuses them
@@ -154,6 +154,9 @@ class Resampling:
 
     def background_hits(self, bg_id: int, pose: SensorPose):
         return self.sim.background_hits(bg_id, pose)
+
+    def ego_pose(self, bg_id: int, pose: SensorPose = SensorPose()) -> SensorPose:
+        return self.sim.ego_pose(bg_id, pose)
 
     def scan(self, sample: Sample, pose: SensorPose = SensorPose(),
              rng: np.random.Generator | None = None):

@@ -18,6 +18,7 @@ from falsify.backgrounds import (
     build_background,
 )
 from falsify.errors import ConfigError
+from falsify.materials import MATERIAL_ID, MATERIALS
 
 IDS = [*range(15), *range(1000, 1005), MAX_BACKGROUND_ID]
 
@@ -40,7 +41,9 @@ def test_arrays_and_size(built):
         assert bg.face_class.dtype == np.uint8 and bg.face_class.shape == (len(f),)
         assert bg.face_instance.dtype == np.int32 and bg.face_instance.shape == (len(f),)
         assert np.isfinite(v).all() and f.min() >= 0 and f.max() < len(v)
-        assert 50_000 <= len(f) <= 300_000
+        assert 50_000 <= len(f) <= 400_000
+        assert bg.face_material.dtype == np.uint8 and bg.face_material.shape == (len(f),)
+        assert bg.face_material.max() < len(MATERIALS)
         tri = v[f]
         area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
         assert (area > 0).all()
@@ -55,7 +58,7 @@ def test_deterministic_bytes(built):
         again = build_background(i)
         ref = built[i]
         assert again is not ref
-        for name in ("vertices", "faces", "face_class", "face_instance"):
+        for name in ("vertices", "faces", "face_class", "face_instance", "face_material"):
             assert getattr(again, name).tobytes() == getattr(ref, name).tobytes()
         assert len(again.obstacles) == len(ref.obstacles)
 
@@ -89,18 +92,23 @@ def _overlaps_free_zone(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return (hi[:, 0] > x0) & (lo[:, 0] < x1) & (hi[:, 1] > y0) & (lo[:, 1] < y1)
 
 
-def test_free_zone_is_flat_empty_road(built):
+def test_free_zone_is_empty_road(built):
+    """Only asphalt in the free zone and around the sensor: every vertex of a triangle there
+    lies on the terrain's road surface (which has grade and camber, no longer z = 0)."""
     for bg in built.values():
         tri = bg.vertices[bg.faces]
         lo, hi = tri.min(axis=1), tri.max(axis=1)
-        inside = _overlaps_free_zone(lo, hi)
-        assert inside.any()  # the road itself
-        assert (hi[inside, 2] <= 0.01).all()
-        assert (bg.face_class[inside] == 0).all()
-        # Nothing but road within the sensor clearance either.
         c = SENSOR_CLEARANCE
         near = ((hi[:, 0] > -c) & (lo[:, 0] < c) & (hi[:, 1] > -c) & (lo[:, 1] < c))
-        assert (hi[near, 2] <= 0.01).all()
+        inside = _overlaps_free_zone(lo, hi)
+        assert inside.any()  # the road itself
+        for sel in (inside, near):
+            assert (bg.face_class[sel] == 0).all()
+            assert (bg.face_material[sel] == MATERIAL_ID["asphalt"]).all()
+            pts = tri[sel].reshape(-1, 3)
+            ground = bg.terrain.height(pts[:, 0], np.clip(pts[:, 1], -bg.road_half_width + 1e-6,
+                                                          bg.road_half_width - 1e-6))
+            np.testing.assert_allclose(pts[:, 2], ground, atol=1e-6)
         polys = [o.polygon for o in bg.obstacles]
         plo = np.array([p.min(axis=0) for p in polys])
         phi = np.array([p.max(axis=0) for p in polys])
@@ -115,8 +123,12 @@ def test_obstacles_are_ccw_convex(built):
         cross = e[:, 0] * np.roll(e, -1, axis=0)[:, 1] - e[:, 1] * np.roll(e, -1, axis=0)[:, 0]
         assert (cross > 0).all(), o.label
     labels = " ".join(o.label for o in built[0].obstacles)
-    for word in ("curb", "building", "parked car", "pedestrian", "cyclist"):
+    for word in ("curb", "parked car", "pedestrian", "cyclist"):
         assert word in labels
+    everywhere = " ".join(o.label for i in range(15) for o in built[i].obstacles)
+    for word in ("building", "tree", "band tree", "guard rail", "fence", "railing", "hedge",
+                 "wall", "sign", "pole", "bicycle", "parked box truck", "parked bus"):
+        assert word in everywhere, word
 
 
 @pytest.mark.parametrize("bad", [-1, MAX_BACKGROUND_ID + 1, 1.5, "3", None, True])

@@ -67,9 +67,9 @@ def test_window_equals_full_cast(sim):
                 PlacedCar("van", 30.0, -6.0, -120.0, 1)):
         image = r.render(0, [car])
         bg_caster, _ = sim.background(0)
-        t_bg, _ = bg_caster.cast(origin, rays, cam.max_depth)
+        t_bg, _ = bg_caster.bvh.cast(origin, rays, cam.max_depth)
         caster, _ = sim.car_caster(car.model)
-        t_car, _ = caster.cast((origin - car.translation()) @ car.rotation(),
+        t_car, _ = caster.bvh.cast((origin - car.translation()) @ car.rotation(),
                                rays @ car.rotation(), cam.max_depth)
         car_px = (t_car < t_bg).reshape(cam.shape)
         assert np.array_equal(image.instance == 1, car_px)

@@ -15,6 +15,7 @@ import pytest
 from falsify.calib_check import check_kitti_dir
 from falsify.calibration import KittiCalib
 from falsify.cli import main
+from falsify.dataset import TrafficOptions, scene_for
 from falsify.errors import FalsifyError
 from falsify.kitti_object import (
     KittiObject,
@@ -26,6 +27,8 @@ from falsify.kitti_object import (
     read_labels,
     read_velodyne,
 )
+from falsify.scene import Simulator
+from falsify.sensor import load_sensor
 
 from .conftest import CONFIGS
 
@@ -52,12 +55,19 @@ def test_export_layout_and_contents(exported):
     assert np.allclose(calib.R0_rect, np.eye(3))
     labels = read_labels(exported / "label_2" / "000000.txt")
     assert any(o.type == "Car" for o in labels)
+    # Frame 0's street and ego pose (drawn before its traffic), to find the ground under a box.
+    sim = Simulator(load_sensor("kitti-hdl64e-front"))
+    bg_id, pose, _ = scene_for(0, 0, sim, TrafficOptions(max_cars=6))
     for o in labels:
         h, w, length = o.dimensions
         assert 0.3 < h < 3.5 and 0.2 < w < 3 and 0.2 < length < 7
         left, top, right, bottom = o.box2d
         assert -0.5 <= left < right <= 1241.5 and -0.5 <= top < bottom <= 374.5
-        assert abs(o.location[1] - 1.73) < 0.2  # on the road or the sidewalk, 1.73 m below
+        # kitti-centre sits at the LiDAR: camera (x right, y down, z forward) -> LiDAR frame.
+        x_c, y_c, z_c = o.location
+        bottom_w = pose.origin(sim.sensor) + pose.rotation(sim.sensor) @ [z_c, -x_c, -y_c]
+        ground = sim.pose_on(bg_id, bottom_w[0], bottom_w[1], 0.0)[0]
+        assert abs(bottom_w[2] - ground) < 0.2, o  # stands on the terrain where it is
         assert o.occluded in (0, 1, 2, 3) and 0 <= o.truncated <= 1
 
 

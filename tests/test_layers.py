@@ -21,7 +21,9 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
         "falsify/paths", "falsify/checks")),
     ("world: space, meshes, streets, sensor, casting, scans, metrics", (
         "falsify/space", "falsify/shapes", "falsify/cars", "falsify/backgrounds",
-        "falsify/sensor", "falsify/raycast", "falsify/scan", "falsify/kitti", "falsify/scene",
+        "falsify/sensor", "falsify/raycast", "falsify/materials", "falsify/terrain",
+        "falsify/vegetation", "falsify/structures", "falsify/road_users", "falsify/fit_returns",
+        "falsify/scan", "falsify/kitti", "falsify/scene",
         "falsify/dataset", "falsify/preview", "falsify/metrics", "falsify/kitti_frames",
         "falsify/scansets", "falsify/calibration", "falsify/camera", "falsify/kitti_object",
         "falsify/kitti_export", "falsify/overlay", "falsify/pngread", "falsify/traffic")),
