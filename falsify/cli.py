@@ -20,6 +20,8 @@ from falsify.errors import FalsifyError
 from falsify.paths import CONFIGS, config_path
 
 DEFAULT_CONFIG = CONFIGS / "paper.toml"
+# `dataset`'s drop for sensors without a fitted return model: real sensors lose some returns.
+UNIFORM_RAY_DROP = 0.05
 
 
 class UsageError(FalsifyError):
@@ -110,6 +112,9 @@ def cmd_dataset(args) -> int:
         raise UsageError(f"--max-cars: {args.max_cars} must be in 0..40")
     if args.backgrounds < 1:
         raise UsageError(f"--backgrounds: {args.backgrounds} must be >= 1")
+    if args.ray_drop is None:
+        # A fitted return model already drops returns as the real sensor does.
+        args.ray_drop = 0.0 if load_sensor(space.sensor).returns else UNIFORM_RAY_DROP
     if not 0 <= args.ray_drop < 1 or not 0 <= args.range_noise <= 1:
         raise UsageError("--ray-drop must be in [0, 1) and --range-noise in [0, 1] m")
     used = {int(b) for b in space.dims["background"].grid()}
@@ -536,8 +541,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--first-background", type=int, default=1000)
     d.add_argument("--backgrounds", type=int, default=1000)
     d.add_argument("--max-cars", type=int, default=12)
-    d.add_argument("--ray-drop", type=float, default=0.05,
-                   help="probability that a return is dropped (real sensors lose some)")
+    d.add_argument("--ray-drop", type=float, default=None,
+                   help="extra probability that a return is dropped, on top of the sensor's "
+                   f"return model (default: 0 with a fitted return model, else {UNIFORM_RAY_DROP})")
     d.add_argument("--range-noise", type=float, default=0.02, help="range noise sigma, m")
     from falsify.dataset import TRAFFIC_KINDS
     d.add_argument("--traffic", choices=TRAFFIC_KINDS, default="scattered",
