@@ -38,7 +38,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
         "falsify/tradeoff", "falsify/bench", "falsify/fidelity", "falsify/evaluation",
         "falsify/realism", "falsify/calib_check", "falsify/bench_camera", "falsify/retrain")),
     ("command line", (
-        "falsify/cli", "falsify/__main__", "falsify/camera_cli")),
+        "falsify/cli", "falsify/camera_cli")),
 )
 
 
