@@ -450,7 +450,7 @@ def cmd_retrain(args) -> int:
         oversample=args.oversample, train_scans=args.train_scans,
         held_out_scans=args.held_out_scans,
         kitti=KITTI_DIR if args.kitti is None else Path(args.kitti) if args.kitti else None,
-        workers=args.workers, resume=args.resume)
+        workers=args.workers, resume=args.resume, selection=args.selection)
     result = RetrainJob(req, on_progress=None if args.json else ProgressBar()).run()
     emit(args, result.to_json(), result_text(result))
     return 0
@@ -699,6 +699,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="real KITTI sets for the checks (default: ../shared/data/kitti beside "
                     "the checkout; skipped where absent)")
     rt.add_argument("--workers", type=int, default=2)
+    rt.add_argument("--selection", default="blind", choices=["blind", "control"],
+                    help="blind: R's scans at V's blind cells (the paper); control: at as many "
+                    "random cells that are not blind, to tell the blind scans' effect from "
+                    "more training's")
     rt.add_argument("--json", action="store_true")
     rt.set_defaults(func=cmd_retrain)
 

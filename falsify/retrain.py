@@ -6,7 +6,10 @@ was in; the grids and the fine-tuning resume inside their stage too):
   before    grid over the validation backgrounds V with the model
   rows      grid over the retraining backgrounds R with the model (the rows to re-cast)
   selected  the V cells below the threshold; the scans of R at those cells, re-cast from the
-            rows by falsify.runs.write_retraining_set (which replays them by falsify.replay)
+            rows by falsify.runs.write_retraining_set (which replays them by falsify.replay).
+            With selection "control", as many cells drawn at random (seeded) from V's cells at
+            or above the threshold: the same amount of extra data, not aimed at the blind
+            spots, so a run pair separates "the blind scans fixed it" from "more training did"
   finetune  falsify.models.train from the model's weights on the training data plus the
             selected scans, each repeated `oversample` times so a few dozen scans weigh against
             thousands
@@ -35,6 +38,7 @@ from falsify.errors import ConfigError
 from falsify.pipeline import ProgressListener
 from falsify.store import open_run
 
+SELECTIONS = ("blind", "control")
 STAGES = ("before", "rows", "selected", "finetune", "after", "checks", "report")
 STAGE_FILE = "stages.json"
 MAX_CAR_IOU_DROP = 0.01      # the issue's bound on a regression check (the paper: 60.8 -> 60.6)
@@ -46,7 +50,7 @@ HELD_OUT_SEED = 2
 # What must match for --resume to continue a run (the rest, e.g. workers, may change).
 RESUME_KEYS = ("config_hash", "model_hash", "train_data", "validation", "retraining",
                "threshold", "epochs", "batch", "lr", "seed", "oversample", "train_scans",
-               "held_out_scans", "precision")
+               "held_out_scans", "precision", "selection")
 
 
 @dataclass(frozen=True)
@@ -72,6 +76,7 @@ class RetrainRequest:
     kitti: Path | None = None       # ../shared/data/kitti; checks are skipped where absent
     workers: int = 2
     resume: bool = False
+    selection: str = "blind"        # or "control": random non-blind cells, as many
 
 
 @dataclass(frozen=True)
@@ -116,6 +121,7 @@ class RetrainResult:
 
     out: str
     threshold: float
+    selection: str                    # "blind" (the paper's) or "control"
     computed: tuple[str, ...]         # stages run this time
     reused: tuple[str, ...]           # stages read back from stages.json
     cells: int
@@ -246,6 +252,8 @@ class RetrainJob:
         if both:
             raise ConfigError(f"--validation-backgrounds and --retraining-backgrounds share "
                               f"background {both[0]}; V and R must be disjoint")
+        if req.selection not in SELECTIONS:
+            raise ConfigError(f"--selection: {req.selection!r}; allowed: {', '.join(SELECTIONS)}")
         if req.precision not in ("auto", "bf16", "fp32"):
             raise ConfigError(f"--precision: {req.precision!r}; allowed: auto, bf16, fp32")
         if not req.lr > 0:
@@ -278,7 +286,8 @@ class RetrainJob:
                "retraining": list(req.retraining), "threshold": threshold,
                "epochs": req.epochs, "batch": req.batch, "lr": req.lr, "seed": req.seed,
                "oversample": req.oversample, "train_scans": req.train_scans,
-               "held_out_scans": req.held_out_scans, "precision": req.precision}
+               "held_out_scans": req.held_out_scans, "precision": req.precision,
+               "selection": req.selection}
         state_path = req.out / STAGE_FILE
         if state_path.exists():
             if not req.resume:
@@ -351,10 +360,16 @@ class RetrainJob:
         r = open_run(self.req.out / "rows")
         cmap = v.cell_map()
         blind = cmap.blind_spots(ctx["threshold"])
-        # R's rows at V's blind cells, exported into OUT/selected/retrain
+        chosen = None    # the blind cells
+        if self.req.selection == "control" and blind:
+            chosen = control_cells(cmap, ctx["threshold"], len(blind), self.req.seed)
+        # R's rows at the chosen cells of V, exported into OUT/selected/retrain
         n = write_retraining_set(dataclasses.replace(r, path=self.req.out / "selected"), cmap,
-                                 ctx["threshold"])
+                                 ctx["threshold"], cells=chosen)
         return {"cells": [{"x": c.a, "y": c.b, "miou": round(c.miou, 4)} for c in blind],
+                "selection": self.req.selection,
+                "control_cells": None if chosen is None else [
+                    {"x": _plain(a), "y": _plain(b)} for a, b in chosen],
                 "scans": n, "folder": str(self.req.out / "selected" / "retrain")}
 
     def _finetune(self, ctx: dict, done: dict) -> dict:
@@ -508,13 +523,29 @@ class RetrainJob:
         }
         files = done.get("report", {}).get("files", {})
         return RetrainResult(
-            out=str(out), threshold=thr, computed=computed, reused=reused,
+            out=str(out), threshold=thr, selection=self.req.selection, computed=computed,
+            reused=reused,
             cells=int(before.get("cells", 0)), blind_before=changes,
             blind_after=None if after_map is None else len(after_map.blind_spots(thr)),
             fixed=fixed, retraining_scans=int(sel.get("scans", 0)),
             mean_before=_r(mean_b), mean_after=_r(mean_a), training=done.get("finetune", {}),
             checks=checks, criteria=criteria, model_after=done.get("finetune", {}).get("model"),
             report=files.get("report"), summary=files.get("summary"), files=files)
+
+
+def control_cells(cmap, threshold: float, n: int, seed: int) -> list[tuple]:
+    """`n` cells drawn without replacement (seeded) from those at or above the threshold."""
+    ok = sorted(((c.a, c.b) for c in cmap.cells() if c.miou is not None and c.miou >= threshold),
+                key=lambda ab: (float(ab[0]), float(ab[1])))
+    if not ok:
+        return []
+    pick = np.random.default_rng(seed).choice(len(ok), size=min(n, len(ok)), replace=False)
+    return [ok[i] for i in sorted(pick)]
+
+
+def _plain(v):
+    """A cell coordinate as a JSON value (numpy scalars to Python numbers)."""
+    return v.item() if isinstance(v, np.generic) else v
 
 
 def _cell_mean(cmap) -> float | None:
@@ -546,12 +577,16 @@ def _write_state(path: Path, state: dict) -> None:
     write_json(path, state)
 
 
+WHERE = {"blind": "at the blind cells",
+         "control": "control: at as many random cells that are not blind"}
+
+
 def result_text(r: RetrainResult) -> str:
     """The result as a few lines for the terminal."""
     lines = [f"retraining experiment in {r.out} (threshold {r.threshold}; stages run now: "
              f"{', '.join(r.computed) or 'none'}; reused: {', '.join(r.reused) or 'none'})",
              f"blind cells before: {len(r.blind_before)} of {r.cells}; retraining scans: "
-             f"{r.retraining_scans}"]
+             f"{r.retraining_scans} ({WHERE[r.selection]})"]
     if r.fixed is not None:
         lines.append(f"after: {r.fixed} of {len(r.blind_before)} at or above the threshold, "
                      f"{r.blind_after} blind cells; mean cell mIoU {r.mean_before} -> "
@@ -568,5 +603,5 @@ def result_text(r: RetrainResult) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["RetrainRequest", "RetrainJob", "RetrainResult", "Check", "parse_ids",
-           "read_summary", "result_text"]
+__all__ = ["SELECTIONS", "control_cells", "RetrainRequest", "RetrainJob", "RetrainResult",
+           "Check", "parse_ids", "read_summary", "result_text"]

@@ -10,6 +10,7 @@ import dataclasses
 import datetime as dt
 import shutil
 import time
+from collections.abc import Collection
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -253,14 +254,17 @@ def extra_map_pairs(space: Space) -> list[tuple[str, str]]:
 
 
 def write_retraining_set(data: RunData, cmap: CellMap, threshold: float, lod: int = 2,
-                         camera: str | None = None) -> int:
-    """Scans of every valid sample in a blind-spot cell, in SqueezeSeg's layout, plus index.csv;
-    with a camera preset, each scan's camera files (NNNNNN.image.png, ...) beside it."""
+                         camera: str | None = None,
+                         cells: Collection[tuple] | None = None) -> int:
+    """Scans of every valid sample in a blind-spot cell (or in `cells`, (a, b) pairs, when
+    given: a control set), in SqueezeSeg's layout, plus index.csv; with a camera preset, each
+    scan's camera files (NNNNNN.image.png, ...) beside it."""
     space, frame = data.space, data.frame
     out = data.path / "retrain"
     if out.exists():
         shutil.rmtree(out)
-    blind = {(c.a, c.b) for c in cmap.blind_spots(threshold)}
+    blind = (set(cells) if cells is not None
+             else {(c.a, c.b) for c in cmap.blind_spots(threshold)})
     if not blind or not len(frame):
         return 0
     ok = data.ok.copy()

@@ -9,12 +9,22 @@ import json
 import tomllib
 from pathlib import Path
 
+import numpy as np
 import pytest
 from falsify.models.runner import BUNDLED_ONNX
 
 from falsify.cli import main
 from falsify.dataset import TrafficOptions, write_dataset
-from falsify.retrain import STAGES, RetrainJob, RetrainRequest, parse_ids, subset_config
+from falsify.errors import FalsifyError
+from falsify.maps import CellMap
+from falsify.retrain import (
+    STAGES,
+    RetrainJob,
+    RetrainRequest,
+    control_cells,
+    parse_ids,
+    subset_config,
+)
 from falsify.sensor import load_sensor
 from falsify.space import load_space
 from falsify.store import sample_seed
@@ -219,3 +229,28 @@ def test_parse_ids_and_subset_config(tmp_path) -> None:
     # the subset's samples are exactly the full grid's samples on those backgrounds
     wanted = [s for s in full.grid() if int(s["background"]) < 7]
     assert [sample_seed(sub, s) for s in sub.grid()] == [sample_seed(full, s) for s in wanted]
+
+
+def test_control_cells_are_as_many_seeded_cells_that_are_not_blind() -> None:
+    miou = np.array([[0.5, 0.9, 0.8, 0.7], [0.6, 0.95, np.nan, 0.66]])
+    ones = np.ones(miou.shape, dtype=np.int64)
+    cmap = CellMap("x", "y", (-3.0, -1.0, 1.0, 3.0), (5.0, 8.0), miou, ones, ones * 0, ones * 0)
+    blind = {(c.a, c.b) for c in cmap.blind_spots(0.65)}
+    assert blind == {(-3.0, 5.0), (-3.0, 8.0)}
+    picks = [control_cells(cmap, 0.65, 2, seed) for seed in range(6)]
+    assert picks[0] == control_cells(cmap, 0.65, 2, 0)          # seeded
+    assert len({tuple(p) for p in picks}) > 1                   # and the seed matters
+    for p in picks:
+        assert len(p) == 2 and len(set(p)) == 2 and not set(p) & blind
+        assert all(not np.isnan(miou[(5.0, 8.0).index(b), (-3.0, -1.0, 1.0, 3.0).index(a)])
+                   for a, b in p)
+    assert len(control_cells(cmap, 0.65, 10, 0)) == 5          # no more than there are
+    assert control_cells(cmap, 0.99, 3, 0) == []               # every cell blind: none
+
+
+def test_selection_is_checked_and_part_of_the_resume_key(inputs, tmp_path) -> None:
+    with pytest.raises(FalsifyError, match="--selection: 'aimed'; allowed: blind, control"):
+        RetrainJob(request(inputs, tmp_path / "x", selection="aimed")).prepare()
+    assert not (tmp_path / "x").exists()
+    key = RetrainJob(request(inputs, tmp_path / "y", selection="control")).prepare()["key"]
+    assert key["selection"] == "control"
