@@ -1,7 +1,8 @@
 """Same config, seed and model give the same rows, maps, retraining set and report as the code
 did before the layout change (tests/data/regression.json was made by commit b73b953, and
 regenerated for the new world from the trial merge of world 7fabe58, whose runs equal, byte for
-byte in every compared field, those of the world branch in the old layout).
+byte in every compared field, those of the world branch in the old layout; regenerated again
+when the bundled network was retrained on the new world: same scans, new network).
 
 Timings, timestamps and the run's own path are left out; everything else is compared exactly.
 """
