@@ -301,7 +301,8 @@ def _run(args, command: str, algorithm: str) -> int:
         budget=getattr(args, "budget", None), seed=args.seed, model=args.model,
         backend=args.backend, workers=args.workers, resume=args.resume,
         threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
-        camera=args.camera, max_samples=args.max_samples)
+        camera=args.camera, max_samples=args.max_samples, executor=args.executor,
+        address=args.address)
     summary = execute(req, on_progress=None if args.quiet else ProgressBar())
     emit(args, summary.to_json(), summary_text(summary))
     return 0
@@ -323,7 +324,14 @@ def _run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", default=None,
                    help="an ONNX segmentation model with its .json spec (default: bundled)")
     p.add_argument("--backend", choices=["onnx", "torch"], default="onnx")
-    p.add_argument("--workers", type=int, default=1, help="local worker processes")
+    p.add_argument("--workers", type=int, default=1,
+                   help="local worker processes, or Ray actors with --executor ray")
+    p.add_argument("--executor", choices=["process", "ray"], default="process",
+                   help="process: worker processes on this machine; ray: warm actors on a Ray "
+                   'cluster (pip install "falsify[ray]")')
+    p.add_argument("--address", default=None, metavar="HOST:PORT",
+                   help="with --executor ray: the head of an existing Ray cluster (HOST:PORT, "
+                   "ray://HOST:PORT or auto); default: start a local Ray instance")
     p.add_argument("--seed", type=int, default=None, help="default: the config's seed")
     p.add_argument("--resume", action="store_true", help="continue a killed run")
     p.add_argument("--threshold", type=float, default=None,

@@ -54,6 +54,8 @@ class RunRequest:
     report: bool = True
     camera: str | None = None    # camera preset: render the retraining set's images too
     max_samples: int = MAX_SAMPLES   # a grid or budget larger than this is refused up front
+    executor: str = "process"    # "process": local worker processes; "ray": actors on Ray
+    address: str | None = None   # the Ray head with executor "ray" (None: a local instance)
 
 
 @dataclass(frozen=True)
@@ -80,6 +82,7 @@ def prepare(req: RunRequest) -> Prepared:
         raise FalsifyError(f"--budget: {req.budget:,} is more than --max-samples "
                            f"{req.max_samples:,}; raise --max-samples to run it")
     check_out_dir(req.out)
+    check_executor(req.executor, req.address)
     if req.algorithm == "grid" and req.budget is None:
         space.check_size(req.max_samples)
     if req.threshold is not None and not 0 < req.threshold <= 1:
@@ -111,7 +114,7 @@ def prepare(req: RunRequest) -> Prepared:
         "model_name": seg.spec.name, "model_hash": seg.model_hash, "backend": req.backend,
         "seed": seed, "algorithm": req.algorithm, "budget": req.budget,
         "threshold": req.threshold or space.threshold, "workers": req.workers,
-        "fidelity": req.fidelity,
+        "fidelity": req.fidelity, "executor": req.executor,
     }
     if store_path.exists():
         if not req.resume:
@@ -127,6 +130,16 @@ def prepare(req: RunRequest) -> Prepared:
     elif req.out.exists() and any(req.out.iterdir()):
         raise FalsifyError(f"--out {req.out}: directory exists and is not empty")
     return Prepared(space, sampler, settings, seed, meta, seg)
+
+
+def check_executor(executor: str, address: str | None) -> None:
+    """A known executor; for ray, ray importable and the --address (if any) answering."""
+    from falsify.cluster import EXECUTORS, check_address, import_ray
+    if executor not in EXECUTORS:
+        raise FalsifyError(f"--executor {executor!r}; allowed: {', '.join(EXECUTORS)}")
+    check_address(address, executor)
+    if executor == "ray":
+        import_ray()
 
 
 @dataclass(frozen=True)
@@ -183,7 +196,7 @@ def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> Run
     progress = Progress(total, on_progress)
     try:
         with Driver(p.settings, store, workers=req.workers, progress=progress,
-                    model=p.model) as driver:
+                    model=p.model, executor=req.executor, address=req.address) as driver:
             search = p.sampler.run(p.space, driver.evaluate, req.budget, p.seed)
             progress.tell(final=True)
         elapsed = float(old.get("elapsed_s", 0.0)) + time.perf_counter() - started
