@@ -400,14 +400,23 @@ def cmd_bench(args) -> int:
                          f"{r['fps']:6.1f} fps  car IoU diff {r['car_iou_diff']:+.4f}"
                          for r in rows)
     elif args.what == "pipeline":
+        if args.executor == "ray":
+            from falsify.cluster import import_ray
+            import_ray()
         pipe = bench.bench_pipeline(args.config, workers=args.workers, model=args.model,
-                                    **given_options(args, "samples"))
+                                    executor=args.executor, **given_options(args, "samples"))
         result = pipe.to_json()
         one = result["one_process"]
         text = (f"pipeline: {pipe.samples_per_s} samples/s on {pipe.workers} workers; one "
                 f"process {one['samples_per_s']} samples/s against "
                 f"{one['inference_only_samples_per_s']} for inference alone (overhead "
-                f"{pipe.overhead:.1%})")
+                f"{pipe.overhead:.1%}); store {result['driver_store_rows_per_s']} rows/s")
+        if pipe.ray is not None:
+            r = pipe.ray
+            text += (f"\nray: {r['samples_per_s']} samples/s on {r['actors']} actors "
+                     f"({r['against_processes']:.2f}x the processes); per task "
+                     f"{r['task_round_trip_ms']} ms round trip, {r['driver_ms_per_task']} ms "
+                     "pipelined")
     elif args.what == "search":
         if not args.out:
             raise UsageError("bench search needs --out DIR (its runs are resumable there)")
@@ -618,6 +627,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--naive-samples", type=int, default=None,
                    help="samples through the naive path (default: each benchmark's own)")
     b.add_argument("--workers", type=int, default=2)
+    b.add_argument("--executor", choices=["process", "ray"], default="process",
+                   help="bench pipeline: also measure Ray actors against the processes")
     b.add_argument("--model", default=None, help="bench model: an ONNX model (default bundled)")
     b.add_argument("--scans", default=None,
                    help="bench model: a folder of labelled .npy scans (default: generated)")

@@ -27,11 +27,12 @@ from falsify.models.runner import Segmenter, load_segmenter
 from falsify.paths import config_path
 from falsify.pipeline import Driver, EvalSettings, Progress, ProgressListener
 from falsify.replay import Replay
-from falsify.sampler.base import Sampler, SearchResult, make_sampler
+from falsify.sampler.base import BATCH, Sampler, SearchResult, make_sampler
 from falsify.sensor import load_sensor
 from falsify.space import Space, load_space
 from falsify.store import STORE_NAME, RunData, Store, export, read_frame, read_meta
 
+BATCHED = ("grid", "random", "sobol")   # samplers that take a batch_size
 RESUME_KEYS = ("config_hash", "model_hash", "algorithm", "seed", "budget", "fidelity")
 
 
@@ -87,7 +88,10 @@ def prepare(req: RunRequest) -> Prepared:
         space.check_size(req.max_samples)
     if req.threshold is not None and not 0 < req.threshold <= 1:
         raise FalsifyError(f"--threshold: {req.threshold} must be in (0, 1]")
-    sampler = make_sampler(req.algorithm)
+    # Batch samplers hand the driver whole batches; keep every worker busy with two chunks of
+    # 8 each (their samples and order do not depend on the batch size, so neither do the rows).
+    sizes = {"batch_size": max(BATCH, 16 * req.workers)} if req.algorithm in BATCHED else {}
+    sampler = make_sampler(req.algorithm, **sizes)
     if req.camera is not None:
         from falsify.camera import camera_preset, check_looks
         camera_preset(req.camera)

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -97,3 +98,13 @@ def test_missing_ray_is_one_clear_error(monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)
     with pytest.raises(FalsifyError, match=r'ray is not installed; pip install "falsify\[ray\]"'):
         import_ray()
+
+
+def test_bench_pipeline_measures_ray_beside_processes(ray, capsys):
+    assert main(["bench", "pipeline", "--config", str(CI.with_name("smoke.toml")), "--samples",
+                 "24", "--workers", "2", "--executor", "ray", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["ray"]["actors"] == 2 and r["ray"]["samples_per_s"] > 0
+    assert r["ray"]["against_processes"] > 0 and r["ray"]["tasks_timed"] == 200
+    assert 0 < r["ray"]["task_round_trip_ms"] and 0 < r["ray"]["driver_ms_per_task"]
+    assert r["driver_store_rows_per_s"] > 0 and r["2_workers"]["samples_per_s"] > 0
