@@ -269,6 +269,8 @@ class PipelineBench:
     workers: int
     driver_samples: int     # samples timed through the driver
     t_driver: float
+    store_rows_per_s: float   # the driver's SQLite writes, in chunks of `batch` rows
+    ray: dict | None = None   # with executor "ray": actors against the processes above
 
     @property
     def samples_per_s(self) -> float:
@@ -293,16 +295,20 @@ class PipelineBench:
             },
             f"{self.workers}_workers": {"samples_per_s": self.samples_per_s,
                                         "samples": self.driver_samples},
+            "driver_store_rows_per_s": round(self.store_rows_per_s, 1),
+            **({} if self.ray is None else {"ray": self.ray}),
         }
 
 
 def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
-                   model: str | None = None, batch: int = 8) -> PipelineBench:
+                   model: str | None = None, batch: int = 8,
+                   executor: str = "process") -> PipelineBench:
     """End-to-end samples/s through the real driver and store, and the pipeline's overhead over
-    the network's own inference time on the same scans in the same process."""
+    the network's own inference time on the same scans in the same process; with executor
+    "ray", also through `workers` Ray actors on the same samples, and Ray's cost per task."""
     import tempfile
 
-    from falsify.pipeline import Driver, EvalSettings, Evaluator, Progress
+    from falsify.pipeline import EvalSettings, Evaluator
     from falsify.store import Store
 
     space = load_space(config)
@@ -316,9 +322,10 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
     ev = Evaluator(EvalSettings(space=space, model=model, threads=2))
     _warm(ev.sim, picked)
     ev.score_batch(picked[:batch])
+    scored = []
     t0 = time.perf_counter()
     for i in range(0, samples, batch):
-        ev.score_batch(picked[i:i + batch])
+        scored.append(ev.score_batch(picked[i:i + batch]))
     t_pipeline = time.perf_counter() - t0
     images = [ev.scan(s).image for s in picked]
     t0 = time.perf_counter()
@@ -330,16 +337,68 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
     with tempfile.TemporaryDirectory() as tmp:
         store = Store(Path(tmp) / "results.sqlite", space)
         settings = EvalSettings(space=space, model=model, threads=1 if workers > 1 else 2)
-        with Driver(settings, store, workers=workers, batch=batch,
-                    progress=Progress(None)) as driver:
-            driver.evaluate(picked[: workers * batch])  # start-up and warm caches
-            rest = picked[workers * batch:]
-            t0 = time.perf_counter()
-            driver.evaluate(rest)
-            t_driver = time.perf_counter() - t0
+        rest = picked[workers * batch:]
+        t_driver = _driver_time(settings, store, workers, batch, picked, "process")
         store.close()
+        ray = None
+        if executor == "ray":
+            store = Store(Path(tmp) / "ray.sqlite", space)
+            t_ray = _driver_time(settings, store, workers, batch, picked, "ray")
+            store.close()
+            ray = {"actors": workers, "samples_per_s": round(len(rest) / t_ray, 2),
+                   "against_processes": round(t_driver / t_ray, 3),
+                   **_ray_task_cost(settings, workers)}
+        rows_per_s = _store_rate(Path(tmp) / "writes.sqlite", space, scored, ev.model_hash)
     return PipelineBench(str(config), samples, ev.model.spec.name, ev.model_hash[:12], machine(),
-                         batch, t_pipeline, t_infer, workers, len(rest), t_driver)
+                         batch, t_pipeline, t_infer, workers, len(rest), t_driver, rows_per_s,
+                         ray)
+
+
+def _driver_time(settings, store, workers: int, batch: int, picked: list[Sample],
+                 executor: str) -> float:
+    """Seconds the driver takes for all but the first `workers` chunks (which warm it up)."""
+    from falsify.pipeline import Driver, Progress
+
+    with Driver(settings, store, workers=workers, batch=batch, progress=Progress(None),
+                executor=executor) as driver:
+        driver.evaluate(picked[: workers * batch])  # start-up and warm caches
+        t0 = time.perf_counter()
+        driver.evaluate(picked[workers * batch:])
+        return time.perf_counter() - t0
+
+
+def _ray_task_cost(settings, workers: int, tasks: int = 200) -> dict:
+    """Ray's own cost per task: empty chunks sent to warm actors, one at a time (round trip)
+    and `workers` at a time (what a saturated driver pays per task)."""
+    from falsify.cluster import RayExecutor
+
+    with RayExecutor(settings, workers) as ex:
+        list(ex.map([[] for _ in range(10)]))
+        actor = ex.actors[0]
+        t0 = time.perf_counter()
+        for _ in range(tasks):
+            ex.ray.get(actor.score.remote([]))
+        serial = (time.perf_counter() - t0) / tasks
+        t0 = time.perf_counter()
+        list(ex.map([[] for _ in range(tasks)]))
+        pipelined = (time.perf_counter() - t0) / tasks
+    return {"task_round_trip_ms": round(serial * 1e3, 3),
+            "driver_ms_per_task": round(pipelined * 1e3, 3), "tasks_timed": tasks}
+
+
+def _store_rate(path: Path, space: Space, chunks: list, model_hash: str) -> float:
+    """Rows/s the driver's store takes, one transaction per chunk as `Driver.evaluate` writes."""
+    from falsify.store import Store
+
+    store = Store(path, space)
+    t0 = time.perf_counter()
+    n = 0
+    for chunk in chunks:
+        store.add(chunk, model_hash, space.config_hash)
+        n += len(chunk)
+    dt = time.perf_counter() - t0
+    store.close()
+    return n / dt
 
 
 SEARCH_ALGORITHMS = ("random", "sobol", "GN_DIRECT_L", "GN_CRS2_LM")

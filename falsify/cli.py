@@ -306,7 +306,8 @@ def _run(args, command: str, algorithm: str) -> int:
         budget=getattr(args, "budget", None), seed=args.seed, model=args.model,
         backend=args.backend, workers=args.workers, resume=args.resume,
         threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
-        camera=args.camera, max_samples=args.max_samples)
+        camera=args.camera, max_samples=args.max_samples, executor=args.executor,
+        address=args.address)
     summary = execute(req, on_progress=None if args.quiet else ProgressBar())
     emit(args, summary.to_json(), summary_text(summary))
     return 0
@@ -328,7 +329,14 @@ def _run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", default=None,
                    help="an ONNX segmentation model with its .json spec (default: bundled)")
     p.add_argument("--backend", choices=["onnx", "torch"], default="onnx")
-    p.add_argument("--workers", type=int, default=1, help="local worker processes")
+    p.add_argument("--workers", type=int, default=1,
+                   help="local worker processes, or Ray actors with --executor ray")
+    p.add_argument("--executor", choices=["process", "ray"], default="process",
+                   help="process: worker processes on this machine; ray: warm actors on a Ray "
+                   'cluster (pip install "falsify[ray]")')
+    p.add_argument("--address", default=None, metavar="HOST:PORT",
+                   help="with --executor ray: the head of an existing Ray cluster (HOST:PORT, "
+                   "ray://HOST:PORT or auto); default: start a local Ray instance")
     p.add_argument("--seed", type=int, default=None, help="default: the config's seed")
     p.add_argument("--resume", action="store_true", help="continue a killed run")
     p.add_argument("--threshold", type=float, default=None,
@@ -397,14 +405,23 @@ def cmd_bench(args) -> int:
                          f"{r['fps']:6.1f} fps  car IoU diff {r['car_iou_diff']:+.4f}"
                          for r in rows)
     elif args.what == "pipeline":
+        if args.executor == "ray":
+            from falsify.cluster import import_ray
+            import_ray()
         pipe = bench.bench_pipeline(args.config, workers=args.workers, model=args.model,
-                                    **given_options(args, "samples"))
+                                    executor=args.executor, **given_options(args, "samples"))
         result = pipe.to_json()
         one = result["one_process"]
         text = (f"pipeline: {pipe.samples_per_s} samples/s on {pipe.workers} workers; one "
                 f"process {one['samples_per_s']} samples/s against "
                 f"{one['inference_only_samples_per_s']} for inference alone (overhead "
-                f"{pipe.overhead:.1%})")
+                f"{pipe.overhead:.1%}); store {result['driver_store_rows_per_s']} rows/s")
+        if pipe.ray is not None:
+            r = pipe.ray
+            text += (f"\nray: {r['samples_per_s']} samples/s on {r['actors']} actors "
+                     f"({r['against_processes']:.2f}x the processes); per task "
+                     f"{r['task_round_trip_ms']} ms round trip, {r['driver_ms_per_task']} ms "
+                     "pipelined")
     elif args.what == "search":
         if not args.out:
             raise UsageError("bench search needs --out DIR (its runs are resumable there)")
@@ -616,6 +633,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--naive-samples", type=int, default=None,
                    help="samples through the naive path (default: each benchmark's own)")
     b.add_argument("--workers", type=int, default=2)
+    b.add_argument("--executor", choices=["process", "ray"], default="process",
+                   help="bench pipeline: also measure Ray actors against the processes")
     b.add_argument("--model", default=None, help="bench model: an ONNX model (default bundled)")
     b.add_argument("--scans", default=None,
                    help="bench model: a folder of labelled .npy scans (default: generated)")

@@ -144,8 +144,11 @@ class Driver:
 
     def __init__(self, settings: EvalSettings, store: Store, workers: int = 1,
                  batch: int = 8, progress: Progress | None = None,
-                 model: Segmenter | None = None):
+                 model: Segmenter | None = None, executor: str = "process",
+                 address: str | None = None):
         self.settings = settings
+        self.executor = executor   # "process" (local processes) or "ray" (actors on a cluster)
+        self.address = address     # the Ray head (None: the running or a new local instance)
         self.store = store
         self.workers = workers
         self.batch = batch
@@ -153,10 +156,18 @@ class Driver:
         self.model = model     # this process's open model (else loaded on entry)
         self._local: Evaluator | None = None
         self._pool: ProcessPoolExecutor | None = None
+        self.ray = None            # the RayExecutor with --executor ray
         self.model_hash = ""
 
     def __enter__(self) -> Driver:
-        if self.workers <= 1:
+        if self.executor == "ray":
+            from falsify.cluster import RayExecutor
+            if self.model is None:
+                self.model = load_segmenter(self.settings.model, backend=self.settings.backend,
+                                            threads=1)
+            self.model_hash = self.model.model_hash
+            self.ray = RayExecutor(self.settings, self.workers, self.address).__enter__()
+        elif self.workers <= 1:
             self._local = Evaluator(self.settings, model=self.model)
             self.model_hash = self._local.model_hash
         else:   # each worker process opens the model once for itself
@@ -173,6 +184,8 @@ class Driver:
     def __exit__(self, *exc) -> None:
         if self._pool is not None:
             self._pool.shutdown(cancel_futures=True)
+        if self.ray is not None:
+            self.ray.__exit__(*exc)
 
     def evaluate(self, samples: Sequence[Sample]) -> list[float | None]:
         """The samplers' callback: scores in order, stored ones read back, the rest computed."""
@@ -188,8 +201,12 @@ class Driver:
                                                metrics={"car_iou": self.store.score(s)})
                                   for s in known], 0)
         chunks = [todo[i:i + self.batch] for i in range(0, len(todo), self.batch)]
-        outputs = (map(self._local.score_batch, chunks) if self._local is not None
-                   else self._pool.map(_work, chunks))
+        if self.ray is not None:
+            outputs = self.ray.map(chunks)
+        elif self._local is not None:
+            outputs = map(self._local.score_batch, chunks)
+        else:
+            outputs = self._pool.map(_work, chunks)
         for chunk_results in outputs:
             self.store.add(chunk_results, self.model_hash, self.settings.space.config_hash)
             self.progress.update(chunk_results, len(chunk_results))

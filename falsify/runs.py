@@ -28,11 +28,12 @@ from falsify.models.runner import Segmenter, load_segmenter
 from falsify.paths import config_path
 from falsify.pipeline import Driver, EvalSettings, Progress, ProgressListener
 from falsify.replay import Replay
-from falsify.sampler.base import Sampler, SearchResult, make_sampler
+from falsify.sampler.base import BATCH, Sampler, SearchResult, make_sampler
 from falsify.sensor import load_sensor
 from falsify.space import Space, load_space
 from falsify.store import STORE_NAME, RunData, Store, export, read_frame, read_meta
 
+BATCHED = ("grid", "random", "sobol")   # samplers that take a batch_size
 RESUME_KEYS = ("config_hash", "model_hash", "algorithm", "seed", "budget", "fidelity")
 
 
@@ -55,6 +56,8 @@ class RunRequest:
     report: bool = True
     camera: str | None = None    # camera preset: render the retraining set's images too
     max_samples: int = MAX_SAMPLES   # a grid or budget larger than this is refused up front
+    executor: str = "process"    # "process": local worker processes; "ray": actors on Ray
+    address: str | None = None   # the Ray head with executor "ray" (None: a local instance)
 
 
 @dataclass(frozen=True)
@@ -81,11 +84,15 @@ def prepare(req: RunRequest) -> Prepared:
         raise FalsifyError(f"--budget: {req.budget:,} is more than --max-samples "
                            f"{req.max_samples:,}; raise --max-samples to run it")
     check_out_dir(req.out)
+    check_executor(req.executor, req.address)
     if req.algorithm == "grid" and req.budget is None:
         space.check_size(req.max_samples)
     if req.threshold is not None and not 0 < req.threshold <= 1:
         raise FalsifyError(f"--threshold: {req.threshold} must be in (0, 1]")
-    sampler = make_sampler(req.algorithm)
+    # Batch samplers hand the driver whole batches; keep every worker busy with two chunks of
+    # 8 each (their samples and order do not depend on the batch size, so neither do the rows).
+    sizes = {"batch_size": max(BATCH, 16 * req.workers)} if req.algorithm in BATCHED else {}
+    sampler = make_sampler(req.algorithm, **sizes)
     if req.camera is not None:
         from falsify.camera import camera_preset, check_looks
         camera_preset(req.camera)
@@ -112,7 +119,7 @@ def prepare(req: RunRequest) -> Prepared:
         "model_name": seg.spec.name, "model_hash": seg.model_hash, "backend": req.backend,
         "seed": seed, "algorithm": req.algorithm, "budget": req.budget,
         "threshold": req.threshold or space.threshold, "workers": req.workers,
-        "fidelity": req.fidelity,
+        "fidelity": req.fidelity, "executor": req.executor,
     }
     if store_path.exists():
         if not req.resume:
@@ -128,6 +135,16 @@ def prepare(req: RunRequest) -> Prepared:
     elif req.out.exists() and any(req.out.iterdir()):
         raise FalsifyError(f"--out {req.out}: directory exists and is not empty")
     return Prepared(space, sampler, settings, seed, meta, seg)
+
+
+def check_executor(executor: str, address: str | None) -> None:
+    """A known executor; for ray, ray importable and the --address (if any) answering."""
+    from falsify.cluster import EXECUTORS, check_address, import_ray
+    if executor not in EXECUTORS:
+        raise FalsifyError(f"--executor {executor!r}; allowed: {', '.join(EXECUTORS)}")
+    check_address(address, executor)
+    if executor == "ray":
+        import_ray()
 
 
 @dataclass(frozen=True)
@@ -184,7 +201,7 @@ def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> Run
     progress = Progress(total, on_progress)
     try:
         with Driver(p.settings, store, workers=req.workers, progress=progress,
-                    model=p.model) as driver:
+                    model=p.model, executor=req.executor, address=req.address) as driver:
             search = p.sampler.run(p.space, driver.evaluate, req.budget, p.seed)
             progress.tell(final=True)
         elapsed = float(old.get("elapsed_s", 0.0)) + time.perf_counter() - started

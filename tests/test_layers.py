@@ -34,7 +34,8 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("drawing: HTML renderers", (
         "reports/*",)),
     ("jobs: runs, pipeline, gate, report, trade-off, bench, presets", (
-        "falsify/pipeline", "falsify/runs", "falsify/gate", "falsify/reporting",
+        "falsify/pipeline", "falsify/cluster", "falsify/runs", "falsify/gate",
+        "falsify/reporting",
         "falsify/tradeoff", "falsify/bench", "falsify/fidelity", "falsify/evaluation",
         "falsify/realism", "falsify/calib_check", "falsify/bench_camera", "falsify/retrain")),
     ("command line", (
