@@ -450,13 +450,11 @@ def cmd_bench(args) -> int:
 
 # -- retrain --------------------------------------------------------------------------------
 def cmd_retrain(args) -> int:
-    from falsify.models.runner import WEIGHTS_DIR
+    from falsify.models.runner import resolve_model
     from falsify.retrain import RetrainJob, RetrainRequest, parse_ids, result_text
     from falsify.scansets import KITTI_DIR
 
-    model = Path(args.model)
-    if not model.suffix and not model.exists():  # a bundled name, e.g. squeezeseg-drive
-        model = WEIGHTS_DIR / f"{args.model}.onnx"
+    model = resolve_model(args.model)   # a path, or a bundled name such as squeezeseg-drive
     req = RetrainRequest(
         config=config_path(args.config), model=model, train_data=Path(args.train_data),
         out=Path(args.out), validation=parse_ids(args.validation_backgrounds,

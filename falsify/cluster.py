@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from falsify.errors import FalsifyError
-from falsify.models.runner import BUNDLED_ONNX, BUNDLED_PT
+from falsify.models.runner import resolve_model
 from falsify.models.spec import spec_path_for
 from falsify.pipeline import EvalSettings, Evaluator
 from falsify.space import Sample
@@ -100,12 +100,7 @@ def materialise(blob: Blob) -> Path:
 
 def model_files(settings: EvalSettings) -> tuple[Path, Path]:
     """The model file the settings load (as load_segmenter resolves it) and its spec."""
-    if settings.backend == "torch":
-        p = BUNDLED_PT if settings.model is None else Path(settings.model).with_suffix(".pt")
-    else:
-        p = BUNDLED_ONNX if settings.model is None else Path(settings.model)
-        if p.suffix == ".pt":
-            p = p.with_suffix(".onnx")
+    p = resolve_model(settings.model, settings.backend)
     return p, spec_path_for(p)
 
 

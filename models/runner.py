@@ -261,24 +261,34 @@ class TorchSegmenter:
         return to_prediction(self.run_raw(a), self.spec, a[..., 4] > 0)
 
 
+def resolve_model(path: str | Path | None, backend: str = "onnx") -> Path:
+    """The file `load_segmenter` opens: the bundled model for None, a bundled model by name
+    (e.g. "squeezeseg-drive": models/weights/squeezeseg-drive.onnx) where no such file exists,
+    else the path, with .onnx and .pt mapped to the backend's file of the same stem."""
+    if (path is not None and not Path(path).suffix and not Path(path).exists()
+            and (WEIGHTS_DIR / f"{path}.onnx").is_file()):
+        path = WEIGHTS_DIR / f"{path}.onnx"
+    if backend == "torch":
+        p = BUNDLED_PT if path is None else Path(path)
+        return p.with_suffix(".pt") if p.suffix == ".onnx" else p
+    p = BUNDLED_ONNX if path is None else Path(path)
+    return p.with_suffix(".onnx") if p.suffix == ".pt" else p
+
+
 def load_segmenter(path: str | Path | None = None, backend: str = "onnx",
                    threads: int | None = None) -> Segmenter:
-    """Load a model: ``path=None`` is the bundled models/weights/squeezeseg.onnx (or .pt).
+    """Load a model: ``path=None`` is the bundled models/weights/squeezeseg.onnx (or .pt); a
+    bundled model can also be named (see `resolve_model`).
 
     backend "onnx" reads ``<path>`` (.onnx) + ``<path>.json``; "torch" reads the .pt state dict
     beside it (a .onnx path is mapped to the .pt of the same stem).
     """
-    if backend == "onnx":
-        p = BUNDLED_ONNX if path is None else Path(path)
-        if p.suffix == ".pt":
-            p = p.with_suffix(".onnx")
-        if path is None and not p.is_file():
-            raise FalsifyError(f"bundled model {p} not found; train one with "
-                               "`python -m falsify.models.train --data DIR --out models/weights`")
-        return OnnxSegmenter(p, threads)
+    if backend not in ("onnx", "torch"):
+        raise FalsifyError(f"unknown model backend {backend!r}; choose 'onnx' or 'torch'")
+    p = resolve_model(path, backend)
     if backend == "torch":
-        p = BUNDLED_PT if path is None else Path(path)
-        if p.suffix == ".onnx":
-            p = p.with_suffix(".pt")
         return TorchSegmenter(p, threads)
-    raise FalsifyError(f"unknown model backend {backend!r}; choose 'onnx' or 'torch'")
+    if path is None and not p.is_file():
+        raise FalsifyError(f"bundled model {p} not found; train one with "
+                           "`python -m falsify.models.train --data DIR --out models/weights`")
+    return OnnxSegmenter(p, threads)

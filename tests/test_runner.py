@@ -9,7 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from falsify.models.runner import load_segmenter, to_prediction
+from falsify.models.runner import (
+    BUNDLED_ONNX,
+    WEIGHTS_DIR,
+    load_segmenter,
+    resolve_model,
+    to_prediction,
+)
 from falsify.models.spec import load_spec, model_hash, spec_path_for
 from falsify.models.variants import plausible_scans
 
@@ -243,3 +249,23 @@ def test_export_cli_rejects_bad_input_before_writing(exported, tmp_path, capsys)
     assert export_main([str(tensor), "--out", str(out)]) == 2
     assert "not a state dict" in capsys.readouterr().err
     assert sorted(tmp_path.iterdir()) == [bad, tensor]
+
+
+def test_a_bundled_model_can_be_named(tmp_path, monkeypatch):
+    """`--model squeezeseg-drive` means models/weights/squeezeseg-drive.onnx for every command
+    (grid, search, predict, retrain and the Ray executor resolve through one function)."""
+    from falsify.cli import main
+
+    drive = WEIGHTS_DIR / "squeezeseg-drive.onnx"
+    assert resolve_model("squeezeseg-drive") == drive
+    assert resolve_model("squeezeseg-drive", "torch") == drive.with_suffix(".pt")
+    assert resolve_model(None) == BUNDLED_ONNX
+    assert load_segmenter("squeezeseg-drive").model_hash == load_segmenter(drive).model_hash
+    with pytest.raises(FalsifyError, match="model file no-such-model not found"):
+        load_segmenter("no-such-model")
+    monkeypatch.chdir(ROOT)
+    out = tmp_path / "run"
+    assert main(["grid", "configs/smoke.toml", "--model", "squeezeseg-drive", "--out", str(out),
+                 "--quiet"]) == 0
+    run = json.loads((out / "summary.json").read_text())
+    assert run["model_hash"] == load_segmenter(drive).model_hash
