@@ -5,7 +5,9 @@ back SampleResults. The model file, its spec and the user car meshes travel thro
 store as bytes named by their sha256, and each actor writes them to a cache folder of its node
 under that hash, so a worker node needs nothing but the package. A chunk whose actor dies is
 scored again on a replacement actor; results are yielded in chunk order, so the rows written are
-the same as with local processes.
+the same as with local processes. An actor that cannot build its Evaluator reports why instead
+of dying (Ray would keep only the text of its traceback): the user's input (a FalsifyError) stops
+the run with one line, anything else is raised as an ActorCrash with the actor's traceback.
 """
 
 from __future__ import annotations
@@ -13,8 +15,10 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import os
+import re
 import socket
 import tempfile
+import traceback
 from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -66,18 +70,29 @@ def check_address(address: str | None, executor: str) -> None:
                            "with `ray start --head` or check the address") from None
 
 
+class ActorCrash(RuntimeError):
+    """An actor failed to start for a reason that is not the user's input (a bug in falsify, a
+    process killed by the node); the first line says what, the actor's traceback follows."""
+
+
 @dataclass(frozen=True)
 class Blob:
-    """A file's bytes named by their sha256, as shipped to the actors."""
+    """A file's bytes named by their sha256, as shipped to the actors, with the driver's path
+    (`source`) so that an actor's error about its copy can name the user's file."""
 
     sha256: str
     name: str
     data: bytes
+    source: str = ""
 
     @classmethod
     def of(cls, path: Path) -> Blob:
         data = path.read_bytes()
-        return cls(hashlib.sha256(data).hexdigest(), path.name, data)
+        return cls(hashlib.sha256(data).hexdigest(), path.name, data, str(path))
+
+    def cached(self) -> Path:
+        """Where `materialise` puts it on this node."""
+        return cache_dir() / self.sha256 / self.name
 
 
 def cache_dir() -> Path:
@@ -86,15 +101,21 @@ def cache_dir() -> Path:
 
 
 def materialise(blob: Blob) -> Path:
-    """The blob's file in this node's cache, written once (atomically) and checked by hash."""
-    folder = cache_dir() / blob.sha256
-    path = folder / blob.name
+    """The blob's file in this node's cache, written once (atomically) and checked by hash;
+    FalsifyError naming FALSIFY_CACHE when the node's cache folder cannot be written."""
+    path = blob.cached()
+    folder = path.parent
     if not path.is_file() or hashlib.sha256(path.read_bytes()).hexdigest() != blob.sha256:
-        folder.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=folder)
-        with os.fdopen(fd, "wb") as f:
-            f.write(blob.data)
-        os.replace(tmp, path)
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=folder)
+            with os.fdopen(fd, "wb") as f:
+                f.write(blob.data)
+            os.replace(tmp, path)
+        except OSError as exc:
+            raise FalsifyError(f"FALSIFY_CACHE: cannot write {blob.name} to {folder} "
+                               f"({exc.strerror or exc}); set FALSIFY_CACHE to a writable "
+                               "folder on every Ray node") from None
     return path
 
 
@@ -133,41 +154,93 @@ class Shipment:
         return dataclasses.replace(self.settings, model=str(model),
                                    space=dataclasses.replace(space, user_cars=cars))
 
+    def driver_names(self, text: str) -> str:
+        """`text` with this node's cached copies named by the driver's paths."""
+        copies = {str(b.cached()): b.source for b in (self.model, self.spec, *self.cars.values())}
+        copies[str(spec_path_for(self.model.cached()))] = self.spec.source
+        for copy in sorted(copies, key=len, reverse=True):
+            text = text.replace(copy, copies[copy])
+        return text
+
+
+@dataclass(frozen=True)
+class StartFailure:
+    """Why an actor could not build its Evaluator, as plain data for the driver."""
+
+    node: str
+    user_input: bool    # a FalsifyError (the user's input): exit 2; else a crash
+    error: str          # the exception's type, e.g. "FalsifyError"
+    message: str        # one line, the driver's file names in place of the node's copies
+    traceback: str
+
+    @classmethod
+    def of(cls, exc: Exception, shipment: Shipment) -> StartFailure:
+        message = " ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+        return cls(socket.gethostname(), isinstance(exc, FalsifyError), type(exc).__name__,
+                   shipment.driver_names(message or repr(exc)),
+                   shipment.driver_names("".join(traceback.format_exception(exc))))
+
+    def exception(self) -> Exception:
+        """A FalsifyError for the user's input, else an ActorCrash carrying the traceback."""
+        where = f"--executor ray: an actor on {self.node}"
+        if self.user_input:
+            return FalsifyError(f"{where} could not start: {self.message}")
+        return ActorCrash(f"{where} crashed while starting: {self.error}: {self.message}\n\n"
+                          f"the actor's traceback:\n{self.traceback}")
+
 
 class EvalActor:
-    """A Ray actor: one warm Evaluator built from a Shipment."""
+    """A Ray actor: one warm Evaluator built from a Shipment. A failure to build it is kept and
+    told by `ready` rather than raised: Ray keeps only the text of a constructor's exception,
+    and the driver must tell the user's input from a crash."""
 
     def __init__(self, shipment: Shipment):
-        self.evaluator = Evaluator(shipment.local_settings())
-        self.model_hash = self.evaluator.model_hash
+        self.evaluator: Evaluator | None = None
+        self.failure: StartFailure | None = None
+        try:
+            self.evaluator = self.build(shipment)
+        except Exception as exc:   # any: ready() tells the driver which kind
+            self.failure = StartFailure.of(exc, shipment)
 
-    def ready(self) -> str:
-        return self.model_hash
+    def build(self, shipment: Shipment) -> Evaluator:
+        """The warm Evaluator on this node's copies of the shipped files."""
+        return Evaluator(shipment.local_settings())
+
+    def ready(self) -> str | StartFailure:
+        """The model's hash once the Evaluator is built, else why it could not be."""
+        return self.failure if self.evaluator is None else self.evaluator.model_hash
 
     def score(self, samples: list[Sample]) -> list[SampleResult]:
+        if self.evaluator is None:   # the driver stops at ready(); never given a chunk
+            raise RuntimeError(f"actor never started: {self.failure}")
         return self.evaluator.score_batch(samples)
 
 
 class RayExecutor:
     """`workers` EvalActors on the Ray cluster at `address` (None: the running instance, else a
-    new local one); `map` scores chunks in order and re-runs a chunk whose actor died."""
+    new local one); `map` scores chunks in order and re-runs a chunk whose actor died. `actor`
+    is the actor class (a subclass of EvalActor, e.g. one that fails to start in a test)."""
 
     def __init__(self, settings: EvalSettings, workers: int, address: str | None = None,
-                 max_attempts: int = MAX_ATTEMPTS):
+                 max_attempts: int = MAX_ATTEMPTS, actor: type[EvalActor] = EvalActor):
         self.settings = settings
         self.workers = workers
         self.address = address
         self.max_attempts = max_attempts
+        self.actor = actor
         self.ray = import_ray()
         self.actors: list = []
         self.reruns = 0            # chunks scored again after their actor died
         self.replaced = 0          # actors started to replace dead ones
-        self.in_flight: dict = {}  # task ref -> (chunk index, actor)
+        self.start_deaths = 0      # replacements in a row whose process died while starting
+        self.in_flight: dict = {}  # task ref -> (chunk index, actor); index None: its start
         self._started_ray = False
         self._shipment_ref = None
         self._actor_cls = None
 
     def __enter__(self) -> RayExecutor:
+        """Join or start Ray and wait until every actor is warm; on any failure the actors are
+        killed and a Ray instance started here is shut down before the error is raised."""
         ray = self.ray
         if not ray.is_initialized():
             kw = {"address": self.address} if self.address else {
@@ -178,28 +251,64 @@ class RayExecutor:
                 raise FalsifyError(f"--address {self.address}: cannot join the Ray cluster "
                                    f"({exc})") from None
             self._started_ray = True
-        self._shipment_ref = ray.put(Shipment.of(self.settings))
-        self._actor_cls = ray.remote(num_cpus=1, max_restarts=0)(EvalActor)
-        self.actors = [self._new_actor() for _ in range(self.workers)]
-        ray.get([a.ready.remote() for a in self.actors])
+        try:
+            self._shipment_ref = ray.put(Shipment.of(self.settings))
+            self._actor_cls = ray.remote(num_cpus=1, max_restarts=0)(self.actor)
+            self.actors = [self._new_actor() for _ in range(self.workers)]
+            starting = {a.ready.remote(): a for a in self.actors}
+            while starting:   # the first failure stops the wait (the others are killed)
+                done, _ = ray.wait(list(starting), num_returns=1)
+                for ref in done:
+                    starting.pop(ref)
+                    try:
+                        self._check_started(ref)
+                    except ray.exceptions.RayActorError as exc:
+                        raise self._died_starting(exc) from None
+        except BaseException:
+            self.__exit__()
+            raise
         return self
 
     def __exit__(self, *exc) -> None:
         for a in self.actors:
             self.ray.kill(a)
         self.actors = []
+        self.in_flight = {}
         if self._started_ray:
             self.ray.shutdown()
+            self._started_ray = False
 
     def _new_actor(self):
         return self._actor_cls.remote(self._shipment_ref)
 
+    def _check_started(self, ref) -> None:
+        """Nothing if the actor whose ready() is `ref` is warm; else the FalsifyError (the user's
+        input) or ActorCrash of its StartFailure. Ray's RayActorError if its process died."""
+        got = self.ray.get(ref)
+        if isinstance(got, StartFailure):
+            raise got.exception()
+
+    @staticmethod
+    def _died_starting(exc: Exception) -> ActorCrash:
+        """An actor that could not report: its class failed to load on the node (falsify not
+        installed there: the exception's line first) or its process died (killed, out of
+        memory: Ray's exit detail first); Ray's whole message follows."""
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        detail = re.search(r"Worker exit detail: ([^.]*)", str(exc))
+        if getattr(exc, "actor_init_failed", False) and lines:
+            why = lines[-1]
+        else:
+            why = "its process died" + (f" ({detail.group(1)})" if detail else "")
+        return ActorCrash(f"--executor ray: an actor died while starting: {why}\n\n{exc}")
+
     def map(self, chunks: Sequence[list[Sample]]) -> Iterator[list[SampleResult]]:
-        """Results of each chunk, in chunk order, as soon as every earlier chunk is done."""
+        """Results of each chunk, in chunk order, as soon as every earlier chunk is done; a
+        replacement actor takes chunks once it has started (a failure to start stops the run)."""
         ray = self.ray
         todo = deque(range(len(chunks)))
         attempts = [0] * len(chunks)
-        idle = deque(self.actors)
+        busy = {a for _, a in self.in_flight.values()}   # a replacement may still be starting
+        idle = deque(a for a in self.actors if a not in busy)
         done: dict[int, list[SampleResult]] = {}
         nxt = 0
         while nxt < len(chunks):
@@ -210,6 +319,18 @@ class RayExecutor:
             ready, _ = ray.wait(list(self.in_flight), num_returns=1)
             for ref in ready:
                 i, actor = self.in_flight.pop(ref)
+                if i is None:   # a replacement's start: a death is retried, a failure is not
+                    try:
+                        self._check_started(ref)
+                    except ray.exceptions.RayActorError as exc:
+                        self.start_deaths += 1
+                        if self.start_deaths >= self.max_attempts:
+                            raise self._died_starting(exc) from None
+                        self._replace(actor)
+                        continue
+                    self.start_deaths = 0
+                    idle.append(actor)
+                    continue
                 try:
                     done[i] = ray.get(ref)
                     idle.append(actor)
@@ -219,7 +340,6 @@ class RayExecutor:
                                            f"samples (first {chunks[i][0].as_dict()}) killed "
                                            f"its actor {attempts[i]} times: {exc}") from None
                     self._replace(actor)
-                    idle.append(self.actors[-1])
                     todo.appendleft(i)
                     self.reruns += 1
             while nxt in done:
@@ -227,8 +347,11 @@ class RayExecutor:
                 nxt += 1
 
     def _replace(self, dead) -> None:
-        """Drop a dead actor (and any other task it held is re-run when its error arrives)."""
+        """Drop a dead actor and start another, which takes chunks once its start is checked
+        (any other task the dead one held is re-run when its error arrives)."""
         if dead in self.actors:
             self.actors.remove(dead)
-        self.actors.append(self._new_actor())
+        actor = self._new_actor()
+        self.actors.append(actor)
+        self.in_flight[actor.ready.remote()] = (None, actor)
         self.replaced += 1

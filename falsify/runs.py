@@ -1,7 +1,8 @@
 """A falsification run from start to summary: checks, store, sampler loop, maps, retraining set.
 
 Everything a user can get wrong (config, model, sampler, run directory) is checked before the
-run directory is touched, so bad input leaves nothing half-written.
+run directory is touched, so bad input leaves nothing half-written; what only the workers find
+(an actor that cannot start) removes the run this invocation made while it holds no row.
 """
 
 from __future__ import annotations
@@ -186,6 +187,7 @@ class RunSummary:
 def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> RunSummary:
     """Run the sampler to the end, then write maps, retraining set, tables and report."""
     p = prepare(req)
+    made = missing_folders(req.out)
     try:
         req.out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -207,11 +209,37 @@ def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> Run
         elapsed = float(old.get("elapsed_s", 0.0)) + time.perf_counter() - started
         store.set_meta(elapsed_s=round(elapsed, 3), curve=list(search.curve),
                        computed_last=progress.computed)
+    except BaseException:
+        if not old and not len(store):   # this invocation's run, and it holds no row
+            store.close()
+            remove_run(req.out, made)
+        raise
     finally:
         store.close()
     return finish(req.out, p.space, threshold=req.threshold, report=req.report,
                   lod=p.settings.lod, model=p.model, search=search,
                   camera=req.camera)
+
+
+def missing_folders(path: Path) -> list[Path]:
+    """`path` and those of its parents that do not exist yet, deepest first (what mkdir makes)."""
+    out = []
+    while not path.exists() and path != path.parent:
+        out.append(path)
+        path = path.parent
+    return out
+
+
+def remove_run(out: Path, made: list[Path]) -> None:
+    """Delete a run store that holds no row, and the empty folders `made` for it: left behind,
+    it would make the next invocation ask for --resume, then refuse a fixed model or config."""
+    for suffix in ("", "-wal", "-shm", "-journal"):
+        (out / f"{STORE_NAME}{suffix}").unlink(missing_ok=True)
+    for folder in made:
+        try:
+            folder.rmdir()
+        except OSError:   # not empty (or gone): keep it and its parents
+            break
 
 
 def finish(run: Path, space: Space, threshold: float | None = None, report: bool = True,

@@ -1,25 +1,35 @@
 """--executor ray: the same rows as local processes, also when an actor is killed mid-run; bad
---address values exit 2 with one line and nothing written. One local Ray instance (loopback,
-2 CPUs) serves the module; the tests that need it skip where ray is not installed."""
+--address values and actors that cannot start exit 2 with one line and nothing written, a crash
+is told apart. One local Ray instance (loopback, 2 CPUs) serves the module; the tests that need
+it skip where ray is not installed."""
 
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
+from falsify.models.runner import load_segmenter
+from falsify.models.spec import spec_path_for
 from falsify.sampler.base import make_sampler
 
 from falsify.cli import main
-from falsify.cluster import import_ray
+from falsify.cluster import ActorCrash, EvalActor, RayExecutor, Shipment, import_ray
 from falsify.errors import FalsifyError
-from falsify.pipeline import Driver, EvalSettings, Progress
+from falsify.pipeline import Driver, EvalSettings, Evaluator, Progress
 from falsify.runs import RunRequest, execute
 from falsify.space import load_space
 from falsify.store import STORE_NAME, TIMING_COLUMNS, Store, read_frame
 
-CI = Path(__file__).resolve().parent.parent / "configs" / "ci.toml"
+from .test_bad_input import snapshot
+
+ROOT = Path(__file__).resolve().parent.parent
+CI = ROOT / "configs" / "ci.toml"
 
 
 @pytest.fixture(scope="module")
@@ -32,11 +42,25 @@ def ray():
 
 
 @pytest.fixture(scope="module")
-def process_rows(tmp_path_factory):
-    """configs/ci.toml on two local worker processes: the reference rows."""
+def process_run(tmp_path_factory) -> Path:
+    """configs/ci.toml on two local worker processes: the reference run."""
     out = tmp_path_factory.mktemp("process") / "run"
     execute(RunRequest(config=CI, out=out, command="grid", workers=2, report=False))
-    return rows(out / STORE_NAME)
+    return out
+
+
+@pytest.fixture(scope="module")
+def process_rows(process_run):
+    """The reference run's rows."""
+    return rows(process_run / STORE_NAME)
+
+
+def wait_for_free_cpus(ray, cpus: float = 2.0, timeout: float = 60.0) -> None:
+    """Every CPU of the module's Ray instance free again (no actor left holding one)."""
+    deadline = time.time() + timeout
+    while ray.available_resources().get("CPU", 0.0) < cpus:
+        assert time.time() < deadline, f"actors left behind: {ray.available_resources()}"
+        time.sleep(0.2)
 
 
 def rows(path: Path):
@@ -108,3 +132,99 @@ def test_bench_pipeline_measures_ray_beside_processes(ray, capsys):
     assert r["ray"]["against_processes"] > 0 and r["ray"]["tasks_timed"] == 200
     assert 0 < r["ray"]["task_round_trip_ms"] and 0 < r["ray"]["driver_ms_per_task"]
     assert r["driver_store_rows_per_s"] > 0 and r["2_workers"]["samples_per_s"] > 0
+
+
+class CrashingActor(EvalActor):
+    """An actor whose Evaluator fails as a bug in falsify would (not the user's input)."""
+
+    def build(self, shipment: Shipment) -> Evaluator:
+        return {}["lod"]
+
+
+class DyingActor(EvalActor):
+    """An actor whose process dies while it starts, as one killed by its node would."""
+
+    def build(self, shipment: Shipment) -> Evaluator:
+        os._exit(3)
+
+
+class FailsOnceMarked(EvalActor):
+    """Starts as usual until the file `marker` exists, then fails as an unreadable input would."""
+
+    marker = Path("/nonexistent")
+
+    def build(self, shipment: Shipment) -> Evaluator:
+        if self.marker.exists():
+            raise FalsifyError(f"user car mesh {self.marker}: cannot be read on this node")
+        return super().build(shipment)
+
+
+def test_replacement_that_cannot_start_stops_the_run(ray, tmp_path):
+    """Actors die mid-run and their replacements fail to start: the failure's own line, not
+    chunks re-run on actors that never start."""
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    marker = tmp_path / "marker"
+    actor = type("Marked", (FailsOnceMarked,), {"marker": marker})
+    space = load_space(CI)
+    chunks = [[s] for s in space.grid()[:6]]
+    with pytest.raises(FalsifyError, match=r"could not start: user car mesh .*marker: cannot"):
+        with RayExecutor(EvalSettings(space=space), 2, actor=actor) as ex:
+            results = ex.map(chunks)
+            next(results)
+            marker.touch()
+            for a in list(ex.actors):   # the next chunk goes to a dead actor, whatever finished
+                ray.kill(a)
+            list(results)
+    assert ex.replaced >= 1 and not ex.actors
+    wait_for_free_cpus(ray)
+
+
+def test_actor_that_cannot_load_the_model_stops_with_one_line(ray, tmp_path):
+    """The model file changed on disk after the driver opened it: every actor fails to load it,
+    which is the user's input (FalsifyError naming the user's file, not the node's copy)."""
+    corrupt = tmp_path / "corrupt.onnx"
+    corrupt.write_bytes(b"not an onnx graph" * 64)
+    shutil.copy(spec_path_for(load_segmenter().path), spec_path_for(corrupt))
+    space = load_space(CI)
+    store = Store(tmp_path / STORE_NAME, space)
+    with pytest.raises(FalsifyError) as err:
+        with Driver(EvalSettings(space=space, model=str(corrupt)), store, workers=2,
+                    executor="ray", model=load_segmenter()):
+            pytest.fail("the driver started with actors that cannot load the model")
+    store.close()
+    message = str(err.value)
+    assert "an actor on" in message and "could not start: cannot load ONNX model" in message
+    assert str(corrupt) in message and "falsify-blobs" not in message
+    assert "\n" not in message
+    wait_for_free_cpus(ray)
+
+
+@pytest.mark.parametrize("actor, says", [
+    (CrashingActor, "crashed while starting: KeyError: 'lod'"),
+    (DyingActor, "an actor died while starting"),
+])
+def test_actor_crash_is_not_an_input_error(ray, actor, says):
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])   # workers need no tests/
+    with pytest.raises(ActorCrash) as err:
+        with RayExecutor(EvalSettings(space=load_space(CI)), 2, actor=actor):
+            pytest.fail("the executor started with actors that crashed")
+    assert not isinstance(err.value, FalsifyError)
+    assert says in str(err.value).splitlines()[0]
+    wait_for_free_cpus(ray)
+
+
+def test_actor_start_failure_exits_2_and_leaves_no_run(tmp_path):
+    """Actors whose node cannot write the shipped files (FALSIFY_CACHE): one line naming it,
+    exit 2, Ray shut down, and no run directory that --resume would then misread."""
+    pytest.importorskip("ray", reason='ray is not installed (pip install "falsify[ray]")')
+    before = snapshot(tmp_path)
+    env = {**os.environ, "FALSIFY_CACHE": "/proc/falsify-cache"}
+    r = subprocess.run([sys.executable, "-m", "falsify.cli", "grid",
+                        str(ROOT / "configs" / "smoke.toml"), "--out", "run", "--executor", "ray",
+                        "--workers", "1", "--quiet"], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=300)
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert r.returncode == 2 and len(lines) == 1, r.stderr[-3000:]
+    assert "could not start: FALSIFY_CACHE: cannot write" in lines[0]
+    assert "/proc/falsify-cache" in lines[0]
+    assert snapshot(tmp_path) == before, "the failed run left files behind"
