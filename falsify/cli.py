@@ -293,6 +293,9 @@ def summary_text(s) -> str:
         f"mean car IoU: {s.mean_car_iou}",
         f"retraining set: {s.retraining_samples} scans in {Path(s.run) / 'retrain'}",
     ]
+    if s.executors:
+        lines.append(f"computed on executors {', then '.join(s.executors)} (resumed on another; "
+                     "the rows do not depend on the executor)")
     if s.report:
         lines.append(f"report: {s.report}")
     return "\n".join(lines)

@@ -35,6 +35,9 @@ from falsify.space import Space, load_space
 from falsify.store import STORE_NAME, RunData, Store, export, read_frame, read_meta
 
 BATCHED = ("grid", "random", "sobol")   # samplers that take a batch_size
+# What --resume must find unchanged. The executor, --workers and --address are not here: the rows
+# do not depend on them (each sample's seed comes from the space and the sample alone), so a run
+# may be continued on another; each invocation is kept in the meta's `sessions`.
 RESUME_KEYS = ("config_hash", "model_hash", "algorithm", "seed", "budget", "fidelity")
 
 
@@ -173,12 +176,13 @@ class RunSummary:
     mean_car_iou: float | None
     report: str | None = None
     retraining_camera: str | None = None   # the camera preset whose images sit beside the scans
+    executors: list[str] | None = None     # set when resumed on another executor: all, in order
     search: SearchResult | None = field(default=None, repr=False)
 
     def to_json(self) -> dict:
-        """Plain JSON data; `report` only when one was written."""
+        """Plain JSON data; `report`, `retraining_camera` and `executors` only when set."""
         out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "search"}
-        for optional in ("report", "retraining_camera"):
+        for optional in ("report", "retraining_camera", "executors"):
             if out[optional] is None:
                 del out[optional]
         return out
@@ -194,16 +198,17 @@ def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> Run
         raise FalsifyError(f"--out {req.out}: cannot be made ({exc.strerror})") from None
     store = Store(req.out / STORE_NAME, p.space)
     old = store.meta()
+    now = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     started = time.perf_counter()
     if not old:
-        store.set_meta(**p.meta, started=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-                       elapsed_s=0.0, curve=[])
+        store.set_meta(**p.meta, started=now, elapsed_s=0.0, curve=[])
     total = req.budget if req.budget is not None else (
         len(p.space.grid()) if req.algorithm == "grid" else None)
     progress = Progress(total, on_progress)
     try:
         with Driver(p.settings, store, workers=req.workers, progress=progress,
                     model=p.model, executor=req.executor, address=req.address) as driver:
+            store.set_meta(sessions=[*sessions_of(old), session(req, now)])
             search = p.sampler.run(p.space, driver.evaluate, req.budget, p.seed)
             progress.tell(final=True)
         elapsed = float(old.get("elapsed_s", 0.0)) + time.perf_counter() - started
@@ -242,6 +247,31 @@ def remove_run(out: Path, made: list[Path]) -> None:
             break
 
 
+def session(req: RunRequest, started: str) -> dict:
+    """One invocation that computed on a run: when, on which executor and how many workers."""
+    out = {"started": started, "executor": req.executor, "workers": req.workers}
+    if req.address is not None:
+        out["address"] = req.address
+    return out
+
+
+def sessions_of(meta: dict) -> list[dict]:
+    """The run's sessions so far; a run made before they were kept has its first one made up
+    from its meta (executor, workers, started)."""
+    if not meta:
+        return []
+    if "sessions" in meta:
+        return list(meta["sessions"])
+    return [{"started": meta.get("started"), "executor": meta.get("executor", "process"),
+             "workers": meta.get("workers")}]
+
+
+def executors_of(meta: dict) -> list[str]:
+    """Every executor that has computed on the run, in the order first used."""
+    names = [s.get("executor", "process") for s in sessions_of(meta)]
+    return list(dict.fromkeys(names))
+
+
 def finish(run: Path, space: Space, threshold: float | None = None, report: bool = True,
            lod: int = 2, model: Segmenter | None = None,
            search: SearchResult | None = None,
@@ -278,6 +308,7 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
                           for c in blind],
         lowest=lowest, elapsed_s=meta.get("elapsed_s"), retraining_samples=retrain,
         retraining_camera=camera,
+        executors=executors if len(executors := executors_of(meta)) > 1 else None,
         mean_car_iou=None if not len(ok) else round(float(ok["car_iou"].mean()), 4),
         search=search)
     write_json(run / "summary.json", summary.to_json())

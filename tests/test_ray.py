@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import sqlite3
 import subprocess
 import sys
 import time
@@ -22,9 +23,9 @@ from falsify.cli import main
 from falsify.cluster import ActorCrash, EvalActor, RayExecutor, Shipment, import_ray
 from falsify.errors import FalsifyError
 from falsify.pipeline import Driver, EvalSettings, Evaluator, Progress
-from falsify.runs import RunRequest, execute
+from falsify.runs import RunRequest, execute, executors_of
 from falsify.space import load_space
-from falsify.store import STORE_NAME, TIMING_COLUMNS, Store, read_frame
+from falsify.store import STORE_NAME, TIMING_COLUMNS, Store, read_frame, read_meta
 
 from .test_bad_input import snapshot
 
@@ -228,3 +229,30 @@ def test_actor_start_failure_exits_2_and_leaves_no_run(tmp_path):
     assert "could not start: FALSIFY_CACHE: cannot write" in lines[0]
     assert "/proc/falsify-cache" in lines[0]
     assert snapshot(tmp_path) == before, "the failed run left files behind"
+
+
+def test_resume_on_another_executor_is_allowed_and_recorded(ray, process_run, process_rows,
+                                                            tmp_path, capsys):
+    """A run killed after 60 of 75 samples on two processes, resumed on one Ray actor: the rows
+    equal the uninterrupted run's (they do not depend on the executor or --workers), the meta
+    keeps both sessions and the summary names both executors."""
+    run = tmp_path / "run"
+    shutil.copytree(process_run, run)
+    with sqlite3.connect(run / STORE_NAME) as db:
+        db.execute("DELETE FROM samples WHERE eval_index >= 60")
+    assert main(["grid", str(CI), "--out", str(run), "--resume", "--executor", "ray",
+                 "--workers", "1", "--no-report", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "15 computed now" in out and "computed on executors process, then ray" in out
+    assert rows(run / STORE_NAME).equals(process_rows)
+    sessions = read_meta(run)["sessions"]
+    assert [(s["executor"], s["workers"]) for s in sessions] == [("process", 2), ("ray", 1)]
+    assert json.loads((run / "summary.json").read_text())["executors"] == ["process", "ray"]
+
+
+def test_runs_from_before_sessions_count_their_first_executor():
+    assert executors_of({"executor": "ray", "workers": 2, "started": "2025"}) == ["ray"]
+    assert executors_of({"workers": 1}) == ["process"]    # made before --executor existed
+    assert executors_of({}) == []
+    assert executors_of({"sessions": [{"executor": "process"}, {"executor": "ray"},
+                                      {"executor": "process"}]}) == ["process", "ray"]
