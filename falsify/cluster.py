@@ -90,9 +90,10 @@ class Blob:
         data = path.read_bytes()
         return cls(hashlib.sha256(data).hexdigest(), path.name, data, str(path))
 
-    def cached(self) -> Path:
-        """Where `materialise` puts it on this node."""
-        return cache_dir() / self.sha256 / self.name
+    def cached(self, folder: str | None = None) -> Path:
+        """Where `materialise` puts it on this node: in `folder` of the cache (default: the
+        folder named by its own hash)."""
+        return cache_dir() / (folder or self.sha256) / self.name
 
 
 def cache_dir() -> Path:
@@ -100,10 +101,10 @@ def cache_dir() -> Path:
     return Path(os.environ.get("FALSIFY_CACHE", Path(tempfile.gettempdir()) / "falsify-blobs"))
 
 
-def materialise(blob: Blob) -> Path:
-    """The blob's file in this node's cache, written once (atomically) and checked by hash;
-    FalsifyError naming FALSIFY_CACHE when the node's cache folder cannot be written."""
-    path = blob.cached()
+def materialise(blob: Blob, folder: str | None = None) -> Path:
+    """The blob's file in this node's cache (see `Blob.cached`), written once (atomically) and
+    checked by hash; FalsifyError naming FALSIFY_CACHE when the folder cannot be written."""
+    path = blob.cached(folder)
     folder = path.parent
     if not path.is_file() or hashlib.sha256(path.read_bytes()).hexdigest() != blob.sha256:
         try:
@@ -140,14 +141,16 @@ class Shipment:
         cars = {n: Blob.of(c.file) for n, c in settings.space.user_cars.items()}
         return cls(settings, Blob.of(model), Blob.of(spec), cars)
 
+    @property
+    def model_folder(self) -> str:
+        """The cache folder of the model and its spec (<stem>.json beside it), named by both
+        hashes: the same network with an edited spec must not find the old spec there."""
+        return f"{self.model.sha256}-{self.spec.sha256}"
+
     def local_settings(self) -> EvalSettings:
         """The settings with every file pointing into this node's cache."""
-        model = materialise(self.model)
-        spec = materialise(self.spec)
-        if spec != spec_path_for(model):   # the spec must sit beside the model as <stem>.json
-            beside = spec_path_for(model)
-            if not beside.is_file():
-                beside.write_bytes(self.spec.data)
+        model = materialise(self.model, self.model_folder)
+        materialise(self.spec, self.model_folder)   # named <stem>.json: load_segmenter's spec
         space = self.settings.space
         cars = {n: dataclasses.replace(c, file=materialise(self.cars[n]))
                 for n, c in space.user_cars.items()}
@@ -156,8 +159,9 @@ class Shipment:
 
     def driver_names(self, text: str) -> str:
         """`text` with this node's cached copies named by the driver's paths."""
-        copies = {str(b.cached()): b.source for b in (self.model, self.spec, *self.cars.values())}
-        copies[str(spec_path_for(self.model.cached()))] = self.spec.source
+        copies = {str(b.cached()): b.source for b in self.cars.values()}
+        for b in (self.model, self.spec):
+            copies[str(b.cached(self.model_folder))] = b.source
         for copy in sorted(copies, key=len, reverse=True):
             text = text.replace(copy, copies[copy])
         return text

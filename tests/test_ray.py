@@ -256,3 +256,21 @@ def test_runs_from_before_sessions_count_their_first_executor():
     assert executors_of({}) == []
     assert executors_of({"sessions": [{"executor": "process"}, {"executor": "ray"},
                                       {"executor": "process"}]}) == ["process", "ray"]
+
+
+def test_shipped_model_is_loaded_with_its_own_spec(tmp_path, monkeypatch):
+    """The same network shipped twice with an edited spec: the node's copy is opened with the
+    spec shipped this time, not the one left beside it by the first run (same model hash as
+    the driver's)."""
+    monkeypatch.setenv("FALSIFY_CACHE", str(tmp_path / "cache"))
+    space = load_space(CI)
+    bundled = load_segmenter().path
+    for name, shift in (("a", 0.0), ("b", 1.0)):
+        model = tmp_path / name / "net.onnx"
+        model.parent.mkdir()
+        shutil.copy(bundled, model)
+        spec = json.loads(spec_path_for(bundled).read_text())
+        spec["mean"] = [m + shift for m in spec["mean"]]
+        spec_path_for(model).write_text(json.dumps(spec))
+        local = Shipment.of(EvalSettings(space=space, model=str(model))).local_settings()
+        assert load_segmenter(local.model).model_hash == load_segmenter(str(model)).model_hash
