@@ -94,7 +94,9 @@ def test_killed_actor_gives_the_identical_rows(ray, process_rows, tmp_path):
         make_sampler("grid").run(space, driver.evaluate, None, space.seed)
         reruns, replaced = driver.ray.reruns, driver.ray.replaced
     store.close()
-    assert killed and reruns >= 1 and replaced == 1
+    # The killed actor's chunk may already have finished (its result is kept), so a re-run is
+    # not certain; the replacement and the identical rows are.
+    assert killed and replaced == 1 and reruns <= 1
     assert rows(tmp_path / STORE_NAME).equals(process_rows)
 
 
