@@ -368,6 +368,33 @@ def given_options(args, *names: str) -> dict:
     return {n: getattr(args, n) for n in names if getattr(args, n) is not None}
 
 
+def pipeline_figures_text(r: dict) -> str:
+    """The machine-relative lines of `bench pipeline`: rates, MatMul, FLOPs, ratios, memory."""
+    w, rates, mm, net, q = r["rates"]["workers"], r["rates"], r["matmul"], r["network"], r["ratios"]
+    crf = "" if net["crf_share"] is None else f" (CRF {net['crf_share']:.1%})"
+    mem = r["memory"]
+    return "\n".join([
+        f"1 thread a worker: inference alone {rates['inference_only_1_worker']} samples/s on 1 "
+        f"worker, {rates['inference_only_n_workers']} on {w} at once; end to end "
+        f"{rates['e2e_1_worker']} on 1, {rates['e2e_n_workers']} on {w}",
+        f"machine: fp32 MatMul {mm['shape']} ({mm['library']}, 1 thread) "
+        f"{mm['gflops_1_core']} GFLOP/s on 1 core, {mm['gflops_per_core_all_at_once']} per "
+        f"core with {mm['processes']} at once",
+        f"network: {net['gflop_per_frame']} GFLOP/frame{crf}, {net['achieved_gflops_1_thread']} "
+        f"GFLOP/s on 1 thread",
+        f"ratios: end to end {w}/1 workers {q['e2e_n_over_e2e_1']} (goal >= 1.8 for 2), end "
+        f"to end / inference alone on {w} {q['e2e_n_over_inference_only_n']} (goal >= 0.9), "
+        f"network / MatMul {q['achieved_over_matmul_1_core']} (goal >= 0.5)",
+        "memory: not measured (no /proc)" if mem is None else
+        f"memory of the {w}-worker run, all processes: peak {mem['peak_rss_mb']} MB, early "
+        f"{_mb(mem['early_rss_mb'])}, late {_mb(mem['late_rss_mb'])}",
+    ])
+
+
+def _mb(value: float | None) -> str:
+    return "- (run too short)" if value is None else f"{value} MB"
+
+
 def cmd_bench(args) -> int:
     from falsify import bench
 
@@ -416,6 +443,7 @@ def cmd_bench(args) -> int:
                 f"process {one['samples_per_s']} samples/s against "
                 f"{one['inference_only_samples_per_s']} for inference alone (overhead "
                 f"{pipe.overhead:.1%}); store {result['driver_store_rows_per_s']} rows/s")
+        text += "\n" + pipeline_figures_text(result)
         if pipe.ray is not None:
             r = pipe.ray
             text += (f"\nray: {r['samples_per_s']} samples/s on {r['actors']} actors "
@@ -633,7 +661,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--workers", type=int, default=2)
     b.add_argument("--executor", choices=["process", "ray"], default="process",
                    help="bench pipeline: also measure Ray actors against the processes")
-    b.add_argument("--model", default=None, help="bench model: an ONNX model (default bundled)")
+    b.add_argument("--model", default=None,
+                   help="bench model, pipeline: an ONNX model (default bundled)")
     b.add_argument("--scans", default=None,
                    help="bench model: a folder of labelled .npy scans (default: generated)")
     b.add_argument("--repeats", type=int, default=3)
