@@ -450,6 +450,17 @@ def cmd_bench(args) -> int:
                      f"({r['against_processes']:.2f}x the processes); per task "
                      f"{r['task_round_trip_ms']} ms round trip, {r['driver_ms_per_task']} ms "
                      "pipelined")
+    elif args.what == "memory":
+        if args.samples is not None:
+            raise UsageError("--samples: bench memory runs the config's whole grid, as "
+                             "`falsify grid` does")
+        result = bench.bench_memory(args.config, workers=args.workers, model=args.model).to_json()
+        m = result["memory"]
+        text = (f"{result['command']}: {result['samples']} samples in {result['seconds']} s; "
+                + ("memory not measured (no /proc)" if m is None else
+                   f"all processes together: peak {m['peak_rss_mb']} MB; while sampling: peak "
+                   f"{_mb(m['window_peak_rss_mb'])}, early {_mb(m['early_rss_mb'])}, late "
+                   f"{_mb(m['late_rss_mb'])}"))
     elif args.what == "search":
         if not args.out:
             raise UsageError("bench search needs --out DIR (its runs are resumable there)")
@@ -652,7 +663,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     from falsify.tradeoff import KNOBS
     b = sub.add_parser("bench", help="measure a fast path beside its naive path")
-    b.add_argument("what", choices=["scan", "model", "pipeline", "search", "camera"])
+    b.add_argument("what", choices=["scan", "model", "pipeline", "search", "camera", "memory"],
+                   help="memory: peak memory of a whole `falsify grid --config ... --workers N` "
+                   "run, all processes together")
     b.add_argument("--config", default=str(DEFAULT_CONFIG))
     b.add_argument("--samples", type=int, default=None,
                    help="how many samples (default: each benchmark's own)")
@@ -662,7 +675,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--executor", choices=["process", "ray"], default="process",
                    help="bench pipeline: also measure Ray actors against the processes")
     b.add_argument("--model", default=None,
-                   help="bench model, pipeline: an ONNX model (default bundled)")
+                   help="bench model, pipeline, memory: an ONNX model (default bundled)")
     b.add_argument("--scans", default=None,
                    help="bench model: a folder of labelled .npy scans (default: generated)")
     b.add_argument("--repeats", type=int, default=3)

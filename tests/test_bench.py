@@ -69,6 +69,14 @@ def test_bench_pipeline_refuses_repeats_the_store_would_answer(capsys):
     assert "more than the 8 samples" in capsys.readouterr().err
 
 
+def test_bench_memory_runs_a_whole_grid(capsys):
+    r = _json(capsys, ["bench", "memory", "--config", str(CONFIGS / "smoke.toml"),
+                       "--workers", "2", "--json"])
+    assert r["samples"] == 8 and r["command"].endswith("--workers 2")
+    if r["memory"] is not None:
+        assert r["memory"]["peak_rss_mb"] > 0 and r["memory"]["max_processes"] >= 3
+
+
 def test_bench_model_compares_variants_on_the_same_frames(capsys):
     pytest.importorskip("torch")
     r = _json(capsys, ["bench", "model", "--samples", "2", "--repeats", "1", "--json"])
