@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -262,26 +263,63 @@ def _children(pid: int) -> list[int]:
     return out
 
 
-def tree_rss(pid: int | None = None) -> tuple[int, int]:
-    """Bytes resident in a process and all its descendants (RSS summed, so pages shared between
-    them count once per process: an upper bound), and how many processes that is."""
-    todo, total, count = [pid or os.getpid()], 0, 0
+class MemorySample(NamedTuple):
+    """One look at a process tree."""
+
+    t: float                # perf_counter
+    rss: int                # bytes, RSS summed over the processes
+    processes: int
+    pss: int | None         # bytes, PSS summed (shared pages split among their users); None
+    # when not read this time
+    root_rss: int           # bytes, RSS of the tree's root (the driver) alone
+
+
+def _pss(pid: int) -> int | None:
+    """Proportional set size in bytes (None without /proc/PID/smaps_rollup)."""
+    try:
+        for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+            if line.startswith("Pss:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def tree_memory(pid: int | None = None, pss: bool = True) -> MemorySample:
+    """A process and all its descendants: RSS summed (pages shared between them count once per
+    process: an upper bound), PSS summed (each shared page split among its users; about 1 ms a
+    500 MB process, so optional) and how many processes that is."""
+    root = pid or os.getpid()
+    todo, rss, pss_sum, count, root_rss = [root], 0, 0, 0, 0
+    for_all_pss = pss
     while todo:
         p = todo.pop()
         try:
-            total += int(Path(f"/proc/{p}/statm").read_text().split()[1]) * _PAGE
+            r = int(Path(f"/proc/{p}/statm").read_text().split()[1]) * _PAGE
         except (OSError, IndexError, ValueError):
             continue   # gone meanwhile
+        rss += r
+        root_rss = r if p == root else root_rss
+        q = _pss(p) if for_all_pss else None
+        for_all_pss = for_all_pss and q is not None
+        pss_sum += q or 0
         count += 1
         todo += _children(p)
-    return total, count
+    return MemorySample(time.perf_counter(), rss, count, pss_sum if for_all_pss else None,
+                        root_rss)
+
+
+def tree_rss(pid: int | None = None) -> tuple[int, int]:
+    """Summed RSS bytes of a process and its descendants, and how many processes that is."""
+    m = tree_memory(pid, pss=False)
+    return m.rss, m.processes
 
 
 @dataclass(frozen=True)
 class MemoryUse:
     """Summed RSS of a process tree: the peak over all samples, and the means over the first and
     last quarter of the samples in the steady window (so growth with run length shows; None
-    when the window holds fewer than 4 samples)."""
+    when the window holds fewer than 4 samples); beside it the summed PSS's peak."""
 
     peak_bytes: int         # over every sample
     window_peak_bytes: int | None
@@ -291,6 +329,9 @@ class MemoryUse:
     interval_s: float
     seconds: float          # length of the steady window
     max_processes: int
+    peak_pss_bytes: int | None = None       # over the samples that read PSS
+    pss_interval_s: float | None = None
+    root_at_peak_bytes: int | None = None   # the driver's own RSS in the peak sample
 
     def to_json(self) -> dict:
         def mb(b: float | None) -> float | None:
@@ -301,27 +342,33 @@ class MemoryUse:
                 "late_rss_mb": mb(self.late_bytes),
                 "late_over_early": None if self.early_bytes is None or self.late_bytes is None
                 else round(self.late_bytes / self.early_bytes, 3),
+                "peak_pss_mb": mb(self.peak_pss_bytes), "pss_interval_s": self.pss_interval_s,
+                "driver_rss_mb_at_peak": mb(self.root_at_peak_bytes),
                 "samples": self.samples, "interval_s": self.interval_s,
                 "window_s": round(self.seconds, 2), "max_processes": self.max_processes,
                 "what": "sum of RSS of this process and all its descendants, sampled from "
-                        "/proc; early/late: mean over the first/last quarter of the window"}
+                        "/proc; early/late: mean over the first/last quarter of the window; "
+                        "PSS splits pages shared between processes (libraries) among them"}
 
 
 class RssSampler:
-    """Samples `tree_rss` of this process every `interval` s in a thread while in the `with`
-    block (Linux /proc; elsewhere it records nothing and `summary` is None)."""
+    """Samples `tree_memory` of this process every `interval` s in a thread while in the `with`
+    block, PSS every `pss_every`-th time (Linux /proc; elsewhere it records nothing and
+    `summary` is None)."""
 
-    def __init__(self, interval: float = 0.05):
+    def __init__(self, interval: float = 0.05, pss_every: int = 10):
         self.interval = interval
-        self.samples: list[tuple[float, int, int]] = []   # (perf_counter, bytes, processes)
+        self.pss_every = pss_every
+        self.samples: list[MemorySample] = []
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True, name="rss-sampler")
         self.available = Path(f"/proc/{os.getpid()}/statm").exists()
 
     def _run(self) -> None:
+        k = 0
         while True:
-            rss, n = tree_rss()
-            self.samples.append((time.perf_counter(), rss, n))
+            self.samples.append(tree_memory(pss=k % self.pss_every == 0))
+            k += 1
             if self._stop.wait(self.interval):
                 return
 
@@ -342,13 +389,18 @@ class RssSampler:
             return None
         lo = -np.inf if start is None else start
         hi = np.inf if stop is None else stop
-        window = [s for s in self.samples if lo <= s[0] <= hi]
+        window = [s for s in self.samples if lo <= s.t <= hi]
         q = len(window) // 4
+        peak = max(self.samples, key=lambda s: s.rss)
+        pss = [s.pss for s in self.samples if s.pss is not None]
         return MemoryUse(
-            peak_bytes=max(s[1] for s in self.samples),
-            window_peak_bytes=max((s[1] for s in window), default=None),
-            early_bytes=float(np.mean([s[1] for s in window[:q]])) if q else None,
-            late_bytes=float(np.mean([s[1] for s in window[-q:]])) if q else None,
+            peak_bytes=peak.rss,
+            window_peak_bytes=max((s.rss for s in window), default=None),
+            early_bytes=float(np.mean([s.rss for s in window[:q]])) if q else None,
+            late_bytes=float(np.mean([s.rss for s in window[-q:]])) if q else None,
             samples=len(window), interval_s=self.interval,
-            seconds=window[-1][0] - window[0][0] if window else 0.0,
-            max_processes=max(s[2] for s in self.samples))
+            seconds=window[-1].t - window[0].t if window else 0.0,
+            max_processes=max(s.processes for s in self.samples),
+            peak_pss_bytes=max(pss, default=None),
+            pss_interval_s=round(self.interval * self.pss_every, 3),
+            root_at_peak_bytes=peak.root_rss)

@@ -385,14 +385,19 @@ def pipeline_figures_text(r: dict) -> str:
         f"ratios: end to end {w}/1 workers {q['e2e_n_over_e2e_1']} (goal >= 1.8 for 2), end "
         f"to end / inference alone on {w} {q['e2e_n_over_inference_only_n']} (goal >= 0.9), "
         f"network / MatMul {q['achieved_over_matmul_1_core']} (goal >= 0.5)",
-        "memory: not measured (no /proc)" if mem is None else
-        f"memory of the {w}-worker run, all processes: peak {mem['peak_rss_mb']} MB, early "
-        f"{_mb(mem['early_rss_mb'])}, late {_mb(mem['late_rss_mb'])}",
+        f"memory of the {w}-worker run, all processes: {_memory_text(mem)}",
     ])
 
 
-def _mb(value: float | None) -> str:
-    return "- (run too short)" if value is None else f"{value} MB"
+def _memory_text(m: dict | None) -> str:
+    """Peak RSS (and PSS) of a process tree, and its early and late means when measured."""
+    if m is None:
+        return "not measured (no /proc)"
+    pss = "" if m["peak_pss_mb"] is None else f" ({m['peak_pss_mb']} MB PSS)"
+    if m["early_rss_mb"] is None:
+        return f"peak {m['peak_rss_mb']} MB RSS{pss}; too short for early and late means"
+    return (f"peak {m['peak_rss_mb']} MB RSS{pss}; mean early {m['early_rss_mb']} MB, late "
+            f"{m['late_rss_mb']} MB")
 
 
 def cmd_bench(args) -> int:
@@ -457,10 +462,7 @@ def cmd_bench(args) -> int:
         result = bench.bench_memory(args.config, workers=args.workers, model=args.model).to_json()
         m = result["memory"]
         text = (f"{result['command']}: {result['samples']} samples in {result['seconds']} s; "
-                + ("memory not measured (no /proc)" if m is None else
-                   f"all processes together: peak {m['peak_rss_mb']} MB; while sampling: peak "
-                   f"{_mb(m['window_peak_rss_mb'])}, early {_mb(m['early_rss_mb'])}, late "
-                   f"{_mb(m['late_rss_mb'])}"))
+                + f"all processes together: {_memory_text(m)}")
     elif args.what == "search":
         if not args.out:
             raise UsageError("bench search needs --out DIR (its runs are resumable there)")

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from falsify.bench_machine import RssSampler, in_processes, tree_rss
+from falsify.bench_machine import MemorySample, RssSampler, in_processes, tree_rss
 from falsify.errors import FalsifyError
 
 
@@ -19,7 +19,7 @@ def test_memory_sampler_sums_the_children():
         pytest.skip("no /proc")
     alone, _ = tree_rss()
     hold = "import sys, time; b = b'x' * 200_000_000; print(1, flush=True); time.sleep(30)"
-    with RssSampler(interval=0.02) as rss:
+    with RssSampler(interval=0.02, pss_every=1) as rss:
         child = subprocess.Popen([sys.executable, "-c", hold], stdout=subprocess.PIPE)
         try:
             child.stdout.readline()        # the child has touched its 200 MB
@@ -33,6 +33,7 @@ def test_memory_sampler_sums_the_children():
     m = rss.summary(t0, t1)
     assert m.max_processes >= 2 and m.window_peak_bytes > alone + 150e6
     assert m.samples >= 8 and m.late_bytes > alone + 150e6
+    assert m.peak_pss_bytes is None or 150e6 < m.peak_pss_bytes <= m.peak_bytes
 
 
 def test_processes_report_their_errors():
@@ -54,9 +55,10 @@ def _fail_at_rank_1(rank, n, barrier):
 
 def test_early_and_late_are_quarters_of_the_window():
     rss = RssSampler()
-    rss.samples = [(float(t), 100 + t, 1 + t % 3) for t in range(10)]   # (time, bytes, procs)
+    rss.samples = [MemorySample(float(t), 100 + t, 1 + t % 3, 50 + t, 10 + t) for t in range(10)]
     m = rss.summary(2, 9)                     # 8 samples in the window: quarters of 2
     assert (m.peak_bytes, m.window_peak_bytes, m.samples, m.max_processes) == (109, 109, 8, 3)
     assert (m.early_bytes, m.late_bytes, m.seconds) == (102.5, 108.5, 7.0)
+    assert (m.peak_pss_bytes, m.root_at_peak_bytes) == (59, 19)
     empty = rss.summary(20, 30)               # a window too short: no early or late figure
     assert empty.early_bytes is None and empty.to_json()["late_over_early"] is None
