@@ -16,9 +16,18 @@ from pathlib import Path
 
 import numpy as np
 
+from falsify.bench_machine import (
+    InferenceRates,
+    MatmulRate,
+    MemoryUse,
+    RssSampler,
+    inference_rates,
+    matmul_rate,
+)
 from falsify.checks import MAX_SAMPLES
 from falsify.errors import FalsifyError
 from falsify.metrics import Status
+from falsify.models.flops import FlopCount
 from falsify.models.runner import BATCH
 from falsify.scene import Simulator
 from falsify.sensor import load_sensor
@@ -256,7 +265,9 @@ def _subdivide(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
 @dataclass(frozen=True)
 class PipelineBench:
     """Samples/s through the pipeline in one process against inference alone, and through the
-    driver and store on `workers` processes."""
+    driver and store on 1 and `workers` processes; beside them, from the same run, the
+    machine's matrix-product rate, the network's FLOPs and inference-only rates in 1 and
+    `workers` processes, and the memory of the `workers`-process driver run."""
 
     config: str
     samples: int
@@ -270,6 +281,13 @@ class PipelineBench:
     driver_samples: int     # samples timed through the driver
     t_driver: float
     store_rows_per_s: float   # the driver's SQLite writes, in chunks of `batch` rows
+    driver_1_samples: int     # samples timed through the driver with 1 worker, 1 thread
+    t_driver_1: float
+    inference: InferenceRates     # inference alone, 1 thread a process, 1 and `workers` at once
+    matmul: MatmulRate
+    flops: FlopCount
+    memory: MemoryUse | None      # the `workers`-process driver run (None without /proc)
+    driver_threads: int = 1       # inference threads of each worker in the `workers` run
     ray: dict | None = None   # with executor "ray": actors against the processes above
 
     @property
@@ -280,8 +298,42 @@ class PipelineBench:
     def overhead(self) -> float:
         return round(self.t_pipeline / self.t_infer - 1.0, 4)
 
+    @property
+    def e2e_1(self) -> float:
+        return self.driver_1_samples / self.t_driver_1
+
+    @property
+    def e2e_n(self) -> float:
+        return self.driver_samples / self.t_driver
+
+    @property
+    def achieved_gflops(self) -> float:
+        """The network's GFLOP/s in one worker, one thread, inference alone."""
+        return self.flops.total * self.inference.rate_1 / 1e9
+
+    @property
+    def achieved_gflops_per_worker_n(self) -> float:
+        """The same per worker while `workers` processes infer at once."""
+        return self.flops.total * self.inference.rate_n / self.inference.processes / 1e9
+
+    def ratios(self) -> dict:
+        """What the goals are read from, every one computed from the fields beside it."""
+        return {
+            "workers": self.workers,
+            "e2e_n_over_e2e_1": round(self.e2e_n / self.e2e_1, 3),
+            "e2e_n_over_inference_only_n": round(self.e2e_n / self.inference.rate_n, 3),
+            "achieved_over_matmul_1_core": round(
+                self.achieved_gflops / self.matmul.gflops_1_core(), 3),
+            "achieved_per_worker_n_over_matmul_per_core_n": round(
+                self.achieved_gflops_per_worker_n / self.matmul.gflops_per_core(), 3),
+            "inference_only_n_over_1": round(self.inference.rate_n / self.inference.rate_1, 3),
+            "matmul_per_core_n_over_1_core": round(
+                self.matmul.gflops_per_core() / self.matmul.gflops_1_core(), 3),
+        }
+
     def to_json(self) -> dict:
-        n = self.samples
+        n, w = self.samples, self.workers
+        inf = self.inference
         return {
             "benchmark": "pipeline", "config": self.config, "samples": n,
             "model": self.model, "model_hash": self.model_hash, "machine": self.machine,
@@ -293,9 +345,30 @@ class PipelineBench:
                 "inference_ms_per_sample": round(self.t_infer / n * 1e3, 2),
                 "overhead": self.overhead,
             },
-            f"{self.workers}_workers": {"samples_per_s": self.samples_per_s,
-                                        "samples": self.driver_samples},
+            f"{w}_workers": {"samples_per_s": self.samples_per_s,
+                             "samples": self.driver_samples},
             "driver_store_rows_per_s": round(self.store_rows_per_s, 1),
+            "rates": {
+                "workers": w, "threads_per_worker": 1,
+                "e2e_n_threads_per_worker": self.driver_threads,
+                "inference_only_1_worker": round(inf.rate_1, 2),
+                "inference_only_1_worker_ms_per_frame": round(1e3 / inf.rate_1, 2),
+                "inference_only_n_workers": round(inf.rate_n, 2),
+                "e2e_1_worker": round(self.e2e_1, 2),
+                "e2e_n_workers": round(self.e2e_n, 2),
+                "frames_1": inf.frames_1, "frames_n": inf.frames_n,
+                "e2e_samples_1": self.driver_1_samples, "e2e_samples_n": self.driver_samples,
+                "units": "samples (frames) per second",
+            },
+            "matmul": self.matmul.to_json(),
+            "network": {**self.flops.to_json(),
+                        "achieved_gflops_1_thread": round(self.achieved_gflops, 2),
+                        "achieved_gflops_per_worker_n_at_once": round(
+                            self.achieved_gflops_per_worker_n, 2)},
+            "ratios": self.ratios(),
+            "memory": None if self.memory is None else {
+                **self.memory.to_json(), "run": f"the {w}-worker driver run above",
+                "window": "its timed part, after the warm-up chunks"},
             **({} if self.ray is None else {"ray": self.ray}),
         }
 
@@ -303,43 +376,68 @@ class PipelineBench:
 def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
                    model: str | None = None, batch: int = 8,
                    executor: str = "process") -> PipelineBench:
-    """End-to-end samples/s through the real driver and store, and the pipeline's overhead over
-    the network's own inference time on the same scans in the same process; with executor
-    "ray", also through `workers` Ray actors on the same samples, and Ray's cost per task."""
+    """End-to-end samples/s through the real driver and store on `workers` processes (its
+    memory sampled) and on one, the pipeline's overhead over the network's own inference time on
+    the same scans in the same process, the network alone in 1 and `workers` processes, its
+    FLOPs and the machine's matrix-product rate; with executor "ray", also through `workers`
+    Ray actors on the same samples, and Ray's cost per task."""
     import tempfile
 
+    from falsify.models.flops import count_flops
+    from falsify.models.runner import resolve_model
     from falsify.pipeline import EvalSettings, Evaluator
     from falsify.store import Store
 
     space = load_space(config)
     space.check_size(MAX_SAMPLES, "the benchmark's limit")
     grid = space.grid()
-    if samples <= 0:
-        raise FalsifyError(f"--samples: {samples} must be > 0")
-    picked = [grid[i % len(grid)] for i in range(samples)]
+    if samples <= workers * batch:
+        raise FalsifyError(f"--samples: {samples} must be more than the first chunk of each "
+                           f"worker ({workers} x {batch}), which warms it up")
+    if samples > len(grid):   # the driver would read the repeats back from its store
+        raise FalsifyError(f"--samples: {samples} is more than the {len(grid)} samples of "
+                           f"{config}; the driver would answer the repeats from its store")
+    picked = grid[:samples]
 
-    # 1. In one process with 2 inference threads: the pipeline against inference alone.
-    ev = Evaluator(EvalSettings(space=space, model=model, threads=2))
-    _warm(ev.sim, picked)
-    ev.score_batch(picked[:batch])
-    scored = []
-    t0 = time.perf_counter()
-    for i in range(0, samples, batch):
-        scored.append(ev.score_batch(picked[i:i + batch]))
-    t_pipeline = time.perf_counter() - t0
-    images = [ev.scan(s).image for s in picked]
-    t0 = time.perf_counter()
-    for i in range(0, samples, batch):
-        ev.model.predict(np.stack(images[i:i + batch]))
-    t_infer = time.perf_counter() - t0
-
-    # 2. Through the driver, the store and `workers` processes, as `falsify grid` runs.
     with tempfile.TemporaryDirectory() as tmp:
+        # 1. Through the driver, the store and `workers` processes, as `falsify grid` runs;
+        # first, while this process holds nothing else, so its memory is the driver's own.
         store = Store(Path(tmp) / "results.sqlite", space)
         settings = EvalSettings(space=space, model=model, threads=1 if workers > 1 else 2)
         rest = picked[workers * batch:]
-        t_driver = _driver_time(settings, store, workers, batch, picked, "process")
+        with RssSampler() as rss:
+            t0, t1 = _driver_window(settings, store, workers, batch, picked, "process")
         store.close()
+        t_driver, memory = t1 - t0, rss.summary(t0, t1)
+
+        # 2. The same with one worker, one thread, in this process before it caches any street
+        # (with `workers` 1, run 1 was in this process too and left its streets cached).
+        store = Store(Path(tmp) / "one.sqlite", space)
+        one = EvalSettings(space=space, model=model, threads=1)
+        t_driver_1 = _driver_time(one, store, 1, batch, picked, "process")
+        store.close()
+
+        # 3. In one process with 2 inference threads: the pipeline against inference alone.
+        ev = Evaluator(EvalSettings(space=space, model=model, threads=2))
+        _warm(ev.sim, picked)
+        ev.score_batch(picked[:batch])
+        scored = []
+        t0 = time.perf_counter()
+        for i in range(0, samples, batch):
+            scored.append(ev.score_batch(picked[i:i + batch]))
+        t_pipeline = time.perf_counter() - t0
+        images = [ev.scan(s).image for s in picked]
+        t0 = time.perf_counter()
+        for i in range(0, samples, batch):
+            ev.model.predict(np.stack(images[i:i + batch]))
+        t_infer = time.perf_counter() - t0
+
+        # 4. The network alone on the same scans, 1 thread a process: 1 and `workers` at once;
+        # then the machine's own matrix product the same way.
+        inference = inference_rates(model, np.stack(images), workers, batch, Path(tmp))
+        del images
+        matmul = matmul_rate(workers)
+
         ray = None
         if executor == "ray":
             store = Store(Path(tmp) / "ray.sqlite", space)
@@ -349,14 +447,20 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
                    "against_processes": round(t_driver / t_ray, 3),
                    **_ray_task_cost(settings, workers)}
         rows_per_s = _store_rate(Path(tmp) / "writes.sqlite", space, scored, ev.model_hash)
-    return PipelineBench(str(config), samples, ev.model.spec.name, ev.model_hash[:12], machine(),
-                         batch, t_pipeline, t_infer, workers, len(rest), t_driver, rows_per_s,
-                         ray)
+    return PipelineBench(
+        config=str(config), samples=samples, model=ev.model.spec.name,
+        model_hash=ev.model_hash[:12], machine=machine(), batch=batch, t_pipeline=t_pipeline,
+        t_infer=t_infer, workers=workers, driver_samples=len(rest), t_driver=t_driver,
+        store_rows_per_s=rows_per_s, driver_1_samples=len(picked[batch:]),
+        t_driver_1=t_driver_1, inference=inference, matmul=matmul,
+        flops=count_flops(resolve_model(model)), memory=memory,
+        driver_threads=settings.threads, ray=ray)
 
 
-def _driver_time(settings, store, workers: int, batch: int, picked: list[Sample],
-                 executor: str) -> float:
-    """Seconds the driver takes for all but the first `workers` chunks (which warm it up)."""
+def _driver_window(settings, store, workers: int, batch: int, picked: list[Sample],
+                   executor: str) -> tuple[float, float]:
+    """perf_counter at start and end of the driver's run over all but the first `workers`
+    chunks (which warm it up)."""
     from falsify.pipeline import Driver, Progress
 
     with Driver(settings, store, workers=workers, batch=batch, progress=Progress(None),
@@ -364,7 +468,14 @@ def _driver_time(settings, store, workers: int, batch: int, picked: list[Sample]
         driver.evaluate(picked[: workers * batch])  # start-up and warm caches
         t0 = time.perf_counter()
         driver.evaluate(picked[workers * batch:])
-        return time.perf_counter() - t0
+        return t0, time.perf_counter()
+
+
+def _driver_time(settings, store, workers: int, batch: int, picked: list[Sample],
+                 executor: str) -> float:
+    """Seconds the driver takes for all but the first `workers` chunks (which warm it up)."""
+    t0, t1 = _driver_window(settings, store, workers, batch, picked, executor)
+    return t1 - t0
 
 
 def _ray_task_cost(settings, workers: int, tasks: int = 200) -> dict:
@@ -399,6 +510,55 @@ def _store_rate(path: Path, space: Space, chunks: list, model_hash: str) -> floa
     dt = time.perf_counter() - t0
     store.close()
     return n / dt
+
+
+@dataclass(frozen=True)
+class MemoryBench:
+    """Resident memory of a whole `falsify grid` run: this process as its driver plus its worker
+    processes, summed, from start-up to the written report."""
+
+    config: str
+    workers: int
+    samples: int            # computed in the run
+    seconds: float          # the whole command
+    machine: dict
+    memory: MemoryUse | None
+
+    def to_json(self) -> dict:
+        return {"benchmark": "memory", "command": f"falsify grid {self.config} --workers "
+                f"{self.workers}", "config": self.config, "workers": self.workers,
+                "samples": self.samples, "seconds": round(self.seconds, 1),
+                "machine": self.machine,
+                "memory": None if self.memory is None else {
+                    **self.memory.to_json(),
+                    "window": "from the first stored chunk (workers up and warm) to the last; "
+                              "the peak is over the whole command, report included"}}
+
+
+def bench_memory(config: str | Path, workers: int = 2, model: str | None = None) -> MemoryBench:
+    """Run the config's whole grid as `falsify grid --workers N` does (runs.execute, report
+    included, into a temporary directory) and sample the summed RSS of every process meanwhile."""
+    import tempfile
+
+    from falsify.runs import RunRequest, execute
+
+    marks: dict[str, float] = {}
+
+    def listen(progress, final: bool) -> None:
+        if progress.computed and "start" not in marks:
+            marks["start"] = time.perf_counter()
+        if final:
+            marks["stop"] = time.perf_counter()
+
+    with tempfile.TemporaryDirectory() as tmp:
+        req = RunRequest(config=Path(config), out=Path(tmp) / "run", command="grid",
+                         model=model, workers=workers)
+        t0 = time.perf_counter()
+        with RssSampler() as rss:
+            summary = execute(req, on_progress=listen)
+        seconds = time.perf_counter() - t0
+    return MemoryBench(str(config), workers, summary.computed_this_time, seconds, machine(),
+                       rss.summary(marks.get("start"), marks.get("stop")))
 
 
 SEARCH_ALGORITHMS = ("random", "sobol", "GN_DIRECT_L", "GN_CRS2_LM")

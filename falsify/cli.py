@@ -371,6 +371,38 @@ def given_options(args, *names: str) -> dict:
     return {n: getattr(args, n) for n in names if getattr(args, n) is not None}
 
 
+def pipeline_figures_text(r: dict) -> str:
+    """The machine-relative lines of `bench pipeline`: rates, MatMul, FLOPs, ratios, memory."""
+    w, rates, mm, net, q = r["rates"]["workers"], r["rates"], r["matmul"], r["network"], r["ratios"]
+    crf = "" if net["crf_share"] is None else f" (CRF {net['crf_share']:.1%})"
+    mem = r["memory"]
+    return "\n".join([
+        f"1 thread a worker: inference alone {rates['inference_only_1_worker']} samples/s on 1 "
+        f"worker, {rates['inference_only_n_workers']} on {w} at once; end to end "
+        f"{rates['e2e_1_worker']} on 1, {rates['e2e_n_workers']} on {w}",
+        f"machine: fp32 MatMul {mm['shape']} ({mm['library']}, 1 thread) "
+        f"{mm['gflops_1_core']} GFLOP/s on 1 core, {mm['gflops_per_core_all_at_once']} per "
+        f"core with {mm['processes']} at once",
+        f"network: {net['gflop_per_frame']} GFLOP/frame{crf}, {net['achieved_gflops_1_thread']} "
+        f"GFLOP/s on 1 thread",
+        f"ratios: end to end {w}/1 workers {q['e2e_n_over_e2e_1']} (goal >= 1.8 for 2), end "
+        f"to end / inference alone on {w} {q['e2e_n_over_inference_only_n']} (goal >= 0.9), "
+        f"network / MatMul {q['achieved_over_matmul_1_core']} (goal >= 0.5)",
+        f"memory of the {w}-worker run, all processes: {_memory_text(mem)}",
+    ])
+
+
+def _memory_text(m: dict | None) -> str:
+    """Peak RSS (and PSS) of a process tree, and its early and late means when measured."""
+    if m is None:
+        return "not measured (no /proc)"
+    pss = "" if m["peak_pss_mb"] is None else f" ({m['peak_pss_mb']} MB PSS)"
+    if m["early_rss_mb"] is None:
+        return f"peak {m['peak_rss_mb']} MB RSS{pss}; too short for early and late means"
+    return (f"peak {m['peak_rss_mb']} MB RSS{pss}; mean early {m['early_rss_mb']} MB, late "
+            f"{m['late_rss_mb']} MB")
+
+
 def cmd_bench(args) -> int:
     from falsify import bench
 
@@ -419,12 +451,21 @@ def cmd_bench(args) -> int:
                 f"process {one['samples_per_s']} samples/s against "
                 f"{one['inference_only_samples_per_s']} for inference alone (overhead "
                 f"{pipe.overhead:.1%}); store {result['driver_store_rows_per_s']} rows/s")
+        text += "\n" + pipeline_figures_text(result)
         if pipe.ray is not None:
             r = pipe.ray
             text += (f"\nray: {r['samples_per_s']} samples/s on {r['actors']} actors "
                      f"({r['against_processes']:.2f}x the processes); per task "
                      f"{r['task_round_trip_ms']} ms round trip, {r['driver_ms_per_task']} ms "
                      "pipelined")
+    elif args.what == "memory":
+        if args.samples is not None:
+            raise UsageError("--samples: bench memory runs the config's whole grid, as "
+                             "`falsify grid` does")
+        result = bench.bench_memory(args.config, workers=args.workers, model=args.model).to_json()
+        m = result["memory"]
+        text = (f"{result['command']}: {result['samples']} samples in {result['seconds']} s; "
+                + f"all processes together: {_memory_text(m)}")
     elif args.what == "search":
         if not args.out:
             raise UsageError("bench search needs --out DIR (its runs are resumable there)")
@@ -627,7 +668,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     from falsify.tradeoff import KNOBS
     b = sub.add_parser("bench", help="measure a fast path beside its naive path")
-    b.add_argument("what", choices=["scan", "model", "pipeline", "search", "camera"])
+    b.add_argument("what", choices=["scan", "model", "pipeline", "search", "camera", "memory"],
+                   help="memory: peak memory of a whole `falsify grid --config ... --workers N` "
+                   "run, all processes together")
     b.add_argument("--config", default=str(DEFAULT_CONFIG))
     b.add_argument("--samples", type=int, default=None,
                    help="how many samples (default: each benchmark's own)")
@@ -636,7 +679,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--workers", type=int, default=2)
     b.add_argument("--executor", choices=["process", "ray"], default="process",
                    help="bench pipeline: also measure Ray actors against the processes")
-    b.add_argument("--model", default=None, help="bench model: an ONNX model (default bundled)")
+    b.add_argument("--model", default=None,
+                   help="bench model, pipeline, memory: an ONNX model (default bundled)")
     b.add_argument("--scans", default=None,
                    help="bench model: a folder of labelled .npy scans (default: generated)")
     b.add_argument("--repeats", type=int, default=3)

@@ -10,7 +10,7 @@ import json
 
 import pytest
 
-from falsify.cli import build_parser, given_options, main
+from falsify.cli import build_parser, given_options, main, pipeline_figures_text
 
 from .conftest import CONFIGS, ROOT
 
@@ -24,7 +24,7 @@ def _json(capsys, argv: list[str]) -> dict:
 
 
 def test_bench_pipeline_reports_both_paths(capsys):
-    r = _json(capsys, ["bench", "pipeline", "--config", str(CONFIGS / "smoke.toml"),
+    r = _json(capsys, ["bench", "pipeline", "--config", str(CONFIGS / "ci.toml"),
                        "--samples", "24", "--workers", "2", "--json"])
     one = r["one_process"]
     assert r["network_batch"] == 1 and r["samples_per_task"] == 8
@@ -32,6 +32,49 @@ def test_bench_pipeline_reports_both_paths(capsys):
     assert one["overhead"] == pytest.approx(
         one["ms_per_sample"] / one["inference_ms_per_sample"] - 1, abs=2e-3)
     assert r["2_workers"]["samples"] == 24 - 2 * 8 and r["2_workers"]["samples_per_s"] > 0
+
+    # From the same run: the machine, the network's FLOPs, the rates and the ratios between them.
+    rates, mm, net, q = r["rates"], r["matmul"], r["network"], r["ratios"]
+    assert rates["workers"] == mm["processes"] == q["workers"] == 2
+    assert rates["e2e_n_workers"] == pytest.approx(r["2_workers"]["samples_per_s"], rel=1e-3)
+    assert rates["e2e_samples_1"] == 24 - 8 and rates["frames_1"] == rates["frames_n"] == 24
+    for key in ("inference_only_1_worker", "inference_only_n_workers", "e2e_1_worker"):
+        assert rates[key] > 0, key
+    assert mm["shape"] == "1024x1024x1024" and mm["library"].startswith("onnxruntime")
+    assert mm["gflops_1_core"] > 0 and mm["gflops_per_core_all_at_once"] > 0
+    assert mm["shapes"]["1024x1024x1024"]["gflops_1_core"] == mm["gflops_1_core"]
+    assert net["flops_per_frame"] > 1e9 and net["unknown_nodes"] == []
+    assert 0 < net["crf_share"] < 1
+    achieved = net["flops_per_frame"] * rates["inference_only_1_worker"] / 1e9
+    assert net["achieved_gflops_1_thread"] == pytest.approx(achieved, rel=2e-3)
+    assert q["e2e_n_over_e2e_1"] == pytest.approx(
+        rates["e2e_n_workers"] / rates["e2e_1_worker"], rel=2e-3)
+    assert q["e2e_n_over_inference_only_n"] == pytest.approx(
+        rates["e2e_n_workers"] / rates["inference_only_n_workers"], rel=2e-3)
+    assert q["achieved_over_matmul_1_core"] == pytest.approx(
+        net["achieved_gflops_1_thread"] / mm["gflops_1_core"], rel=2e-3)
+    mem = r["memory"]
+    if mem is not None:   # Linux
+        assert mem["max_processes"] >= 3        # the driver and its two workers
+        assert mem["peak_rss_mb"] >= mem["window_peak_rss_mb"] > 0
+        assert mem["samples"] > 0
+    text = pipeline_figures_text(r)   # what the command prints without --json
+    for words in ("GFLOP/frame", "MatMul 1024x1024x1024", "ratios:", "memory of the 2-worker"):
+        assert words in text, text
+
+
+def test_bench_pipeline_refuses_repeats_the_store_would_answer(capsys):
+    assert main(["bench", "pipeline", "--config", str(CONFIGS / "smoke.toml"),
+                 "--samples", "24"]) == 2
+    assert "more than the 8 samples" in capsys.readouterr().err
+
+
+def test_bench_memory_runs_a_whole_grid(capsys):
+    r = _json(capsys, ["bench", "memory", "--config", str(CONFIGS / "smoke.toml"),
+                       "--workers", "2", "--json"])
+    assert r["samples"] == 8 and r["command"].endswith("--workers 2")
+    if r["memory"] is not None:
+        assert r["memory"]["peak_rss_mb"] > 0 and r["memory"]["max_processes"] >= 3
 
 
 def test_bench_model_compares_variants_on_the_same_frames(capsys):

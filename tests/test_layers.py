@@ -37,7 +37,8 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
         "falsify/pipeline", "falsify/cluster", "falsify/runs", "falsify/gate",
         "falsify/reporting",
         "falsify/tradeoff", "falsify/bench", "falsify/fidelity", "falsify/evaluation",
-        "falsify/realism", "falsify/calib_check", "falsify/bench_camera", "falsify/retrain")),
+        "falsify/realism", "falsify/calib_check", "falsify/bench_camera", "falsify/retrain",
+        "falsify/bench_machine")),
     ("command line", (
         "falsify/cli", "falsify/camera_cli")),
 )

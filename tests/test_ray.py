@@ -128,7 +128,7 @@ def test_missing_ray_is_one_clear_error(monkeypatch):
 
 
 def test_bench_pipeline_measures_ray_beside_processes(ray, capsys):
-    assert main(["bench", "pipeline", "--config", str(CI.with_name("smoke.toml")), "--samples",
+    assert main(["bench", "pipeline", "--config", str(CI), "--samples",
                  "24", "--workers", "2", "--executor", "ray", "--json"]) == 0
     r = json.loads(capsys.readouterr().out)
     assert r["ray"]["actors"] == 2 and r["ray"]["samples_per_s"] > 0
