@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import itertools
+import random
 import sys
+import threading
+import time
 import types
 from unittest import mock
 
 import pytest
 from falsify.sampler import ALGORITHMS, NLOPT_ALGORITHMS, lowest_so_far, make_sampler
+from falsify.sampler.base import Recorder as BaseRecorder
 from falsify.sampler.nlopt import NloptSampler, discrete_combos
 
 from falsify.errors import ConfigError
@@ -271,3 +275,44 @@ def test_direct_finds_a_narrow_off_centre_minimum():
     far = lambda s: 0.2 + 0.8 * min(1.0, ((s["x"] - 3.2) ** 2 + (s["y"] - 6.4) ** 2) / 4)  # noqa: E731
     rec = run("GN_DIRECT_L", space, 60, fn=far)  # needs 36 evaluations to reach 0.22
     assert min(rec.scores) <= 0.22
+
+
+# ---- combinations run concurrently ----------------------------------------------------------
+
+class Jittery:
+    """A thread-safe evaluate: scores with `fn` after a random pause (so the threads' calls
+    interleave differently every time) and notes how many calls overlapped at most."""
+
+    def __init__(self, fn=planted, pause: float = 0.002):
+        self.fn, self.pause = fn, pause
+        self.lock = threading.Lock()
+        self.running = self.overlap = self.calls = 0
+
+    def __call__(self, batch):
+        with self.lock:
+            self.running += 1
+            self.calls += 1
+            self.overlap = max(self.overlap, self.running)
+        try:
+            time.sleep(random.random() * self.pause)
+            return [self.fn(s) for s in batch]
+        finally:
+            with self.lock:
+                self.running -= 1
+
+
+def test_recorder_orders_parts_by_key_whatever_the_timing():
+    space = paper_space()
+    pts = [space.make({"x": float(i % 9) - 4, "y": 6.0 + i}) for i in range(12)]
+    rec = BaseRecorder(Jittery(lambda s: s["y"], pause=0.01))
+    rec(pts[:2])                                    # part 0
+    threads = [threading.Thread(target=lambda k=k: [rec.part(k)([p]) for p in
+                                                    pts[2 + 5 * (2 - k):7 + 5 * (2 - k)]])
+               for k in (2, 1)]                      # part 2 gets pts[2:7], part 1 pts[7:12]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert rec.samples == pts[:2] + pts[7:12] + pts[2:7]
+    res = rec.result()
+    assert res.curve == tuple(s["y"] for s in res.samples) and res.best == 6.0
