@@ -204,6 +204,9 @@ def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> Run
                     model=p.model, executor=req.executor, address=req.address) as driver:
             search = p.sampler.run(p.space, driver.evaluate, req.budget, p.seed)
             progress.tell(final=True)
+        # Rows of concurrent combinations arrive in an order that depends on timing (and a
+        # resumed run may hold rows of a killed one): number them in the sampler's order.
+        store.renumber(search.samples)
         elapsed = float(old.get("elapsed_s", 0.0)) + time.perf_counter() - started
         store.set_meta(elapsed_s=round(elapsed, 3), curve=list(search.curve),
                        computed_last=progress.computed)
