@@ -5,7 +5,8 @@ back SampleResults. The model file, its spec and the user car meshes travel thro
 store as bytes named by their sha256, and each actor writes them to a cache folder of its node
 under that hash, so a worker node needs nothing but the package. A chunk whose actor dies is
 scored again on a replacement actor; results are yielded in chunk order, so the rows written are
-the same as with local processes.
+the same as with local processes. Several driver threads may call `map` at once (a search
+running combinations concurrently): the actors are shared through one queue of idle actors.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import hashlib
 import os
 import socket
 import tempfile
+import threading
 from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -162,7 +164,10 @@ class RayExecutor:
         self.actors: list = []
         self.reruns = 0            # chunks scored again after their actor died
         self.replaced = 0          # actors started to replace dead ones
-        self.in_flight: dict = {}  # task ref -> (chunk index, actor)
+        self.in_flight: dict = {}  # task ref -> (chunk index, actor), of every caller
+        self._idle: deque = deque()   # actors no caller holds
+        self._cond = threading.Condition()   # guards the above; told when an actor is freed
+        self._closed = False
         self._started_ray = False
         self._shipment_ref = None
         self._actor_cls = None
@@ -182,12 +187,17 @@ class RayExecutor:
         self._actor_cls = ray.remote(num_cpus=1, max_restarts=0)(EvalActor)
         self.actors = [self._new_actor() for _ in range(self.workers)]
         ray.get([a.ready.remote() for a in self.actors])
+        self._idle = deque(self.actors)
         return self
 
     def __exit__(self, *exc) -> None:
-        for a in self.actors:
+        with self._cond:
+            self._closed = True
+            actors, self.actors = self.actors, []
+            self._idle.clear()
+            self._cond.notify_all()
+        for a in actors:
             self.ray.kill(a)
-        self.actors = []
         if self._started_ray:
             self.ray.shutdown()
 
@@ -195,40 +205,88 @@ class RayExecutor:
         return self._actor_cls.remote(self._shipment_ref)
 
     def map(self, chunks: Sequence[list[Sample]]) -> Iterator[list[SampleResult]]:
-        """Results of each chunk, in chunk order, as soon as every earlier chunk is done."""
+        """Results of each chunk, in chunk order, as soon as every earlier chunk is done.
+
+        Safe to call from several threads at once. A caller takes an idle actor for each chunk
+        and waits only on its own tasks; it waits for an actor to come free only while it has
+        no task in flight, and hands each actor back as soon as its task is done (and all it
+        holds when it stops early), so callers never wait on each other's results."""
         ray = self.ray
         todo = deque(range(len(chunks)))
         attempts = [0] * len(chunks)
-        idle = deque(self.actors)
+        mine: dict = {}            # this call's tasks: ref -> (chunk index, actor)
         done: dict[int, list[SampleResult]] = {}
         nxt = 0
-        while nxt < len(chunks):
-            while todo and idle:
-                i, actor = todo.popleft(), idle.popleft()
-                attempts[i] += 1
-                self.in_flight[actor.score.remote(chunks[i])] = (i, actor)
-            ready, _ = ray.wait(list(self.in_flight), num_returns=1)
-            for ref in ready:
-                i, actor = self.in_flight.pop(ref)
-                try:
-                    done[i] = ray.get(ref)
-                    idle.append(actor)
-                except ray.exceptions.RayActorError as exc:
-                    if attempts[i] >= self.max_attempts:
-                        raise FalsifyError(f"--executor ray: a chunk of {len(chunks[i])} "
-                                           f"samples (first {chunks[i][0].as_dict()}) killed "
-                                           f"its actor {attempts[i]} times: {exc}") from None
-                    self._replace(actor)
-                    idle.append(self.actors[-1])
-                    todo.appendleft(i)
-                    self.reruns += 1
-            while nxt in done:
-                yield done.pop(nxt)
-                nxt += 1
+        try:
+            while nxt < len(chunks):
+                while todo:
+                    actor = self._take(wait=not mine)
+                    if actor is None:
+                        break
+                    i = todo.popleft()
+                    attempts[i] += 1
+                    ref = actor.score.remote(chunks[i])
+                    mine[ref] = (i, actor)
+                    with self._cond:
+                        self.in_flight[ref] = (i, actor)
+                ready, _ = ray.wait(list(mine), num_returns=1)
+                for ref in ready:
+                    i, actor = mine.pop(ref)
+                    with self._cond:
+                        self.in_flight.pop(ref, None)
+                    try:
+                        done[i] = ray.get(ref)
+                    except ray.exceptions.RayActorError as exc:
+                        if attempts[i] >= self.max_attempts:
+                            raise FalsifyError(f"--executor ray: a chunk of {len(chunks[i])} "
+                                               f"samples (first {chunks[i][0].as_dict()}) "
+                                               f"killed its actor {attempts[i]} times: "
+                                               f"{exc}") from None
+                        self._replace(actor)
+                        todo.appendleft(i)
+                        continue
+                    self._give(actor)
+                while nxt in done:
+                    yield done.pop(nxt)
+                    nxt += 1
+        finally:
+            # Stopped early (an error here or in the caller): hand back what this call holds;
+            # a task still running on an actor only delays the next task sent to it.
+            for ref, (_, actor) in mine.items():
+                with self._cond:
+                    self.in_flight.pop(ref, None)
+                self._give(actor)
+
+    def _take(self, wait: bool):
+        """An idle actor, taken from the queue; None if none is idle and not `wait`."""
+        with self._cond:
+            while not self._idle:
+                if self._closed:
+                    raise FalsifyError("--executor ray: the executor was shut down")
+                if not wait:
+                    return None
+                self._cond.wait(timeout=1.0)
+            return self._idle.popleft()
+
+    def _give(self, actor) -> None:
+        """Hand an actor back to the idle queue (unless it was replaced or already there)."""
+        with self._cond:
+            if actor in self.actors and actor not in self._idle:
+                self._idle.append(actor)
+                self._cond.notify()
 
     def _replace(self, dead) -> None:
-        """Drop a dead actor (and any other task it held is re-run when its error arrives)."""
-        if dead in self.actors:
+        """Drop a dead actor and queue a new one in its place (once, however many callers saw it
+        die); any other task it held is re-run when its error arrives."""
+        with self._cond:
+            self.reruns += 1
+            if dead not in self.actors:
+                return
             self.actors.remove(dead)
-        self.actors.append(self._new_actor())
-        self.replaced += 1
+            if dead in self._idle:
+                self._idle.remove(dead)
+            fresh = self._new_actor()
+            self.actors.append(fresh)
+            self._idle.append(fresh)
+            self.replaced += 1
+            self._cond.notify()
