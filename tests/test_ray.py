@@ -9,6 +9,7 @@ import sys
 import threading
 from pathlib import Path
 
+import pandas as pd
 import pytest
 from falsify.sampler.base import make_sampler
 
@@ -95,6 +96,20 @@ def test_map_serves_concurrent_callers_in_their_own_order(ray, process_rows):
             for r in chunk:
                 v = want[sample_key(r.sample)]
                 assert (r.score is None and v != v) or r.score == pytest.approx(v, abs=1e-6)
+
+
+def test_concurrent_search_on_ray_gives_the_rows_of_one_process(ray, tmp_path):
+    """NLopt runs the three backgrounds two at a time on two actors: the rows and the curve of
+    the sequential loop on one local process."""
+    runs = {}
+    for name, executor, workers in (("one", "process", 1), ("ray", "ray", 2)):
+        runs[name] = execute(RunRequest(config=CI, out=tmp_path / name, command="search",
+                                        algorithm="GN_CRS2_LM", budget=12, workers=workers,
+                                        executor=executor, report=False))
+    assert runs["one"].search == runs["ray"].search
+    pd.testing.assert_frame_equal(rows(tmp_path / "one" / STORE_NAME),
+                                  rows(tmp_path / "ray" / STORE_NAME),
+                                  check_exact=False, atol=1e-6)
 
 
 @pytest.mark.parametrize("address, says", [

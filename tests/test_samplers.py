@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import itertools
+import os
 import random
+import signal
 import sys
 import threading
 import time
@@ -316,3 +318,82 @@ def test_recorder_orders_parts_by_key_whatever_the_timing():
     assert rec.samples == pts[:2] + pts[7:12] + pts[2:7]
     res = rec.result()
     assert res.curve == tuple(s["y"] for s in res.samples) and res.best == 6.0
+
+
+@pytest.mark.parametrize("name", ["GN_CRS2_LM", "LN_BOBYQA"])
+def test_concurrent_combinations_give_the_sequential_result(name):
+    """W threads give the samples, curve, best and per-combination results of the sequential
+    loop (GN_CRS2_LM draws from NLopt's generator, which is per thread; LN_BOBYQA does not)."""
+    space = small_space()        # 24 combinations
+    budget = 24 * 5 + 3
+    seq_rec = Recorder(planted)
+    seq = NloptSampler(name).optimise(space, seq_rec, budget, seed=5)
+    want = make_sampler(name).run(space, Recorder(planted), budget, 5)
+    assert list(want.samples) == seq_rec.samples and want.evaluations == budget
+    combos = discrete_combos(space)
+    where = [next(i for i, c in enumerate(combos) if all(s[k] == v for k, v in c.items()))
+             for s in want.samples]
+    assert where == sorted(where)  # the curve: combination order, then evaluation order
+    for w in (2, 4):
+        ev = Jittery()
+        assert make_sampler(name, concurrent=w).run(space, ev, budget, 5) == want
+        assert 1 < ev.overlap <= w
+        again = NloptSampler(name, concurrent=w).optimise(space, Jittery(), budget, seed=5)
+        assert again == seq
+
+
+@pytest.mark.parametrize("name", ["LN_BOBYQA", "GN_CRS2_LM"])
+@pytest.mark.parametrize("error", [RuntimeError, KeyboardInterrupt])
+def test_an_error_in_one_combination_stops_the_run_promptly(name, error):
+    """Raised by `evaluate` in one thread (a worker died, an interrupt reached it), the error
+    itself leaves `run` within one evaluation of the others, with no thread left behind (CRS
+    calls its objective once more after a stop; that call must not evaluate)."""
+    space = small_space()
+    calls: list[float] = []
+
+    def evaluate(batch):
+        s = batch[0]
+        calls.append(time.perf_counter())
+        if all(s[k] == v for k, v in failing.items()) and len(calls) > 6:
+            raise error("worker died")
+        time.sleep(0.01)
+        return [planted(s)]
+
+    before = threading.active_count()
+    for w in (1, 2):
+        failing = discrete_combos(space)[w - 1]   # with 2 threads: while the first one runs
+        t0 = time.perf_counter()
+        with pytest.raises(error, match="worker died"):   # 24 × 200 × 10 ms otherwise
+            NloptSampler(name, concurrent=w).run(space, evaluate, 24 * 200, 0)
+        assert time.perf_counter() - t0 < 2.0
+        n = len(calls)
+        time.sleep(0.1)
+        assert len(calls) == n and threading.active_count() == before
+        calls.clear()
+
+
+def test_an_interrupt_in_the_calling_thread_stops_every_combination():
+    space = small_space()
+    calls: list[int] = []
+
+    def evaluate(batch):
+        calls.append(1)
+        time.sleep(0.01)
+        return [planted(s) for s in batch]
+
+    before = threading.active_count()
+    timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    t0 = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        NloptSampler("GN_CRS2_LM", concurrent=3).run(space, evaluate, 24 * 200, 0)
+    assert time.perf_counter() - t0 < 3.0 and calls
+    n = len(calls)
+    time.sleep(0.1)
+    assert len(calls) == n and threading.active_count() == before
+
+
+def test_concurrent_must_be_a_positive_integer():
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ConfigError, match="concurrent"):
+            run("LN_BOBYQA", paper_space(), 10, concurrent=bad)
