@@ -13,6 +13,7 @@ being scored, so callers never wait on each other's samples.
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -106,7 +107,17 @@ _worker: Evaluator | None = None
 
 def _init_worker(settings: EvalSettings) -> None:
     global _worker
+    threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True,
+                     name="parent-watch").start()
     _worker = Evaluator(settings)
+
+
+def _exit_with_parent(parent: int, every_s: float = 1.0) -> None:
+    """End this worker once its driver is gone: a driver killed with -9 leaves its workers
+    waiting on a task queue that they hold open themselves, so they would never see it end."""
+    while os.getppid() == parent:
+        time.sleep(every_s)
+    os._exit(1)
 
 
 def _work(samples: list[Sample]) -> list[SampleResult]:
