@@ -302,3 +302,39 @@ def test_interrupted_concurrent_search_resumes_to_the_same_rows(tmp_path):
     assert again.computed_this_time == len(read_frame(full)) - partial
     assert again.search == whole.search
     pd.testing.assert_frame_equal(rows(full), rows(cut), check_exact=False, atol=1e-6)
+
+
+def test_killed_concurrent_search_resumes_to_the_rows_of_one_worker(tmp_path):
+    """kill -9 in the middle of a two-worker NLopt search (rows arriving from two combinations
+    at once), then --resume: nothing recomputed or duplicated, the rows of one worker's run."""
+    config = small_config(tmp_path, xs=(-4.0, 4.0, 1.0), ys=(6.0, 18.0, 1.0),
+                          backgrounds=(0, 1, 2))
+    full, killed = tmp_path / "full", tmp_path / "killed"
+    whole = search(config, full, "GN_CRS2_LM", workers=1, budget=36)
+    cmd = [sys.executable, "-m", "falsify.cli", "search", str(config), "--algorithm",
+           "GN_CRS2_LM", "--budget", "36", "--seed", "4", "--workers", "2", "--out",
+           str(killed), "--quiet", "--no-report"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    db = killed / "results.sqlite"
+    deadline = time.time() + 120
+    n = 0
+    while time.time() < deadline and proc.poll() is None:
+        if db.exists():
+            try:
+                with sqlite3.connect(db, timeout=1) as c:
+                    n = c.execute("SELECT COUNT(*) FROM samples").fetchone()[0]
+            except sqlite3.OperationalError:
+                n = 0
+            if n >= 8:
+                break
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    total = len(read_frame(full))
+    assert 8 <= n < total, "the run must be killed in the middle"
+    partial = len(read_frame(killed))
+    r = subprocess.run(cmd + ["--resume", "--json"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["computed_this_time"] == total - partial
+    assert read_meta(killed)["curve"] == list(whole.search.curve)
+    pd.testing.assert_frame_equal(rows(full), rows(killed), check_exact=False, atol=1e-6)
