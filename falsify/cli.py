@@ -403,6 +403,15 @@ def _memory_text(m: dict | None) -> str:
             f"{m['late_rss_mb']} MB")
 
 
+def _search_timing(r: dict) -> str:
+    """A `bench search` row's time: wall seconds, per evaluation, against random's."""
+    if r["s_per_evaluation"] is None:
+        return "not timed (resumed from an earlier invocation)"
+    vs = r["s_per_evaluation_vs_random"]
+    return (f"{r['wall_s']:.1f} s, {r['s_per_evaluation'] * 1e3:.1f} ms/evaluation"
+            + ("" if vs is None else f" ({vs:.2f}x random)"))
+
+
 def cmd_bench(args) -> int:
     from falsify import bench
 
@@ -474,7 +483,8 @@ def cmd_bench(args) -> int:
         text = "\n".join(
             f"{r['algorithm']:12s} lowest {r['lowest']} after {r['evaluations']} evaluations; "
             f"within 0.02 of the grid's {result['grid_lowest']} after "
-            f"{r['evaluations_to_target']}" for r in result["algorithms"])
+            f"{r['evaluations_to_target']}; {_search_timing(r)}" for r in result["algorithms"])
+        text += f"\n{result['per_evaluation_goal']}; on {args.workers} workers"
     elif args.what == "scan":
         sb = bench.bench_scan(args.config, workers=args.workers,
                               **given_options(args, "samples", "naive_samples"))

@@ -8,6 +8,8 @@ scored again on a replacement actor; results are yielded in chunk order, so the 
 the same as with local processes. An actor that cannot build its Evaluator reports why instead
 of dying (Ray would keep only the text of its traceback): the user's input (a FalsifyError) stops
 the run with one line, anything else is raised as an ActorCrash with the actor's traceback.
+Several driver threads may call `map` at once (a search running combinations concurrently):
+the actors are shared through one queue of idle actors.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import os
 import re
 import socket
 import tempfile
+import threading
 import traceback
 from collections import deque
 from collections.abc import Iterator, Sequence
@@ -236,8 +239,10 @@ class RayExecutor:
         self.actors: list = []
         self.reruns = 0            # chunks scored again after their actor died
         self.replaced = 0          # actors started to replace dead ones
-        self.start_deaths = 0      # replacements in a row whose process died while starting
-        self.in_flight: dict = {}  # task ref -> (chunk index, actor); index None: its start
+        self.in_flight: dict = {}  # task ref -> (chunk index, actor), of every caller
+        self._idle: deque = deque()   # actors no caller holds
+        self._cond = threading.Condition()   # guards the above; told when an actor is freed
+        self._closed = False
         self._started_ray = False
         self._shipment_ref = None
         self._actor_cls = None
@@ -268,15 +273,20 @@ class RayExecutor:
                         self._check_started(ref)
                     except ray.exceptions.RayActorError as exc:
                         raise self._died_starting(exc) from None
+            self._idle = deque(self.actors)
         except BaseException:
             self.__exit__()
             raise
         return self
 
     def __exit__(self, *exc) -> None:
-        for a in self.actors:
+        with self._cond:
+            self._closed = True
+            actors, self.actors = self.actors, []
+            self._idle.clear()
+            self._cond.notify_all()
+        for a in actors:
             self.ray.kill(a)
-        self.actors = []
         self.in_flight = {}
         if self._started_ray:
             self.ray.shutdown()
@@ -306,56 +316,104 @@ class RayExecutor:
         return ActorCrash(f"--executor ray: an actor died while starting: {why}\n\n{exc}")
 
     def map(self, chunks: Sequence[list[Sample]]) -> Iterator[list[SampleResult]]:
-        """Results of each chunk, in chunk order, as soon as every earlier chunk is done; a
-        replacement actor takes chunks once it has started (a failure to start stops the run)."""
+        """Results of each chunk, in chunk order, as soon as every earlier chunk is done.
+
+        Safe to call from several threads at once. A caller takes an idle actor for each chunk
+        and waits only on its own tasks; it waits for an actor to come free only while it has
+        no task in flight, and hands each actor back as soon as its task is done (and all it
+        holds when it stops early), so callers never wait on each other's results."""
         ray = self.ray
         todo = deque(range(len(chunks)))
         attempts = [0] * len(chunks)
-        busy = {a for _, a in self.in_flight.values()}   # a replacement may still be starting
-        idle = deque(a for a in self.actors if a not in busy)
+        mine: dict = {}            # this call's tasks: ref -> (chunk index, actor)
         done: dict[int, list[SampleResult]] = {}
         nxt = 0
-        while nxt < len(chunks):
-            while todo and idle:
-                i, actor = todo.popleft(), idle.popleft()
-                attempts[i] += 1
-                self.in_flight[actor.score.remote(chunks[i])] = (i, actor)
-            ready, _ = ray.wait(list(self.in_flight), num_returns=1)
-            for ref in ready:
-                i, actor = self.in_flight.pop(ref)
-                if i is None:   # a replacement's start: a death is retried, a failure is not
+        try:
+            while nxt < len(chunks):
+                while todo:
+                    actor = self._take(wait=not mine)
+                    if actor is None:
+                        break
+                    i = todo.popleft()
+                    attempts[i] += 1
+                    ref = actor.score.remote(chunks[i])
+                    mine[ref] = (i, actor)
+                    with self._cond:
+                        self.in_flight[ref] = (i, actor)
+                ready, _ = ray.wait(list(mine), num_returns=1)
+                for ref in ready:
+                    i, actor = mine.pop(ref)
+                    with self._cond:
+                        self.in_flight.pop(ref, None)
                     try:
-                        self._check_started(ref)
+                        done[i] = ray.get(ref)
                     except ray.exceptions.RayActorError as exc:
-                        self.start_deaths += 1
-                        if self.start_deaths >= self.max_attempts:
-                            raise self._died_starting(exc) from None
+                        if attempts[i] >= self.max_attempts:
+                            raise FalsifyError(f"--executor ray: a chunk of {len(chunks[i])} "
+                                               f"samples (first {chunks[i][0].as_dict()}) "
+                                               f"killed its actor {attempts[i]} times: "
+                                               f"{exc}") from None
                         self._replace(actor)
+                        todo.appendleft(i)
                         continue
-                    self.start_deaths = 0
-                    idle.append(actor)
-                    continue
-                try:
-                    done[i] = ray.get(ref)
-                    idle.append(actor)
-                except ray.exceptions.RayActorError as exc:
-                    if attempts[i] >= self.max_attempts:
-                        raise FalsifyError(f"--executor ray: a chunk of {len(chunks[i])} "
-                                           f"samples (first {chunks[i][0].as_dict()}) killed "
-                                           f"its actor {attempts[i]} times: {exc}") from None
-                    self._replace(actor)
-                    todo.appendleft(i)
-                    self.reruns += 1
-            while nxt in done:
-                yield done.pop(nxt)
-                nxt += 1
+                    self._give(actor)
+                while nxt in done:
+                    yield done.pop(nxt)
+                    nxt += 1
+        finally:
+            # Stopped early (an error here or in the caller): hand back what this call holds;
+            # a task still running on an actor only delays the next task sent to it.
+            for ref, (_, actor) in mine.items():
+                with self._cond:
+                    self.in_flight.pop(ref, None)
+                self._give(actor)
+
+    def _take(self, wait: bool):
+        """An idle actor, taken from the queue; None if none is idle and not `wait`."""
+        with self._cond:
+            while not self._idle:
+                if self._closed:
+                    raise FalsifyError("--executor ray: the executor was shut down")
+                if not wait:
+                    return None
+                self._cond.wait(timeout=1.0)
+            return self._idle.popleft()
+
+    def _give(self, actor) -> None:
+        """Hand an actor back to the idle queue (unless it was replaced or already there)."""
+        with self._cond:
+            if actor in self.actors and actor not in self._idle:
+                self._idle.append(actor)
+                self._cond.notify()
 
     def _replace(self, dead) -> None:
-        """Drop a dead actor and start another, which takes chunks once its start is checked
-        (any other task the dead one held is re-run when its error arrives)."""
-        if dead in self.actors:
+        """Drop a dead actor and start one in its place (once, however many callers saw it die);
+        it takes chunks once its start is checked: a failure to start stops the run, a death
+        while starting is retried up to max_attempts. Any other task the dead one held is re-run
+        when its error arrives."""
+        with self._cond:
+            self.reruns += 1
+            if dead not in self.actors:
+                return
             self.actors.remove(dead)
-        actor = self._new_actor()
-        self.actors.append(actor)
-        self.in_flight[actor.ready.remote()] = (None, actor)
-        self.replaced += 1
+            if dead in self._idle:
+                self._idle.remove(dead)
+        for attempt in range(1, self.max_attempts + 1):
+            fresh = self._new_actor()
+            try:
+                self._check_started(fresh.ready.remote())
+                break
+            except self.ray.exceptions.RayActorError as exc:
+                if attempt == self.max_attempts:
+                    raise self._died_starting(exc) from None
+            except BaseException:
+                self.ray.kill(fresh)
+                raise
+        with self._cond:
+            if self._closed:
+                self.ray.kill(fresh)
+                return
+            self.actors.append(fresh)
+            self._idle.append(fresh)
+            self.replaced += 1
+            self._cond.notify()

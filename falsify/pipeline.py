@@ -3,16 +3,23 @@
 Each worker holds a Simulator (BVHs, cached background hits) and an inference session for the
 whole run and scores samples in batches. The driver hands the samplers an `evaluate` callback
 that answers stored samples from the run's SQLite file and computes only the rest, so a resumed
-run replays the sampler without recomputing or duplicating anything.
+run replays the sampler without recomputing or duplicating anything. The callback may be called
+from several threads at once (a search running combinations concurrently): the store and the
+progress lock themselves, the in-process evaluator is used by one thread at a time, and the
+process pool and the Ray executor take concurrent callers. No lock is held while a chunk is
+being scored, so callers never wait on each other's samples.
 """
 
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
+import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -100,7 +107,17 @@ _worker: Evaluator | None = None
 
 def _init_worker(settings: EvalSettings) -> None:
     global _worker
+    threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True,
+                     name="parent-watch").start()
     _worker = Evaluator(settings)
+
+
+def _exit_with_parent(parent: int, every_s: float = 1.0) -> None:
+    """End this worker once its driver is gone: a driver killed with -9 leaves its workers
+    waiting on a task queue that they hold open themselves, so they would never see it end."""
+    while os.getppid() == parent:
+        time.sleep(every_s)
+    os._exit(1)
 
 
 def _work(samples: list[Sample]) -> list[SampleResult]:
@@ -115,7 +132,9 @@ ProgressListener = Callable[["Progress", bool], None]
 @dataclass
 class Progress:
     """Counts and the lowest IoU so far, told to a listener as they change (the CLI draws a
-    progress bar from them; the jobs print nothing)."""
+    progress bar from them; the jobs print nothing). Updates from several threads are
+    serialised; the listener is called under the same lock, so it sees consistent counts (and
+    must not update the progress itself)."""
 
     total: int | None
     listener: ProgressListener | None = None
@@ -124,19 +143,22 @@ class Progress:
     lowest: float | None = None
     lowest_at: dict | None = None
     started: float = field(default_factory=time.perf_counter)
+    _lock: Any = field(default_factory=threading.RLock, init=False, repr=False, compare=False)
 
     def update(self, results: Sequence[SampleResult], fresh: int) -> None:
-        self.done += len(results)
-        self.computed += fresh
-        for r in results:
-            s = r.score
-            if s is not None and (self.lowest is None or s < self.lowest):
-                self.lowest, self.lowest_at = s, r.sample.as_dict()
-        self.tell()
+        with self._lock:
+            self.done += len(results)
+            self.computed += fresh
+            for r in results:
+                s = r.score
+                if s is not None and (self.lowest is None or s < self.lowest):
+                    self.lowest, self.lowest_at = s, r.sample.as_dict()
+            self.tell()
 
     def tell(self, final: bool = False) -> None:
-        if self.listener is not None:
-            self.listener(self, final)
+        with self._lock:
+            if self.listener is not None:
+                self.listener(self, final)
 
 
 class Driver:
@@ -155,6 +177,7 @@ class Driver:
         self.progress = progress or Progress(None)
         self.model = model     # this process's open model (else loaded on entry)
         self._local: Evaluator | None = None
+        self._local_lock = threading.Lock()   # one warm scanner and session: one thread at a time
         self._pool: ProcessPoolExecutor | None = None
         self.ray = None            # the RayExecutor with --executor ray
         self.model_hash = ""
@@ -188,7 +211,10 @@ class Driver:
             self.ray.__exit__(*exc)
 
     def evaluate(self, samples: Sequence[Sample]) -> list[float | None]:
-        """The samplers' callback: scores in order, stored ones read back, the rest computed."""
+        """The samplers' callback: scores in order, stored ones read back, the rest computed.
+
+        Safe to call from several threads. Two threads asking for the same new sample at once
+        may both compute it; the store keeps the first row and counts it once."""
         todo: list[Sample] = []
         seen = set()
         for s in samples:
@@ -204,10 +230,17 @@ class Driver:
         if self.ray is not None:
             outputs = self.ray.map(chunks)
         elif self._local is not None:
-            outputs = map(self._local.score_batch, chunks)
+            outputs = map(self._score_locally, chunks)
         else:
+            assert self._pool is not None
             outputs = self._pool.map(_work, chunks)
         for chunk_results in outputs:
-            self.store.add(chunk_results, self.model_hash, self.settings.space.config_hash)
-            self.progress.update(chunk_results, len(chunk_results))
+            fresh = self.store.add(chunk_results, self.model_hash,
+                                   self.settings.space.config_hash)
+            self.progress.update(chunk_results, fresh)
         return [self.store.score(s) for s in samples]
+
+    def _score_locally(self, chunk: list[Sample]) -> list[SampleResult]:
+        assert self._local is not None
+        with self._local_lock:
+            return self._local.score_batch(chunk)

@@ -94,8 +94,10 @@ def prepare(req: RunRequest) -> Prepared:
     if req.threshold is not None and not 0 < req.threshold <= 1:
         raise FalsifyError(f"--threshold: {req.threshold} must be in (0, 1]")
     # Batch samplers hand the driver whole batches; keep every worker busy with two chunks of
-    # 8 each (their samples and order do not depend on the batch size, so neither do the rows).
-    sizes = {"batch_size": max(BATCH, 16 * req.workers)} if req.algorithm in BATCHED else {}
+    # 8 each. NLopt asks for one point at a time per discrete combination: run as many
+    # combinations at once as there are workers. Neither changes the samples or the rows.
+    sizes = ({"batch_size": max(BATCH, 16 * req.workers)} if req.algorithm in BATCHED
+             else {"concurrent": req.workers})
     sampler = make_sampler(req.algorithm, **sizes)
     if req.camera is not None:
         from falsify.camera import camera_preset, check_looks
@@ -211,6 +213,9 @@ def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> Run
             store.set_meta(sessions=[*sessions_of(old), session(req, now)])
             search = p.sampler.run(p.space, driver.evaluate, req.budget, p.seed)
             progress.tell(final=True)
+        # Rows of concurrent combinations arrive in an order that depends on timing (and a
+        # resumed run may hold rows of a killed one): number them in the sampler's order.
+        store.renumber(search.samples)
         elapsed = float(old.get("elapsed_s", 0.0)) + time.perf_counter() - started
         store.set_meta(elapsed_s=round(elapsed, 3), curve=list(search.curve),
                        computed_last=progress.computed)

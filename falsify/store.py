@@ -2,13 +2,15 @@
 
 Rows are keyed by the sample (its dims as canonical JSON), so a resumed run finds what a killed
 one finished and neither recomputes nor duplicates it. WAL mode keeps a kill -9 from losing any
-committed row.
+committed row. A Store may be used from several threads (a search running combinations
+concurrently): one connection, every use of it and of the key cache under one lock.
 """
 
 from __future__ import annotations
 
 import json
 import sqlite3
+import threading
 import tomllib
 import zlib
 from collections.abc import Iterable, Sequence
@@ -69,7 +71,9 @@ class Store:
         self.path = Path(path)
         self.space = space
         self.dim_names = list(space.dims)
-        self.db = sqlite3.connect(self.path, timeout=30.0)
+        # One connection shared by the driver's threads; the lock serialises every use of it.
+        self.db = sqlite3.connect(self.path, timeout=30.0, check_same_thread=False)
+        self._lock = threading.RLock()
         self.db.execute("PRAGMA journal_mode=WAL")
         self.db.execute("PRAGMA synchronous=NORMAL")
         dims = ", ".join(f'"{d}" {_sql_type(space, d)}' for d in self.dim_names)
@@ -85,48 +89,80 @@ class Store:
             k: v for k, v in self.db.execute("SELECT sample_key, car_iou FROM samples")}
 
     def close(self) -> None:
-        self.db.close()
+        with self._lock:
+            self.db.close()
 
     # -- metadata ---------------------------------------------------------------------------
     def set_meta(self, **values) -> None:
-        with self.db:
+        with self._lock, self.db:
             self.db.executemany("INSERT OR REPLACE INTO run VALUES (?, ?)",
                                 [(k, json.dumps(v)) for k, v in values.items()])
 
     def meta(self) -> dict:
-        return {k: json.loads(v) for k, v in self.db.execute("SELECT key, value FROM run")}
+        with self._lock:
+            return {k: json.loads(v) for k, v in self.db.execute("SELECT key, value FROM run")}
 
     # -- rows -------------------------------------------------------------------------------
     def __len__(self) -> int:
-        return len(self._cache)
+        with self._lock:
+            return len(self._cache)
 
     def __contains__(self, sample: Sample) -> bool:
-        return sample_key(sample) in self._cache
+        key = sample_key(sample)
+        with self._lock:
+            return key in self._cache
 
     def score(self, sample: Sample) -> float | None:
-        return self._cache[sample_key(sample)]
+        key = sample_key(sample)
+        with self._lock:
+            return self._cache[key]
 
-    def add(self, results: Iterable[SampleResult], model_hash: str, config_hash: str) -> None:
-        """Insert a batch of results in one transaction (skipping any already stored)."""
-        rows = []
-        for r in results:
-            key = sample_key(r.sample)
-            if key in self._cache:
-                continue
-            self._cache[key] = r.score
-            values = [r.sample[d] for d in self.dim_names]
-            metrics = [r.metrics.get(m) for m in METRIC_COLUMNS]
-            rows.append([len(self._cache) - 1, key, *values, str(r.status), r.reason, *metrics,
-                         r.car_points, r.label_points, r.t_scan, r.t_infer, r.t_total, r.seed,
-                         model_hash, config_hash])
-        if not rows:
-            return
-        cols = FIXED_COLUMNS[:2] + self.dim_names + ["status", "reason"] + METRIC_COLUMNS + \
-            FIXED_COLUMNS[4:]
-        sql = (f"INSERT INTO samples ({', '.join(_q(c) for c in cols)}) VALUES "
-               f"({', '.join('?' * len(cols))})")
-        with self.db:
-            self.db.executemany(sql, rows)
+    def add(self, results: Iterable[SampleResult], model_hash: str, config_hash: str) -> int:
+        """Insert a batch of results in one transaction (skipping any already stored); returns
+        how many rows were new. eval_index is the order of arrival (see `renumber`)."""
+        with self._lock:
+            rows = []
+            for r in results:
+                key = sample_key(r.sample)
+                if key in self._cache:
+                    continue
+                self._cache[key] = r.score
+                values = [r.sample[d] for d in self.dim_names]
+                metrics = [r.metrics.get(m) for m in METRIC_COLUMNS]
+                rows.append([len(self._cache) - 1, key, *values, str(r.status), r.reason,
+                             *metrics, r.car_points, r.label_points, r.t_scan, r.t_infer,
+                             r.t_total, r.seed, model_hash, config_hash])
+            if not rows:
+                return 0
+            cols = FIXED_COLUMNS[:2] + self.dim_names + ["status", "reason"] + METRIC_COLUMNS + \
+                FIXED_COLUMNS[4:]
+            sql = (f"INSERT INTO samples ({', '.join(_q(c) for c in cols)}) VALUES "
+                   f"({', '.join('?' * len(cols))})")
+            with self.db:
+                self.db.executemany(sql, rows)
+            return len(rows)
+
+    def renumber(self, order: Iterable[Sample]) -> int:
+        """Set eval_index to each row's first place in `order` (the sampler's order), rows not
+        in it after, as they were; one transaction. Rows of concurrent callers arrive in an
+        order that depends on timing; this makes the finished table independent of it (where
+        rows arrived in the sampler's order already, as in a sequential run, nothing changes).
+        Returns how many rows changed."""
+        with self._lock:
+            now = dict(self.db.execute("SELECT sample_key, eval_index FROM samples"))
+            want: dict[str, int] = {}
+            for s in order:
+                key = sample_key(s)
+                if key in now and key not in want:
+                    want[key] = len(want)
+            for key in sorted(set(now) - set(want), key=lambda k: now[k]):
+                want[key] = len(want)
+            changed = [(i, k) for k, i in want.items() if now[k] != i]
+            if changed:
+                with self.db:
+                    self.db.executemany("UPDATE samples SET eval_index = ? WHERE sample_key = ?",
+                                        changed)
+            return len(changed)
 
 
 def _read_only(path: str | Path, query):

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import threading
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import nlopt
@@ -36,9 +38,10 @@ ALGORITHMS: tuple[str, ...] = ("grid", "random", "sobol", *NLOPT_ALGORITHMS)
 class SearchResult:
     """What a sampler did: the score of every evaluation in order, and the lowest it found."""
 
-    curve: tuple[Score, ...]          # car IoU per evaluation, in the order asked
+    curve: tuple[Score, ...]          # car IoU per evaluation, in the sampler's order
     best: Score                       # the lowest defined score; None if none was defined
     best_sample: Sample | None
+    samples: tuple[Sample, ...] = field(default=(), repr=False)   # each evaluation's sample
 
     @property
     def evaluations(self) -> int:
@@ -51,26 +54,57 @@ class SearchResult:
 
 
 class Recorder:
-    """Wraps an evaluate callback and keeps every sample and score it passes, in order."""
+    """Wraps an evaluate callback and keeps every sample and score it passes, in order.
+
+    Calls may come from several threads at once: `part(key)` hands out an evaluate that
+    records under `key` (direct calls record under key 0), and the order kept is by key, then
+    by call order within the key, so it does not depend on how the threads' calls interleave
+    as long as each key is called from one thread at a time."""
 
     def __init__(self, evaluate: Evaluate):
         self._evaluate = evaluate
-        self.samples: list[Sample] = []
-        self.scores: list[Score] = []
+        self._lock = threading.Lock()
+        self._parts: dict[int, tuple[list[Sample], list[Score]]] = {}
 
     def __call__(self, samples: Sequence[Sample]) -> list[Score]:
+        return self._record(0, samples)
+
+    def part(self, key: int) -> Evaluate:
+        """An evaluate that records under `key` (an int; parts are kept in ascending order)."""
+        return functools.partial(self._record, key)
+
+    def _record(self, key: int, samples: Sequence[Sample]) -> list[Score]:
         scores = self._evaluate(samples)
-        self.samples.extend(samples)
-        self.scores.extend(scores)
+        with self._lock:
+            kept_samples, kept_scores = self._parts.setdefault(key, ([], []))
+            kept_samples.extend(samples)
+            kept_scores.extend(scores)
         return scores
 
+    @property
+    def samples(self) -> list[Sample]:
+        with self._lock:
+            return [s for k in sorted(self._parts) for s in self._parts[k][0]]
+
+    @property
+    def scores(self) -> list[Score]:
+        with self._lock:
+            return [s for k in sorted(self._parts) for s in self._parts[k][1]]
+
     def result(self) -> SearchResult:
+        samples, scores = self.samples, self.scores
         best: tuple[float, Sample] | None = None
-        for sample, s in zip(self.samples, self.scores, strict=True):
+        for sample, s in zip(samples, scores, strict=True):
             if s is not None and not math.isnan(s) and (best is None or s < best[0]):
                 best = (float(s), sample)
-        return SearchResult(tuple(self.scores), None if best is None else best[0],
-                            None if best is None else best[1])
+        return SearchResult(tuple(scores), None if best is None else best[0],
+                            None if best is None else best[1], tuple(samples))
+
+
+def part_of(evaluate: Evaluate, key: int) -> Evaluate:
+    """`evaluate.part(key)` when evaluate records in parts (a Recorder), else evaluate itself."""
+    part = getattr(evaluate, "part", None)
+    return evaluate if part is None else part(key)
 
 
 class Sampler(Protocol):

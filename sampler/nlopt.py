@@ -16,18 +16,39 @@
   is deterministic and ignores the start: it runs once); global methods run to their share.
 - `nlopt.srand` is reseeded before every run from (seed, combination, restart), so the sequence
   of samples is a function of (space, budget, seed, the scores told).
+- With `concurrent` W > 1 (the driver's workers), up to W combinations run at once, each in its
+  own thread with its own NLopt run(s), each asking `evaluate` for one point at a time; the
+  threads never wait on each other (`evaluate` must be safe to call from several threads).
+  Nothing of a combination depends on another (its quota, its seeds, its numpy Generator and
+  NLopt's generator, which is per thread, are its own), so the samples, scores and results are
+  those of the sequential loop whatever W and the timing. A Recorder passed as `evaluate` keeps
+  the order that defines the curve: the fixed combinations' batch, then each free combination's
+  evaluations in combination order, each in its own evaluation order (not completion order).
+- An exception in one combination (a worker dying, an error in `evaluate`) or in the calling
+  thread (KeyboardInterrupt) stops the others at their next evaluation and is raised once all
+  have stopped; combinations not started are not started. Nothing is raised through NLopt
+  itself: the objective keeps the exception, asks NLopt to stop, and it is raised after.
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+import threading
 from collections.abc import Sequence
+from concurrent.futures import FIRST_EXCEPTION, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 
 import nlopt
 import numpy as np
-from falsify.sampler.base import NLOPT_ALGORITHMS, Evaluate, Recorder, SearchResult, check_budget
+from falsify.sampler.base import (
+    NLOPT_ALGORITHMS,
+    Evaluate,
+    Recorder,
+    SearchResult,
+    check_budget,
+    part_of,
+)
 
 from falsify.errors import ConfigError
 from falsify.space import Categorical, Continuous, Sample, Space, Value
@@ -35,6 +56,15 @@ from falsify.space import Categorical, Continuous, Sample, Space, Value
 LOCAL_SUBOPTIMISERS = ("LN_BOBYQA", "LN_COBYLA")
 FTOL = 1e-9  # local runs also stop on an exactly flat score (e.g. the penalty plateau)
 _START_FREE = ("GN_DIRECT_L",)  # deterministic and ignore x0: a restart would repeat itself
+_POLL_S = 0.5   # how often the calling thread looks up from waiting (so signals get through)
+
+
+class _Stopped(Exception):
+    """Raised by a combination's run stopped because another combination failed."""
+
+
+_Job = tuple[int, Evaluate, dict[str, Value], int, list[int]]
+"""A free combination's run: (index, evaluate, combination, quota, seed words)."""
 
 
 @dataclass(frozen=True)
@@ -50,13 +80,15 @@ class ComboResult:
 
 @dataclass(frozen=True)
 class NloptSampler:
-    """An NLopt algorithm by name; `local` is G_MLSL_LDS's sub-optimiser."""
+    """An NLopt algorithm by name; `local` is G_MLSL_LDS's sub-optimiser; `concurrent` is how
+    many combinations run at once (it changes the speed, never the result)."""
 
     name: str = "LN_BOBYQA"
     local: str = "LN_BOBYQA"
     penalty: float = 1.0
     initial_step: float = 0.25
     xtol: float = 1e-3
+    concurrent: int = 1
 
     def run(self, space: Space, evaluate: Evaluate, budget: int | None,
             seed: int) -> SearchResult:
@@ -88,14 +120,49 @@ class NloptSampler:
                     tuple(c.items()), 1, 0, float(sc) if ok else None, s if ok else None)
         free = [i for i, c in enumerate(combos) if _free(space, c)]
         left = n - len(fixed)
-        for k, i in enumerate(free):
-            quota = left // len(free) + (1 if k < left % len(free) else 0)
-            results[i] = self._minimise(space, evaluate, combos[i], quota, [seed % 2**63, i])
+        quotas = {i: left // len(free) + (1 if k < left % len(free) else 0)
+                  for k, i in enumerate(free)}
+        # Part i + 1 of a Recorder holds combination i's evaluations (part 0: the fixed batch).
+        jobs: list[_Job] = [(i, part_of(evaluate, i + 1), combos[i], quotas[i],
+                             [seed % 2**63, i]) for i in free]
+        if self.concurrent <= 1 or len(jobs) <= 1:
+            for i, part, combo, quota, words in jobs:
+                results[i] = self._minimise(space, part, combo, quota, words)
+        else:
+            results.update(self._concurrently(space, jobs))
         return [results[i] for i in range(len(combos))]
 
+    def _concurrently(self, space: Space, jobs: list[_Job]) -> dict[int, ComboResult]:
+        """Run the jobs' `_minimise` on up to `concurrent` threads; results by combination.
+
+        The first exception (of a job, or here: KeyboardInterrupt) sets `stop`, so every running
+        job raises _Stopped at its next evaluation, and cancels the jobs not started; it is
+        raised once no job runs. Of jobs failing together, the first combination's error wins."""
+        stop = threading.Event()
+        pool = ThreadPoolExecutor(max_workers=min(self.concurrent, len(jobs)),
+                                  thread_name_prefix=f"nlopt-{self.name}")
+        futures: dict[Future, int] = {}
+        try:
+            for i, part, combo, quota, words in jobs:
+                futures[pool.submit(self._minimise, space, part, combo, quota, words,
+                                    stop)] = i
+            pending = set(futures)
+            while pending:
+                done, pending = wait(pending, timeout=_POLL_S, return_when=FIRST_EXCEPTION)
+                errors = {futures[f]: e for f in done if (e := f.exception()) is not None}
+                if errors:
+                    raise errors[min(errors)]
+            return {i: f.result() for f, i in futures.items()}
+        except BaseException:
+            stop.set()
+            raise
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+
     def _minimise(self, space: Space, evaluate: Evaluate, combo: dict[str, Value], quota: int,
-                  seed_words: list[int]) -> ComboResult:
-        """Minimise over one combination's free continuous dims with at most `quota` evaluations."""
+                  seed_words: list[int], stop: threading.Event | None = None) -> ComboResult:
+        """Minimise over one combination's free continuous dims with at most `quota` evaluations;
+        raises _Stopped at the next evaluation once `stop` is set."""
         dims = _free(space, combo)
         lo = np.array([d.lo for d in dims])
         hi = np.array([d.hi for d in dims])
@@ -104,10 +171,10 @@ class NloptSampler:
         used, runs = 0, 0
         best: tuple[float, Sample] | None = None
 
-        def objective(u: np.ndarray, grad: np.ndarray) -> float:
+        error: BaseException | None = None   # raised out of `evaluate`: re-raised below
+
+        def step(u: np.ndarray) -> float:
             nonlocal used, best
-            if used >= quota:
-                raise nlopt.ForcedStop()
             x = np.clip(lo + np.clip(u, 0.0, 1.0) * width, lo, hi)
             point = {d.name: float(v) for d, v in zip(dims, x, strict=True)}
             sample = space.make({**combo, **point})
@@ -118,6 +185,23 @@ class NloptSampler:
             if best is None or score < best[0]:
                 best = (float(score), sample)
             return float(score)
+
+        def objective(u: np.ndarray, grad: np.ndarray) -> float:
+            # Nothing is raised through NLopt: an exception raised there stays pending while
+            # some algorithms (CRS) call the objective once more, and any call made then fails
+            # with SystemError. Out of budget, told to stop, or on an error (kept, raised once
+            # NLopt has returned), the objective asks NLopt to stop and returns the penalty.
+            nonlocal error
+            if error is None and used < quota:
+                if stop is not None and stop.is_set():
+                    error = _Stopped()
+                else:
+                    try:
+                        return step(u)
+                    except BaseException as exc:
+                        error = exc
+            opt.force_stop()
+            return self.penalty
 
         while used < quota:
             before = used
@@ -130,6 +214,8 @@ class NloptSampler:
                 opt.optimize(x0)
             except (nlopt.ForcedStop, nlopt.RoundoffLimited):
                 pass
+            if error is not None:
+                raise error
             if used == before or self.name in _START_FREE:
                 break
         return ComboResult(tuple(combo.items()), used, runs,
@@ -166,6 +252,9 @@ class NloptSampler:
                                   "(a fraction of each dim's range)")
         if not (isinstance(self.penalty, int | float) and math.isfinite(self.penalty)):
             raise ConfigError(f"sampler {self.name}: penalty {self.penalty!r} must be a number")
+        c = self.concurrent
+        if isinstance(c, bool) or not isinstance(c, int) or c < 1:
+            raise ConfigError(f"sampler {self.name}: concurrent {c!r} must be an integer >= 1")
 
 
 def discrete_combos(space: Space) -> list[dict[str, Value]]:

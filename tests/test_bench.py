@@ -113,6 +113,34 @@ def test_bench_samples_given_are_honoured_and_defaults_are_each_benchmarks(what)
 
 
 
+def test_bench_search_times_fresh_runs_and_not_resumed_ones(tmp_path):
+    """Every algorithm (NLopt on the given workers too) reports its seconds per evaluation and
+    the ratio to random's; asked again, the runs resume from the directory and are not timed."""
+    from falsify.bench import bench_search
+    from falsify.store import read_meta
+
+    out = tmp_path / "b"
+    r = bench_search(CONFIGS / "smoke.toml", out, algorithms=("random", "LN_BOBYQA"),
+                     fraction=1.0, workers=2)
+    rows = {a["algorithm"]: a for a in r["algorithms"]}
+    assert r["workers"] == 2 and read_meta(out / "LN_BOBYQA")["workers"] == 2
+    for a in rows.values():
+        assert a["timed"] and a["evaluations"] == 8 and a["wall_s"] > 0
+        assert a["s_per_evaluation"] == pytest.approx(a["wall_s"] / 8, rel=1e-3)
+    assert rows["random"]["s_per_evaluation_vs_random"] == 1.0
+    nl = rows["LN_BOBYQA"]
+    assert nl["s_per_evaluation_vs_random"] == pytest.approx(
+        nl["s_per_evaluation"] / rows["random"]["s_per_evaluation"], rel=1e-2)
+    assert isinstance(nl["within_goal"], bool) and "within_goal" not in rows["random"]
+    again = bench_search(CONFIGS / "smoke.toml", out, algorithms=("random", "LN_BOBYQA"),
+                         fraction=1.0, workers=2)
+    for a in again["algorithms"]:
+        assert not a["timed"] and a["wall_s"] is None and a["s_per_evaluation"] is None
+        assert a["s_per_evaluation_vs_random"] is None and a["lowest"] == rows[
+            a["algorithm"]]["lowest"]
+    assert "resumed" in again["timing"]
+
+
 def test_bench_camera_runs_the_samples_given(capsys):
     r = _json(capsys, ["bench", "camera", "--config", str(CONFIGS / "smoke.toml"),
                        "--samples", "2", "--naive-samples", "1", "--json"])

@@ -15,7 +15,8 @@ import pandas as pd
 import pytest
 
 from falsify.cli import main
-from falsify.store import TIMING_COLUMNS, read_frame
+from falsify.runs import RunRequest, execute
+from falsify.store import TIMING_COLUMNS, read_frame, read_meta
 
 from .conftest import CONFIGS, ROOT
 
@@ -236,3 +237,104 @@ def test_fidelity_presets_run_their_model_variant(tmp_path, capsys, fidelity):
     assert meta["fidelity"] == fidelity and "int8" in meta["model_path"]
     assert main(["grid", str(CONFIGS / "smoke.toml"), "--out", str(tmp_path / "t"),
                  "--fidelity", fidelity, "--backend", "torch"]) == 2
+
+
+def search(config: Path, out: Path, algorithm: str, workers: int, budget: int = 15, **kw):
+    return execute(RunRequest(config=config, out=out, command="search", algorithm=algorithm,
+                              budget=budget, seed=4, workers=workers, report=False), **kw)
+
+
+def exported(run: Path) -> dict[str, str]:
+    """Every file a run wrote, timings dropped from the results table and the summary."""
+    out = {}
+    for f in sorted(run.rglob("*")):
+        if f.is_dir() or f.name.startswith("results.sqlite"):
+            continue
+        name = str(f.relative_to(run))
+        if name == "results.csv":
+            out[name] = pd.read_csv(f).drop(columns=list(TIMING_COLUMNS)).to_csv()
+        elif name == "summary.json":
+            summary = json.loads(f.read_text())
+            for key in ("run", "elapsed_s"):
+                summary.pop(key)
+            out[name] = json.dumps(summary)
+        elif f.suffix != ".parquet":   # the same table as results.csv, timings included
+            out[name] = f.read_bytes().hex()
+    return out
+
+
+@pytest.mark.parametrize("algorithm", ["GN_CRS2_LM", "LN_BOBYQA"])
+def test_concurrent_search_gives_the_rows_curve_and_files_of_one_worker(tmp_path, algorithm):
+    """Two workers run two backgrounds' NLopt runs at once: the rows, the curve and the exported
+    files are those of the sequential loop on one worker."""
+    config = small_config(tmp_path, xs=(-4.0, 4.0, 1.0), ys=(6.0, 18.0, 1.0),
+                          backgrounds=(0, 1, 2))
+    one, two = tmp_path / "one", tmp_path / "two"
+    a = search(config, one, algorithm, workers=1)
+    b = search(config, two, algorithm, workers=2)
+    assert a.search == b.search and a.search.evaluations == 15
+    pd.testing.assert_frame_equal(rows(one), rows(two), check_exact=False, atol=1e-6)
+    assert read_meta(one)["curve"] == read_meta(two)["curve"] == list(a.search.curve)
+    assert list(read_frame(one)["sample_key"]) == list(dict.fromkeys(
+        read_frame(one)["sample_key"]))
+    files_one, files_two = exported(one), exported(two)
+    assert "results.csv" in files_one and files_one == files_two
+
+
+def test_interrupted_concurrent_search_resumes_to_the_same_rows(tmp_path):
+    """An interrupt raised in one combination's thread stops the run; --resume computes only
+    what is missing and ends with the rows of an uninterrupted run."""
+    config = small_config(tmp_path, xs=(-4.0, 4.0, 1.0), ys=(6.0, 18.0, 1.0),
+                          backgrounds=(0, 1, 2))
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    whole = search(config, full, "GN_CRS2_LM", workers=2)
+
+    def interrupt(progress, final):
+        if progress.computed >= 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        search(config, cut, "GN_CRS2_LM", workers=2, on_progress=interrupt)
+    partial = len(read_frame(cut))
+    assert 5 <= partial < len(read_frame(full))
+    again = execute(RunRequest(config=config, out=cut, command="search", algorithm="GN_CRS2_LM",
+                               budget=15, seed=4, workers=2, report=False, resume=True))
+    assert again.computed_this_time == len(read_frame(full)) - partial
+    assert again.search == whole.search
+    pd.testing.assert_frame_equal(rows(full), rows(cut), check_exact=False, atol=1e-6)
+
+
+def test_killed_concurrent_search_resumes_to_the_rows_of_one_worker(tmp_path):
+    """kill -9 in the middle of a two-worker NLopt search (rows arriving from two combinations
+    at once), then --resume: nothing recomputed or duplicated, the rows of one worker's run."""
+    config = small_config(tmp_path, xs=(-4.0, 4.0, 1.0), ys=(6.0, 18.0, 1.0),
+                          backgrounds=(0, 1, 2))
+    full, killed = tmp_path / "full", tmp_path / "killed"
+    whole = search(config, full, "GN_CRS2_LM", workers=1, budget=36)
+    cmd = [sys.executable, "-m", "falsify.cli", "search", str(config), "--algorithm",
+           "GN_CRS2_LM", "--budget", "36", "--seed", "4", "--workers", "2", "--out",
+           str(killed), "--quiet", "--no-report"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    db = killed / "results.sqlite"
+    deadline = time.time() + 120
+    n = 0
+    while time.time() < deadline and proc.poll() is None:
+        if db.exists():
+            try:
+                with sqlite3.connect(db, timeout=1) as c:
+                    n = c.execute("SELECT COUNT(*) FROM samples").fetchone()[0]
+            except sqlite3.OperationalError:
+                n = 0
+            if n >= 8:
+                break
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    total = len(read_frame(full))
+    assert 8 <= n < total, "the run must be killed in the middle"
+    partial = len(read_frame(killed))
+    r = subprocess.run(cmd + ["--resume", "--json"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["computed_this_time"] == total - partial
+    assert read_meta(killed)["curve"] == list(whole.search.curve)
+    pd.testing.assert_frame_equal(rows(full), rows(killed), check_exact=False, atol=1e-6)

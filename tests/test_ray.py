@@ -11,9 +11,11 @@ import shutil
 import sqlite3
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
+import pandas as pd
 import pytest
 from falsify.models.runner import load_segmenter
 from falsify.models.spec import spec_path_for
@@ -25,7 +27,7 @@ from falsify.errors import FalsifyError
 from falsify.pipeline import Driver, EvalSettings, Evaluator, Progress
 from falsify.runs import RunRequest, execute, executors_of
 from falsify.space import load_space
-from falsify.store import STORE_NAME, TIMING_COLUMNS, Store, read_frame, read_meta
+from falsify.store import STORE_NAME, TIMING_COLUMNS, Store, read_frame, read_meta, sample_key
 
 from .test_bad_input import snapshot
 
@@ -98,6 +100,43 @@ def test_killed_actor_gives_the_identical_rows(ray, process_rows, tmp_path):
     # not certain; the replacement and the identical rows are.
     assert killed and replaced == 1 and reruns <= 1
     assert rows(tmp_path / STORE_NAME).equals(process_rows)
+
+
+def test_map_serves_concurrent_callers_in_their_own_order(ray, process_rows):
+    """Two threads map chunks at once on two actors: each gets its own results in its order."""
+    space = load_space(CI)
+    grid = space.grid()
+    asks = [[grid[i:i + 2] for i in range(k, 40, 8)] for k in (0, 4)]
+    got: dict[int, list] = {}
+    with RayExecutor(EvalSettings(space=space), 2) as ex:
+        threads = [threading.Thread(target=lambda k=k: got.__setitem__(k, list(ex.map(asks[k]))))
+                   for k in (0, 1)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(120)
+        assert not ex.in_flight and len(ex.actors) == 2
+    want = process_rows.set_index("sample_key")["car_iou"]
+    for k in (0, 1):
+        assert [[r.sample for r in chunk] for chunk in got[k]] == asks[k]
+        for chunk in got[k]:
+            for r in chunk:
+                v = want[sample_key(r.sample)]
+                assert (r.score is None and v != v) or r.score == pytest.approx(v, abs=1e-6)
+
+
+def test_concurrent_search_on_ray_gives_the_rows_of_one_process(ray, tmp_path):
+    """NLopt runs the three backgrounds two at a time on two actors: the rows and the curve of
+    the sequential loop on one local process."""
+    runs = {}
+    for name, executor, workers in (("one", "process", 1), ("ray", "ray", 2)):
+        runs[name] = execute(RunRequest(config=CI, out=tmp_path / name, command="search",
+                                        algorithm="GN_CRS2_LM", budget=12, workers=workers,
+                                        executor=executor, report=False))
+    assert runs["one"].search == runs["ray"].search
+    pd.testing.assert_frame_equal(rows(tmp_path / "one" / STORE_NAME),
+                                  rows(tmp_path / "ray" / STORE_NAME),
+                                  check_exact=False, atol=1e-6)
 
 
 @pytest.mark.parametrize("address, says", [

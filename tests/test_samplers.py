@@ -3,12 +3,18 @@
 from __future__ import annotations
 
 import itertools
+import os
+import random
+import signal
 import sys
+import threading
+import time
 import types
 from unittest import mock
 
 import pytest
 from falsify.sampler import ALGORITHMS, NLOPT_ALGORITHMS, lowest_so_far, make_sampler
+from falsify.sampler.base import Recorder as BaseRecorder
 from falsify.sampler.nlopt import NloptSampler, discrete_combos
 
 from falsify.errors import ConfigError
@@ -271,3 +277,123 @@ def test_direct_finds_a_narrow_off_centre_minimum():
     far = lambda s: 0.2 + 0.8 * min(1.0, ((s["x"] - 3.2) ** 2 + (s["y"] - 6.4) ** 2) / 4)  # noqa: E731
     rec = run("GN_DIRECT_L", space, 60, fn=far)  # needs 36 evaluations to reach 0.22
     assert min(rec.scores) <= 0.22
+
+
+# ---- combinations run concurrently ----------------------------------------------------------
+
+class Jittery:
+    """A thread-safe evaluate: scores with `fn` after a random pause (so the threads' calls
+    interleave differently every time) and notes how many calls overlapped at most."""
+
+    def __init__(self, fn=planted, pause: float = 0.002):
+        self.fn, self.pause = fn, pause
+        self.lock = threading.Lock()
+        self.running = self.overlap = self.calls = 0
+
+    def __call__(self, batch):
+        with self.lock:
+            self.running += 1
+            self.calls += 1
+            self.overlap = max(self.overlap, self.running)
+        try:
+            time.sleep(random.random() * self.pause)
+            return [self.fn(s) for s in batch]
+        finally:
+            with self.lock:
+                self.running -= 1
+
+
+def test_recorder_orders_parts_by_key_whatever_the_timing():
+    space = paper_space()
+    pts = [space.make({"x": float(i % 9) - 4, "y": 6.0 + i}) for i in range(12)]
+    rec = BaseRecorder(Jittery(lambda s: s["y"], pause=0.01))
+    rec(pts[:2])                                    # part 0
+    threads = [threading.Thread(target=lambda k=k: [rec.part(k)([p]) for p in
+                                                    pts[2 + 5 * (2 - k):7 + 5 * (2 - k)]])
+               for k in (2, 1)]                      # part 2 gets pts[2:7], part 1 pts[7:12]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert rec.samples == pts[:2] + pts[7:12] + pts[2:7]
+    res = rec.result()
+    assert res.curve == tuple(s["y"] for s in res.samples) and res.best == 6.0
+
+
+@pytest.mark.parametrize("name", ["GN_CRS2_LM", "LN_BOBYQA"])
+def test_concurrent_combinations_give_the_sequential_result(name):
+    """W threads give the samples, curve, best and per-combination results of the sequential
+    loop (GN_CRS2_LM draws from NLopt's generator, which is per thread; LN_BOBYQA does not)."""
+    space = small_space()        # 24 combinations
+    budget = 24 * 5 + 3
+    seq_rec = Recorder(planted)
+    seq = NloptSampler(name).optimise(space, seq_rec, budget, seed=5)
+    want = make_sampler(name).run(space, Recorder(planted), budget, 5)
+    assert list(want.samples) == seq_rec.samples and want.evaluations == budget
+    combos = discrete_combos(space)
+    where = [next(i for i, c in enumerate(combos) if all(s[k] == v for k, v in c.items()))
+             for s in want.samples]
+    assert where == sorted(where)  # the curve: combination order, then evaluation order
+    for w in (2, 4):
+        ev = Jittery()
+        assert make_sampler(name, concurrent=w).run(space, ev, budget, 5) == want
+        assert 1 < ev.overlap <= w
+        again = NloptSampler(name, concurrent=w).optimise(space, Jittery(), budget, seed=5)
+        assert again == seq
+
+
+@pytest.mark.parametrize("name", ["LN_BOBYQA", "GN_CRS2_LM"])
+@pytest.mark.parametrize("error", [RuntimeError, KeyboardInterrupt])
+def test_an_error_in_one_combination_stops_the_run_promptly(name, error):
+    """Raised by `evaluate` in one thread (a worker died, an interrupt reached it), the error
+    itself leaves `run` within one evaluation of the others, with no thread left behind (CRS
+    calls its objective once more after a stop; that call must not evaluate)."""
+    space = small_space()
+    calls: list[float] = []
+
+    def evaluate(batch):
+        s = batch[0]
+        calls.append(time.perf_counter())
+        if all(s[k] == v for k, v in failing.items()) and len(calls) > 6:
+            raise error("worker died")
+        time.sleep(0.01)
+        return [planted(s)]
+
+    before = threading.active_count()
+    for w in (1, 2):
+        failing = discrete_combos(space)[w - 1]   # with 2 threads: while the first one runs
+        t0 = time.perf_counter()
+        with pytest.raises(error, match="worker died"):   # 24 × 200 × 10 ms otherwise
+            NloptSampler(name, concurrent=w).run(space, evaluate, 24 * 200, 0)
+        assert time.perf_counter() - t0 < 2.0
+        n = len(calls)
+        time.sleep(0.1)
+        assert len(calls) == n and threading.active_count() == before
+        calls.clear()
+
+
+def test_an_interrupt_in_the_calling_thread_stops_every_combination():
+    space = small_space()
+    calls: list[int] = []
+
+    def evaluate(batch):
+        calls.append(1)
+        time.sleep(0.01)
+        return [planted(s) for s in batch]
+
+    before = threading.active_count()
+    timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    t0 = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        NloptSampler("GN_CRS2_LM", concurrent=3).run(space, evaluate, 24 * 200, 0)
+    assert time.perf_counter() - t0 < 3.0 and calls
+    n = len(calls)
+    time.sleep(0.1)
+    assert len(calls) == n and threading.active_count() == before
+
+
+def test_concurrent_must_be_a_positive_integer():
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ConfigError, match="concurrent"):
+            run("LN_BOBYQA", paper_space(), 10, concurrent=bad)
