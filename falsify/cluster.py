@@ -400,6 +400,8 @@ class RayExecutor:
                 self._idle.remove(dead)
         for attempt in range(1, self.max_attempts + 1):
             fresh = self._new_actor()
+            with self._cond:
+                self.replaced += 1
             try:
                 self._check_started(fresh.ready.remote())
                 break
@@ -415,5 +417,4 @@ class RayExecutor:
                 return
             self.actors.append(fresh)
             self._idle.append(fresh)
-            self.replaced += 1
             self._cond.notify()
