@@ -35,8 +35,26 @@ from falsify.space import Sample, Space, load_space
 
 
 def machine() -> dict:
+    """The CPU by name (figures differ 2x between CPUs), its core count and Python."""
     return {"cpus": os.cpu_count(), "python": platform.python_version(),
-            "processor": platform.processor() or platform.machine()}
+            "processor": platform.processor() or platform.machine(), "cpu": cpu_name()}
+
+
+def cpu_name() -> str | None:
+    """The CPU's model name from /proc/cpuinfo (with its family and model numbers, which tell
+    generations apart where the name does not); None where there is no /proc."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return None
+    fields: dict[str, str] = {}
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    name = fields.get("model name")
+    if name is None:
+        return None
+    return f"{name} (family {fields.get('cpu family', '?')}, model {fields.get('model', '?')})"
 
 
 def _warm(sim: Simulator, samples: list[Sample]) -> None:
@@ -288,6 +306,8 @@ class PipelineBench:
     flops: FlopCount
     memory: MemoryUse | None      # the `workers`-process driver run (None without /proc)
     driver_threads: int = 1       # inference threads of each worker in the `workers` run
+    streets: int = 0              # backgrounds among the samples: built by each worker first
+    t_streets: float = 0.0        # s to build them all once (cold, in one process)
     ray: dict | None = None   # with executor "ray": actors against the processes above
 
     @property
@@ -348,6 +368,13 @@ class PipelineBench:
             f"{w}_workers": {"samples_per_s": self.samples_per_s,
                              "samples": self.driver_samples},
             "driver_store_rows_per_s": round(self.store_rows_per_s, 1),
+            "streets": {
+                "count": self.streets,
+                "build_ms_each": round(self.t_streets / max(self.streets, 1) * 1e3, 1),
+                "note": "the driver runs start with every street built in each worker (the "
+                        "steady state of a long run); a run pays build_ms_each once per street "
+                        "and worker on top",
+            },
             "rates": {
                 "workers": w, "threads_per_worker": 1,
                 "e2e_n_threads_per_worker": self.driver_threads,
@@ -402,22 +429,36 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
     with tempfile.TemporaryDirectory() as tmp:
         # 1. Through the driver, the store and `workers` processes, as `falsify grid` runs;
         # first, while this process holds nothing else, so its memory is the driver's own.
+        # The driver runs time the steady state: each worker builds every street of the picked
+        # samples when it starts (a street is built once per worker and run; its cost is
+        # measured on its own below), as a long run amortises it.
+        streets = tuple(sorted({s.background for s in picked}))
         store = Store(Path(tmp) / "results.sqlite", space)
-        settings = EvalSettings(space=space, model=model, threads=1 if workers > 1 else 2)
+        settings = EvalSettings(space=space, model=model, threads=1 if workers > 1 else 2,
+                                warm_backgrounds=streets)
         rest = picked[workers * batch:]
         with RssSampler() as rss:
             t0, t1 = _driver_window(settings, store, workers, batch, picked, "process")
         store.close()
         t_driver, memory = t1 - t0, rss.summary(t0, t1)
 
-        # 2. The same with one worker, one thread, in this process before it caches any street
-        # (with `workers` 1, run 1 was in this process too and left its streets cached).
+        # 2. What a street costs a worker: generated and cast once, cold, in this process
+        # (with `workers` 1, run 1 was in this process too and left the generated streets
+        # cached: then only the BVH and the cast are timed).
+        t0 = time.perf_counter()
+        sim = Simulator(load_sensor(space.sensor), space.user_cars)
+        for bg in streets:
+            sim.background_hits(bg, sim.ego_pose(bg))
+        t_streets = time.perf_counter() - t0
+        del sim
+
+        # 3. The same as 1 with one worker, one thread, in this process.
         store = Store(Path(tmp) / "one.sqlite", space)
-        one = EvalSettings(space=space, model=model, threads=1)
+        one = EvalSettings(space=space, model=model, threads=1, warm_backgrounds=streets)
         t_driver_1 = _driver_time(one, store, 1, batch, picked, "process")
         store.close()
 
-        # 3. In one process with 2 inference threads: the pipeline against inference alone.
+        # 4. In one process with 2 inference threads: the pipeline against inference alone.
         ev = Evaluator(EvalSettings(space=space, model=model, threads=2))
         _warm(ev.sim, picked)
         ev.score_batch(picked[:batch])
@@ -432,7 +473,7 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
             ev.model.predict(np.stack(images[i:i + batch]))
         t_infer = time.perf_counter() - t0
 
-        # 4. The network alone on the same scans, 1 thread a process: 1 and `workers` at once;
+        # 5. The network alone on the same scans, 1 thread a process: 1 and `workers` at once;
         # then the machine's own matrix product the same way.
         inference = inference_rates(model, np.stack(images), workers, batch, Path(tmp))
         del images
@@ -454,7 +495,7 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
         store_rows_per_s=rows_per_s, driver_1_samples=len(picked[batch:]),
         t_driver_1=t_driver_1, inference=inference, matmul=matmul,
         flops=count_flops(resolve_model(model)), memory=memory,
-        driver_threads=settings.threads, ray=ray)
+        driver_threads=settings.threads, ray=ray, streets=len(streets), t_streets=t_streets)
 
 
 def _driver_window(settings, store, workers: int, batch: int, picked: list[Sample],

@@ -389,6 +389,8 @@ def pipeline_figures_text(r: dict) -> str:
         f"to end / inference alone on {w} {q['e2e_n_over_inference_only_n']} (goal >= 0.9), "
         f"network / MatMul {q['achieved_over_matmul_1_core']} (goal >= 0.5)",
         f"memory of the {w}-worker run, all processes: {_memory_text(mem)}",
+        f"streets: {r['streets']['count']}, built in every worker before the clock starts "
+        f"(the steady state); each costs a worker {r['streets']['build_ms_each']} ms once",
     ])
 
 

@@ -40,6 +40,8 @@ class EvalSettings:
     backend: str = "onnx"
     threads: int = 1
     lod: int = 2
+    # Streets to build when the worker starts (benchmarks time the steady state with them)
+    warm_backgrounds: tuple[int, ...] = ()
 
 
 class Evaluator:
@@ -55,6 +57,8 @@ class Evaluator:
         self.model = model or load_segmenter(settings.model, backend=settings.backend,
                                              threads=settings.threads)
         self.model.spec.check_fits(self.sim.sensor, settings.model or "bundled")
+        for bg in settings.warm_backgrounds:
+            self.sim.background_hits(bg, self.sim.ego_pose(bg))
 
     @property
     def model_hash(self) -> str:

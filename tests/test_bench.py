@@ -11,6 +11,7 @@ import json
 import pytest
 
 from falsify.cli import build_parser, given_options, main, pipeline_figures_text
+from falsify.space import load_space
 
 from .conftest import CONFIGS, ROOT
 
@@ -53,6 +54,10 @@ def test_bench_pipeline_reports_both_paths(capsys):
         rates["e2e_n_workers"] / rates["inference_only_n_workers"], rel=2e-3)
     assert q["achieved_over_matmul_1_core"] == pytest.approx(
         net["achieved_gflops_1_thread"] / mm["gflops_1_core"], rel=2e-3)
+    streets = r["streets"]   # built before the clock in every worker; their cost given apart
+    assert streets["count"] == len({s.background for s in load_space(CONFIGS / "ci.toml").grid()})
+    assert streets["build_ms_each"] > 0
+    assert r["machine"]["cpus"] >= 1 and "cpu" in r["machine"]
     mem = r["memory"]
     if mem is not None:   # Linux
         assert mem["max_processes"] >= 3        # the driver and its two workers

@@ -15,7 +15,9 @@ import pandas as pd
 import pytest
 
 from falsify.cli import main
+from falsify.pipeline import EvalSettings, Evaluator
 from falsify.runs import RunRequest, execute
+from falsify.space import load_space
 from falsify.store import TIMING_COLUMNS, read_frame, read_meta
 
 from .conftest import CONFIGS, ROOT
@@ -338,3 +340,17 @@ def test_killed_concurrent_search_resumes_to_the_rows_of_one_worker(tmp_path):
     assert json.loads(r.stdout)["computed_this_time"] == total - partial
     assert read_meta(killed)["curve"] == list(whole.search.curve)
     pd.testing.assert_frame_equal(rows(full), rows(killed), check_exact=False, atol=1e-6)
+
+
+def test_evaluator_builds_the_streets_it_is_told_to_warm():
+    """EvalSettings.warm_backgrounds: each worker casts those streets when it starts (benchmarks
+    time the steady state), and scores exactly as a cold worker does."""
+    space = load_space(CONFIGS / "smoke.toml")
+    samples = space.grid()
+    streets = tuple(sorted({s.background for s in samples}))
+    warm = Evaluator(EvalSettings(space=space, warm_backgrounds=streets))
+    assert {bg for bg, _ in warm.sim._hits} == set(streets)
+    cold = Evaluator(EvalSettings(space=space))
+    assert not cold.sim._hits
+    assert ([r.metrics for r in warm.score_batch(samples)]
+            == [r.metrics for r in cold.score_batch(samples)])
