@@ -260,6 +260,9 @@ def test_a_bundled_model_can_be_named(tmp_path, monkeypatch):
     assert resolve_model("squeezeseg-drive") == drive
     assert resolve_model("squeezeseg-drive", "torch") == drive.with_suffix(".pt")
     assert resolve_model(None) == BUNDLED_ONNX
+    for name in ("squeezeseg-drive", "squeezeseg-drive-retrained"):   # every shipped drive net
+        spec = load_segmenter(name).spec
+        assert spec.name == name and spec.crf_iterations == 3, name
     assert load_segmenter("squeezeseg-drive").model_hash == load_segmenter(drive).model_hash
     with pytest.raises(FalsifyError, match="model file no-such-model not found"):
         load_segmenter("no-such-model")
