@@ -73,14 +73,10 @@ def test_grid_smoke_end_to_end(tmp_path, capsys):
         assert all((run / "retrain" / f).exists() for f in index["file"])
 
 
-def test_killed_run_resumes_to_the_same_rows(tmp_path):
-    config = small_config(tmp_path, xs=(-4.0, 4.0, 2.0), ys=(6.0, 18.0, 3.0))  # 5×5×2 = 50
-    full, killed = tmp_path / "full", tmp_path / "killed"
-    assert main(["grid", str(config), "--out", str(full), "--quiet", "--no-report"]) == 0
-    cmd = [sys.executable, "-m", "falsify.cli", "grid", str(config), "--out", str(killed),
-           "--quiet", "--no-report"]
+def kill_after_rows(cmd: list[str], db: Path, rows: int) -> int:
+    """Start `cmd`, SIGKILL it once its store holds `rows` rows (or it ends, or 120 s pass);
+    the row count last seen."""
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    db = killed / "results.sqlite"
     deadline = time.time() + 120
     n = 0
     while time.time() < deadline and proc.poll() is None:
@@ -90,11 +86,21 @@ def test_killed_run_resumes_to_the_same_rows(tmp_path):
                     n = c.execute("SELECT COUNT(*) FROM samples").fetchone()[0]
             except sqlite3.OperationalError:
                 n = 0
-            if n >= 10:
+            if n >= rows:
                 break
         time.sleep(0.05)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
+    return n
+
+
+def test_killed_run_resumes_to_the_same_rows(tmp_path):
+    config = small_config(tmp_path, xs=(-4.0, 4.0, 2.0), ys=(6.0, 18.0, 3.0))  # 5×5×2 = 50
+    full, killed = tmp_path / "full", tmp_path / "killed"
+    assert main(["grid", str(config), "--out", str(full), "--quiet", "--no-report"]) == 0
+    cmd = [sys.executable, "-m", "falsify.cli", "grid", str(config), "--out", str(killed),
+           "--quiet", "--no-report"]
+    n = kill_after_rows(cmd, killed / "results.sqlite", 10)
     assert 10 <= n < 50, "the run must be killed in the middle"
     partial = len(read_frame(killed))
     assert partial >= n
@@ -316,22 +322,7 @@ def test_killed_concurrent_search_resumes_to_the_rows_of_one_worker(tmp_path):
     cmd = [sys.executable, "-m", "falsify.cli", "search", str(config), "--algorithm",
            "GN_CRS2_LM", "--budget", "36", "--seed", "4", "--workers", "2", "--out",
            str(killed), "--quiet", "--no-report"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    db = killed / "results.sqlite"
-    deadline = time.time() + 120
-    n = 0
-    while time.time() < deadline and proc.poll() is None:
-        if db.exists():
-            try:
-                with sqlite3.connect(db, timeout=1) as c:
-                    n = c.execute("SELECT COUNT(*) FROM samples").fetchone()[0]
-            except sqlite3.OperationalError:
-                n = 0
-            if n >= 8:
-                break
-        time.sleep(0.05)
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
+    n = kill_after_rows(cmd, killed / "results.sqlite", 8)
     total = len(read_frame(full))
     assert 8 <= n < total, "the run must be killed in the middle"
     partial = len(read_frame(killed))
