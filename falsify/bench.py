@@ -312,7 +312,7 @@ class PipelineBench:
 
     @property
     def samples_per_s(self) -> float:
-        return round(self.driver_samples / self.t_driver, 2)
+        return round(self.e2e_n, 2)
 
     @property
     def overhead(self) -> float:

@@ -98,6 +98,8 @@ def test_bench_model_compares_variants_on_the_same_frames(capsys):
 @pytest.mark.parametrize("args, message", [
     (["bench", "model", "--threads", "0"], "--threads"),
     (["bench", "pipeline", "--samples", "0"], "--samples"),
+    (["bench", "memory", "--workers", "0"], "--workers"),
+    (["bench", "memory", "--config", "no-such-config.toml"], "no-such-config.toml"),
 ])
 def test_bad_bench_options_exit_2(capsys, args, message):
     with pytest.raises(SystemExit) as exc:
