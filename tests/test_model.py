@@ -106,7 +106,7 @@ def test_crf_compatibility_initialisation():
     assert sum(p.numel() for p in crf.parameters()) == 32
 
 
-def _reference_crf(logits, xyz, mask, iters, ang_c, bi_c):
+def _reference_crf(logits, xyz, mask, iters, ang_c, bi_c, theta_a=THETA_A, theta_r=THETA_R):
     """Plain-loop numpy version of the CRF (one image) to check the vectorised one."""
     C, H, W = logits.shape
     e = logits.astype(np.float64)
@@ -125,23 +125,29 @@ def _reference_crf(logits, xyz, mask, iters, ang_c, bi_c):
                             continue
                         d2 = np.sum((xyz[:, r, c] - xyz[:, rr, cc]) ** 2)
                         for k in range(C):
-                            g = math.exp(-(dr * dr + dc * dc) / 2 / THETA_A[k] ** 2)
+                            g = math.exp(-(dr * dr + dc * dc) / 2 / theta_a[k] ** 2)
                             ang[k, r, c] += g * q[k, rr, cc]
                             if mask[r, c]:
-                                b = math.exp(-d2 / 2 / THETA_R[k] ** 2)
+                                b = math.exp(-d2 / 2 / theta_r[k] ** 2)
                                 bi[k, r, c] += g * b * q[k, rr, cc]
         e = (logits - np.einsum("ij,jhw->ihw", ang_c, ang)
              - np.einsum("ij,jhw->ihw", bi_c, bi))  # mean field: unary = logits
     return e
 
 
-def test_crf_matches_loop_reference_and_ignores_invalid_pixels():
+@pytest.mark.parametrize("theta_a, theta_r", [
+    (THETA_A, THETA_R),                                   # two groups of two classes: broadcast
+    ((0.9, 0.8, 0.7, 0.6), (0.015, 0.02, 0.01, 0.012)),   # four groups
+    ((0.9, 0.6, 0.9, 0.6), (0.015, 0.01, 0.015, 0.01)),   # groups not side by side
+])
+def test_crf_matches_loop_reference_and_ignores_invalid_pixels(theta_a, theta_r):
     rng = np.random.default_rng(0)
     H, W = 4, 7
     logits = rng.normal(size=(4, H, W)).astype(np.float32)
     xyz = (rng.normal(size=(3, H, W)) * 0.01).astype(np.float32)  # close points: bilateral on
     mask = rng.random((H, W)) > 0.25
-    crf = RecurrentCRF(2)
+    crf = RecurrentCRF(2, theta_a=theta_a, theta_r=theta_r)
+    assert crf.groups == len(set(zip(theta_a, theta_r, strict=True)))
     with torch.no_grad():
         crf.angular_compat.weight.normal_()
         crf.bilateral_compat.weight.normal_()
@@ -149,7 +155,7 @@ def test_crf_matches_loop_reference_and_ignores_invalid_pixels():
                   torch.from_numpy(mask.astype(np.float32))[None, None])[0].numpy()
     ang_c = crf.angular_compat.weight[..., 0, 0].detach().numpy()
     bi_c = crf.bilateral_compat.weight[..., 0, 0].detach().numpy()
-    ref = _reference_crf(logits, xyz, mask, 2, ang_c, bi_c)
+    ref = _reference_crf(logits, xyz, mask, 2, ang_c, bi_c, theta_a, theta_r)
     np.testing.assert_allclose(got, ref, atol=1e-5)
     # changing an invalid pixel's logits and xyz changes nothing at the valid pixels
     r, c = np.argwhere(~mask)[0]
