@@ -27,7 +27,7 @@ from falsify.sensor import Sensor, SensorPose
 TRAIN_BACKGROUND_FIRST = 1000
 SCANS_PER_BACKGROUND = 8
 HELD_OUT_BACKGROUND_FIRST = 9000
-CALIBRATION_SCANS = 16
+CALIBRATION_SCANS = 64   # int8 calibration (models/export.py says what more scans gave)
 TRAFFIC_KINDS = ("scattered", "drive")  # drive: lane-following traffic (falsify.traffic)
 
 

@@ -215,14 +215,13 @@ def test_runner_imports_and_runs_without_torch(exported):
     assert "(1, 64, 512)" in r.stdout
 
 
-def test_export_cli_writes_model_and_int8_copy(exported, tmp_path, monkeypatch, capsys):
+def test_export_cli_writes_model_and_int8_copy(exported, tmp_path, capsys):
     pytest.importorskip("torch")
     from falsify.models.export import main as export_main
 
-    monkeypatch.setattr("falsify.dataset.CALIBRATION_SCANS", 2)   # a short calibration
     out, q = tmp_path / "net.onnx", tmp_path / "int8" / "net-int8.onnx"   # folder made
     assert export_main([str(exported.with_suffix(".pt")), "--out", str(out), "--int8", str(q),
-                        "--note", "data=test"]) == 0
+                        "--calibration-scans", "2", "--note", "data=test"]) == 0
     written = json.loads(capsys.readouterr().out)
     assert written["int8"] == str(q) and load_spec(spec_path_for(q)).extra == {"data": "test"}
     scans = plausible_scans(1, seed=2)
