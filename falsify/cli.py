@@ -444,7 +444,8 @@ def cmd_bench(args) -> int:
                  else held_out_scans(sensor, frames))
         onnx = Path(args.model) if args.model else BUNDLED_ONNX
         rows = bench_models(np.asarray(scans), onnx, repeats=args.repeats,
-                            threads=args.threads, calibration=calibration_scans(sensor))
+                            threads=args.threads,
+                            calibration=calibration_scans(sensor, args.calibration_scans))
         result = {"benchmark": "model", "model": str(onnx), "frames": len(scans),
                   "machine": bench.machine(), "variants": rows}
         text = "\n".join(f"{r['variant']:16s} {r['ms_per_frame']:8.1f} ms/frame "
@@ -566,7 +567,7 @@ def cmd_tradeoff(args) -> int:
     from falsify.tradeoff import parse_knobs, run_tradeoff
 
     summary = run_tradeoff(args.config, args.out, parse_knobs(args.knobs), model=args.model,
-                           limit=args.limit)
+                           limit=args.limit, threads=args.threads)
     emit(args, summary, tradeoff_text(summary))
     return 0
 
@@ -696,6 +697,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--scans", default=None,
                    help="bench model: a folder of labelled .npy scans (default: generated)")
     b.add_argument("--repeats", type=int, default=3)
+    b.add_argument("--calibration-scans", type=int, default=None, choices=range(1, 1025),
+                   metavar="N", help="bench model: synthetic scenes to calibrate int8 on "
+                   "(default: the export's 64)")
     b.add_argument("--threads", type=int, default=2, choices=range(1, 65), metavar="N",
                    help="bench model: inference threads (a grid worker uses 1)")
     b.add_argument("--out", default=None, help="bench search: where its runs go")
@@ -745,6 +749,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "default: bundled")
     t.add_argument("--limit", type=int, default=None,
                    help="use only the first N samples of the grid (quick runs)")
+    t.add_argument("--threads", type=int, default=1, choices=range(1, 65), metavar="N",
+                   help="inference threads while timing (default 1: what each --workers "
+                   "process of a run uses)")
     t.add_argument("--json", action="store_true")
     t.set_defaults(func=cmd_tradeoff)
 

@@ -41,7 +41,7 @@ BUDGET_SAMPLERS = ("random", "sobol")
 BUDGET_FRACTIONS = (0.10, 0.25, 0.50)
 TIMING_SAMPLES = 40   # timed per setting and round, spread evenly over the sample set
 TIMING_ROUNDS = 3     # interleaved over the settings; the fastest round counts
-THREADS = 2
+THREADS = 1           # inference threads: what each `--workers` process of a run uses
 BATCH = 8
 
 
@@ -82,8 +82,8 @@ class Scored:
 
 
 class SettingScorer:
-    """Scores samples under settings in this process (2 inference threads, 8 samples a call),
-    caching results per (setting, sample), and times settings against each other."""
+    """Scores samples under settings in this process (`threads` inference threads, 8 samples a
+    call), caching results per (setting, sample), and times settings against each other."""
 
     def __init__(self, space: Space, threads: int = THREADS, batch: int = BATCH):
         self.space, self.threads, self.batch = space, threads, batch
@@ -422,7 +422,8 @@ def parse_knobs(text: str) -> tuple[str, ...]:
 
 
 def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNOBS,
-                 model: str | Path | None = None, limit: int | None = None) -> dict:
+                 model: str | Path | None = None, limit: int | None = None,
+                 threads: int = THREADS) -> dict:
     """Measure every knob; write DIR/tradeoff.csv, .json and .html; return the JSON summary.
 
     Bad input raises FalsifyError before anything is written."""
@@ -447,7 +448,7 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
     space.check_size(MAX_SAMPLES, "the trade-off's limit")
     samples = space.grid()[:limit]
     t_start = time.perf_counter()
-    scorer = SettingScorer(narrow(space, samples))
+    scorer = SettingScorer(narrow(space, samples), threads=threads)
     reference = Setting(model=onnx.resolve())
     # Loads and checks the model against the sensor: may raise, and nothing is written yet.
     ref_map = miou_map(scorer.score(reference, samples), scorer.space, "x", "y")

@@ -84,7 +84,8 @@ def test_bench_memory_runs_a_whole_grid(capsys):
 
 def test_bench_model_compares_variants_on_the_same_frames(capsys):
     pytest.importorskip("torch")
-    r = _json(capsys, ["bench", "model", "--samples", "2", "--repeats", "1", "--json"])
+    r = _json(capsys, ["bench", "model", "--samples", "2", "--repeats", "1",
+                       "--calibration-scans", "2", "--json"])
     rows = {v["variant"]: v for v in r["variants"]}
     assert set(rows) == {"onnx-fp32", "onnx-fp32-batch8", "torch-fp32", "onnx-int8",
                          "onnx-fp16"}, rows
