@@ -202,14 +202,16 @@ class OnnxSegmenter:
 
     def run_raw(self, scans: np.ndarray) -> np.ndarray:
         """Raw model output (B,K,H,W) for checked scans."""
-        a = check_scans(scans, self.spec, self.path)
+        return self._run(check_scans(scans, self.spec, self.path))
+
+    def _run(self, a: np.ndarray) -> np.ndarray:
         outs = [self.session.run([self.spec.output_name], _feeds(self.spec, a[i:i + self.batch]))[0]
                 for i in range(0, len(a), self.batch)]
         return np.concatenate(outs)
 
     def predict(self, scans: np.ndarray) -> Prediction:
         a = check_scans(scans, self.spec, self.path)
-        return to_prediction(self.run_raw(a), self.spec, a[..., 4] > 0)
+        return to_prediction(self._run(a), self.spec, a[..., 4] > 0)
 
 
 class TorchSegmenter:
@@ -244,7 +246,9 @@ class TorchSegmenter:
 
     def run_raw(self, scans: np.ndarray) -> np.ndarray:
         """Raw model output (B,K,H,W) for checked scans."""
-        a = check_scans(scans, self.spec, self.path)
+        return self._run(check_scans(scans, self.spec, self.path))
+
+    def _run(self, a: np.ndarray) -> np.ndarray:
         outs = []
         with self.torch.inference_mode():
             for i in range(0, len(a), self.batch):
@@ -258,7 +262,7 @@ class TorchSegmenter:
 
     def predict(self, scans: np.ndarray) -> Prediction:
         a = check_scans(scans, self.spec, self.path)
-        return to_prediction(self.run_raw(a), self.spec, a[..., 4] > 0)
+        return to_prediction(self._run(a), self.spec, a[..., 4] > 0)
 
 
 def resolve_model(path: str | Path | None, backend: str = "onnx") -> Path:
