@@ -196,48 +196,56 @@ def quantize_int8(onnx_in: str | Path, onnx_out: str | Path, scans: np.ndarray |
     return onnx_out
 
 
-def _quantize_static(onnx_in: Path, onnx_out: Path, spec: ModelSpec, scans: np.ndarray,
-                     exclude: list[str]) -> None:
-    """QDQ int8: uint8 activations, per-channel int8 weights, percentile calibration, in two
-    passes. The second gives each Concat's inputs the scale and zero point the first gave its
-    output, so that ONNX Runtime's QLinearConcat copies bytes instead of requantising every
-    input (the fire modules' concats: 3.5 -> 0.8 ms/frame, 1 thread). The calibrator's
-    progress lines, printed to stdout, are dropped: stdout carries commands' JSON."""
+def _percentile_ranges(onnx_in: Path, spec: ModelSpec, scans: np.ndarray,
+                       chunk: int = 8) -> dict[str, tuple[float, float]]:
+    """Each quantisable tensor's (min, max) from ONNX Runtime's percentile calibrator, fed
+    `chunk` scans at a time: its histograms merge across calls, while one call holds every
+    activation of every scan in memory (64 scans at once: 23 GB; in chunks of 8: < 2 GB)."""
     import contextlib
     import io
     import tempfile
 
+    from onnxruntime.quantization.calibrate import CalibrationMethod, create_calibrator
+
+    with tempfile.TemporaryDirectory() as tmp, contextlib.redirect_stdout(io.StringIO()):
+        calibrator = create_calibrator(
+            str(onnx_in), list(INT8_OPS), str(Path(tmp) / "augmented.onnx"),
+            calibrate_method=CalibrationMethod.Percentile,
+            extra_options={"percentile": CALIBRATION_PERCENTILE})
+        for i in range(0, len(scans), chunk):
+            calibrator.collect_data(_ScanReader(spec, scans[i:i + chunk]))
+        data = calibrator.compute_data()
+    return {name: (float(np.min(data[name].range_value[0])),
+                   float(np.max(data[name].range_value[1]))) for name in data}
+
+
+def _quantize_static(onnx_in: Path, onnx_out: Path, spec: ModelSpec, scans: np.ndarray,
+                     exclude: list[str]) -> None:
+    """QDQ int8: uint8 activations, per-channel int8 weights, activation ranges from
+    `_percentile_ranges`. Each Concat's inputs take its output's range, so they share its scale
+    and ONNX Runtime's QLinearConcat copies bytes instead of requantising every input (the fire
+    modules' concats: 3.5 -> 0.8 ms/frame, 1 thread)."""
+    import contextlib
+    import io
+
     import onnx
-    from onnx import numpy_helper
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
 
-    def run(out: Path, overrides: dict) -> None:
-        options: dict[str, Any] = {"CalibPercentile": CALIBRATION_PERCENTILE}
-        if overrides:
-            options["TensorQuantOverrides"] = overrides
-        with contextlib.redirect_stdout(io.StringIO()):
-            quantize_static(str(onnx_in), str(out), _ScanReader(spec, scans),
-                            quant_format=QuantFormat.QDQ, activation_type=QuantType.QUInt8,
-                            weight_type=QuantType.QInt8, per_channel=True,
-                            calibrate_method=CalibrationMethod.Percentile,
-                            extra_options=options, nodes_to_exclude=exclude,
-                            op_types_to_quantize=list(INT8_OPS))
-
-    with tempfile.TemporaryDirectory() as tmp:
-        first = Path(tmp) / "first.onnx"
-        run(first, {})
-        q = onnx.load(str(first)).graph
-        inits = {i.name: i for i in q.initializer}
-        params = {n.input[0]: (numpy_helper.to_array(inits[n.input[1]]),
-                               numpy_helper.to_array(inits[n.input[2]]))
-                  for n in q.node if n.op_type == "QuantizeLinear" and n.input[1] in inits}
-    overrides = {}
+    ranges = _percentile_ranges(onnx_in, spec, scans)
     for n in onnx.load(str(onnx_in)).graph.node:
-        if n.op_type == "Concat" and n.output[0] in params:
-            scale, zero = params[n.output[0]]
+        if n.op_type == "Concat" and n.output[0] in ranges:
             for name in n.input:
-                overrides[name] = [{"scale": scale, "zero_point": zero}]
-    run(onnx_out, overrides)
+                ranges[name] = ranges[n.output[0]]
+    overrides = {name: [{"rmin": np.float32(lo), "rmax": np.float32(hi)}]
+                 for name, (lo, hi) in ranges.items()}
+    # the calibration quantize_static runs itself is replaced by the ranges: one scan does
+    with contextlib.redirect_stdout(io.StringIO()):
+        quantize_static(str(onnx_in), str(onnx_out), _ScanReader(spec, scans[:1]),
+                        quant_format=QuantFormat.QDQ, activation_type=QuantType.QUInt8,
+                        weight_type=QuantType.QInt8, per_channel=True,
+                        calibrate_method=CalibrationMethod.MinMax,
+                        extra_options={"TensorQuantOverrides": overrides},
+                        nodes_to_exclude=exclude, op_types_to_quantize=list(INT8_OPS))
 
 
 def convert_fp16(onnx_in: str | Path, onnx_out: str | Path,
