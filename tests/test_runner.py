@@ -271,3 +271,31 @@ def test_a_bundled_model_can_be_named(tmp_path, monkeypatch):
                  "--quiet"]) == 0
     run = json.loads((out / "summary.json").read_text())
     assert run["model_hash"] == load_segmenter(drive).model_hash
+
+
+def test_flushing_subnormals_leaves_the_bundled_outputs_unchanged(tmp_path):
+    """The runners' sessions flush subnormals to zero (a speed matter on Intel cores); on the
+    bundled network that changes no output bit. The plain session runs in a fresh process:
+    this one may already have the flags set by an earlier session."""
+    import subprocess
+    import sys
+
+    from falsify.models.runner import BUNDLED_ONNX, _feeds
+
+    scans = plausible_scans(2, seed=5)
+    np.save(tmp_path / "scans.npy", scans)
+    code = (
+        "import numpy as np, onnxruntime as ort\n"
+        "from falsify.models.runner import _feeds, BUNDLED_ONNX\n"
+        "from falsify.models.spec import load_spec, spec_path_for\n"
+        "spec = load_spec(spec_path_for(BUNDLED_ONNX))\n"
+        "s = ort.InferenceSession(str(BUNDLED_ONNX), providers=['CPUExecutionProvider'])\n"
+        f"x = np.load({str(tmp_path / 'scans.npy')!r})\n"
+        "out = np.concatenate([s.run(None, _feeds(spec, x[i:i + 1]))[0] for i in range(2)])\n"
+        f"np.save({str(tmp_path / 'plain.npy')!r}, out)\n")
+    subprocess.run([sys.executable, "-c", code], check=True)
+    seg = load_segmenter(BUNDLED_ONNX)
+    ours = np.concatenate([seg.session.run(None, _feeds(seg.spec, scans[i:i + 1]))[0]
+                           for i in range(2)])
+    assert np.array_equal(ours, np.load(tmp_path / "plain.npy"))
+    assert np.float32(1e-39) * np.float32(1.0) == 0.0   # the flags are on in this thread
