@@ -240,6 +240,14 @@ def _realism_text(doc: dict, out: Path) -> str:
     for key in doc["statistics"]:
         lines.append(f"{key:12s}" + "".join(f"{doc['distances'][n][ref][key]:26.4f}"
                                             for n in names))
+    floors = [s["frechet_floor"] for s in doc["synthetic"]]
+    if all(floors):
+        lines.append(f"{'(floor)':12s}" + "".join(f"{f['mean']:26.4f}" for f in floors)
+                     + f"  frechet of {floors[0]['scans']} scans of the same set against the "
+                     "rest (sampling alone)")
+    for key in doc.get("reference_statistics", {}):
+        lines.append(f"{key:12s}" + "".join(f"{doc['distances'][n][ref][key]:26.4f}"
+                                            for n in names) + "  (reference, not compared)")
     for name, cand in ((doc.get("comparison") or {}).get("candidates") or {}).items():
         k, n = sum(cand["closer"].values()), len(cand["closer"])
         lines.append(f"{name}: closer than {doc['comparison']['baseline']} on {k} of {n} "

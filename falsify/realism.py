@@ -10,10 +10,25 @@ range-image analogue of FID).
 
 Features are the bundled SqueezeSeg's fire9 activations (the end of its encoder), read with ONNX
 Runtime from the model's graph cut at that tensor (so no torch is needed and the features come
-from exactly the network that is scored), mean-pooled over TILE_ROWS x TILE_COLS tiles of the
-64 x 32 fire9 grid: each scan gives 16 feature vectors, so seven real scans give 112 samples, not
-7, to fit a 512-dimensional Gaussian. The real covariance is still rank-deficient (at most 111);
-the distance is biased by the sample counts, so compare worlds only at the same scan counts.
+from exactly the network that is scored). The reported Fréchet distance is per position: every
+cell of the 64 x 32 fire9 grid (one beam by 16 columns of the input) with at least one valid
+input pixel under it is a sample, about 1,900 a scan, so seven real scans give some 13,000
+samples of a 512-dimensional Gaussian instead of 112. Its mean and covariance are pooled from
+per-scan sums, so no set's cells are held in memory.
+
+Why per position, measured (realism2, 7 real scans, 200-scan synthetic sets, both bundled
+networks): the estimator's value between two halves of one distribution (real 4 vs 3 scans, 7
+synthetic scans vs the other 193) divided by its synthetic-vs-real value was 0.22 (new network)
+and 0.09 (old network) per position, 0.27 and 0.12 with the 16 tile means per scan it replaced;
+projecting on the top 8-64 principal components changed neither (the variance sits in a few
+components), and an unbiased distance of scan-level means alone was unbiased but three times as
+noisy against the signal. The bias that remains comes from scan-to-scan variety (cells of one
+scan are not independent), so it shrinks only with more real scans: each synthetic set's
+`frechet_floor` gives the same estimator between a random real-set-sized subset of that set and
+the rest, the distance two samples of one world already show. The tile estimator
+(TILE_ROWS x TILE_COLS means a scan) stays in the result as `frechet_tiles`, outside the
+statistics compared. The distance is biased by the sample counts: compare worlds only at the
+same scan counts.
 """
 
 from __future__ import annotations
@@ -32,6 +47,8 @@ HEIGHT_EDGES = np.linspace(-4.0, 6.0, 101)      # m (sensor frame z), 0.1 m bins
 INTENSITY_EDGES = np.linspace(0.0, 1.0, 51)
 FEATURE_TENSOR = "/fire9/Concat_output_0"
 TILE_ROWS, TILE_COLS = 4, 4
+CELL_MIN_VALID = 1       # valid input pixels under a fire9 cell for it to be a feature sample
+FLOOR_DRAWS = 10         # random subsets behind each synthetic set's frechet_floor
 CHUNK = 16
 # One scalar distance per statistic, lower is closer: (key, what it is, unit).
 STATISTICS = (
@@ -40,13 +57,93 @@ STATISTICS = (
     ("height", "height (z) histogram: 1-Wasserstein distance", "m"),
     ("intensity", "intensity histogram: 1-Wasserstein distance", "intensity"),
     ("classes", "per-class point fractions: total variation", "fraction"),
-    ("frechet", "Fréchet distance of fire9 encoder features", "feature units²"),
+    ("frechet", "Fréchet distance of fire9 encoder features, per position "
+     "(every fire9 cell with a valid input pixel)", "feature units²"),
 )
+# Reported beside the statistics, not compared: the estimator `frechet` replaced.
+REFERENCE = (
+    ("frechet_tiles", f"Fréchet distance of fire9 features mean-pooled over {TILE_ROWS}x"
+     f"{TILE_COLS} tiles a scan (the first estimator)", "feature units²"),
+)
+
+
+@dataclass
+class ScanFeatures:
+    """fire9 features of a batch of B scans: the tile means and, per scan, the moments of its
+    valid cells (count, mean, covariance about its own mean), from which any union of scans'
+    mean and covariance is pooled exactly (`pooled_moments`)."""
+
+    tiles: np.ndarray           # (B * TILE_ROWS * TILE_COLS, C) float64
+    counts: np.ndarray          # (B,) valid cells per scan
+    means: np.ndarray           # (B, C) float64
+    covs: np.ndarray            # (B, C, C) float32, ddof 1 (zeros for a scan with one cell)
+
+    def __len__(self) -> int:
+        return len(self.counts)
+
+    @staticmethod
+    def concat(parts: list[ScanFeatures]) -> ScanFeatures:
+        return ScanFeatures(*(np.concatenate([getattr(p, k) for p in parts])
+                              for k in ("tiles", "counts", "means", "covs")))
+
+
+def cell_moments(f: np.ndarray, valid: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
+    """(count, mean, covariance) of the (C, h, w) feature grid `f` over the cells where the
+    (h, w) mask `valid` holds."""
+    cells = f.transpose(1, 2, 0)[valid].astype(np.float64)
+    n = len(cells)
+    if n == 0:
+        return 0, np.zeros(f.shape[0]), np.zeros((f.shape[0],) * 2, np.float32)
+    mu = cells.mean(axis=0)
+    x = cells - mu
+    cov = x.T @ x / (n - 1) if n > 1 else np.zeros((len(mu),) * 2)
+    return n, mu, cov.astype(np.float32)
+
+
+def pooled_moments(feats: ScanFeatures, idx: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Mean, covariance (ddof 1) and count of all valid cells of the scans `idx` (all if None):
+    the parallel-axis sum of each scan's own covariance and its mean's offset."""
+    idx = np.arange(len(feats)) if idx is None else np.asarray(idx)
+    n = feats.counts[idx].astype(np.float64)
+    total = n.sum()
+    if total < 2:
+        raise ValueError("the Fréchet distance needs at least 2 feature samples per set")
+    mu = (n[:, None] * feats.means[idx]).sum(axis=0) / total
+    off = feats.means[idx] - mu
+    scatter = np.einsum("b,bij->ij", np.maximum(n - 1, 0), feats.covs[idx].astype(np.float64))
+    scatter += (off * n[:, None]).T @ off
+    return mu, scatter / (total - 1), int(total)
+
+
+def cell_frechet(a: ScanFeatures, b: ScanFeatures, ia: np.ndarray | None = None,
+                 ib: np.ndarray | None = None) -> float:
+    """The per-position Fréchet distance between the valid cells of scans `ia` of `a` and
+    scans `ib` of `b` (all scans when None)."""
+    ma, ca, _ = pooled_moments(a, ia)
+    mb, cb, _ = pooled_moments(b, ib)
+    return frechet_distance(ma, ca, mb, cb)
+
+
+def frechet_floor(feats: ScanFeatures, scans: int, draws: int = FLOOR_DRAWS,
+                  seed: int = 0) -> dict | None:
+    """The per-position Fréchet distance between `scans` random scans of one set and the rest
+    of it, over `draws` seeded draws: what sampling alone gives at a real set's scan count.
+    None when the set has too few scans to leave two behind."""
+    if scans < 1 or len(feats) < scans + 2:
+        return None
+    rng = np.random.default_rng(seed)
+    values = []
+    for _ in range(draws):
+        p = rng.permutation(len(feats))
+        values.append(cell_frechet(feats, feats, p[:scans], p[scans:]))
+    return {"scans": scans, "draws": draws, "seed": seed,
+            "mean": round(float(np.mean(values)), 6), "max": round(float(np.max(values)), 6)}
 
 
 class EncoderFeatures:
     """fire9 features of a SqueezeSeg ONNX model: its graph cut at FEATURE_TENSOR (with the
-    `onnx` package) and run in ONNX Runtime, tile-pooled."""
+    `onnx` package) and run in ONNX Runtime; per scan its tile means and valid-cell moments."""
 
     def __init__(self, path: str | Path | None = None, threads: int | None = 2) -> None:
         from falsify.models.runner import BUNDLED_ONNX
@@ -83,8 +180,10 @@ class EncoderFeatures:
                                f"{FEATURE_TENSOR} ({exc})") from None
         self.session = cpu_session(cut.SerializeToString(), threads)
 
-    def __call__(self, scans: np.ndarray) -> np.ndarray:
-        """(B, H, W, 6) scans -> (B * TILE_ROWS * TILE_COLS, C) float64 tile features."""
+    def __call__(self, scans: np.ndarray) -> ScanFeatures:
+        """(B, H, W, 6) scans -> their ScanFeatures. A fire9 cell is a sample when at least
+        CELL_MIN_VALID of the input pixels it stands for (H / h rows by W / w columns) hold a
+        return."""
         from falsify.models.runner import check_scans
         from falsify.models.spec import normalise
 
@@ -98,14 +197,24 @@ class EncoderFeatures:
         if h % TILE_ROWS or w % TILE_COLS:
             raise FalsifyError(f"model {self.path}: fire9 grid {h}x{w} does not split into "
                                f"{TILE_ROWS}x{TILE_COLS} tiles")
+        H, W = a.shape[1:3]
+        if H % h or W % w:
+            raise FalsifyError(f"model {self.path}: fire9 grid {h}x{w} does not divide the "
+                               f"input {H}x{W}")
         t = f.reshape(b, c, TILE_ROWS, h // TILE_ROWS, TILE_COLS,
                       w // TILE_COLS).mean(axis=(3, 5), dtype=np.float64)
-        return t.transpose(0, 2, 3, 1).reshape(-1, c)
+        valid = (a[..., 4] > 0).reshape(b, h, H // h, w, W // w).sum(axis=(2, 4))
+        moments = [cell_moments(f[i], valid[i] >= CELL_MIN_VALID) for i in range(b)]
+        return ScanFeatures(t.transpose(0, 2, 3, 1).reshape(-1, c),
+                            np.array([m[0] for m in moments], np.int64),
+                            np.stack([m[1] for m in moments]),
+                            np.stack([m[2] for m in moments]))
 
 
 @dataclass
 class SetStats:
-    """Statistics of one set of scans (histograms hold counts; `features` one row per tile)."""
+    """Statistics of one set of scans (histograms hold counts; `features` one ScanFeatures a
+    batch)."""
 
     name: str
     scans: int = 0
@@ -117,10 +226,12 @@ class SetStats:
         default_factory=lambda: np.zeros(len(INTENSITY_EDGES) - 1))
     class_counts: np.ndarray = field(default_factory=lambda: np.zeros(len(CLASSES)))
     sums: np.ndarray = field(default_factory=lambda: np.zeros(3))   # range, z, intensity
-    features: list[np.ndarray] = field(default_factory=list, repr=False)
+    features: list[ScanFeatures] = field(default_factory=list, repr=False)
+    floor: dict | None = None           # frechet_floor, set by compare for synthetic sets
+    _joined: ScanFeatures | None = field(default=None, repr=False, compare=False)
 
-    def add(self, images: np.ndarray, features: np.ndarray | None) -> None:
-        """Add (B, H, W, 6) scans and their tile features."""
+    def add(self, images: np.ndarray, features: ScanFeatures | None) -> None:
+        """Add (B, H, W, 6) scans and their features."""
         valid = images[..., 4] > 0
         rows = valid.mean(axis=2).sum(axis=0)
         self.row_valid_sum = rows if self.row_valid_sum is None else self.row_valid_sum + rows
@@ -135,6 +246,7 @@ class SetStats:
         self.sums += pts[:, [4, 2, 3]].sum(axis=0)
         if features is not None:
             self.features.append(features)
+            self._joined = None
 
     def merged(self, other: SetStats, name: str) -> SetStats:
         out = SetStats(name)
@@ -149,8 +261,16 @@ class SetStats:
     def row_valid(self) -> np.ndarray:
         return self.row_valid_sum / max(self.scans, 1)
 
+    @property
+    def all_features(self) -> ScanFeatures:
+        """Every scan's features in one ScanFeatures (joined once, then kept)."""
+        if self._joined is None:
+            self._joined = ScanFeatures.concat(self.features)
+        return self._joined
+
     def as_dict(self) -> dict:
-        f = np.concatenate(self.features)
+        feats = self.all_features
+        _, cov, cells = pooled_moments(feats)
         return {
             "name": self.name, "scans": self.scans, "points": self.points,
             "valid_fraction": float(self.row_valid.mean()),
@@ -162,9 +282,11 @@ class SetStats:
             "mean_range": float(self.sums[0] / max(self.points, 1)),
             "mean_height": float(self.sums[1] / max(self.points, 1)),
             "mean_intensity": float(self.sums[2] / max(self.points, 1)),
-            "feature_samples": len(f), "feature_dims": int(f.shape[1]),
-            # total variance of the features: Tr of their covariance
-            "feature_trace": round(float(f.var(axis=0, ddof=1).sum()), 6),
+            "feature_samples": cells, "feature_dims": int(feats.means.shape[1]),
+            # total variance of the per-position features: Tr of their covariance
+            "feature_trace": round(float(np.trace(cov)), 6),
+            "tile_samples": len(feats.tiles),
+            "frechet_floor": self.floor,
         }
 
 
@@ -215,7 +337,8 @@ def wasserstein_hist(a: np.ndarray, b: np.ndarray, edges: np.ndarray) -> float:
 
 
 def distances(syn: SetStats, real: SetStats) -> dict[str, float]:
-    """One scalar per statistic (STATISTICS), lower is closer."""
+    """One scalar per statistic (STATISTICS), lower is closer, and the REFERENCE ones."""
+    fs, fr = syn.all_features, real.all_features
     return {
         "row_valid": float(np.abs(syn.row_valid - real.row_valid).mean()),
         "range": wasserstein_hist(syn.range_counts, real.range_counts, RANGE_EDGES),
@@ -223,8 +346,8 @@ def distances(syn: SetStats, real: SetStats) -> dict[str, float]:
         "intensity": wasserstein_hist(syn.intensity_counts, real.intensity_counts,
                                       INTENSITY_EDGES),
         "classes": float(0.5 * np.abs(_norm(syn.class_counts) - _norm(real.class_counts)).sum()),
-        "frechet": frechet_from_samples(np.concatenate(syn.features),
-                                        np.concatenate(real.features)),
+        "frechet": cell_frechet(fs, fr),
+        "frechet_tiles": frechet_from_samples(fs.tiles, fr.tiles),
     }
 
 
@@ -260,9 +383,21 @@ class Realism:
     def as_dict(self) -> dict:
         return {
             "model": self.model, "model_hash": self.model_hash,
-            "feature": {"tensor": FEATURE_TENSOR, "tiles": [TILE_ROWS, TILE_COLS],
-                        "pooling": "mean over each tile of the fire9 grid"},
+            "feature": {
+                "tensor": FEATURE_TENSOR,
+                "estimator": "per-position",
+                "samples": f"every fire9 cell with >= {CELL_MIN_VALID} valid input pixel(s) "
+                           "under it",
+                "why": "chosen by measured split bias: the distance between two halves of one "
+                       "set over the synthetic-vs-real distance was 0.22 / 0.09 (new / old "
+                       "network) per position against 0.27 / 0.12 for tile means; principal "
+                       "component projection changed neither",
+                "floor": f"frechet_floor: {FLOOR_DRAWS} draws of as many scans as the pooled "
+                         "real set against the rest of the same synthetic set",
+                "tiles": [TILE_ROWS, TILE_COLS],
+                "pooling": "frechet_tiles only: mean over each tile of the fire9 grid"},
             "statistics": {k: {"what": w, "unit": u} for k, w, u in STATISTICS},
+            "reference_statistics": {k: {"what": w, "unit": u} for k, w, u in REFERENCE},
             "bins": {"range": _floats(RANGE_EDGES), "height": _floats(HEIGHT_EDGES),
                      "intensity": _floats(INTENSITY_EDGES)},
             "synthetic": [s.as_dict() for s in self.synthetic],
@@ -304,6 +439,8 @@ def compare(synthetic: dict[str, list[Path]], real: list[ScanSet],
             pooled = pooled.merged(s, pooled_name)
         all_real = (*real_stats, pooled)
     syn_stats = tuple(set_stats(name, paths, features) for name, paths in synthetic.items())
+    for s in syn_stats:
+        s.floor = frechet_floor(s.all_features, all_real[-1].scans)
     dist = {s.name: {r.name: distances(s, r) for r in all_real} for s in syn_stats}
     return Realism(features.spec.name, features.model_hash, syn_stats, all_real, dist)
 

@@ -110,6 +110,26 @@ def distance_table(doc: dict) -> str:
                 cells.append(f'<td class="num" data-stat="{esc(key)}">{value:.4f}{mark}</td>')
         rows.append(f'<tr><th scope="row">{esc(key)}<br><span class="sub">{esc(info["what"])} '
                     f'({esc(info["unit"])})</span></th>{"".join(cells)}</tr>')
+    # each synthetic set's floor: the Fréchet estimator between two samples of itself
+    if doc["synthetic"] and all(s.get("frechet_floor") for s in doc["synthetic"]):
+        cells = []
+        for s in doc["synthetic"]:
+            f = s["frechet_floor"]
+            cells.append(f'<td class="num" data-floor="{esc(s["name"])}">{f["mean"]:.4f}'
+                         f'<br><span class="sub">max {f["max"]:.4f}</span></td>'
+                         + '<td class="num">—</td>' * (len(reals) - 1))
+        n = doc["synthetic"][0]["frechet_floor"]["scans"]
+        rows.append(f'<tr><th scope="row">frechet floor<br><span class="sub">the same '
+                    f'estimator between {n} random scans of the set and the rest (mean of '
+                    f'{doc["synthetic"][0]["frechet_floor"]["draws"]} draws): what sampling '
+                    f'alone gives</span></th>{"".join(cells)}</tr>')
+    for key, info in doc.get("reference_statistics", {}).items():
+        cells = [f'<td class="num" data-ref="{esc(key)}">'
+                 f'{doc["distances"][s["name"]][r][key]:.4f}</td>'
+                 for s in doc["synthetic"] for r in reals]
+        rows.append(f'<tr><th scope="row">{esc(key)} (reference, not compared)<br>'
+                    f'<span class="sub">{esc(info["what"])} ({esc(info["unit"])})</span></th>'
+                    f'{"".join(cells)}</tr>')
     verdict = ""
     for name, cand in comp.get("candidates", {}).items():
         k, n = sum(cand["closer"].values()), len(cand["closer"])
@@ -125,7 +145,7 @@ def sets_table(doc: dict) -> str:
     classes = list(doc["synthetic"][0]["class_fraction"]) if doc["synthetic"] else []
     head = ("<th>set</th><th>scans</th><th>points</th><th>valid</th><th>mean range (m)</th>"
             "<th>mean z (m)</th><th>mean intensity</th>"
-            + "".join(f"<th>{esc(c)}</th>" for c in classes) + "<th>feature samples</th>")
+            + "".join(f"<th>{esc(c)}</th>" for c in classes) + "<th>feature samples (cells)</th>")
     rows = []
     for label, s, colour, _ in _series(doc):
         rows.append(
@@ -192,8 +212,9 @@ def render_realism(doc: dict) -> str:
     """The page for a realism JSON document (as `Realism.as_dict()` makes it)."""
     feat = doc["feature"]
     meta = (f'model {esc(doc["model"])} ({esc(str(doc["model_hash"])[:12])}); features: '
-            f'{esc(feat["tensor"])}, {esc(feat["pooling"])}, '
-            f'{int(feat["tiles"][0])}×{int(feat["tiles"][1])} tiles per scan')
+            f'{esc(feat["tensor"])}, {esc(feat["estimator"])}: {esc(feat["samples"])} '
+            f'({esc(feat["why"])}); frechet_tiles: {int(feat["tiles"][0])}×'
+            f'{int(feat["tiles"][1])} tile means per scan')
     return (
         head("falsify realism: synthetic against real scans", CSP, CSS) + '<body>'
         '<h1>Realism: synthetic against real LiDAR scans</h1>'

@@ -14,9 +14,15 @@ from scipy.linalg import sqrtm
 
 from falsify.cli import main
 from falsify.realism import (
+    REFERENCE,
     STATISTICS,
+    ScanFeatures,
+    cell_frechet,
+    cell_moments,
     frechet_distance,
+    frechet_floor,
     frechet_from_samples,
+    pooled_moments,
     wasserstein_hist,
 )
 from falsify.scene import PlacedCar, Simulator
@@ -88,6 +94,78 @@ def test_frechet_in_sample_space_equals_the_full_form() -> None:
         frechet_from_samples(few[:1], many)
 
 
+# -- the per-position estimator -----------------------------------------------------------------
+def clustered(rng: np.random.Generator, scans: int, shift: float = 0.0, dims: int = 8,
+              cells: int = 300) -> tuple[ScanFeatures, list[np.ndarray]]:
+    """Feature grids as a network gives them: each scan has its own offset (scan-to-scan variety,
+    so cells of one scan are not independent), its cells scatter around it; some cells masked."""
+    grids, masks, per_scan = [], [], []
+    for _ in range(scans):
+        offset = rng.normal(0.0, 0.5, dims) + shift
+        f = rng.normal(size=(dims, 10, cells // 10)) * rng.uniform(0.5, 1.5, (dims, 1, 1))
+        f += offset[:, None, None]
+        valid = rng.random((10, cells // 10)) > 0.2
+        grids.append(f)
+        masks.append(valid)
+        per_scan.append(f.transpose(1, 2, 0)[valid])
+    moments = [cell_moments(f, m) for f, m in zip(grids, masks, strict=True)]
+    feats = ScanFeatures(np.zeros((scans, dims)), np.array([m[0] for m in moments]),
+                         np.stack([m[1] for m in moments]), np.stack([m[2] for m in moments]))
+    return feats, per_scan
+
+
+def test_pooled_moments_equal_those_of_all_cells() -> None:
+    rng = np.random.default_rng(5)
+    feats, cells = clustered(rng, 6)
+    idx = np.array([0, 2, 3, 5])
+    mu, cov, n = pooled_moments(feats, idx)
+    ref = np.concatenate([cells[i] for i in idx])
+    assert n == len(ref)
+    assert np.allclose(mu, ref.mean(axis=0), atol=1e-12)
+    assert np.allclose(cov, np.cov(ref, rowvar=False), atol=1e-5)      # covs kept in float32
+    # a cell grid with no valid cell adds nothing; the mask picks the cells
+    f = rng.normal(size=(3, 2, 2))
+    assert cell_moments(f, np.zeros((2, 2), bool))[0] == 0
+    n1, m1, _ = cell_moments(f, np.array([[True, False], [False, True]]))
+    assert n1 == 2 and np.allclose(m1, (f[:, 0, 0] + f[:, 1, 1]) / 2)
+
+
+def test_cell_frechet_self_zero_and_grows_with_a_shift() -> None:
+    rng = np.random.default_rng(6)
+    feats, _ = clustered(rng, 20)
+    assert cell_frechet(feats, feats) == pytest.approx(0.0, abs=1e-6)
+    shifted = ScanFeatures(feats.tiles, feats.counts, feats.means + 0.5, feats.covs)
+    values = [cell_frechet(feats, ScanFeatures(feats.tiles, feats.counts, feats.means + t,
+                                               feats.covs)) for t in (0.25, 0.5, 1.0, 2.0)]
+    # a pure mean shift of t in each of d dims: exactly d t²
+    assert values == pytest.approx([8 * t * t for t in (0.25, 0.5, 1.0, 2.0)], rel=1e-5)
+    assert cell_frechet(feats, shifted) == pytest.approx(values[1])
+    assert np.all(np.diff(values) > 0)
+
+
+def test_split_bias_is_small_against_a_real_difference_and_shrinks_with_scans() -> None:
+    """Two samples of one distribution sit closer than two distributions do, and the
+    estimator's floor (a subset against the rest) falls as the subset grows: deterministic."""
+    rng = np.random.default_rng(7)
+    same, _ = clustered(rng, 60)
+    other, _ = clustered(rng, 60, shift=0.6)
+    floor7 = frechet_floor(same, 7, draws=10, seed=0)
+    floor30 = frechet_floor(same, 30, draws=10, seed=0)
+    assert floor7 == frechet_floor(same, 7, draws=10, seed=0)          # seeded
+    assert floor7["scans"] == 7 and floor7["draws"] == 10
+    real_gap = cell_frechet(same, other, np.arange(7), None)           # 7 "real" scans
+    assert 0 < floor30["mean"] < floor7["mean"] < 0.35 * real_gap
+    assert floor7["max"] >= floor7["mean"]
+    assert frechet_floor(same, 59) is None                              # nothing left to split
+    # per position beats one mean per scan on the same data: the tile-like estimator with
+    # one sample a scan is far noisier between halves of one set
+    per_scan = ScanFeatures(same.tiles, np.ones(60, np.int64), same.means,
+                            np.zeros_like(same.covs))
+    p = np.random.default_rng(0).permutation(60)
+    coarse = frechet_from_samples(per_scan.means[p[:7]], per_scan.means[p[7:]])
+    assert cell_frechet(same, same, p[:7], p[7:]) < coarse
+
+
 def test_wasserstein_of_histograms() -> None:
     edges = np.linspace(0.0, 10.0, 11)
     a, b = np.zeros(10), np.zeros(10)
@@ -133,13 +211,21 @@ def test_realism_json_fields_and_determinism(sets, tmp_path: Path, capsys) -> No
         assert s["scans"] == 2 and len(s["row_valid"]) == 64
         assert sum(s["range_hist"]) == pytest.approx(1.0, abs=1e-5)
         assert sum(s["class_fraction"].values()) == pytest.approx(1.0, abs=1e-5)
-        assert s["feature_dims"] == 512 and s["feature_samples"] == 2 * 16
+        assert s["feature_dims"] == 512 and s["tile_samples"] == 2 * 16
+    # a sample per fire9 cell (1 row x 16 columns) with a valid pixel under it
+    for name, s in (("old", doc["synthetic"][0]), ("real", doc["real"][0])):
+        valid = np.stack([np.load(p)[..., 4] > 0 for p in sorted(sets[name].glob("*.npy"))])
+        assert s["feature_samples"] == int(valid.reshape(2, 64, 32, 16).any(axis=3).sum())
+    assert doc["real"][0]["feature_samples"] < doc["synthetic"][0]["feature_samples"]
+    assert doc["feature"]["estimator"] == "per-position"
+    assert all(s["frechet_floor"] is None for s in doc["synthetic"])   # 2 scans: no split
     assert doc["real"][0]["row_valid"][:6] == [0.0] * 6
     keys = [k for k, _, _ in STATISTICS]
+    assert set(doc["reference_statistics"]) == {k for k, _, _ in REFERENCE}
     assert set(doc["statistics"]) == set(keys)
     for name in ("old", EVIL):
         d = doc["distances"][name]["real"]
-        assert set(d) == set(keys) and all(v >= 0 for v in d.values())
+        assert set(d) == set(keys) | {"frechet_tiles"} and all(v >= 0 for v in d.values())
         assert d["row_valid"] > 0.05           # six empty rows of 64
     cand = doc["comparison"]["candidates"][EVIL]
     assert set(cand["closer"]) == set(keys)
