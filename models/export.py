@@ -103,7 +103,7 @@ def pad_input_channels(model: Any, input_name: str, multiple: int = INT8_INPUT_C
     """Widen the network input to a multiple of ``multiple`` channels in the graph: a zero Pad
     on the input, and zero weights for the new channels in every Conv reading it (directly or
     through a spatial Pad). Same outputs; ONNX Runtime's int8 convs run a 5-channel input
-    slowly (conv1 and its skip: 1.9 -> 0.6 ms/frame at 8 channels, 1 thread), while its fp32
+    slowly (conv1 and its skip: 1.9 -> 0.5 ms/frame at 8 channels, 1 thread), while its fp32
     ones prefer it unpadded, so only the int8 graph gets this. False if the graph does not
     have that shape (nothing changed)."""
     from onnx import helper, numpy_helper
@@ -224,7 +224,7 @@ def _quantize_static(onnx_in: Path, onnx_out: Path, spec: ModelSpec, scans: np.n
     """QDQ int8: uint8 activations, per-channel int8 weights, activation ranges from
     `_percentile_ranges`. Each Concat's inputs take its output's range, so they share its scale
     and ONNX Runtime's QLinearConcat copies bytes instead of requantising every input (the fire
-    modules' concats: 3.5 -> 0.8 ms/frame, 1 thread)."""
+    modules' concats: 3.5 -> 0.7 ms/frame, 1 thread)."""
     import contextlib
     import io
 
