@@ -32,6 +32,17 @@ def open_model(meta: dict, predict: bool, model: Segmenter | None = None
     return model, note
 
 
+def run_lod(meta: dict) -> int:
+    """The car level of detail a run scanned with: its meta's `lod`; for runs that predate it,
+    its preset's (as presets are defined now); else the full mesh."""
+    if isinstance(meta.get("lod"), int):
+        return int(meta["lod"])
+    from falsify.fidelity import PRESETS
+
+    fid = PRESETS.get(str(meta.get("fidelity") or "exact"))
+    return fid.lod if fid is not None else 2
+
+
 def replay_worst(data: RunData, worst: int, predict: bool, model: Segmenter | None = None
                  ) -> tuple[dict[int, ReplayedScan], str]:
     """Re-cast the worst rows (grouped by background to reuse BVHs) and predict them."""
@@ -39,14 +50,8 @@ def replay_worst(data: RunData, worst: int, predict: bool, model: Segmenter | No
     if not len(rows):
         return {}, ""
     seg, note = open_model(data.meta, predict, model)
-    lod = 2
-    try:  # replay at the run's fidelity (car level of detail)
-        from falsify.fidelity import preset
-        lod = preset(str(data.meta.get("fidelity") or "exact")).lod
-    except Exception:  # older runs or an unknown preset: the exact scene
-        pass
     try:
-        replay = Replay(data.space, lod=lod)
+        replay = Replay(data.space, lod=run_lod(data.meta))
     except Exception as exc:
         return {}, f"Scans could not be regenerated ({exc})."
     out: dict[int, ReplayedScan] = {}

@@ -125,7 +125,7 @@ def prepare(req: RunRequest) -> Prepared:
         "model_name": seg.spec.name, "model_hash": seg.model_hash, "backend": req.backend,
         "seed": seed, "algorithm": req.algorithm, "budget": req.budget,
         "threshold": req.threshold or space.threshold, "workers": req.workers,
-        "fidelity": req.fidelity, "executor": req.executor,
+        "fidelity": req.fidelity, "lod": fid.lod, "executor": req.executor,
     }
     if store_path.exists():
         if not req.resume:

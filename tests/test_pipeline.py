@@ -243,6 +243,7 @@ def test_fidelity_presets_run_their_model_variant(tmp_path, capsys, fidelity):
     from falsify.store import read_meta
     meta = read_meta(out)
     assert meta["fidelity"] == fidelity and "int8" in meta["model_path"]
+    assert meta["lod"] == 2   # recorded: the report replays with it whatever presets become
     assert main(["grid", str(CONFIGS / "smoke.toml"), "--out", str(tmp_path / "t"),
                  "--fidelity", fidelity, "--backend", "torch"]) == 2
 

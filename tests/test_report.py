@@ -188,3 +188,11 @@ def test_in_chromium(browser, runs, tmp_path: Path) -> None:
     uri = "data:image/png;base64," + base64.b64encode(png).decode("ascii")
     colours = browser.execute_async_script(COUNT_COLOURS, uri)
     assert colours > 50, colours
+
+
+def test_replay_uses_the_level_of_detail_the_run_scanned_with() -> None:
+    from falsify.reporting import run_lod
+
+    assert run_lod({"lod": 0, "fidelity": "exact"}) == 0       # the meta's own record wins
+    assert run_lod({"fidelity": "fast"}) == 2                   # older runs: today's preset
+    assert run_lod({}) == 2 and run_lod({"fidelity": "ultra"}) == 2
