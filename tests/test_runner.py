@@ -243,6 +243,10 @@ def test_export_cli_rejects_bad_input_before_writing(exported, tmp_path, capsys)
     bad.write_bytes(b"not a checkpoint")
     assert export_main([str(bad), "--out", str(out)]) == 2
     assert "cannot load weights" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:   # argparse: exit 2, naming the option
+        export_main([*args, "--int8", str(tmp_path / "q.onnx"), "--calibration-scans", "0"])
+    assert exc.value.code == 2 and "--calibration-scans" in capsys.readouterr().err
+    assert not out.exists() and not (tmp_path / "q.onnx").exists()
     tensor = tmp_path / "tensor.pt"
     torch.save(torch.zeros(3), tensor)
     assert export_main([str(tensor), "--out", str(out)]) == 2
