@@ -1,0 +1,188 @@
+"""Logit adjustment: undo the class weights' bias in a trained SqueezeSeg's logits.
+
+    python -m falsify.models.adjust WEIGHTS.pt --val DIR --out ADJUSTED.pt [--alphas A,B,...]
+        [--json]
+
+Training weighs the cross-entropy by CLASS_WEIGHTS (unknown 1/15, car 1, pedestrian and cyclist
+10), which shifts the learned logit of class c by about log(w_c / w_unknown): the network calls
+"car" and "pedestrian" too readily (the first new-world network: held-out car recall 0.97,
+precision 0.80). Subtracting alpha * log(w_c / w_unknown) from conv14's output, before the CRF,
+undoes that (alpha = 1 is the Bayes correction for pixel accuracy; Menon et al., "Long-tail
+learning via logit adjustment", ICLR 2021). IoU is not accuracy, so alpha is chosen: the one with
+the highest pooled car IoU on a synthetic validation folder (ties: the smaller alpha). The offset
+is folded into conv14's bias, so the adjusted weights export and run exactly like any others.
+Real scans must never be --val.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from falsify.models.train import CLASS_WEIGHTS, batch_tensors, list_scans, load_scan
+
+from falsify.errors import FalsifyError
+
+DEFAULT_ALPHAS = tuple(round(0.05 * i, 2) for i in range(21))
+BIAS_KEY = "conv14.conv.bias"
+BATCH = 8
+
+
+def logit_offsets(alpha: float, weights: Sequence[float] = CLASS_WEIGHTS) -> np.ndarray:
+    """Per-class offset added to the logits: -alpha * log(w_c / w_0) (0 for class 0)."""
+    w = np.asarray(weights, np.float64)
+    return -alpha * np.log(w / w[0])
+
+
+def adjust_state(state: dict, alpha: float) -> dict:
+    """A copy of a SqueezeSeg state dict with the alpha offsets folded into conv14's bias."""
+    import torch
+
+    if BIAS_KEY not in state:
+        raise FalsifyError(f"not SqueezeSeg weights: no {BIAS_KEY!r}")
+    out = dict(state)
+    bias = state[BIAS_KEY]
+    off = torch.tensor(logit_offsets(alpha), dtype=bias.dtype)
+    if off.shape != bias.shape:
+        raise FalsifyError(f"{BIAS_KEY} has {tuple(bias.shape)} classes; the class weights "
+                           f"have {len(CLASS_WEIGHTS)}")
+    out[BIAS_KEY] = (bias + off).contiguous()
+    return out
+
+
+@dataclass
+class AlphaScore:
+    """Pooled scores of one alpha on the validation folder."""
+
+    alpha: float
+    car_iou: float
+    car_precision: float
+    car_recall: float
+    iou: list[float]  # per class: unknown, car, pedestrian, cyclist
+
+
+@dataclass
+class Adjustment:
+    """What `choose_alpha` measured and chose."""
+
+    val: str
+    scans: int
+    chosen: float
+    scores: list[AlphaScore]
+
+
+def choose_alpha(state: dict, val: str | Path, alphas: Sequence[float] = DEFAULT_ALPHAS,
+                 crf_iterations: int = 3, threads: int | None = 2) -> Adjustment:
+    """Score every alpha on the scans of `val` (the backbone runs once a batch, the CRF once
+    per alpha; fp32) and choose the highest pooled car IoU, the smaller alpha on a tie."""
+    import torch
+    from falsify.models.spec import DEFAULT_CHANNELS
+    from falsify.models.squeezeseg import SqueezeSeg
+
+    if not alphas:
+        raise FalsifyError("--alphas: give at least one value")
+    if threads:
+        torch.set_num_threads(int(threads))
+    files = list_scans(val, "--val")
+    model = SqueezeSeg(DEFAULT_CHANNELS, crf_iterations=crf_iterations)
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as exc:
+        raise FalsifyError(f"not SqueezeSeg weights ({str(exc).splitlines()[0]})") from None
+    model.eval()
+    alphas = sorted(set(float(a) for a in alphas))
+    counts = np.zeros((len(alphas), 3, 4), np.int64)  # tp, fp, fn per class
+    with torch.inference_mode():
+        for i in range(0, len(files), BATCH):
+            scans = np.stack([load_scan(f) for f in files[i:i + BATCH]])
+            x, xyz, mask, labels = batch_tensors(scans, DEFAULT_CHANNELS)
+            logits = model.backbone(x)
+            lab = labels.numpy()
+            invalid = scans[..., 4] <= 0
+            for k, a in enumerate(alphas):
+                off = torch.tensor(logit_offsets(a), dtype=logits.dtype).view(1, -1, 1, 1)
+                z = logits + off
+                out = model.crf(z, xyz, mask) if crf_iterations else z
+                pred = out.argmax(1).numpy()
+                pred[invalid] = 0
+                for c in range(4):
+                    p, t = pred == c, lab == c
+                    counts[k, 0, c] += int((p & t).sum())
+                    counts[k, 1, c] += int((p & ~t).sum())
+                    counts[k, 2, c] += int((~p & t).sum())
+    scores = []
+    for a, (tp, fp, fn) in zip(alphas, counts, strict=True):
+        iou = [float(tp[c] / d) if (d := tp[c] + fp[c] + fn[c]) else math.nan for c in range(4)]
+        scores.append(AlphaScore(a, iou[1], float(tp[1] / max(tp[1] + fp[1], 1)),
+                                 float(tp[1] / max(tp[1] + fn[1], 1)), iou))
+    best = max(scores, key=lambda s: (s.car_iou, -s.alpha))
+    return Adjustment(str(val), len(files), best.alpha, scores)
+
+
+def _alphas(text: str) -> list[float]:
+    try:
+        values = [float(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise FalsifyError(f"--alphas {text!r}: write comma-separated numbers in [0, 2]") \
+            from None
+    if not values or any(not 0.0 <= v <= 2.0 for v in values):
+        raise FalsifyError(f"--alphas {text!r}: write comma-separated numbers in [0, 2]")
+    return values
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m falsify.models.adjust WEIGHTS.pt --val DIR --out ADJUSTED.pt`: choose alpha on
+    synthetic validation scans and write the adjusted weights."""
+    import argparse
+
+    import torch
+
+    p = argparse.ArgumentParser(prog="python -m falsify.models.adjust", description=main.__doc__)
+    p.add_argument("weights", help="a state dict (.pt) or a training checkpoint.pt")
+    p.add_argument("--val", required=True, help="folder of synthetic .npy validation scans")
+    p.add_argument("--out", required=True, help="the adjusted state dict (.pt) to write")
+    p.add_argument("--alphas", default=",".join(map(str, DEFAULT_ALPHAS)),
+                   help="comma-separated alphas to try (default 0, 0.05, ..., 1)")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    a = p.parse_args(argv)
+    try:
+        alphas = _alphas(a.alphas)
+        out = Path(a.out)
+        if out.suffix != ".pt":
+            raise FalsifyError(f"--out {out}: must end in .pt")
+        try:
+            state = torch.load(a.weights, map_location="cpu", weights_only=True)
+        except Exception as exc:  # OSError, RuntimeError, pickle.UnpicklingError, ...
+            raise FalsifyError(f"{a.weights}: cannot load weights "
+                               f"({str(exc).splitlines()[0]})") from None
+        if not isinstance(state, dict):
+            raise FalsifyError(f"{a.weights}: not a state dict or training checkpoint")
+        state = state.get("model", state)
+        result = choose_alpha(state, a.val, alphas)
+        adjusted = adjust_state(state, result.chosen)
+    except FalsifyError as exc:
+        print(f"python -m falsify.models.adjust: error: {exc}", file=sys.stderr)
+        return 2
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(".tmp")
+    torch.save(adjusted, tmp)
+    tmp.replace(out)
+    if a.json:
+        print(json.dumps({**asdict(result), "out": str(out)}, indent=1))
+    else:
+        print(f"{result.scans} scans of {result.val}; car IoU / precision / recall per alpha:")
+        for s in result.scores:
+            mark = "  <- chosen" if s.alpha == result.chosen else ""
+            print(f"  alpha {s.alpha:4.2f}  {s.car_iou:.4f} / {s.car_precision:.3f} / "
+                  f"{s.car_recall:.3f}{mark}")
+        print(f"wrote {out} (alpha {result.chosen})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
