@@ -32,6 +32,7 @@ from falsify.terrain import Terrain
 # a sampled car that overlaps it cannot exist. It is not drawn: real scans filter the ego car.
 EGO_FOOTPRINT = np.array([[-2.8, -0.95], [1.9, -0.95], [1.9, 0.95], [-2.8, 0.95]])
 FIRST_CAR_INSTANCE = 1
+EGO_TRIES = 50  # draws of a training scene's ego pose before a street counts as full
 PAINT_IDS = np.array(PAINTS, dtype=np.uint8)
 
 
@@ -411,13 +412,20 @@ def check_placement(placed: Sequence[PlacedCar], outlines: Sequence[np.ndarray],
         for j in range(i):
             if polygons_overlap(poly, outlines[j]):
                 raise InvalidSample(f"car {i + 1} ({car.model}) intersects car {j + 1}")
-        lo, hi = poly.min(axis=0), poly.max(axis=0)
-        near = np.flatnonzero(~((obstacles.lo > hi).any(axis=1) | (obstacles.hi < lo).any(axis=1)))
-        for k in near:
-            obstacle = obstacles.items[k]
-            if polygons_overlap(poly, obstacle.polygon):
-                raise InvalidSample(f"car {i + 1} ({car.model}) intersects the background's "
-                                    f"{obstacle.label}")
+        obstacle = first_overlap(poly, obstacles)
+        if obstacle is not None:
+            raise InvalidSample(f"car {i + 1} ({car.model}) intersects the background's "
+                                f"{obstacle.label}")
+
+
+def first_overlap(poly: np.ndarray, obstacles: Obstacles):
+    """The first of the background's obstacles that the outline `poly` overlaps, or None."""
+    lo, hi = poly.min(axis=0), poly.max(axis=0)
+    near = np.flatnonzero(~((obstacles.lo > hi).any(axis=1) | (obstacles.hi < lo).any(axis=1)))
+    for k in near:
+        if polygons_overlap(poly, obstacles.items[k].polygon):
+            return obstacles.items[k]
+    return None
 
 
 def ego_outline(pose: SensorPose) -> np.ndarray:

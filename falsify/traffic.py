@@ -18,7 +18,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from falsify.cars import BUILTIN_MODELS
-from falsify.scene import InvalidSample, PlacedCar, Simulator, check_placement, ego_outline
+from falsify.scene import (
+    EGO_TRIES,
+    InvalidSample,
+    PlacedCar,
+    Simulator,
+    check_placement,
+    ego_outline,
+    first_overlap,
+)
 from falsify.sensor import SensorPose
 
 PARKING_STRIP = 2.2     # metres between the kerb and the outermost lane
@@ -63,16 +71,24 @@ def drive_scene(index: int, seed: int, sim: Simulator, bg_id: int,
     rng = np.random.default_rng([seed, index, 7])
     bg = sim.background(bg_id)[1]
     lanes = lanes_of(float(getattr(bg, "road_half_width", 9.0)))
-    ego_lane = int(rng.integers(len(lanes.centres)))
-    direction = lanes.directions[ego_lane]
-    ego_y = lanes.centres[ego_lane] + rng.normal(0.0, LATERAL_NOISE_M / 2)
-    heading = (0.0 if direction > 0 else 180.0) + rng.normal(0.0, 1.0)
-    ego_x = rng.uniform(-20.0, 40.0) if direction > 0 else rng.uniform(10.0, 70.0)
-    pose = SensorPose(float(ego_x), float(ego_y), float(heading))
-    ego = ego_outline(pose)
+    obstacles = sim.obstacles(bg_id)
+    for _ in range(EGO_TRIES):   # drawn again while the ego would stand in a parked bus
+        ego_lane = int(rng.integers(len(lanes.centres)))
+        direction = lanes.directions[ego_lane]
+        ego_y = lanes.centres[ego_lane] + rng.normal(0.0, LATERAL_NOISE_M / 2)
+        heading = (0.0 if direction > 0 else 180.0) + rng.normal(0.0, 1.0)
+        ego_x = rng.uniform(-20.0, 40.0) if direction > 0 else rng.uniform(10.0, 70.0)
+        # Standing on the terrain: a bare pose is at z = 0, a metre under the road on a hill,
+        # and the scan then sees the road surface as a wall at the bumper.
+        pose = sim.ego_pose(bg_id, SensorPose(float(ego_x), float(ego_y), float(heading)))
+        ego = ego_outline(pose)
+        if first_overlap(ego, obstacles) is None:
+            break
+    else:
+        raise InvalidSample(f"drive scan {index}: no free ego pose on background {bg_id} in "
+                            f"{EGO_TRIES} draws")
     placed: list[PlacedCar] = []
     outlines: list[np.ndarray] = []
-    obstacles = sim.obstacles(bg_id)
     wanted = int(rng.integers(0, max_cars + 1))
     for _ in range(wanted * 4):
         if len(placed) == wanted:
@@ -85,7 +101,7 @@ def drive_scene(index: int, seed: int, sim: Simulator, bg_id: int,
             continue
         placed.append(car)
         outlines.append(outline)
-    return pose, placed
+    return pose, [sim.settle(bg_id, c) for c in placed]
 
 
 def _other_car(rng: np.random.Generator, lanes: Lanes, ego_lane: int, ego_x: float,
