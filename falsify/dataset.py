@@ -21,15 +21,7 @@ from falsify.errors import ConfigError
 from falsify.fileio import write_json, write_npy
 from falsify.materials import PAINTS
 from falsify.road_users import OTHER_VEHICLES
-from falsify.scene import (
-    EGO_TRIES,
-    InvalidSample,
-    PlacedCar,
-    Simulator,
-    check_placement,
-    ego_outline,
-    first_overlap,
-)
+from falsify.scene import InvalidSample, PlacedCar, Simulator, check_placement, free_ego
 from falsify.sensor import Sensor, SensorPose
 
 TRAIN_BACKGROUND_FIRST = 1000
@@ -63,19 +55,16 @@ def scene_for(index: int, seed: int, sim: Simulator,
     rng = np.random.default_rng([seed, index])
     bg = sim.background(bg_id)[1]
     half = float(getattr(bg, "road_half_width", 9.0))
-    obstacles = sim.obstacles(bg_id)
-    for _ in range(EGO_TRIES):   # drawn again while the ego would stand in a parked bus
+    def draw() -> SensorPose:
         # Any lane, up to beside the parked cars, so the roadside is seen from close by too.
         lane = rng.uniform(-(half - 3.3), half - 3.3)
         heading = rng.normal(0.0, 2.0) + (180.0 if rng.random() < 0.3 else 0.0)
         ego_x = rng.uniform(-20.0, 40.0) if heading < 90 else rng.uniform(10.0, 70.0)
-        pose = sim.ego_pose(bg_id, SensorPose(ego_x, lane, heading))
-        ego = ego_outline(pose)
-        if first_overlap(ego, obstacles) is None:
-            break
-    else:
-        raise InvalidSample(f"scan {index}: no free ego pose on background {bg_id} in "
-                            f"{EGO_TRIES} draws")
+        return SensorPose(ego_x, lane, heading)
+
+    pose, ego = free_ego(sim, bg_id, draw, f"scan {index}")
+    ego_x, heading = pose.x, pose.heading_deg
+    obstacles = sim.obstacles(bg_id)
     forward = np.array([math.cos(math.radians(heading)), math.sin(math.radians(heading))])
     placed: list[PlacedCar] = []
     outlines: list[np.ndarray] = []

@@ -418,6 +418,20 @@ def check_placement(placed: Sequence[PlacedCar], outlines: Sequence[np.ndarray],
                                 f"{obstacle.label}")
 
 
+def free_ego(sim: Simulator, bg_id: int, draw: Callable[[], SensorPose],
+             what: str) -> tuple[SensorPose, np.ndarray]:
+    """The first pose from `draw()`, stood on the terrain, whose ego outline keeps off the
+    background's obstacles, and that outline (a training scene's ego once stood in parked
+    buses); InvalidSample naming `what` after EGO_TRIES draws."""
+    obstacles = sim.obstacles(bg_id)
+    for _ in range(EGO_TRIES):
+        pose = sim.ego_pose(bg_id, draw())
+        ego = ego_outline(pose)
+        if first_overlap(ego, obstacles) is None:
+            return pose, ego
+    raise InvalidSample(f"{what}: no free ego pose on background {bg_id} in {EGO_TRIES} draws")
+
+
 def first_overlap(poly: np.ndarray, obstacles: Obstacles):
     """The first of the background's obstacles that the outline `poly` overlaps, or None."""
     lo, hi = poly.min(axis=0), poly.max(axis=0)

@@ -18,15 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from falsify.cars import BUILTIN_MODELS
-from falsify.scene import (
-    EGO_TRIES,
-    InvalidSample,
-    PlacedCar,
-    Simulator,
-    check_placement,
-    ego_outline,
-    first_overlap,
-)
+from falsify.scene import InvalidSample, PlacedCar, Simulator, check_placement, free_ego
 from falsify.sensor import SensorPose
 
 PARKING_STRIP = 2.2     # metres between the kerb and the outermost lane
@@ -71,22 +63,22 @@ def drive_scene(index: int, seed: int, sim: Simulator, bg_id: int,
     rng = np.random.default_rng([seed, index, 7])
     bg = sim.background(bg_id)[1]
     lanes = lanes_of(float(getattr(bg, "road_half_width", 9.0)))
-    obstacles = sim.obstacles(bg_id)
-    for _ in range(EGO_TRIES):   # drawn again while the ego would stand in a parked bus
-        ego_lane = int(rng.integers(len(lanes.centres)))
+    lanes_drawn: list[int] = []
+
+    def draw() -> SensorPose:
+        lanes_drawn.append(ego_lane := int(rng.integers(len(lanes.centres))))
         direction = lanes.directions[ego_lane]
         ego_y = lanes.centres[ego_lane] + rng.normal(0.0, LATERAL_NOISE_M / 2)
         heading = (0.0 if direction > 0 else 180.0) + rng.normal(0.0, 1.0)
         ego_x = rng.uniform(-20.0, 40.0) if direction > 0 else rng.uniform(10.0, 70.0)
-        # Standing on the terrain: a bare pose is at z = 0, a metre under the road on a hill,
-        # and the scan then sees the road surface as a wall at the bumper.
-        pose = sim.ego_pose(bg_id, SensorPose(float(ego_x), float(ego_y), float(heading)))
-        ego = ego_outline(pose)
-        if first_overlap(ego, obstacles) is None:
-            break
-    else:
-        raise InvalidSample(f"drive scan {index}: no free ego pose on background {bg_id} in "
-                            f"{EGO_TRIES} draws")
+        return SensorPose(float(ego_x), float(ego_y), float(heading))
+
+    # Stood on the terrain (a bare pose is at z = 0, a metre under the road on a hill, and the
+    # scan then sees the road surface as a wall at the bumper) and out of parked buses.
+    pose, ego = free_ego(sim, bg_id, draw, f"drive scan {index}")
+    ego_lane, ego_x = lanes_drawn[-1], pose.x
+    direction = lanes.directions[ego_lane]
+    obstacles = sim.obstacles(bg_id)
     placed: list[PlacedCar] = []
     outlines: list[np.ndarray] = []
     wanted = int(rng.integers(0, max_cars + 1))
