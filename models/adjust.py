@@ -17,7 +17,6 @@ Real scans must never be --val.
 from __future__ import annotations
 
 import json
-import math
 import sys
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -26,7 +25,9 @@ from pathlib import Path
 import numpy as np
 from falsify.models.train import CLASS_WEIGHTS, batch_tensors, list_scans, load_scan
 
+from falsify.classes import CAR
 from falsify.errors import FalsifyError
+from falsify.metrics import class_scores, confusion
 
 DEFAULT_ALPHAS = tuple(round(0.05 * i, 2) for i in range(21))
 BIAS_KEY = "conv14.conv.bias"
@@ -61,9 +62,9 @@ class AlphaScore:
 
     alpha: float
     car_iou: float
-    car_precision: float
+    car_precision: float | None
     car_recall: float
-    iou: list[float]  # per class: unknown, car, pedestrian, cyclist
+    iou: list[float | None]  # per class: unknown, car, pedestrian, cyclist (None: no such class)
 
 
 @dataclass
@@ -96,30 +97,26 @@ def choose_alpha(state: dict, val: str | Path, alphas: Sequence[float] = DEFAULT
         raise FalsifyError(f"not SqueezeSeg weights ({str(exc).splitlines()[0]})") from None
     model.eval()
     alphas = sorted(set(float(a) for a in alphas))
-    counts = np.zeros((len(alphas), 3, 4), np.int64)  # tp, fp, fn per class
+    counts = np.zeros((len(alphas), 4, 3), np.int64)  # per alpha: TP, FP, FN per class
     with torch.inference_mode():
         for i in range(0, len(files), BATCH):
             scans = np.stack([load_scan(f) for f in files[i:i + BATCH]])
             x, xyz, mask, labels = batch_tensors(scans, DEFAULT_CHANNELS)
             logits = model.backbone(x)
-            lab = labels.numpy()
             invalid = scans[..., 4] <= 0
             for k, a in enumerate(alphas):
                 off = torch.tensor(logit_offsets(a), dtype=logits.dtype).view(1, -1, 1, 1)
                 z = logits + off
-                out = model.crf(z, xyz, mask) if crf_iterations else z
-                pred = out.argmax(1).numpy()
+                pred = (model.crf(z, xyz, mask) if crf_iterations else z).argmax(1).numpy()
                 pred[invalid] = 0
-                for c in range(4):
-                    p, t = pred == c, lab == c
-                    counts[k, 0, c] += int((p & t).sum())
-                    counts[k, 1, c] += int((p & ~t).sum())
-                    counts[k, 2, c] += int((~p & t).sum())
+                counts[k] += confusion(pred, labels.numpy())
+    if counts[0, CAR, 0] + counts[0, CAR, 2] == 0:
+        raise FalsifyError(f"--val {val}: no car points, so car IoU cannot choose alpha")
     scores = []
-    for a, (tp, fp, fn) in zip(alphas, counts, strict=True):
-        iou = [float(tp[c] / d) if (d := tp[c] + fp[c] + fn[c]) else math.nan for c in range(4)]
-        scores.append(AlphaScore(a, iou[1], float(tp[1] / max(tp[1] + fp[1], 1)),
-                                 float(tp[1] / max(tp[1] + fn[1], 1)), iou))
+    for a, c in zip(alphas, counts, strict=True):
+        cls = class_scores(c)
+        car = cls[CAR]
+        scores.append(AlphaScore(a, car.iou, car.precision, car.recall, [x.iou for x in cls]))
     best = max(scores, key=lambda s: (s.car_iou, -s.alpha))
     return Adjustment(str(val), len(files), best.alpha, scores)
 
@@ -178,8 +175,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{result.scans} scans of {result.val}; car IoU / precision / recall per alpha:")
         for s in result.scores:
             mark = "  <- chosen" if s.alpha == result.chosen else ""
-            print(f"  alpha {s.alpha:4.2f}  {s.car_iou:.4f} / {s.car_precision:.3f} / "
-                  f"{s.car_recall:.3f}{mark}")
+            prec = "-" if s.car_precision is None else f"{s.car_precision:.3f}"
+            print(f"  alpha {s.alpha:4.2f}  {s.car_iou:.4f} / {prec} / {s.car_recall:.3f}{mark}")
         print(f"wrote {out} (alpha {result.chosen})")
     return 0
 

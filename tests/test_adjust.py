@@ -94,6 +94,7 @@ def test_cli_writes_the_chosen_adjustment(val, state, tmp_path, capsys):
     (["--out-name", "x.onnx"], "--out"),
     (["--val-empty"], "no *.npy scans"),
     (["--weights-bad"], "cannot load weights"),
+    (["--val-no-car"], "no car points"),
 ])
 def test_bad_input_exits_2_naming_it_and_writes_nothing(val, tmp_path, capsys, args, needle):
     src = tmp_path / "w.pt"
@@ -108,6 +109,12 @@ def test_bad_input_exits_2_naming_it_and_writes_nothing(val, tmp_path, capsys, a
     elif args == ["--weights-bad"]:
         src.write_bytes(b"not weights")
         args = []
+    elif args == ["--val-no-car"]:
+        v, args = tmp_path / "nocar", []
+        v.mkdir()
+        scan = np.load(next(val.glob("*.npy")))
+        scan[..., 5] = np.where(scan[..., 5] == 1, 0, scan[..., 5])
+        np.save(v / "000000.npy", scan)
     assert main([str(src), "--val", str(v), "--out", str(out), *args]) == 2
     assert needle in capsys.readouterr().err
     assert not out.exists()
