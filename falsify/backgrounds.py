@@ -144,6 +144,16 @@ class _Layout:
     sidewalk: tuple[float, float]  # sidewalk width on the left (+y) and right (-y) side
     parking: bool
     terrain: Terrain
+    town: bool = False  # a town street: flat roadsides, blocks close behind narrow sidewalks
+
+
+# Town streets (fitted on the KITTI object frames' geometry only, see models/README.md): the
+# road as narrow as the free zone allows, narrow sidewalks, blocks on both sides close behind
+# them, as in the residential streets the KITTI frames were driven through.
+TOWN_P: float = 0.25
+TOWN_HALF_WIDTH: tuple[float, float] = (9.0, 10.0)
+TOWN_SIDEWALK: tuple[float, float] = (1.5, 3.5)
+TOWN_SETBACK: tuple[float, float] = (1.5, 5.0)  # blocks behind the sidewalk (front gardens)
 
 
 def _rng(bg_id: int, stream: int) -> np.random.Generator:
@@ -160,9 +170,15 @@ def _layout(bg_id: int) -> _Layout:
     half = float(np.clip(half, 9.0, 15.0))
     curb_h = float(rng.uniform(0.1, 0.18))
     sidewalk = (float(rng.uniform(1.5, 6.0)), float(rng.uniform(1.5, 6.0)))
-    terrain = draw_terrain(_rng(bg_id, 7), half, curb_h, sidewalk)
+    town_rng = _rng(bg_id, 9)  # its own stream: other streets keep every draw they had
+    town = bool(town_rng.random() < TOWN_P)
+    if town:
+        half = float(town_rng.uniform(*TOWN_HALF_WIDTH))
+        sidewalk = (float(town_rng.uniform(*TOWN_SIDEWALK)),
+                    float(town_rng.uniform(*TOWN_SIDEWALK)))
+    terrain = draw_terrain(_rng(bg_id, 7), half, curb_h, sidewalk, flat_sides=town)
     return _Layout(half_width=half, curb_h=curb_h, sidewalk=sidewalk, parking=parking,
-                   terrain=terrain)
+                   terrain=terrain, town=town)
 
 
 def _side_kind(lay: _Layout, side: int) -> str:
@@ -192,13 +208,18 @@ def _buildings(st: _Street, lay: _Layout, bg_id: int) -> None:
     rng = _rng(bg_id, 1)
     mean_h = rng.uniform(6.0, 22.0)
     gap_p = rng.uniform(0.1, 0.7)
+    if lay.town:
+        gap_p *= 0.3
     n_built = 0
     for side, sw in ((1, lay.sidewalk[0]), (-1, lay.sidewalk[1])):
         kind = _side_kind(lay, side)
         build_p = {"flat": 0.9, "ditch": 0.35, "embankment up": 0.3, "hill": 0.25}.get(kind, 0.0)
-        if rng.random() >= build_p:
+        if rng.random() >= build_p and not lay.town:
             continue
         base_setback = rng.uniform(2.0, 15.0) + _slope_top(lay, side)
+        if lay.town:
+            base_setback = TOWN_SETBACK[0] + (base_setback - 2.0) / 13.0 * (
+                TOWN_SETBACK[1] - TOWN_SETBACK[0])
         x = ROAD_X[0] - rng.uniform(0.0, 20.0)
         while x < ROAD_X[1]:
             width = rng.uniform(8.0, 35.0)

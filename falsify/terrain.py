@@ -114,13 +114,14 @@ class Terrain:
 
 
 def draw_terrain(rng: np.random.Generator, half_width: float, curb_h: float,
-                 sidewalk: tuple[float, float]) -> Terrain:
-    """Seeded terrain numbers: gentle grades and crests, 1-3 % camber, a roadside per side."""
+                 sidewalk: tuple[float, float], flat_sides: bool = False) -> Terrain:
+    """Seeded terrain numbers: gentle grades and crests, 1-3 % camber, a roadside per side
+    (both flat for ``flat_sides``, with the same draws otherwise)."""
     flat_road = rng.random() < 0.25
     grade = 0.0 if flat_road else float(rng.uniform(-0.035, 0.035))
     crest_len = float(rng.uniform(160.0, 420.0))
     crest_amp = 0.0 if flat_road else float(rng.uniform(0.0, 0.03) * crest_len / (2 * math.pi))
-    sides = tuple(_draw_side(rng) for _ in range(2))
+    sides = tuple(_draw_side(rng, "flat" if flat_sides else None) for _ in range(2))
     return Terrain(half_width=half_width, curb_h=curb_h, sidewalk=sidewalk, grade=grade,
                    crest_amp=crest_amp, crest_len=crest_len,
                    crest_phase=float(rng.uniform(0, 2 * math.pi)),
@@ -129,8 +130,9 @@ def draw_terrain(rng: np.random.Generator, half_width: float, curb_h: float,
                    hill_phase=float(rng.uniform(0, 2 * math.pi)))
 
 
-def _draw_side(rng: np.random.Generator) -> Side:
-    kind = str(rng.choice(ROADSIDE_KINDS, p=[0.3, 0.2, 0.25, 0.1, 0.15]))
+def _draw_side(rng: np.random.Generator, kind: str | None = None) -> Side:
+    drawn = str(rng.choice(ROADSIDE_KINDS, p=[0.3, 0.2, 0.25, 0.1, 0.15]))
+    kind = kind or drawn
     verge = float(rng.uniform(0.5, 4.0))
     noise = float(rng.uniform(0.02, 0.09))
     hill = float(rng.uniform(0.0, 8.0))

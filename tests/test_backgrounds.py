@@ -165,3 +165,37 @@ def test_lidar_sweep_sees_the_street(built):
         assert hit.mean() > 0.85
         seen |= set(np.unique(cls[hit & (rng < 60.0)]).tolist())
     assert {1, 2, 3} <= seen
+
+
+def test_town_streets_are_narrow_and_built_up_on_both_sides():
+    """A town street (drawn with probability TOWN_P from its own stream) has flat roadsides, the
+    narrowest road the free zone allows, narrow sidewalks, and blocks close behind them on both
+    sides: level rays to the sides from the sensor end on them within a few metres."""
+    town = [i for i in range(60) if backgrounds._layout(i).town]
+    other = [i for i in range(60) if i not in town]
+    assert 0 < len(town) < 60
+    assert abs(len(town) / 60 - backgrounds.TOWN_P) < 0.2
+    for i in town[:4]:
+        lay = backgrounds._layout(i)
+        assert backgrounds.TOWN_HALF_WIDTH[0] <= lay.half_width <= backgrounds.TOWN_HALF_WIDTH[1]
+        assert all(backgrounds.TOWN_SIDEWALK[0] <= w <= backgrounds.TOWN_SIDEWALK[1]
+                   for w in lay.sidewalk)
+        assert [s.kind for s in lay.terrain.sides] == ["flat", "flat"]
+        bg = build_background(i)
+        blocks = [o.polygon for o in bg.obstacles if o.label.startswith("building")]
+        for side in (1, -1):
+            near = [float(np.abs(p[:, 1]).min()) for p in blocks if p[:, 1].mean() * side > 0]
+            assert near, f"street {i}: no block on side {side}"
+            assert min(near) <= lay.half_width + max(lay.sidewalk) + 12.0
+        # Level rays 2 m up, 30-60 degrees off the road to both sides, from x = 40 m (past the
+        # free zone's kerbside gap): most end within 25 m sideways.
+        mesh = trimesh.Trimesh(bg.vertices, bg.faces, process=False)
+        az = np.radians(np.r_[np.linspace(30, 60, 16), -np.linspace(30, 60, 16)])
+        z0 = float(bg.terrain.height(np.array([40.0]), np.array([0.0]))[0]) + 2.0
+        o = np.tile([40.0, 0.0, z0], (len(az), 1))
+        d = np.stack([np.cos(az), np.sin(az), np.zeros_like(az)], axis=1)
+        loc, ray, _ = RayMeshIntersector(mesh).intersects_location(o, d, multiple_hits=False)
+        lateral = np.full(len(az), np.inf)
+        lateral[ray] = np.abs(loc[:, 1])
+        assert np.median(lateral) < 25.0, (i, np.round(lateral, 1))
+    assert all(backgrounds._layout(i).half_width >= 9.0 for i in other)
