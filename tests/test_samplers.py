@@ -382,11 +382,19 @@ def test_an_interrupt_in_the_calling_thread_stops_every_combination():
         return [planted(s) for s in batch]
 
     before = threading.active_count()
+    # A process a non-interactive shell starts in the background (`pytest &`, nohup) inherits
+    # SIGINT ignored, and Python then installs no handler: Ctrl-C is what this test is about,
+    # so it installs Python's own for its duration.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
-    timer.start()
-    t0 = time.perf_counter()
-    with pytest.raises(KeyboardInterrupt):
-        NloptSampler("GN_CRS2_LM", concurrent=3).run(space, evaluate, 24 * 200, 0)
+    try:
+        timer.start()
+        t0 = time.perf_counter()
+        with pytest.raises(KeyboardInterrupt):
+            NloptSampler("GN_CRS2_LM", concurrent=3).run(space, evaluate, 24 * 200, 0)
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGINT, previous)
     assert time.perf_counter() - t0 < 3.0 and calls
     n = len(calls)
     time.sleep(0.1)
