@@ -10,7 +10,10 @@ and nothing but road lies within 3 m of the sensor. Kerbs stand at y = ±road_ha
 the far band of trees), poles, signs, parked cars, vans, trucks, buses, trailers, bicycles,
 pedestrians and cyclists lie beyond them or outside the free zone. Every triangle carries a
 class and a material (falsify.materials). Which mix a street gets is drawn from its id, so the
-15 backgrounds of configs/paper.toml are different places.
+15 backgrounds of configs/paper.toml are different places. About one street in four
+(TOWN_P) is a town street, enclosed like the KITTI frames' residential streets: flat roadsides,
+the narrowest road the free zone allows, narrow sidewalks and blocks on both sides close
+behind them.
 """
 
 from __future__ import annotations
