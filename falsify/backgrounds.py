@@ -150,7 +150,7 @@ class _Layout:
     town: bool = False  # a town street: flat roadsides, blocks close behind narrow sidewalks
 
 
-# Town streets (fitted on the KITTI object frames' geometry only, see models/README.md): the
+# Town streets (fitted on the KITTI object frames' geometry only; README, realism): the
 # road as narrow as the free zone allows, narrow sidewalks, blocks on both sides close behind
 # them, as in the residential streets the KITTI frames were driven through.
 TOWN_P: float = 0.25
@@ -220,7 +220,7 @@ def _buildings(st: _Street, lay: _Layout, bg_id: int) -> None:
         if rng.random() >= build_p and not lay.town:
             continue
         base_setback = rng.uniform(2.0, 15.0) + _slope_top(lay, side)
-        if lay.town:
+        if lay.town:  # the same draw mapped into TOWN_SETBACK, so the stream keeps its order
             base_setback = TOWN_SETBACK[0] + (base_setback - 2.0) / 13.0 * (
                 TOWN_SETBACK[1] - TOWN_SETBACK[0])
         x = ROAD_X[0] - rng.uniform(0.0, 20.0)
