@@ -170,7 +170,7 @@ def test_lidar_sweep_sees_the_street(built):
 def test_town_streets_are_narrow_and_built_up_on_both_sides():
     """A town street (drawn with probability TOWN_P from its own stream) has flat roadsides, the
     narrowest road the free zone allows, narrow sidewalks, and blocks close behind them on both
-    sides: level rays to the sides from the sensor end on them within a few metres."""
+    sides: level rays to the sides from the road's centre line end on them within 25 m."""
     town = [i for i in range(60) if backgrounds._layout(i).town]
     other = [i for i in range(60) if i not in town]
     assert 0 < len(town) < 60
