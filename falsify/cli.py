@@ -207,6 +207,8 @@ def cmd_realism(args) -> int:
 
     if args.scans is not None and args.scans < 1:
         raise UsageError(f"--scans: {args.scans} must be >= 1")
+    if args.bootstrap < 0:
+        raise UsageError(f"--bootstrap: {args.bootstrap} must be >= 0 (0: no resampling)")
     synthetic: dict[str, list[Path]] = {}
     for d in map(Path, args.synthetic):
         if not d.is_dir():
@@ -218,7 +220,8 @@ def cmd_realism(args) -> int:
         synthetic[name] = files
     sensor = load_sensor(args.sensor)
     real = load_sets(args.real, sensor) if args.real else real_sets(sensor)
-    result = compare(synthetic, real, EncoderFeatures(args.model))
+    result = compare(synthetic, real, EncoderFeatures(args.model),
+                     bootstrap_draws=args.bootstrap)
     doc = result.as_dict()
     page = render_realism(doc)
     out = Path(args.out)
@@ -248,10 +251,22 @@ def _realism_text(doc: dict, out: Path) -> str:
     for key in doc.get("reference_statistics", {}):
         lines.append(f"{key:12s}" + "".join(f"{doc['distances'][n][ref][key]:26.4f}"
                                             for n in names) + "  (reference, not compared)")
+    boot = doc.get("bootstrap")
+    if boot:
+        lo, hi = boot["levels"]
+        lines.append(f"resampled {boot['draws']} times (seed {boot['seed']}): {lo:g}-{hi:g} % "
+                     "of each distance")
+        for key in doc["statistics"]:
+            spans = (boot["intervals"][n][key] for n in names)
+            lines.append(f"{key:12s}" + "".join(f"{f'{a:.4f}-{b:.4f}':>26s}" for a, b in spans))
     for name, cand in ((doc.get("comparison") or {}).get("candidates") or {}).items():
         k, n = sum(cand["closer"].values()), len(cand["closer"])
         lines.append(f"{name}: closer than {doc['comparison']['baseline']} on {k} of {n} "
                      f"statistics; on every one: {'yes' if k == n else 'no'}")
+        if boot:
+            share = boot["closer_share"][name]
+            lines.append("  closer in this share of the resampled draws: " + ", ".join(
+                f"{key} {share[key]:.2f}" for key in doc["statistics"]))
     return "\n".join(lines)
 
 
@@ -666,6 +681,10 @@ def build_parser() -> argparse.ArgumentParser:
                      "(default: bundled)")
     re_.add_argument("--sensor", default="kitti-hdl64e-front",
                      help="preset used to project real .bin scans")
+    re_.add_argument("--bootstrap", type=int, default=0, metavar="DRAWS",
+                     help="also resample the scans DRAWS times (seeded): a 5-95 %% interval per "
+                     "distance and, per later set, the share of draws in which it is closer "
+                     "than the first (200 draws of two 200-scan sets: about a minute)")
     re_.add_argument("--json", action="store_true")
     re_.set_defaults(func=cmd_realism)
 

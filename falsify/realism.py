@@ -45,6 +45,10 @@ from falsify.scansets import ScanSet
 RANGE_EDGES = np.linspace(0.0, 120.0, 61)       # m, 2 m bins
 HEIGHT_EDGES = np.linspace(-4.0, 6.0, 101)      # m (sensor frame z), 0.1 m bins
 INTENSITY_EDGES = np.linspace(0.0, 1.0, 51)
+HISTOGRAMS = (("range", 4, RANGE_EDGES), ("height", 2, HEIGHT_EDGES),
+              ("intensity", 3, INTENSITY_EDGES))   # statistic, scan channel, bins
+BOOTSTRAP_SEED = 0
+BOOTSTRAP_LEVELS = (5.0, 95.0)   # percentiles of the resampled distances reported
 FEATURE_TENSOR = "/fire9/Concat_output_0"
 TILE_ROWS, TILE_COLS = 4, 4
 CELL_MIN_VALID = 1       # valid input pixels under a fire9 cell for it to be a feature sample
@@ -228,11 +232,25 @@ class SetStats:
     sums: np.ndarray = field(default_factory=lambda: np.zeros(3))   # range, z, intensity
     features: list[ScanFeatures] = field(default_factory=list, repr=False)
     floor: dict | None = None           # frechet_floor, set by compare for synthetic sets
+    # Per scan, for resampling (`bootstrap`): the row profile and the histogram counts.
+    per_scan: dict[str, list[np.ndarray]] = field(default_factory=dict, repr=False)
+    groups: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
     _joined: ScanFeatures | None = field(default=None, repr=False, compare=False)
 
     def add(self, images: np.ndarray, features: ScanFeatures | None) -> None:
         """Add (B, H, W, 6) scans and their features."""
         valid = images[..., 4] > 0
+        table = {"row_valid": valid.mean(axis=2)}
+        for key, channel, edges in HISTOGRAMS:
+            table[key] = np.stack([_hist(im[v][:, channel].astype(np.float64), edges)
+                                   for im, v in zip(images, valid, strict=True)])
+        table["classes"] = np.stack([np.bincount(np.clip(im[v][:, 5].astype(np.int64), 0,
+                                                         len(CLASSES) - 1),
+                                                 minlength=len(CLASSES))
+                                     for im, v in zip(images, valid, strict=True)])
+        for key, value in table.items():
+            self.per_scan.setdefault(key, []).append(value.astype(np.float64))
+        self.groups = np.concatenate([self.groups, np.zeros(len(images), np.int64)])
         rows = valid.mean(axis=2).sum(axis=0)
         self.row_valid_sum = rows if self.row_valid_sum is None else self.row_valid_sum + rows
         pts = images[valid].astype(np.float64)
@@ -255,7 +273,13 @@ class SetStats:
         for key in ("range_counts", "height_counts", "intensity_counts", "class_counts", "sums"):
             setattr(out, key, getattr(self, key) + getattr(other, key))
         out.features = [*self.features, *other.features]
+        out.per_scan = {k: [*self.per_scan[k], *other.per_scan[k]] for k in self.per_scan}
+        out.groups = np.concatenate([self.groups, other.groups + self.groups.max(initial=-1) + 1])
         return out
+
+    def scan_table(self, key: str) -> np.ndarray:
+        """(scans, K) per-scan values of one statistic's table (see `add`)."""
+        return np.concatenate(self.per_scan[key])
 
     @property
     def row_valid(self) -> np.ndarray:
@@ -351,6 +375,51 @@ def distances(syn: SetStats, real: SetStats) -> dict[str, float]:
     }
 
 
+def resampled_distances(syn: SetStats, real: SetStats, i_syn: np.ndarray,
+                        i_real: np.ndarray) -> dict[str, float]:
+    """The STATISTICS distances between the scans `i_syn` of `syn` and `i_real` of `real`
+    (indices may repeat: a bootstrap draw)."""
+    out = {"row_valid": float(np.abs(syn.scan_table("row_valid")[i_syn].mean(0)
+                                     - real.scan_table("row_valid")[i_real].mean(0)).mean())}
+    for key, _, edges in HISTOGRAMS:
+        out[key] = wasserstein_hist(syn.scan_table(key)[i_syn].sum(0),
+                                    real.scan_table(key)[i_real].sum(0), edges)
+    a, b = syn.scan_table("classes")[i_syn].sum(0), real.scan_table("classes")[i_real].sum(0)
+    out["classes"] = float(0.5 * np.abs(_norm(a) - _norm(b)).sum())
+    out["frechet"] = cell_frechet(syn.all_features, real.all_features, i_syn, i_real)
+    return out
+
+
+def bootstrap(synthetic: tuple[SetStats, ...], real: SetStats, draws: int,
+              seed: int = BOOTSTRAP_SEED) -> dict:
+    """How far sampling alone moves each distance: `draws` seeded resamples, each drawing every
+    synthetic set's scans and the real scans (within each real set, so a pooled set keeps its
+    make-up) with replacement. Per synthetic set the BOOTSTRAP_LEVELS percentiles of each
+    distance; per later set the share of draws in which it is closer than the first, with both
+    measured against the same real draw (a paired comparison)."""
+    rng = np.random.default_rng(seed)
+    groups = [np.flatnonzero(real.groups == g) for g in np.unique(real.groups)]
+    values = {s.name: {k: [] for k, _, _ in STATISTICS} for s in synthetic}
+    for _ in range(draws):
+        i_real = np.concatenate([rng.choice(g, len(g)) for g in groups])
+        for s in synthetic:
+            d = resampled_distances(s, real, rng.integers(0, s.scans, s.scans), i_real)
+            for k in values[s.name]:
+                values[s.name][k].append(d[k])
+    lo, hi = BOOTSTRAP_LEVELS
+    out = {"draws": draws, "seed": seed, "levels": list(BOOTSTRAP_LEVELS), "real": real.name,
+           "intervals": {n: {k: [round(float(np.percentile(v, lo)), 6),
+                                 round(float(np.percentile(v, hi)), 6)] for k, v in d.items()}
+                         for n, d in values.items()},
+           "closer_share": {}}
+    if synthetic:
+        base = values[synthetic[0].name]
+        for s in synthetic[1:]:
+            out["closer_share"][s.name] = {
+                k: round(float(np.mean(np.less(values[s.name][k], base[k]))), 6) for k in base}
+    return out
+
+
 @dataclass(frozen=True)
 class Realism:
     """Synthetic sets against real sets: statistics of each, and distances per pair."""
@@ -360,6 +429,7 @@ class Realism:
     synthetic: tuple[SetStats, ...]
     real: tuple[SetStats, ...]          # each real set, then (if several) all pooled, last
     distances: dict[str, dict[str, dict[str, float]]]   # synthetic name -> real name -> stat
+    resampled: dict | None = None       # `bootstrap` against the pooled real scans, if asked
 
     @property
     def pooled_real(self) -> SetStats:
@@ -407,6 +477,7 @@ class Realism:
             "distances": {s: {r: {k: round(v, 6) for k, v in d.items()} for r, d in rs.items()}
                           for s, rs in self.distances.items()},
             "comparison": self.comparison(),
+            **({"bootstrap": self.resampled} if self.resampled is not None else {}),
         }
 
 
@@ -426,9 +497,11 @@ def set_stats(name: str, images_or_set, features: EncoderFeatures) -> SetStats:
 
 
 def compare(synthetic: dict[str, list[Path]], real: list[ScanSet],
-            features: EncoderFeatures, pooled_name: str = "pooled") -> Realism:
+            features: EncoderFeatures, pooled_name: str = "pooled",
+            bootstrap_draws: int = 0) -> Realism:
     """Statistics of each synthetic set (name -> .npy paths) and real set, and the distance of
-    each synthetic set to each real set and to all real sets pooled."""
+    each synthetic set to each real set and to all real sets pooled; with `bootstrap_draws`,
+    also how much of each distance sampling alone could move (`bootstrap`)."""
     if not real:
         raise FalsifyError("realism needs at least one real set")
     real_stats = [set_stats(s.name, s, features) for s in real]
@@ -442,7 +515,10 @@ def compare(synthetic: dict[str, list[Path]], real: list[ScanSet],
     for s in syn_stats:
         s.floor = frechet_floor(s.all_features, all_real[-1].scans)
     dist = {s.name: {r.name: distances(s, r) for r in all_real} for s in syn_stats}
-    return Realism(features.spec.name, features.model_hash, syn_stats, all_real, dist)
+    resampled = (bootstrap(syn_stats, all_real[-1], bootstrap_draws) if bootstrap_draws > 0
+                 else None)
+    return Realism(features.spec.name, features.model_hash, syn_stats, all_real, dist,
+                   resampled)
 
 
 def _checked(path: Path, features: EncoderFeatures) -> np.ndarray:

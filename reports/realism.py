@@ -107,7 +107,17 @@ def distance_table(doc: dict) -> str:
                 if cand is not None and r == pooled:
                     mark = (' <span class="yes">✓ closer</span>' if cand["closer"][key]
                             else ' <span class="no">✗ not closer</span>')
-                cells.append(f'<td class="num" data-stat="{esc(key)}">{value:.4f}{mark}</td>')
+                interval = ""
+                boot = doc.get("bootstrap")
+                if boot and r == pooled:
+                    lo, hi = boot["intervals"][s["name"]][key]
+                    interval = f'<br><span class="sub">{lo:.4f}-{hi:.4f}</span>'
+                    if cand is not None:
+                        interval += (f'<br><span class="sub">closer in '
+                                     f'{boot["closer_share"][s["name"]][key]:.0%} of draws'
+                                     '</span>')
+                cells.append(f'<td class="num" data-stat="{esc(key)}">{value:.4f}{mark}'
+                             f'{interval}</td>')
         rows.append(f'<tr><th scope="row">{esc(key)}<br><span class="sub">{esc(info["what"])} '
                     f'({esc(info["unit"])})</span></th>{"".join(cells)}</tr>')
     # each synthetic set's floor: the Fréchet estimator between two samples of itself
@@ -136,6 +146,14 @@ def distance_table(doc: dict) -> str:
         every = " (every one)" if cand["closer_on_every_statistic"] else ""
         verdict += (f'<p class="verdict">{esc(name)} is closer to the real scans than '
                     f'{esc(comp["baseline"])} on <b>{k} of {n}</b> statistics{every}.</p>')
+    boot = doc.get("bootstrap")
+    if boot:
+        lo, hi = boot["levels"]
+        verdict += (f'<p class="sub" id="bootstrap">Under each distance to the pooled real '
+                    f'scans: its {lo:g}-{hi:g} % range over {boot["draws"]} resamples of the '
+                    'scans (seeded; real scans drawn within each real set), and for a later '
+                    'set the share of those draws in which it is closer than the first, both '
+                    'against the same real draw.</p>')
     return (f'<section id="distances"><h2>Distances (lower is closer)</h2>{verdict}'
             f'<table><thead><tr><th>statistic</th>{head}</tr></thead>'
             f'<tbody>{"".join(rows)}</tbody></table></section>')

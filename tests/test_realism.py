@@ -17,12 +17,16 @@ from falsify.realism import (
     REFERENCE,
     STATISTICS,
     ScanFeatures,
+    SetStats,
+    bootstrap,
     cell_frechet,
     cell_moments,
+    distances,
     frechet_distance,
     frechet_floor,
     frechet_from_samples,
     pooled_moments,
+    resampled_distances,
     wasserstein_hist,
 )
 from falsify.scene import PlacedCar, Simulator
@@ -174,6 +178,53 @@ def test_wasserstein_of_histograms() -> None:
     assert wasserstein_hist(a, a * 7, edges) == pytest.approx(0.0)
 
 
+# -- resampling ---------------------------------------------------------------------------------
+def _stats(name: str, scans: int, seed: int, valid_share: float = 0.8,
+           shift: float = 0.0) -> SetStats:
+    """A SetStats of small random scans (8 x 16 pixels) with 4-dimensional features."""
+    rng = np.random.default_rng(seed)
+    images = np.zeros((scans, 8, 16, 6), np.float32)
+    valid = rng.random((scans, 8, 16)) < valid_share
+    images[..., 4] = np.where(valid, rng.uniform(2.0, 80.0, valid.shape) + shift, 0.0)
+    images[..., 2] = np.where(valid, rng.normal(-1.0 + shift / 10, 0.5, valid.shape), 0.0)
+    images[..., 3] = np.where(valid, rng.uniform(0.0, 1.0, valid.shape), 0.0)
+    images[..., 5] = np.where(valid, rng.integers(0, 4, valid.shape), 0)
+    feats = ScanFeatures(tiles=rng.normal(shift, 1.0, (scans * 16, 4)),
+                         counts=np.full(scans, 30), means=rng.normal(shift, 1.0, (scans, 4)),
+                         covs=np.tile(np.eye(4, dtype=np.float32), (scans, 1, 1)))
+    st = SetStats(name)
+    st.add(images, feats)
+    return st
+
+
+def test_resampling_every_scan_once_gives_the_distances() -> None:
+    syn, real = _stats("syn", 12, 1), _stats("real", 5, 2)
+    d = distances(syn, real)
+    r = resampled_distances(syn, real, np.arange(12), np.arange(5))
+    for key, _, _ in STATISTICS:
+        assert r[key] == pytest.approx(d[key], rel=1e-9, abs=1e-12), key
+
+
+def test_bootstrap_is_seeded_paired_and_keeps_real_sets_apart() -> None:
+    real = _stats("a", 4, 2).merged(_stats("b", 3, 3), "pooled")
+    assert list(real.groups) == [0, 0, 0, 0, 1, 1, 1]
+    near = _stats("near", 20, 4)                       # drawn like the real scans
+    far = _stats("far", 20, 5, valid_share=0.5, shift=20.0)
+    out = bootstrap((far, near), real, draws=40)
+    assert out == bootstrap((far, near), real, draws=40)  # same seed: same numbers
+    assert out != bootstrap((far, near), real, draws=40, seed=1)
+    for name in ("far", "near"):
+        for key, _, _ in STATISTICS:
+            lo, hi = out["intervals"][name][key]
+            assert 0.0 <= lo <= hi
+    share = out["closer_share"]["near"]
+    assert set(share) == {k for k, _, _ in STATISTICS}
+    # a world drawn like the real one is closer in every draw on what the far one shifted
+    for key in ("row_valid", "range", "height", "frechet"):
+        assert share[key] == 1.0, key
+    assert 0.0 <= share["intensity"] <= 1.0 and "far" not in out["closer_share"]
+
+
 # -- the command ------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def sets(tmp_path_factory) -> dict[str, Path]:
@@ -202,7 +253,7 @@ def run(args: list[str], capsys) -> tuple[int, dict | None, str]:
 @pytest.mark.skipif(not BUNDLED.exists(), reason="bundled model not trained yet")
 def test_realism_json_fields_and_determinism(sets, tmp_path: Path, capsys) -> None:
     args = ["realism", str(sets["old"]), str(sets["new"]), "--real", str(sets["real"]),
-            "--out", str(tmp_path / "a"), "--json"]
+            "--bootstrap", "15", "--out", str(tmp_path / "a"), "--json"]
     code, doc, err = run(args, capsys)
     assert code == 0, err
     assert [s["name"] for s in doc["synthetic"]] == ["old", EVIL]
@@ -230,6 +281,10 @@ def test_realism_json_fields_and_determinism(sets, tmp_path: Path, capsys) -> No
     cand = doc["comparison"]["candidates"][EVIL]
     assert set(cand["closer"]) == set(keys)
     assert cand["closer_on_every_statistic"] == all(cand["closer"].values())
+    boot = doc["bootstrap"]
+    assert boot["draws"] == 15 and boot["real"] == "real"
+    assert set(boot["intervals"]) == {"old", EVIL} and set(boot["closer_share"]) == {EVIL}
+    assert all(0.0 <= v <= 1.0 for v in boot["closer_share"][EVIL].values())
     # same inputs and model: the same bytes
     args[-2] = str(tmp_path / "b")
     assert run(args, capsys)[0] == 0
@@ -265,6 +320,7 @@ def test_realism_bad_inputs_exit_2(sets, tmp_path: Path, capsys) -> None:
         ([str(wide), "--real", str(sets["real"])], "000007.npy"),
         ([str(sets["old"]), "--real", str(tmp_path / "nothing.bin")], "nothing.bin"),
         ([str(sets["old"]), "--scans", "0"], "--scans"),
+        ([str(sets["old"]), "--bootstrap", "-1"], "--bootstrap"),
         ([str(sets["old"]), "--real", str(sets["real"]), "--model", str(tmp_path / "m.onnx")],
          "m.onnx"),
     ]
@@ -281,7 +337,7 @@ def page_doc(sets, tmp_path_factory) -> dict:
         pytest.skip("bundled model not trained yet")
     out = tmp_path_factory.mktemp("page")
     assert main(["realism", str(sets["old"]), str(sets["new"]), "--real", str(sets["real"]),
-                 "--out", str(out)]) == 0
+                 "--bootstrap", "5", "--out", str(out)]) == 0
     return json.loads((out / "realism.json").read_text())
 
 
@@ -291,6 +347,7 @@ def test_page_escapes_and_is_self_contained(page_doc) -> None:
     assert "<script" not in page
     assert not re.search(r"""(src|href)\s*=\s*["']?(https?:|//)""", page)
     assert "Content-Security-Policy" in page
+    assert 'id="bootstrap"' in page and page.count("of draws") == len(STATISTICS)
     assert page.count('class="chart"') == 4
     assert page.count('class="series"') == 4 * 3          # 2 synthetic + 1 real per chart
 
