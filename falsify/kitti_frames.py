@@ -17,6 +17,7 @@ import numpy as np
 
 from falsify.calibration import KittiCalib
 from falsify.errors import FalsifyError
+from falsify.kitti import kitti_rows
 from falsify.kitti_object import (
     TYPES,
     KittiObject,
@@ -80,7 +81,7 @@ def read_object_frame(root: Path, name: str, sensor: Sensor) -> ObjectFrame:
     boxes = read_labels(root / "label_2" / f"{name}.txt")
     cls = label_points(pts[:, :3], boxes, calib, png_size(root / "image_2" / f"{name}.png"))
     scan = image_from_points(sensor, pts[:, :3], cls, np.zeros(len(pts), np.int32),
-                             intensity=pts[:, 3])
+                             intensity=pts[:, 3], rows=kitti_rows(sensor, pts[:, :3]))
     image = scan.image
     ignore = image[..., 5] == _IGNORE_ID
     image[..., 5][ignore] = 0

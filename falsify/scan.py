@@ -43,11 +43,17 @@ class Scan:
 
 
 def image_from_points(sensor: Sensor, points: np.ndarray, cls: np.ndarray,
-                      instance: np.ndarray, intensity: np.ndarray | None = None) -> Scan:
-    """Project sensor-frame points into the sensor's range image; the nearest point wins a pixel."""
+                      instance: np.ndarray, intensity: np.ndarray | None = None,
+                      rows: np.ndarray | None = None) -> Scan:
+    """Project sensor-frame points into the sensor's range image; the nearest point wins a pixel.
+    `rows` gives each point's row (a laser ring) instead of its elevation's."""
     points = np.asarray(points, dtype=np.float64)
     ranges = np.linalg.norm(points, axis=1)
     row, col, inside = sensor.pixel_of(points)
+    if rows is not None:
+        row = np.asarray(rows, dtype=np.int64)
+        inside = (col >= 0) & (col < sensor.columns) & (row >= 0) & (row < sensor.rows) & (
+            ranges > 0)
     inside &= ranges <= sensor.max_range
     order = np.argsort(-ranges[inside], kind="stable")  # far first, so near points overwrite
     idx = np.flatnonzero(inside)[order]

@@ -23,7 +23,7 @@ PRESET_DIR = SENSOR_PRESETS
 SENSOR_KEYS = {
     "name", "description", "elevations_deg", "vertical", "h_fov_deg", "columns", "pitch_deg",
     "mount_height", "max_range", "min_range", "rotation_hz", "ray_drop", "range_noise",
-    "returns",
+    "returns", "kitti_rings",
 }
 
 
@@ -45,6 +45,8 @@ class Sensor:
     range_noise: float = 0.0
     description: str = ""
     returns: str = ""  # a fitted return model in configs/returns/ ("" = every hit returns)
+    # Rows are the HDL-64E's laser rings: KITTI .bin scans are read by ring (falsify.kitti).
+    kitti_rings: bool = False
 
     @property
     def rows(self) -> int:
@@ -253,7 +255,15 @@ def parse_sensor(raw: dict, source: str = "<sensor>") -> Sensor:
         ray_drop=num("ray_drop", 0.0, lo=0.0, hi=1.0),
         range_noise=num("range_noise", 0.0, lo=0.0, hi=1.0),
         returns=_returns_name(raw.get("returns", ""), where),
+        kitti_rings=_flag(raw, "kitti_rings", where),
     )
+
+
+def _flag(raw: dict, key: str, where: str) -> bool:
+    v = raw.get(key, False)
+    if not isinstance(v, bool):
+        raise ConfigError(f"{where}{key}: expected true or false, got {v!r}")
+    return v
 
 
 def _returns_name(value, where: str) -> str:

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from falsify.errors import ConfigError, FalsifyError
-from falsify.kitti import load_scan_npy, read_kitti, write_kitti
+from falsify.kitti import KITTI_RINGS, kitti_rows, load_scan_npy, read_kitti, write_kitti
 from falsify.scene import PlacedCar, Simulator
 from falsify.sensor import load_sensor, parse_sensor, preset_names
 
@@ -63,6 +65,85 @@ def test_semantickitti_scans_project_into_our_layout(kitti_dir):
         assert scan.image[..., 3].max() > 0  # real remission kept as intensity
 
 
+def _ring_ordered_cloud(sensor, parallax_deg: float, seed: int = 0) -> tuple[np.ndarray,
+                                                                              np.ndarray]:
+    """Points stored as KITTI stores them: ring by ring from the top laser, each sweeping
+    azimuth up from 0 through +-180 back to 0, at the preset's elevations moved by up to
+    `parallax_deg` (a laser off the origin, seen at short range), with azimuth jitter."""
+    rng = np.random.default_rng(seed)
+    pts, ring = [], []
+    for k, el in enumerate(sensor.elevations_deg):
+        # KITTI's rings start just past 0 degrees; jitter crosses +-180 back and forth
+        az = 0.05 + np.linspace(0.0, 360.0, 2000, endpoint=False) + rng.uniform(-0.03, 0.03,
+                                                                                2000)
+        az = (az + 180.0) % 360.0 - 180.0
+        e = np.radians(el + rng.uniform(-parallax_deg, parallax_deg, 2000))
+        a = np.radians(az)
+        r = rng.uniform(3.0, 60.0, 2000)
+        pts.append(np.stack([r * np.cos(e) * np.cos(a), r * np.cos(e) * np.sin(a),
+                             r * np.sin(e)], axis=1))
+        ring.append(np.full(2000, k))
+    return np.concatenate(pts), np.concatenate(ring)
+
+
+def test_kitti_scans_are_read_by_laser_ring(tmp_path):
+    """Rows come from KITTI's storage order, not the elevation: with elevations moved by up to
+    0.6 degrees (more than the 0.33 between upper rings) every point keeps its ring's row, and
+    the front view's rows stay full; binning by elevation loses many pixels."""
+    sensor = load_sensor("kitti-hdl64e-front")
+    pts, ring = _ring_ordered_cloud(sensor, 0.6)
+    np.testing.assert_array_equal(kitti_rows(sensor, pts), ring)
+    np.column_stack([pts, np.zeros(len(pts))]).astype(np.float32).tofile(tmp_path / "r.bin")
+    scan = read_kitti(tmp_path / "r.bin", None, sensor)
+    assert scan.valid.mean(axis=1).min() > 0.9  # 500 points a ring over 512 columns
+    row_of = np.nonzero(scan.valid)[0]
+    el = np.degrees(np.arcsin(scan.image[..., 2][scan.valid] / scan.image[..., 4][scan.valid]))
+    assert np.abs(el - np.asarray(sensor.elevations_deg)[row_of]).max() <= 0.6 + 1e-3
+    by_elevation = read_kitti(tmp_path / "r.bin", None, replace(sensor, kitti_rings=False))
+    assert by_elevation.valid[:32].mean() < scan.valid[:32].mean() - 0.1
+    assert kitti_rows(sensor, pts[::-1]) is None  # reversed order: not KITTI's
+    rng = np.random.default_rng(1)
+    assert kitti_rows(sensor, pts[rng.permutation(len(pts))]) is None
+    assert kitti_rows(replace(sensor, kitti_rings=False), pts) is None
+    assert kitti_rows(load_sensor("vlp16"), pts) is None
+
+
+def test_real_kitti_files_hold_64_rings_top_down(kitti_dir):
+    """KITTI's object frames and SemanticKITTI scans: 64 rings of about 2,000 points, and far
+    points (parallax small) step down ring by ring from the preset's top row."""
+    sensor = load_sensor("kitti-hdl64e-front")
+    files = sorted((kitti_dir / "semantickitti").glob("*.bin")) + sorted(
+        (kitti_dir / "object" / "velodyne").glob("*.bin"))
+    assert files
+    for path in files:
+        pts = np.fromfile(path, np.float32).reshape(-1, 4)[:, :3].astype(np.float64)
+        ring = kitti_rows(sensor, pts)
+        assert ring is not None, path.name
+        counts = np.bincount(ring, minlength=KITTI_RINGS)
+        assert len(counts) == KITTI_RINGS and np.median(counts) > 1800
+        r = np.linalg.norm(pts, axis=1)
+        el = np.degrees(np.arcsin(pts[:, 2] / r))
+        far = [np.median(el[(ring == k) & (r > 25.0)]) for k in range(8)]
+        assert (np.diff(far) < 0).all(), path.name
+        assert far[0] == pytest.approx(sensor.elevations_deg[0], abs=0.3)
+        # the front view's upper rows: empty pixels under a return (measured: 4.5-12 % by
+        # ring, 11-19 % by elevation; what is left is columns: the upper lasers' azimuths do not
+        # keep to the 512-column grid)
+        by_ring = _holes_under_a_return(read_kitti(path, None, sensor).image)
+        by_elevation = _holes_under_a_return(
+            read_kitti(path, None, replace(sensor, kitti_rings=False)).image)
+        assert by_ring < 0.13 and by_ring < 0.7 * by_elevation, (path.name, by_ring)
+
+
+def _holes_under_a_return(image: np.ndarray) -> float:
+    """Share of rows 1-31's pixels with a return above them in their column but none of
+    their own."""
+    valid = image[..., 4] > 0
+    seen = np.zeros_like(valid)
+    seen[1:] = np.maximum.accumulate(valid, axis=0)[:-1]
+    return float((seen & ~valid)[1:32].sum() / seen[1:32].sum())
+
+
 def test_kitti_bin_label_round_trip(tmp_path):
     sensor = load_sensor("kitti-hdl64e-front")
     sim = Simulator(sensor)
@@ -107,6 +188,7 @@ BASE = {"elevations_deg": [2.0, 0.0, -2.0], "h_fov_deg": [45.0, -45.0], "columns
     ({"max_range": -1.0}, "max_range: -1.0 must be > 0"),
     ({"ray_drop": 1.5}, "ray_drop: 1.5 must be <= 1"),
     ({"pitch": 3}, "unknown key 'pitch'"),
+    ({"kitti_rings": "yes"}, "kitti_rings: expected true or false"),
     ({"vertical": {"up_deg": 2, "down_deg": -2, "beams": 4}}, "exactly one of"),
 ])
 def test_bad_sensor_values_name_the_key(change, message):
