@@ -46,9 +46,10 @@ def kitti_rows(sensor: Sensor, points: np.ndarray) -> np.ndarray | None:
     rings (`kitti_rings`); None otherwise, or when the file does not hold that order.
 
     KITTI stores a scan ring by ring, top laser first, each ring sweeping azimuth upward from the
-    front (0°) through the back (±180°) to the front again. So a point's ring is the number of
-    wraps from +180° to -180° before it, less one for the half ring behind the wrap (azimuth
-    below 0). Azimuths jitter at ±180°: a wrap straight back counts -1. Why not the elevation: a
+    front (0°) through the back (±180°) to the front again: 64 wraps from +180° to -180°. So a
+    point's ring is the number of wraps before it, less one for the half ring behind the wrap
+    (azimuth below 0). A scan cut at the back instead (63 wraps) has its rings between the
+    wraps. Azimuths jitter at ±180°: a wrap straight back counts -1. Why not the elevation: a
     laser sits some 0.1-0.2 m off the sensor's origin, so its points' elevation seen from the
     origin moves by up to a degree or two at short range, more than the 0.33° between the upper
     rings; binning by elevation scrambles neighbouring rings (on KITTI's object frames 10-23 %
@@ -60,10 +61,12 @@ def kitti_rows(sensor: Sensor, points: np.ndarray) -> np.ndarray | None:
     d = np.diff(az)
     wraps = np.concatenate([[0], np.cumsum((d < -180.0).astype(np.int64)
                                            - (d > 180.0).astype(np.int64))])
-    ring = wraps - (az < 0.0)
-    if ring.min() < -1 or ring.max() > KITTI_RINGS:
+    if wraps[-1] == KITTI_RINGS:  # cut at the front (KITTI): each ring wraps once inside
+        ring = np.clip(wraps - (az < 0.0), 0, KITTI_RINGS - 1)  # the cut's points either side
+    elif wraps[-1] == KITTI_RINGS - 1:  # cut at the back: rings end where they wrap
+        ring = wraps
+    else:
         return None
-    ring = np.clip(ring, 0, KITTI_RINGS - 1)  # the cut's few points either side of 0°
     if np.bincount(ring, minlength=KITTI_RINGS).min() < MIN_RING_POINTS:
         return None
     return ring

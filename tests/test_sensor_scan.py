@@ -65,8 +65,8 @@ def test_semantickitti_scans_project_into_our_layout(kitti_dir):
         assert scan.image[..., 3].max() > 0  # real remission kept as intensity
 
 
-def _ring_ordered_cloud(sensor, parallax_deg: float, seed: int = 0) -> tuple[np.ndarray,
-                                                                              np.ndarray]:
+def _ring_ordered_cloud(sensor, parallax_deg: float, seed: int = 0, start_deg: float = 0.05
+                        ) -> tuple[np.ndarray, np.ndarray]:
     """Points stored as KITTI stores them: ring by ring from the top laser, each sweeping
     azimuth up from 0 through +-180 back to 0, at the preset's elevations moved by up to
     `parallax_deg` (a laser off the origin, seen at short range), with azimuth jitter."""
@@ -74,8 +74,8 @@ def _ring_ordered_cloud(sensor, parallax_deg: float, seed: int = 0) -> tuple[np.
     pts, ring = [], []
     for k, el in enumerate(sensor.elevations_deg):
         # KITTI's rings start just past 0 degrees; jitter crosses +-180 back and forth
-        az = 0.05 + np.linspace(0.0, 360.0, 2000, endpoint=False) + rng.uniform(-0.03, 0.03,
-                                                                                2000)
+        az = start_deg + np.linspace(0.0, 360.0, 2000, endpoint=False) + rng.uniform(
+            -0.03, 0.03, 2000)
         az = (az + 180.0) % 360.0 - 180.0
         e = np.radians(el + rng.uniform(-parallax_deg, parallax_deg, 2000))
         a = np.radians(az)
@@ -101,7 +101,10 @@ def test_kitti_scans_are_read_by_laser_ring(tmp_path):
     assert np.abs(el - np.asarray(sensor.elevations_deg)[row_of]).max() <= 0.6 + 1e-3
     by_elevation = read_kitti(tmp_path / "r.bin", None, replace(sensor, kitti_rings=False))
     assert by_elevation.valid[:32].mean() < scan.valid[:32].mean() - 0.1
+    back, ring_back = _ring_ordered_cloud(sensor, 0.6, start_deg=-179.9)  # cut at the back
+    np.testing.assert_array_equal(kitti_rows(sensor, back), ring_back)
     assert kitti_rows(sensor, pts[::-1]) is None  # reversed order: not KITTI's
+    assert kitti_rows(sensor, pts[: 2000 * 40]) is None  # 40 rings: not the sensor's 64
     rng = np.random.default_rng(1)
     assert kitti_rows(sensor, pts[rng.permutation(len(pts))]) is None
     assert kitti_rows(replace(sensor, kitti_rings=False), pts) is None
