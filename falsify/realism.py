@@ -217,22 +217,16 @@ class EncoderFeatures:
 
 @dataclass
 class SetStats:
-    """Statistics of one set of scans (histograms hold counts; `features` one ScanFeatures a
-    batch)."""
+    """Statistics of one set of scans, kept per scan so any resample of them can be scored:
+    the valid fraction of each row, histogram counts (HISTOGRAMS) and class counts; `groups`
+    tells which real set each scan came from; `features` holds one ScanFeatures a batch."""
 
     name: str
     scans: int = 0
     points: int = 0
-    row_valid_sum: np.ndarray | None = None
-    range_counts: np.ndarray = field(default_factory=lambda: np.zeros(len(RANGE_EDGES) - 1))
-    height_counts: np.ndarray = field(default_factory=lambda: np.zeros(len(HEIGHT_EDGES) - 1))
-    intensity_counts: np.ndarray = field(
-        default_factory=lambda: np.zeros(len(INTENSITY_EDGES) - 1))
-    class_counts: np.ndarray = field(default_factory=lambda: np.zeros(len(CLASSES)))
     sums: np.ndarray = field(default_factory=lambda: np.zeros(3))   # range, z, intensity
     features: list[ScanFeatures] = field(default_factory=list, repr=False)
     floor: dict | None = None           # frechet_floor, set by compare for synthetic sets
-    # Per scan, for resampling (`bootstrap`): the row profile and the histogram counts.
     per_scan: dict[str, list[np.ndarray]] = field(default_factory=dict, repr=False)
     groups: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
     _joined: ScanFeatures | None = field(default=None, repr=False, compare=False)
@@ -251,16 +245,9 @@ class SetStats:
         for key, value in table.items():
             self.per_scan.setdefault(key, []).append(value.astype(np.float64))
         self.groups = np.concatenate([self.groups, np.zeros(len(images), np.int64)])
-        rows = valid.mean(axis=2).sum(axis=0)
-        self.row_valid_sum = rows if self.row_valid_sum is None else self.row_valid_sum + rows
         pts = images[valid].astype(np.float64)
         self.scans += len(images)
         self.points += len(pts)
-        self.range_counts += _hist(pts[:, 4], RANGE_EDGES)
-        self.height_counts += _hist(pts[:, 2], HEIGHT_EDGES)
-        self.intensity_counts += _hist(pts[:, 3], INTENSITY_EDGES)
-        cls = np.clip(pts[:, 5].astype(np.int64), 0, len(CLASSES) - 1)
-        self.class_counts += np.bincount(cls, minlength=len(CLASSES))
         self.sums += pts[:, [4, 2, 3]].sum(axis=0)
         if features is not None:
             self.features.append(features)
@@ -269,21 +256,25 @@ class SetStats:
     def merged(self, other: SetStats, name: str) -> SetStats:
         out = SetStats(name)
         out.scans, out.points = self.scans + other.scans, self.points + other.points
-        out.row_valid_sum = self.row_valid_sum + other.row_valid_sum
-        for key in ("range_counts", "height_counts", "intensity_counts", "class_counts", "sums"):
-            setattr(out, key, getattr(self, key) + getattr(other, key))
+        out.sums = self.sums + other.sums
         out.features = [*self.features, *other.features]
         out.per_scan = {k: [*self.per_scan[k], *other.per_scan[k]] for k in self.per_scan}
         out.groups = np.concatenate([self.groups, other.groups + self.groups.max(initial=-1) + 1])
         return out
 
-    def scan_table(self, key: str) -> np.ndarray:
-        """(scans, K) per-scan values of one statistic's table (see `add`)."""
-        return np.concatenate(self.per_scan[key])
+    def scan_table(self, key: str, idx: np.ndarray | None = None) -> np.ndarray:
+        """(scans, K) per-scan values of one statistic (see `add`), of the scans `idx` if given
+        (indices may repeat: a bootstrap draw)."""
+        table = np.concatenate(self.per_scan[key])
+        return table if idx is None else table[idx]
+
+    def counts(self, key: str) -> np.ndarray:
+        """A histogram's (or the classes') counts over all scans."""
+        return self.scan_table(key).sum(axis=0)
 
     @property
     def row_valid(self) -> np.ndarray:
-        return self.row_valid_sum / max(self.scans, 1)
+        return self.scan_table("row_valid").mean(axis=0)
 
     @property
     def all_features(self) -> ScanFeatures:
@@ -299,10 +290,11 @@ class SetStats:
             "name": self.name, "scans": self.scans, "points": self.points,
             "valid_fraction": float(self.row_valid.mean()),
             "row_valid": _floats(self.row_valid),
-            "range_hist": _floats(_norm(self.range_counts)),
-            "height_hist": _floats(_norm(self.height_counts)),
-            "intensity_hist": _floats(_norm(self.intensity_counts)),
-            "class_fraction": dict(zip(CLASSES, _floats(_norm(self.class_counts)), strict=True)),
+            "range_hist": _floats(_norm(self.counts("range"))),
+            "height_hist": _floats(_norm(self.counts("height"))),
+            "intensity_hist": _floats(_norm(self.counts("intensity"))),
+            "class_fraction": dict(zip(CLASSES, _floats(_norm(self.counts("classes"))),
+                                       strict=True)),
             "mean_range": float(self.sums[0] / max(self.points, 1)),
             "mean_height": float(self.sums[1] / max(self.points, 1)),
             "mean_intensity": float(self.sums[2] / max(self.points, 1)),
@@ -360,33 +352,22 @@ def wasserstein_hist(a: np.ndarray, b: np.ndarray, edges: np.ndarray) -> float:
     return float((np.abs(ca - cb) * np.diff(edges)).sum())
 
 
-def distances(syn: SetStats, real: SetStats) -> dict[str, float]:
-    """One scalar per statistic (STATISTICS), lower is closer, and the REFERENCE ones."""
-    fs, fr = syn.all_features, real.all_features
-    return {
-        "row_valid": float(np.abs(syn.row_valid - real.row_valid).mean()),
-        "range": wasserstein_hist(syn.range_counts, real.range_counts, RANGE_EDGES),
-        "height": wasserstein_hist(syn.height_counts, real.height_counts, HEIGHT_EDGES),
-        "intensity": wasserstein_hist(syn.intensity_counts, real.intensity_counts,
-                                      INTENSITY_EDGES),
-        "classes": float(0.5 * np.abs(_norm(syn.class_counts) - _norm(real.class_counts)).sum()),
-        "frechet": cell_frechet(fs, fr),
-        "frechet_tiles": frechet_from_samples(fs.tiles, fr.tiles),
-    }
-
-
-def resampled_distances(syn: SetStats, real: SetStats, i_syn: np.ndarray,
-                        i_real: np.ndarray) -> dict[str, float]:
-    """The STATISTICS distances between the scans `i_syn` of `syn` and `i_real` of `real`
-    (indices may repeat: a bootstrap draw)."""
-    out = {"row_valid": float(np.abs(syn.scan_table("row_valid")[i_syn].mean(0)
-                                     - real.scan_table("row_valid")[i_real].mean(0)).mean())}
+def distances(syn: SetStats, real: SetStats, i_syn: np.ndarray | None = None,
+              i_real: np.ndarray | None = None) -> dict[str, float]:
+    """One scalar per statistic (STATISTICS), lower is closer, between the scans `i_syn` of
+    `syn` and `i_real` of `real` (all when None; indices may repeat: a bootstrap draw); between
+    whole sets also the REFERENCE ones."""
+    out = {"row_valid": float(np.abs(syn.scan_table("row_valid", i_syn).mean(0)
+                                     - real.scan_table("row_valid", i_real).mean(0)).mean())}
     for key, _, edges in HISTOGRAMS:
-        out[key] = wasserstein_hist(syn.scan_table(key)[i_syn].sum(0),
-                                    real.scan_table(key)[i_real].sum(0), edges)
-    a, b = syn.scan_table("classes")[i_syn].sum(0), real.scan_table("classes")[i_real].sum(0)
+        out[key] = wasserstein_hist(syn.scan_table(key, i_syn).sum(0),
+                                    real.scan_table(key, i_real).sum(0), edges)
+    a, b = syn.scan_table("classes", i_syn).sum(0), real.scan_table("classes", i_real).sum(0)
     out["classes"] = float(0.5 * np.abs(_norm(a) - _norm(b)).sum())
     out["frechet"] = cell_frechet(syn.all_features, real.all_features, i_syn, i_real)
+    if i_syn is None and i_real is None:
+        out["frechet_tiles"] = frechet_from_samples(syn.all_features.tiles,
+                                                    real.all_features.tiles)
     return out
 
 
@@ -403,7 +384,7 @@ def bootstrap(synthetic: tuple[SetStats, ...], real: SetStats, draws: int,
     for _ in range(draws):
         i_real = np.concatenate([rng.choice(g, len(g)) for g in groups])
         for s in synthetic:
-            d = resampled_distances(s, real, rng.integers(0, s.scans, s.scans), i_real)
+            d = distances(s, real, rng.integers(0, s.scans, s.scans), i_real)
             for k in values[s.name]:
                 values[s.name][k].append(d[k])
     lo, hi = BOOTSTRAP_LEVELS

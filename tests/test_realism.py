@@ -26,7 +26,6 @@ from falsify.realism import (
     frechet_floor,
     frechet_from_samples,
     pooled_moments,
-    resampled_distances,
     wasserstein_hist,
 )
 from falsify.scene import PlacedCar, Simulator
@@ -200,9 +199,15 @@ def _stats(name: str, scans: int, seed: int, valid_share: float = 0.8,
 def test_resampling_every_scan_once_gives_the_distances() -> None:
     syn, real = _stats("syn", 12, 1), _stats("real", 5, 2)
     d = distances(syn, real)
-    r = resampled_distances(syn, real, np.arange(12), np.arange(5))
+    r = distances(syn, real, np.arange(12), np.arange(5))
+    assert set(d) == set(r) | {"frechet_tiles"}
     for key, _, _ in STATISTICS:
         assert r[key] == pytest.approx(d[key], rel=1e-9, abs=1e-12), key
+    # a resample that repeats scans weighs them: one scan twice against the pair
+    twice = distances(syn, real, np.array([0, 0]), np.arange(5))
+    once = distances(syn, real, np.array([0]), np.arange(5))
+    for key in ("row_valid", "range", "height", "intensity", "classes"):
+        assert twice[key] == pytest.approx(once[key], rel=1e-9), key
 
 
 def test_bootstrap_is_seeded_paired_and_keeps_real_sets_apart() -> None:
