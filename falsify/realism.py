@@ -230,25 +230,27 @@ class SetStats:
     per_scan: dict[str, list[np.ndarray]] = field(default_factory=dict, repr=False)
     groups: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
     _joined: ScanFeatures | None = field(default=None, repr=False, compare=False)
+    _tables: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
     def add(self, images: np.ndarray, features: ScanFeatures | None) -> None:
         """Add (B, H, W, 6) scans and their features."""
         valid = images[..., 4] > 0
-        table = {"row_valid": valid.mean(axis=2)}
-        for key, channel, edges in HISTOGRAMS:
-            table[key] = np.stack([_hist(im[v][:, channel].astype(np.float64), edges)
-                                   for im, v in zip(images, valid, strict=True)])
-        table["classes"] = np.stack([np.bincount(np.clip(im[v][:, 5].astype(np.int64), 0,
-                                                         len(CLASSES) - 1),
-                                                 minlength=len(CLASSES))
-                                     for im, v in zip(images, valid, strict=True)])
-        for key, value in table.items():
-            self.per_scan.setdefault(key, []).append(value.astype(np.float64))
+        table: dict[str, list[np.ndarray]] = {key: [] for key, _, _ in HISTOGRAMS}
+        table["classes"] = []
+        for im, v in zip(images, valid, strict=True):
+            pts = im[v].astype(np.float64)
+            for key, channel, edges in HISTOGRAMS:
+                table[key].append(_hist(pts[:, channel], edges))
+            cls = np.clip(pts[:, 5].astype(np.int64), 0, len(CLASSES) - 1)
+            table["classes"].append(np.bincount(cls, minlength=len(CLASSES)))
+            self.points += len(pts)
+            self.sums += pts[:, [4, 2, 3]].sum(axis=0)
+        self.per_scan.setdefault("row_valid", []).append(valid.mean(axis=2).astype(np.float64))
+        for key, values in table.items():
+            self.per_scan.setdefault(key, []).append(np.stack(values).astype(np.float64))
+        self._tables = {}
         self.groups = np.concatenate([self.groups, np.zeros(len(images), np.int64)])
-        pts = images[valid].astype(np.float64)
         self.scans += len(images)
-        self.points += len(pts)
-        self.sums += pts[:, [4, 2, 3]].sum(axis=0)
         if features is not None:
             self.features.append(features)
             self._joined = None
@@ -265,7 +267,9 @@ class SetStats:
     def scan_table(self, key: str, idx: np.ndarray | None = None) -> np.ndarray:
         """(scans, K) per-scan values of one statistic (see `add`), of the scans `idx` if given
         (indices may repeat: a bootstrap draw)."""
-        table = np.concatenate(self.per_scan[key])
+        if key not in self._tables:  # joined once per key, then kept until the next add
+            self._tables[key] = np.concatenate(self.per_scan[key])
+        table = self._tables[key]
         return table if idx is None else table[idx]
 
     def counts(self, key: str) -> np.ndarray:

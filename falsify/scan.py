@@ -49,11 +49,7 @@ def image_from_points(sensor: Sensor, points: np.ndarray, cls: np.ndarray,
     `rows` gives each point's row (a laser ring) instead of its elevation's."""
     points = np.asarray(points, dtype=np.float64)
     ranges = np.linalg.norm(points, axis=1)
-    row, col, inside = sensor.pixel_of(points)
-    if rows is not None:
-        row = np.asarray(rows, dtype=np.int64)
-        inside = (col >= 0) & (col < sensor.columns) & (row >= 0) & (row < sensor.rows) & (
-            ranges > 0)
+    row, col, inside = sensor.pixel_of(points, rows)
     inside &= ranges <= sensor.max_range
     order = np.argsort(-ranges[inside], kind="stable")  # far first, so near points overwrite
     idx = np.flatnonzero(inside)[order]

@@ -88,17 +88,21 @@ class Sensor:
         mid = (el[:-1] + el[1:]) / 2
         return np.concatenate([[el[0] + (el[0] - mid[0])], mid, [el[-1] - (mid[-1] - el[-1])]])
 
-    def pixel_of(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Project sensor-frame points to (row, col, inside) with this sensor's layout."""
+    def pixel_of(self, points: np.ndarray, rows: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Project sensor-frame points to (row, col, inside) with this sensor's layout; `rows`,
+        when given, is each point's row (a laser ring) in place of its elevation's."""
         p = np.asarray(points, dtype=np.float64)
         r = np.linalg.norm(p, axis=1)
         az = np.degrees(np.arctan2(p[:, 1], p[:, 0]))
-        el = np.degrees(np.arcsin(np.divide(p[:, 2], r, out=np.zeros_like(r), where=r > 0)))
         col = np.floor((self.az_left_deg - az) / self.az_step_deg).astype(np.int64)
         if self.full_circle:
             col %= self.columns
-        edges = self.row_edges_deg
-        row = np.searchsorted(-edges, -el, side="right") - 1
+        if rows is not None:
+            row = np.asarray(rows, dtype=np.int64)
+        else:
+            el = np.degrees(np.arcsin(np.divide(p[:, 2], r, out=np.zeros_like(r), where=r > 0)))
+            row = np.searchsorted(-self.row_edges_deg, -el, side="right") - 1
         inside = (col >= 0) & (col < self.columns) & (row >= 0) & (row < self.rows) & (r > 0)
         return row, col, inside
 

@@ -94,6 +94,7 @@ def distance_table(doc: dict) -> str:
     pooled = doc["real_pooled"]
     reals = [pooled] + [r["name"] for r in doc["real"] if r["name"] != pooled]
     comp = doc.get("comparison") or {}
+    boot = doc.get("bootstrap")
     head = "".join(f'<th>{esc(s["name"])}<br><span class="sub">vs {esc(r)}</span></th>'
                    for s in doc["synthetic"] for r in reals)
     rows = []
@@ -108,7 +109,6 @@ def distance_table(doc: dict) -> str:
                     mark = (' <span class="yes">✓ closer</span>' if cand["closer"][key]
                             else ' <span class="no">✗ not closer</span>')
                 interval = ""
-                boot = doc.get("bootstrap")
                 if boot and r == pooled:
                     lo, hi = boot["intervals"][s["name"]][key]
                     interval = f'<br><span class="sub">{lo:.4f}-{hi:.4f}</span>'
@@ -146,7 +146,6 @@ def distance_table(doc: dict) -> str:
         every = " (every one)" if cand["closer_on_every_statistic"] else ""
         verdict += (f'<p class="verdict">{esc(name)} is closer to the real scans than '
                     f'{esc(comp["baseline"])} on <b>{k} of {n}</b> statistics{every}.</p>')
-    boot = doc.get("bootstrap")
     if boot:
         lo, hi = boot["levels"]
         verdict += (f'<p class="sub" id="bootstrap">Under each distance to the pooled real '
