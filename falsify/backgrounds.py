@@ -159,6 +159,22 @@ TOWN_SIDEWALK: tuple[float, float] = (1.5, 3.5)
 TOWN_SETBACK: tuple[float, float] = (1.5, 5.0)  # blocks behind the sidewalk (front gardens)
 
 
+# Narrowing streets: the road keeps the paper's width along the test site (the free zone's x
+# and a margin each way) and narrows to a residential street beyond it, where training scenes
+# mostly stand (their ego drives anywhere in x -20..70).
+NARROW_P: float = 0.5
+NARROW_KERB: tuple[float, float] = (3.5, 6.5)         # |y| of the kerbs where narrow
+NARROW_WIDE_BEHIND: tuple[float, float] = (5.0, 20.0)  # wide stretch starts this far behind x=0
+NARROW_WIDE_AHEAD: tuple[float, float] = (12.0, 30.0)  # and ends this far beyond the free zone
+NARROW_TAPER: tuple[float, float] = (6.0, 15.0)       # metres over which the kerbs move in
+NEAR_ZONE: float = 5.0  # objects this close to the free zone's x range keep off its y range
+
+
+def _near_zone(x: float) -> bool:
+    (x0, x1), _ = FREE_ZONE
+    return x0 - NEAR_ZONE < x < x1 + NEAR_ZONE
+
+
 def _rng(bg_id: int, stream: int) -> np.random.Generator:
     """Independent generator per aspect, so changing trees never moves the parked cars."""
     return np.random.default_rng([bg_id, stream])
@@ -179,7 +195,15 @@ def _layout(bg_id: int) -> _Layout:
         half = float(town_rng.uniform(*TOWN_HALF_WIDTH))
         sidewalk = (float(town_rng.uniform(*TOWN_SIDEWALK)),
                     float(town_rng.uniform(*TOWN_SIDEWALK)))
-    terrain = draw_terrain(_rng(bg_id, 7), half, curb_h, sidewalk, flat_sides=town)
+    narrow_rng = _rng(bg_id, 10)  # its own stream, as for town streets
+    narrowing = None
+    if narrow_rng.random() < NARROW_P:
+        kerb = float(narrow_rng.uniform(*NARROW_KERB))
+        wide_x = (FREE_ZONE[0][0] - float(narrow_rng.uniform(*NARROW_WIDE_BEHIND)),
+                  FREE_ZONE[0][1] + float(narrow_rng.uniform(*NARROW_WIDE_AHEAD)))
+        narrowing = (max(half - kerb, 0.0), wide_x, float(narrow_rng.uniform(*NARROW_TAPER)))
+    terrain = draw_terrain(_rng(bg_id, 7), half, curb_h, sidewalk, flat_sides=town,
+                           narrowing=narrowing)
     return _Layout(half_width=half, curb_h=curb_h, sidewalk=sidewalk, parking=parking,
                    terrain=terrain, town=town)
 
@@ -193,9 +217,15 @@ def _ground(st: _Street, lay: _Layout) -> None:
     x0, x1 = ROAD_X
     for mesh, mat in terrain_meshes(lay.terrain, ROAD_X, TERRAIN_HALF_WIDTH):
         st.add(mesh, UNKNOWN, 0, mat)
-    hw, far = lay.half_width, TERRAIN_HALF_WIDTH
-    st.obstacles.append(Footprint("curb left", _rect(x0, x1, hw, far)))
-    st.obstacles.append(Footprint("curb right", _rect(x0, x1, -far, -hw)))
+    t, far = lay.terrain, TERRAIN_HALF_WIDTH
+    br = t.kerb_breaks(x0, x1)
+    for k, (u, v) in enumerate(zip(br[:-1], br[1:], strict=False)):
+        ku, kv = float(t.kerb(u)), float(t.kerb(v))
+        tag = "" if k == 0 else f" {k}"
+        st.obstacles.append(Footprint(f"curb left{tag}", np.array(
+            [[u, ku], [v, kv], [v, far], [u, far]], dtype=np.float64)))
+        st.obstacles.append(Footprint(f"curb right{tag}", np.array(
+            [[u, -far], [v, -far], [v, -kv], [u, -ku]], dtype=np.float64)))
 
 
 def _slope_top(lay: _Layout, side: int) -> float:
@@ -235,7 +265,7 @@ def _buildings(st: _Street, lay: _Layout, bg_id: int) -> None:
             setback = float(np.clip(base_setback + rng.normal(0.0, 2.0), 2.0, 40.0))
             depth = rng.uniform(8.0, 20.0)
             height = float(np.clip(rng.normal(mean_h, 0.35 * mean_h), 4.0, 30.0))
-            near = lay.half_width + sw + setback
+            near = lay.terrain.widest_kerb(xa, xb) + sw + setback
             ya, yb = (near, near + depth) if side > 0 else (-near - depth, -near)
             if not st.fits(_rect(xa, xb, ya, yb), margin=0.0):
                 continue
@@ -251,33 +281,35 @@ def _boundaries(st: _Street, lay: _Layout, bg_id: int) -> None:
     for side, sw in ((1, lay.sidewalk[0]), (-1, lay.sidewalk[1])):
         kind = _side_kind(lay, side)
         if kind in ("embankment down", "ditch") and rng.random() < 0.7:
-            y = side * (lay.half_width + min(0.6, sw / 2))
             x = ROAD_X[0] + rng.uniform(0.0, 20.0)
             n = 0
             while x < ROAD_X[1] - 5.0:
                 xa, xb = x, min(x + rng.uniform(30.0, 120.0), ROAD_X[1])
-                if xb - xa > 6.0 and st.fits(_rect(xa, xb, y - 0.3, y + 0.3), 0.0):
-                    structures.guard_rail(st, lay.terrain, rng, xa, xb, y, side,
-                                          f"guard rail {n}")
-                    n += 1
+                for pa, pb in lay.terrain.straight_kerb(xa, xb):  # none along a taper
+                    y = side * (float(lay.terrain.kerb(pa)) + min(0.6, sw / 2))
+                    if pb - pa > 6.0 and st.fits(_rect(pa, pb, y - 0.3, y + 0.3), 0.0):
+                        structures.guard_rail(st, lay.terrain, rng, pa, pb, y, side,
+                                              f"guard rail {n}")
+                        n += 1
                 x = xb + rng.uniform(3.0, 40.0)
         what = str(rng.choice(["none", "wall", "fence", "railing", "hedge"],
                               p=[0.25, 0.2, 0.2, 0.15, 0.2]))
         if what == "none":
             continue
-        y_in = side * (lay.half_width + sw + 0.1)
         x = ROAD_X[0] + rng.uniform(0.0, 10.0)
         n = 0
         while x < ROAD_X[1] - 5.0:
             xa, xb = x, min(x + rng.uniform(8.0, 40.0), ROAD_X[1])
             x = xb + rng.uniform(1.5, 12.0)
-            lo, hi = sorted((y_in, y_in + side * 1.3))
-            if not st.fits(_rect(xa, xb, lo, hi), 0.0):
-                continue
-            build = {"wall": structures.wall, "fence": structures.fence,
-                     "railing": structures.railing, "hedge": vegetation.hedge}[what]
-            build(st, lay.terrain, rng, xa, xb, y_in, side, f"{what} {n}")
-            n += 1
+            for pa, pb in lay.terrain.straight_kerb(xa, xb):  # none along a taper
+                y_in = side * (float(lay.terrain.kerb(pa)) + sw + 0.1)
+                lo, hi = sorted((y_in, y_in + side * 1.3))
+                if not st.fits(_rect(pa, pb, lo, hi), 0.0):
+                    continue
+                build = {"wall": structures.wall, "fence": structures.fence,
+                         "railing": structures.railing, "hedge": vegetation.hedge}[what]
+                build(st, lay.terrain, rng, pa, pb, y_in, side, f"{what} {n}")
+                n += 1
 
 
 def _plants(st: _Street, lay: _Layout, bg_id: int) -> None:
@@ -295,14 +327,17 @@ def _plants(st: _Street, lay: _Layout, bg_id: int) -> None:
             x = ROAD_X[0] + rng.uniform(0.0, 10.0)
             while x < ROAD_X[1]:
                 x += rng.uniform(6.0, 16.0)
+                kerb = float(t.kerb(x))
                 if zone == "sidewalk":
                     if sw < 3.0:
                         break
-                    off = lay.half_width + rng.uniform(1.5, sw - 0.8)
+                    off = kerb + rng.uniform(1.5, sw - 0.8)
                 else:
-                    off = lay.half_width + sw + rng.uniform(0.8, 4.0)
-                # Crowns overhang the road but stop short of the free zone (jitter <= 15 %).
-                crown = min(rng.uniform(1.2, 3.5), (off - 8.9) / 1.2)
+                    off = kerb + sw + rng.uniform(0.8, 4.0)
+                # Crowns overhang the road but stop short of the free zone (jitter <= 15 %);
+                # away from it, up to 2 m over a narrowed road.
+                edge = 8.9 if t.narrow == 0.0 or _near_zone(x) else kerb - 2.0
+                crown = min(rng.uniform(1.2, 3.5), (off - edge) / 1.2)
                 if crown < 0.8:
                     continue
                 if vegetation.tree(st, t, rng, x, side * off, crown, rng.random() < conifer_p,
@@ -327,7 +362,8 @@ def _poles(st: _Street, lay: _Layout, bg_id: int) -> None:
     for side in (1, -1):
         x = ROAD_X[0] + rng.uniform(0.0, spacing)
         while x < ROAD_X[1]:
-            off = lay.half_width + rng.uniform(0.35, 0.7)
+            kerb = float(t.kerb(x))
+            off = kerb + rng.uniform(0.35, 0.7)
             y = side * off
             poly = _rect(x - 0.15, x + 0.15, y - 0.15, y + 0.15)
             if rng.random() < 0.7:
@@ -335,7 +371,8 @@ def _poles(st: _Street, lay: _Layout, bg_id: int) -> None:
                     iid = st.new_instance()
                     base = float(t.height(np.array([x]), np.array([y]))[0])
                     h = rng.uniform(6.0, 10.0)
-                    arm_end = max(off - rng.uniform(1.0, 2.5), 8.8)
+                    edge = 8.8 if t.narrow == 0.0 or _near_zone(x) else kerb - 2.5
+                    arm_end = max(off - rng.uniform(1.0, 2.5), edge)
                     st.add(shapes.cylinder([x, y, base - 0.1], [x, y, base + h], 0.1, 8, 0.07),
                            UNKNOWN, iid, mid("metal"))
                     st.add(shapes.boxes([x - 0.05, min(y, side * arm_end), base + h - 0.3],
@@ -420,7 +457,8 @@ def _parked_vehicles(st: _Street, lay: _Layout, bg_id: int) -> None:
             # Right-hand traffic: most vehicles on the left kerb face -x.
             heading = 0.0 if (side < 0) != (rng.random() < 0.15) else np.pi
             yaw = heading + rng.normal(0.0, 0.03)
-            cy = side * (lay.half_width - 0.25 - width / 2 - rng.uniform(0.0, 0.3))
+            kerb = lay.terrain.narrowest_kerb(cx - length / 2, cx + length / 2)
+            cy = side * (kerb - 0.25 - width / 2 - rng.uniform(0.0, 0.3))
             if not want or not st.fits(_candidate_footprint(length, width, cx, cy, yaw), 0.2):
                 continue
             _place(st, lay.terrain, np.asarray(v), np.asarray(f), mat, cx, cy, yaw, cls, label)
@@ -441,10 +479,12 @@ def _people(st: _Street, lay: _Layout, bg_id: int) -> None:
         sw = lay.sidewalk[0] if side > 0 else lay.sidewalk[1]
         crossing = i > 0 and rng.random() < 0.12
         if crossing:
-            x, y = rng.uniform(32.0, 90.0), rng.uniform(-lay.half_width + 1, lay.half_width - 1)
+            x = rng.uniform(32.0, 90.0)
+            y = rng.uniform(-lay.half_width + 1, lay.half_width - 1) * (
+                _kerb_scale(t, x, 1.0) if t.narrow else 1.0)
         else:
             x = rng.uniform(8.0, 45.0) if placed == 0 else rng.uniform(-60.0, 120.0)
-            y = side * (lay.half_width + rng.uniform(0.4, max(sw - 0.4, 0.5)))
+            y = side * (float(t.kerb(x)) + rng.uniform(0.4, max(sw - 0.4, 0.5)))
         poly = _rect(x - 0.4, x + 0.4, y - 0.4, y + 0.4)
         if not st.fits(poly, 0.2):
             continue
@@ -464,10 +504,11 @@ def _people(st: _Street, lay: _Layout, bg_id: int) -> None:
             x = rng.uniform(28.0, 55.0)
         else:
             x = rng.uniform(-60.0, -6.0) if rng.random() < 0.3 else rng.uniform(28.0, 120.0)
+        kerb = float(t.kerb(x))
         if rng.random() < 0.7 or sw < 3.0:
-            y = side * (lay.half_width - rng.uniform(0.6, 1.3))
+            y = side * (kerb - rng.uniform(0.6, 1.3))
         else:
-            y = side * (lay.half_width + rng.uniform(1.0, sw - 1.0))
+            y = side * (kerb + rng.uniform(1.0, sw - 1.0))
         heading = (0.0 if side < 0 else np.pi) + rng.normal(0.0, 0.08)
         if not st.fits(_candidate_footprint(1.8, 0.7, x, y, heading), 0.3):
             continue
@@ -480,12 +521,17 @@ def _people(st: _Street, lay: _Layout, bg_id: int) -> None:
         side = 1 if rng.random() < 0.5 else -1
         sw = lay.sidewalk[0] if side > 0 else lay.sidewalk[1]
         x = rng.uniform(-50.0, 100.0)
-        y = side * (lay.half_width + rng.uniform(0.5, max(sw - 0.5, 0.6)))
+        y = side * (float(t.kerb(x)) + rng.uniform(0.5, max(sw - 0.5, 0.6)))
         yaw = rng.uniform(-np.pi, np.pi)
         if not st.fits(_candidate_footprint(1.8, 0.6, x, y, yaw), 0.2):
             continue
         v, f, mat = merge_parts(bicycle_parts(rng))
         _place(st, t, v, f, mat, x, y, yaw, UNKNOWN, f"bicycle {i}")
+
+
+def _kerb_scale(t: Terrain, x: float, margin: float) -> float:
+    """Factor that maps a |y| drawn within the wide road (less `margin`) into the road at x."""
+    return (float(t.kerb(x)) - margin) / (t.half_width - margin)
 
 
 def _assemble(bg_id: int, st: _Street, lay: _Layout) -> Background:

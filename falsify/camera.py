@@ -443,11 +443,12 @@ def shade(r: CameraRenderer, bg, placed, paints, hits: Hits, dirs, origin, axis:
     up = np.abs(nb[:, 2]) > 0.9 * np.sqrt(np.einsum("ij,ij->i", nb, nb))
     z, y, x = pos[b, 2], pos[b, 1], pos[b, 0]
     col = _palette(hits.prim[b] // 12, _BUILDING)
-    road = up & (z < 0.05) & (np.abs(y) < bg.road_half_width)
+    kerb = bg.terrain.kerb(x) if bg.terrain is not None else bg.road_half_width
+    road = up & (z < 0.05) & (np.abs(y) < kerb)
     col[road] = (0.075, 0.075, 0.08)
     dash = road & (np.abs(y) < 0.08) & (np.mod(x, 9.0) < 3.0)
     col[dash] = (0.70, 0.70, 0.66)
-    pave = up & ~road & (np.abs(y) < bg.road_half_width + 6.5)
+    pave = up & ~road & (np.abs(y) < kerb + 6.5)
     col[pave] = (0.30, 0.29, 0.27)
     grass = up & ~road & ~pave
     col[grass] = (0.07, 0.14, 0.04)

@@ -21,7 +21,15 @@ from falsify.errors import ConfigError
 from falsify.fileio import write_json, write_npy
 from falsify.materials import PAINTS
 from falsify.road_users import OTHER_VEHICLES
-from falsify.scene import InvalidSample, PlacedCar, Simulator, check_placement, free_ego
+from falsify.scene import (
+    EGO_X_BACKWARD,
+    EGO_X_FORWARD,
+    InvalidSample,
+    PlacedCar,
+    Simulator,
+    check_placement,
+    free_ego,
+)
 from falsify.sensor import Sensor, SensorPose
 
 TRAIN_BACKGROUND_FIRST = 1000
@@ -59,7 +67,7 @@ def scene_for(index: int, seed: int, sim: Simulator,
         # Any lane, up to beside the parked cars, so the roadside is seen from close by too.
         lane = rng.uniform(-(half - 3.3), half - 3.3)
         heading = rng.normal(0.0, 2.0) + (180.0 if rng.random() < 0.3 else 0.0)
-        ego_x = rng.uniform(-20.0, 40.0) if heading < 90 else rng.uniform(10.0, 70.0)
+        ego_x = rng.uniform(*EGO_X_FORWARD) if heading < 90 else rng.uniform(*EGO_X_BACKWARD)
         return SensorPose(ego_x, lane, heading)
 
     pose, ego = free_ego(sim, bg_id, draw, f"scan {index}")

@@ -33,6 +33,10 @@ from falsify.terrain import Terrain
 EGO_FOOTPRINT = np.array([[-2.8, -0.95], [1.9, -0.95], [1.9, 0.95], [-2.8, 0.95]])
 FIRST_CAR_INSTANCE = 1
 EGO_TRIES = 50  # draws of a training scene's ego pose before a street counts as full
+# Where training scenes stand the ego along the road (x), heading +x and heading -x: beyond the
+# test site too, so narrowing streets are seen from inside their narrow stretches.
+EGO_X_FORWARD: tuple[float, float] = (-90.0, 90.0)
+EGO_X_BACKWARD: tuple[float, float] = (-50.0, 130.0)
 PAINT_IDS = np.array(PAINTS, dtype=np.uint8)
 
 

@@ -45,6 +45,46 @@ class Terrain:
     sides: tuple[Side, Side]  # left (+y), right (-y)
     noise_phase: tuple[float, ...]  # phases of the roughness waves
     hill_phase: float
+    # A street narrower away from the test site: beyond `wide_x` (and a taper of `taper`
+    # metres) the kerbs stand `narrow` metres further in, and all beyond them moves in too.
+    narrow: float = 0.0
+    wide_x: tuple[float, float] = (0.0, 0.0)
+    taper: float = 10.0
+
+    # -- the kerb line -------------------------------------------------------------------------
+    def inset(self, x: np.ndarray) -> np.ndarray:
+        """How far inside `half_width` the kerbs stand at x: 0 along the wide stretch, rising
+        linearly over the tapers to `narrow`."""
+        x = np.asarray(x, dtype=np.float64)
+        if self.narrow <= 0.0:
+            return np.zeros_like(x)
+        a, b = self.wide_x
+        outside = np.maximum(np.maximum(a - x, x - b), 0.0)
+        return self.narrow * np.clip(outside / self.taper, 0.0, 1.0)
+
+    def kerb(self, x: np.ndarray) -> np.ndarray:
+        """|y| of the kerbs at x."""
+        return self.half_width - self.inset(x)
+
+    def kerb_breaks(self, x0: float, x1: float) -> list[float]:
+        """x0, the kerb line's corners inside (x0, x1), then x1: it is straight in between."""
+        a, b = self.wide_x
+        inner = ([a - self.taper, a, b, b + self.taper] if self.narrow > 0.0 else [])
+        return [x0, *sorted(v for v in inner if x0 < v < x1), x1]
+
+    def widest_kerb(self, x0: float, x1: float) -> float:
+        """The largest |y| of the kerbs over [x0, x1]."""
+        return float(self.kerb(np.array(self.kerb_breaks(x0, x1))).max())
+
+    def narrowest_kerb(self, x0: float, x1: float) -> float:
+        """The smallest |y| of the kerbs over [x0, x1]."""
+        return float(self.kerb(np.array(self.kerb_breaks(x0, x1))).min())
+
+    def straight_kerb(self, x0: float, x1: float) -> list[tuple[float, float]]:
+        """The pieces of [x0, x1] along which the kerbs run parallel to the road (no taper)."""
+        br = self.kerb_breaks(x0, x1)
+        return [(u, v) for u, v in zip(br[:-1], br[1:], strict=False)
+                if v > u and abs(float(self.kerb(u)) - float(self.kerb(v))) < 1e-9]
 
     # -- the surface ---------------------------------------------------------------------------
     def road_z(self, x: np.ndarray) -> np.ndarray:
@@ -55,7 +95,7 @@ class Terrain:
                                                   - math.sin(self.crest_phase))
 
     def sidewalk_z(self, x: np.ndarray) -> np.ndarray:
-        return self.road_z(x) - self.camber * self.half_width + self.curb_h
+        return self.road_z(x) - self.camber * self.kerb(x) + self.curb_h
 
     def _roughness(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Unit-amplitude smooth bumps (sum of six plane waves, wavelengths 1.3-9 m)."""
@@ -81,7 +121,7 @@ class Terrain:
     def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Ground height at world (x, y): road, sidewalks, then the roadside profiles."""
         x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
-        hw = self.half_width
+        hw = self.kerb(x) if self.narrow > 0.0 else self.half_width
         z = self.road_z(x) - self.camber * np.minimum(np.abs(y), hw)
         out = np.where(np.abs(y) < hw, z, self.sidewalk_z(x))
         for side, sw in ((1, self.sidewalk[0]), (-1, self.sidewalk[1])):
@@ -114,9 +154,11 @@ class Terrain:
 
 
 def draw_terrain(rng: np.random.Generator, half_width: float, curb_h: float,
-                 sidewalk: tuple[float, float], flat_sides: bool = False) -> Terrain:
+                 sidewalk: tuple[float, float], flat_sides: bool = False,
+                 narrowing: tuple[float, tuple[float, float], float] | None = None) -> Terrain:
     """Seeded terrain numbers: gentle grades and crests, 1-3 % camber, a roadside per side
-    (both flat for ``flat_sides``, with the same draws otherwise)."""
+    (both flat for ``flat_sides``, with the same draws otherwise); ``narrowing`` is
+    (narrow, wide_x, taper), drawn by the caller (see Terrain)."""
     flat_road = rng.random() < 0.25
     grade = 0.0 if flat_road else float(rng.uniform(-0.035, 0.035))
     crest_len = float(rng.uniform(160.0, 420.0))
@@ -127,7 +169,9 @@ def draw_terrain(rng: np.random.Generator, half_width: float, curb_h: float,
                    crest_phase=float(rng.uniform(0, 2 * math.pi)),
                    camber=float(rng.uniform(0.01, 0.03)), sides=sides,  # type: ignore[arg-type]
                    noise_phase=tuple(float(v) for v in rng.uniform(0, 2 * math.pi, 6)),
-                   hill_phase=float(rng.uniform(0, 2 * math.pi)))
+                   hill_phase=float(rng.uniform(0, 2 * math.pi)),
+                   **({} if narrowing is None else
+                      {"narrow": narrowing[0], "wide_x": narrowing[1], "taper": narrowing[2]}))
 
 
 def _draw_side(rng: np.random.Generator, kind: str | None = None) -> Side:
@@ -160,9 +204,13 @@ def _draw_side(rng: np.random.Generator, kind: str | None = None) -> Side:
     return Side(kind, knots, hill, noise)
 
 
-def _grid_mesh(xs: np.ndarray, ys: np.ndarray, z: np.ndarray, up: bool = True) -> shapes.Mesh:
-    """A heightfield over the grid xs × ys (z shape (nx, ny)), triangles facing +z."""
+def _grid_mesh(xs: np.ndarray, ys: np.ndarray, z: np.ndarray, up: bool = True,
+               y_of: np.ndarray | None = None) -> shapes.Mesh:
+    """A heightfield over the grid xs × ys (z shape (nx, ny)), triangles facing +z; `y_of`
+    (shape (nx, ny)) moves each vertex to its own y (a grid whose rows bend with the kerb)."""
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    if y_of is not None:
+        gy = y_of
     v = np.stack([gx, gy, z], axis=-1).reshape(-1, 3)
     ny = len(ys)
     i, j = np.meshgrid(np.arange(len(xs) - 1), np.arange(ny - 1), indexing="ij")
@@ -185,36 +233,42 @@ def _roadside_u(extent: float) -> np.ndarray:
 
 def terrain_meshes(t: Terrain, x_range: tuple[float, float], extent: float
                    ) -> list[tuple[shapes.Mesh, int]]:
-    """The ground as meshes with their material: road, kerb faces, sidewalks, roadsides."""
+    """The ground as meshes with their material: road, kerb faces, sidewalks, roadsides. Where
+    the street narrows every row of vertices follows the kerb line (its corners are vertices)."""
     x0, x1 = x_range
     out: list[tuple[shapes.Mesh, int]] = []
-    xs = np.arange(x0, x1 + 1e-9, 2.0)
-    hw = t.half_width
-    ys = np.array([-hw, 0.0, hw])
-    gx, gy = np.meshgrid(xs, ys, indexing="ij")
-    out.append((_grid_mesh(xs, ys, t.height(gx, gy * 0.999999)), mid("asphalt")))
+    xs = _with_breaks(np.arange(x0, x1 + 1e-9, 2.0), t, x0, x1)
+    kerb = t.kerb(xs)
+    s = np.array([-1.0, 0.0, 1.0])
+    y_road = kerb[:, None] * s[None, :]
+    out.append((_grid_mesh(xs, s, t.height(xs[:, None], y_road * 0.999999), y_of=y_road),
+                mid("asphalt")))
     sz = t.sidewalk_z(xs)
-    road_edge = t.road_z(xs) - t.camber * hw
+    road_edge = t.road_z(xs) - t.camber * kerb
     for side, sw in ((1, t.sidewalk[0]), (-1, t.sidewalk[1])):
         # Kerb face: a vertical strip from the road edge up to the sidewalk, facing the road.
-        ys_k = np.array([side * hw, side * hw])
         zk = np.stack([road_edge, sz], axis=1)
-        v, f = _grid_mesh(xs, ys_k, zk)
-        v[:, 1] = side * hw
-        v[:, 2] = zk.reshape(-1)
+        v, f = _grid_mesh(xs, np.array([0.0, 1.0]), zk, y_of=np.stack([side * kerb] * 2, 1))
         f = f if side > 0 else f[:, ::-1]
         out.append(((v, f), mid("concrete")))
-        lo, hi = sorted((side * hw, side * (hw + sw)))
-        ys_s = np.array([lo, hi])
-        out.append((_grid_mesh(xs, ys_s, np.stack([sz, sz], axis=1)), mid("concrete")))
+        y_s = np.stack([side * kerb, side * (kerb + sw)], axis=1)
+        y_s = np.sort(y_s, axis=1)
+        out.append((_grid_mesh(xs, np.array([0.0, 1.0]), np.stack([sz, sz], axis=1), y_of=y_s),
+                    mid("concrete")))
         # Roadside: grass (soil on steep slopes is still grass-coloured to the laser).
         u = _roadside_u(extent)
-        xr = np.arange(x0, x1 + 1e-9, 1.0)
+        xr = _with_breaks(np.arange(x0, x1 + 1e-9, 1.0), t, x0, x1)
         gxr, gu = np.meshgrid(xr, u, indexing="ij")
         z = t.sidewalk_z(gxr) + t.roadside_dz(side, gu, gxr)
-        yy = side * (hw + sw + u)
+        yy = side * (t.kerb(gxr) + sw + gu)
         if side > 0:
-            out.append((_grid_mesh(xr, yy, z), mid("grass")))
+            out.append((_grid_mesh(xr, u, z, y_of=yy), mid("grass")))
         else:
-            out.append((_grid_mesh(xr, yy[::-1], z[:, ::-1]), mid("grass")))
+            out.append((_grid_mesh(xr, u[::-1], z[:, ::-1], y_of=yy[:, ::-1]), mid("grass")))
     return out
+
+
+def _with_breaks(xs: np.ndarray, t: Terrain, x0: float, x1: float) -> np.ndarray:
+    """Sample positions plus the kerb line's corners, so a narrowing street's meshes bend there."""
+    br = t.kerb_breaks(x0, x1)
+    return xs if len(br) == 2 else np.unique(np.concatenate([xs, br]))

@@ -18,7 +18,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from falsify.cars import BUILTIN_MODELS
-from falsify.scene import InvalidSample, PlacedCar, Simulator, check_placement, free_ego
+from falsify.scene import (
+    EGO_X_BACKWARD,
+    EGO_X_FORWARD,
+    InvalidSample,
+    PlacedCar,
+    Simulator,
+    check_placement,
+    free_ego,
+)
 from falsify.sensor import SensorPose
 
 PARKING_STRIP = 2.2     # metres between the kerb and the outermost lane
@@ -70,7 +78,7 @@ def drive_scene(index: int, seed: int, sim: Simulator, bg_id: int,
         direction = lanes.directions[ego_lane]
         ego_y = lanes.centres[ego_lane] + rng.normal(0.0, LATERAL_NOISE_M / 2)
         heading = (0.0 if direction > 0 else 180.0) + rng.normal(0.0, 1.0)
-        ego_x = rng.uniform(-20.0, 40.0) if direction > 0 else rng.uniform(10.0, 70.0)
+        ego_x = rng.uniform(*EGO_X_FORWARD) if direction > 0 else rng.uniform(*EGO_X_BACKWARD)
         return SensorPose(float(ego_x), float(ego_y), float(heading))
 
     # Stood on the terrain (a bare pose is at z = 0, a metre under the road on a hill, and the

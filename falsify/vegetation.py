@@ -41,12 +41,12 @@ def bushes(st, t: Terrain, rng: np.random.Generator, side: int, u_range: tuple[f
         return 0
     area = (x_range[1] - x_range[0]) * (u1 - u0)
     n = int(rng.poisson(area * density))
-    hw, sw = t.half_width, t.sidewalk[0 if side > 0 else 1]
+    sw = t.sidewalk[0 if side > 0 else 1]
     made = 0
     for _ in range(n):
         x = float(rng.uniform(*x_range))
         u = float(rng.uniform(u0, u1))
-        y = side * (hw + sw + u)
+        y = side * (float(t.kerb(x)) + sw + u)
         r = float(rng.uniform(0.4, 1.6))
         poly = _rect(x - r, x + r, y - r, y + r)
         if not st.fits(poly, margin=0.1):
@@ -116,7 +116,7 @@ def tree_band(st, t: Terrain, rng: np.random.Generator, side: int, u_near: float
         x = x_range[0] + float(rng.uniform(0.0, spacing))
         while x < x_range[1]:
             if rng.random() < 0.85:
-                y = side * (hw + sw + u + float(rng.uniform(-1.5, 1.5)))
+                y = side * (float(t.kerb(x)) + sw + u + float(rng.uniform(-1.5, 1.5)))
                 crown = float(rng.uniform(2.0, 4.5))
                 if tree(st, t, rng, x, y, crown, rng.random() < 0.25, f"band tree {made}", 1):
                     made += 1

@@ -199,3 +199,44 @@ def test_town_streets_are_narrow_and_built_up_on_both_sides():
         lateral[ray] = np.abs(loc[:, 1])
         assert np.median(lateral) < 25.0, (i, np.round(lateral, 1))
     assert all(backgrounds._layout(i).half_width >= 9.0 for i in other)
+
+
+def test_narrowing_streets_keep_the_free_zone_and_narrow_beyond_it():
+    """A narrowing street (drawn with probability NARROW_P from its own stream) keeps its full
+    width along the free zone and a margin each way, and beyond the tapers its kerbs stand
+    NARROW_KERB from the centre line: the ground there is road inside the kerb and sidewalk
+    outside, the kerb obstacles follow the line, and level rays to the sides from the centre
+    line end within a residential street's width."""
+    narrow = [i for i in range(60) if backgrounds._layout(i).terrain.narrow > 0]
+    assert abs(len(narrow) / 60 - backgrounds.NARROW_P) < 0.2
+    for i in narrow[:4]:
+        t = backgrounds._layout(i).terrain
+        (fx0, fx1), _ = FREE_ZONE
+        zone = np.linspace(fx0 - backgrounds.NARROW_WIDE_BEHIND[0],
+                           fx1 + backgrounds.NARROW_WIDE_AHEAD[0], 50)
+        assert (t.kerb(zone) == t.half_width).all()
+        far = np.array([-120.0, -60.0, 90.0, 150.0])
+        k = t.kerb(far)
+        assert ((k >= backgrounds.NARROW_KERB[0] - 1e-9) & (k <= backgrounds.NARROW_KERB[1]
+                                                              + 1e-9)).all()
+        # road just inside the kerb, the raised sidewalk just outside it
+        for side in (1, -1):
+            z_in = t.height(far, side * (k - 0.05))
+            z_out = t.height(far, side * (k + 0.05))
+            np.testing.assert_allclose(z_out - z_in, t.curb_h, atol=0.01)
+        bg = build_background(i)
+        curbs = [o.polygon for o in bg.obstacles if o.label.startswith("curb left")]
+        for x in (-60.0, 10.0, 90.0):
+            inner = min(float(np.interp(x, p[:2, 0], p[:2, 1])) for p in curbs
+                        if p[0, 0] <= x <= p[1, 0])
+            assert inner == pytest.approx(float(t.kerb(x)))
+        mesh = trimesh.Trimesh(bg.vertices, bg.faces, process=False)
+        az = np.radians(np.r_[np.linspace(40, 80, 16), -np.linspace(40, 80, 16)])
+        z0 = float(t.height(np.array([90.0]), np.array([0.0]))[0]) + 1.0
+        o = np.tile([90.0, 0.0, z0], (len(az), 1))
+        d = np.stack([np.cos(az), np.sin(az), np.zeros_like(az)], axis=1)
+        loc, ray, _ = RayMeshIntersector(mesh).intersects_location(o, d, multiple_hits=False)
+        lateral = np.full(len(az), np.inf)
+        lateral[ray] = np.abs(loc[:, 1])
+        assert np.median(lateral) < 25.0, (i, np.round(lateral, 1))
+    assert all(build_background(i).terrain.narrow == 0.0 for i in range(60) if i not in narrow)
