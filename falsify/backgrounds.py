@@ -274,24 +274,31 @@ def _buildings(st: _Street, lay: _Layout, bg_id: int) -> None:
             n_built += 1
 
 
+def _guard_rails(st: _Street, lay: _Layout, bg_id: int) -> None:
+    """A guard rail at the road edge where the ground falls away. Placed before the poles and
+    signs, which stand on the same line: placed after them, 88 of 92 rail stretches over 60
+    streets found a pole or sign in the way and were dropped."""
+    rng = _rng(bg_id, 11)
+    n = 0
+    for side, sw in ((1, lay.sidewalk[0]), (-1, lay.sidewalk[1])):
+        if _side_kind(lay, side) not in ("embankment down", "ditch") or rng.random() >= 0.7:
+            continue
+        x = ROAD_X[0] + rng.uniform(0.0, 20.0)
+        while x < ROAD_X[1] - 5.0:
+            xa, xb = x, min(x + rng.uniform(30.0, 120.0), ROAD_X[1])
+            for pa, pb in lay.terrain.straight_kerb(xa, xb):  # none along a taper
+                y = side * (float(lay.terrain.kerb(pa)) + min(0.6, sw / 2))
+                if pb - pa > 6.0 and st.fits(_rect(pa, pb, y - 0.3, y + 0.3), 0.0):
+                    structures.guard_rail(st, lay.terrain, rng, pa, pb, y, side,
+                                          f"guard rail {n}")
+                    n += 1
+            x = xb + rng.uniform(3.0, 40.0)
+
+
 def _boundaries(st: _Street, lay: _Layout, bg_id: int) -> None:
-    """Along the back of each sidewalk: walls, chain-link fences, railings, hedges, or a guard
-    rail at the road edge where the ground falls away."""
+    """Along the back of each sidewalk: walls, chain-link fences, railings or hedges."""
     rng = _rng(bg_id, 2)
     for side, sw in ((1, lay.sidewalk[0]), (-1, lay.sidewalk[1])):
-        kind = _side_kind(lay, side)
-        if kind in ("embankment down", "ditch") and rng.random() < 0.7:
-            x = ROAD_X[0] + rng.uniform(0.0, 20.0)
-            n = 0
-            while x < ROAD_X[1] - 5.0:
-                xa, xb = x, min(x + rng.uniform(30.0, 120.0), ROAD_X[1])
-                for pa, pb in lay.terrain.straight_kerb(xa, xb):  # none along a taper
-                    y = side * (float(lay.terrain.kerb(pa)) + min(0.6, sw / 2))
-                    if pb - pa > 6.0 and st.fits(_rect(pa, pb, y - 0.3, y + 0.3), 0.0):
-                        structures.guard_rail(st, lay.terrain, rng, pa, pb, y, side,
-                                              f"guard rail {n}")
-                        n += 1
-                x = xb + rng.uniform(3.0, 40.0)
         what = str(rng.choice(["none", "wall", "fence", "railing", "hedge"],
                               p=[0.25, 0.2, 0.2, 0.15, 0.2]))
         if what == "none":
@@ -574,6 +581,7 @@ def _build(bg_id: int) -> Background:
     # Dynamic objects first (they are guaranteed their slots), then street furniture.
     _parked_vehicles(st, lay, bg_id)
     _people(st, lay, bg_id)
+    _guard_rails(st, lay, bg_id)
     _poles(st, lay, bg_id)
     _plants(st, lay, bg_id)
     _boundaries(st, lay, bg_id)
