@@ -6,7 +6,8 @@ crowned camber; kerbs, sidewalks, then per side a roadside (grass verge, ditch, 
 or down, rising fields) with height noise. Every background keeps the free zone (x in [0, 25],
 y in [-8.5, 7.5]) empty road so sampled cars can go anywhere in it (they stand on the terrain),
 and nothing but road lies within 3 m of the sensor. Kerbs stand at y = ±road_half_width (always
-≥ 9 m); sidewalks, buildings, walls, fences, railings, guard rails, hedges, bushes, trees (and
+≥ 9 m along the free zone; half the streets (NARROW_P) narrow beyond it, kerbs 3.5-6.5 m from
+the centre); sidewalks, buildings, walls, fences, railings, guard rails, hedges, bushes, trees (and
 the far band of trees), poles, signs, parked cars, vans, trucks, buses, trailers, bicycles,
 pedestrians and cyclists lie beyond them or outside the free zone. Every triangle carries a
 class and a material (falsify.materials). Which mix a street gets is drawn from its id, so the
