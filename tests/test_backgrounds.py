@@ -167,6 +167,20 @@ def test_lidar_sweep_sees_the_street(built):
     assert {1, 2, 3} <= seen
 
 
+def _side_hits(bg: Background, x: float, up: float, deg: tuple[float, float]) -> np.ndarray:
+    """|y| where level rays from the centre line at x, `up` metres above the road, fanned
+    deg[0]..deg[1] degrees off the road to both sides, first hit the street (inf: no hit)."""
+    mesh = trimesh.Trimesh(bg.vertices, bg.faces, process=False)
+    az = np.radians(np.r_[np.linspace(*deg, 16), -np.linspace(*deg, 16)])
+    z0 = float(bg.terrain.height(np.array([x]), np.array([0.0]))[0]) + up
+    o = np.tile([x, 0.0, z0], (len(az), 1))
+    d = np.stack([np.cos(az), np.sin(az), np.zeros_like(az)], axis=1)
+    loc, ray, _ = RayMeshIntersector(mesh).intersects_location(o, d, multiple_hits=False)
+    lateral = np.full(len(az), np.inf)
+    lateral[ray] = np.abs(loc[:, 1])
+    return lateral
+
+
 def test_town_streets_are_narrow_and_built_up_on_both_sides():
     """A town street (drawn with probability TOWN_P from its own stream) has flat roadsides, the
     narrowest road the free zone allows, narrow sidewalks, and blocks close behind them on both
@@ -189,14 +203,7 @@ def test_town_streets_are_narrow_and_built_up_on_both_sides():
             assert min(near) <= lay.half_width + max(lay.sidewalk) + 12.0
         # Level rays 2 m up, 30-60 degrees off the road to both sides, from x = 40 m (past the
         # free zone's kerbside gap): most end within 25 m sideways.
-        mesh = trimesh.Trimesh(bg.vertices, bg.faces, process=False)
-        az = np.radians(np.r_[np.linspace(30, 60, 16), -np.linspace(30, 60, 16)])
-        z0 = float(bg.terrain.height(np.array([40.0]), np.array([0.0]))[0]) + 2.0
-        o = np.tile([40.0, 0.0, z0], (len(az), 1))
-        d = np.stack([np.cos(az), np.sin(az), np.zeros_like(az)], axis=1)
-        loc, ray, _ = RayMeshIntersector(mesh).intersects_location(o, d, multiple_hits=False)
-        lateral = np.full(len(az), np.inf)
-        lateral[ray] = np.abs(loc[:, 1])
+        lateral = _side_hits(bg, 40.0, 2.0, (30, 60))
         assert np.median(lateral) < 25.0, (i, np.round(lateral, 1))
     assert all(backgrounds._layout(i).half_width >= 9.0 for i in other)
 
@@ -230,14 +237,7 @@ def test_narrowing_streets_keep_the_free_zone_and_narrow_beyond_it():
             inner = min(float(np.interp(x, p[:2, 0], p[:2, 1])) for p in curbs
                         if p[0, 0] <= x <= p[1, 0])
             assert inner == pytest.approx(float(t.kerb(x)))
-        mesh = trimesh.Trimesh(bg.vertices, bg.faces, process=False)
-        az = np.radians(np.r_[np.linspace(40, 80, 16), -np.linspace(40, 80, 16)])
-        z0 = float(t.height(np.array([90.0]), np.array([0.0]))[0]) + 1.0
-        o = np.tile([90.0, 0.0, z0], (len(az), 1))
-        d = np.stack([np.cos(az), np.sin(az), np.zeros_like(az)], axis=1)
-        loc, ray, _ = RayMeshIntersector(mesh).intersects_location(o, d, multiple_hits=False)
-        lateral = np.full(len(az), np.inf)
-        lateral[ray] = np.abs(loc[:, 1])
+        lateral = _side_hits(bg, 90.0, 1.0, (40, 80))
         assert np.median(lateral) < 25.0, (i, np.round(lateral, 1))
     assert all(build_background(i).terrain.narrow == 0.0 for i in range(60) if i not in narrow)
 
