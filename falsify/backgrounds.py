@@ -161,8 +161,8 @@ TOWN_SETBACK: tuple[float, float] = (1.5, 5.0)  # blocks behind the sidewalk (fr
 
 
 # Narrowing streets: the road keeps the paper's width along the test site (the free zone's x
-# and a margin each way) and narrows to a residential street beyond it, where training scenes
-# mostly stand (their ego drives anywhere in x -20..70).
+# and a margin each way) and narrows to a residential street beyond it, where about a third of
+# training scenes stand (their ego stands anywhere in x -90..90: scene.EGO_X_FORWARD).
 NARROW_P: float = 0.5
 NARROW_KERB: tuple[float, float] = (3.5, 6.5)         # |y| of the kerbs where narrow
 NARROW_WIDE_BEHIND: tuple[float, float] = (5.0, 20.0)  # wide stretch starts this far behind x=0
