@@ -488,8 +488,7 @@ def _people(st: _Street, lay: _Layout, bg_id: int) -> None:
         crossing = i > 0 and rng.random() < 0.12
         if crossing:
             x = rng.uniform(32.0, 90.0)
-            y = rng.uniform(-lay.half_width + 1, lay.half_width - 1) * (
-                _kerb_scale(t, x, 1.0) if t.narrow else 1.0)
+            y = rng.uniform(-lay.half_width + 1, lay.half_width - 1) * _kerb_scale(t, x, 1.0)
         else:
             x = rng.uniform(8.0, 45.0) if placed == 0 else rng.uniform(-60.0, 120.0)
             y = side * (float(t.kerb(x)) + rng.uniform(0.4, max(sw - 0.4, 0.5)))

@@ -121,7 +121,7 @@ class Terrain:
     def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Ground height at world (x, y): road, sidewalks, then the roadside profiles."""
         x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
-        hw = self.kerb(x) if self.narrow > 0.0 else self.half_width
+        hw = self.kerb(x)
         z = self.road_z(x) - self.camber * np.minimum(np.abs(y), hw)
         out = np.where(np.abs(y) < hw, z, self.sidewalk_z(x))
         for side, sw in ((1, self.sidewalk[0]), (-1, self.sidewalk[1])):
