@@ -423,6 +423,29 @@ _PARKED = np.array([list(COLOURS[c]) for c in ("red", "white", "black", "silver"
                                                 "blue", "green")])
 
 
+_ROAD = (0.075, 0.075, 0.08)
+_DASH = (0.70, 0.70, 0.66)
+_PAVE = (0.30, 0.29, 0.27)
+_GRASS = (0.07, 0.14, 0.04)
+
+
+def ground_colours(bg, x: np.ndarray, y: np.ndarray, z: np.ndarray, up: np.ndarray,
+                   col: np.ndarray) -> None:
+    """Colour the background's upward-facing points in `col`: road (within 5 cm of the road's
+    crown height at x, so a street that climbs stays road), its centre dashes, pavement within
+    6.5 m beyond the kerb, grass beyond."""
+    if bg.terrain is not None:
+        kerb, crown = bg.terrain.kerb(x), bg.terrain.road_z(x)
+    else:
+        kerb, crown = bg.road_half_width, 0.0
+    road = up & (z < crown + 0.05) & (np.abs(y) < kerb)
+    col[road] = _ROAD
+    col[road & (np.abs(y) < 0.08) & (np.mod(x, 9.0) < 3.0)] = _DASH
+    pave = up & ~road & (np.abs(y) < kerb + 6.5)
+    col[pave] = _PAVE
+    col[up & ~road & ~pave] = _GRASS
+
+
 def shade(r: CameraRenderer, bg, placed, paints, hits: Hits, dirs, origin, axis: np.ndarray,
           look: Look, streaks: np.ndarray, shadow_test
           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -443,17 +466,11 @@ def shade(r: CameraRenderer, bg, placed, paints, hits: Hits, dirs, origin, axis:
     up = np.abs(nb[:, 2]) > 0.9 * np.sqrt(np.einsum("ij,ij->i", nb, nb))
     z, y, x = pos[b, 2], pos[b, 1], pos[b, 0]
     col = _palette(hits.prim[b] // 12, _BUILDING)
-    kerb = bg.terrain.kerb(x) if bg.terrain is not None else bg.road_half_width
-    road = up & (z < 0.05) & (np.abs(y) < kerb)
-    col[road] = (0.075, 0.075, 0.08)
-    dash = road & (np.abs(y) < 0.08) & (np.mod(x, 9.0) < 3.0)
-    col[dash] = (0.70, 0.70, 0.66)
-    pave = up & ~road & (np.abs(y) < kerb + 6.5)
-    col[pave] = (0.30, 0.29, 0.27)
-    grass = up & ~road & ~pave
-    col[grass] = (0.07, 0.14, 0.04)
-    things = (cls == 0) & (inst > 0)
-    col[things] = np.where((z[things] > 2.0)[:, None], (0.05, 0.14, 0.04), (0.16, 0.12, 0.08))
+    ground_colours(bg, x, y, z, up, col)
+    things = np.flatnonzero((cls == 0) & (inst > 0))
+    tx, ty, tz = x[things], y[things], z[things]
+    above = tz - (bg.terrain.height(tx, ty) if bg.terrain is not None else 0.0)
+    col[things] = np.where((above > 2.0)[:, None], (0.05, 0.14, 0.04), (0.16, 0.12, 0.08))
     col[cls == 1] = _palette(inst[cls == 1], _PARKED)
     people = (cls == 2) | (cls == 3)
     col[people] = _palette(inst[people], _CLOTHES)

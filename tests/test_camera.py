@@ -271,3 +271,24 @@ def test_naive_path_renders_the_same_image(sim):
         > 0.995
     close = np.abs(rgb.astype(int) - fast.rgb.astype(int)).max(axis=2) <= 2
     assert close.mean() > 0.99, close.mean()
+
+
+def test_a_climbing_road_is_shaded_as_road_all_the_way_up():
+    """The road's colour is decided against the road's own crown height at x, not against
+    z = 0: street 9 climbs (0.86 m at x = 100 m), and its far road surface, crown and kerbside,
+    stays road; a level surface 1 m above it (a car roof, a bus top) does not."""
+    from falsify import camera
+    from falsify.backgrounds import build_background
+
+    bg = build_background(9)
+    t = bg.terrain
+    x = np.array([10.0, 60.0, 100.0, 100.0, 100.0])
+    y = np.array([3.0, 0.5, 0.5, 0.5 - float(t.kerb(100.0)), 2.0])
+    z = t.height(x, y)
+    assert z[2] > 0.5  # the street really climbs
+    z[4] += 1.0
+    col = np.zeros((len(x), 3))
+    camera.ground_colours(bg, x, y, z, np.ones(len(x), bool), col)
+    for k in range(4):
+        assert tuple(col[k]) == camera._ROAD, (k, x[k], y[k], z[k])
+    assert tuple(col[4]) != camera._ROAD
