@@ -67,11 +67,13 @@ def retrain_section(before: RunData, after: RunData, after_map: CellMap, thresho
     crit = "".join(f"<li><code>{esc(k)}</code>: {_yes(v)}</li>"
                    for k, v in summary.get("criteria", {}).items())
     t = summary.get("training", {})
+    loss = t.get("loss")
+    loss = f"{loss:.4f}" if isinstance(loss, int | float) else esc(loss)
     training = (f"Fine-tuned from the model's weights on {esc(t.get('training_scans'))} training "
                 f"scans plus {esc(t.get('selected_scans'))} selected scans repeated "
                 f"{esc(t.get('oversample'))} times ({esc(t.get('scans_per_epoch'))} scans per "
                 f"epoch), {esc(t.get('epochs'))} epoch(s) requested, stopped: "
-                f"{esc(t.get('stopped'))}, final loss {esc(t.get('loss'))}.") if t else ""
+                f"{esc(t.get('stopped'))}, final loss {loss}.") if t else ""
     return f"""
 <section id="retrain-section">
 <h2>Retraining experiment</h2>

@@ -151,6 +151,8 @@ def test_comparison_page_in_chromium(browser, experiment) -> None:
     out, r = experiment["out"], experiment["result"]
     page = (out / "comparison.html").read_text()
     assert "sorted ascending" in page and 'id="retrain-section"' in page
+    loss = json.loads((out / "summary.json").read_text())["training"]["loss"]
+    assert f"final loss {loss:.4f}." in page   # rounded, not float repr
     browser.get((out / "comparison.html").as_uri())
     for ident in ("before-map", "after-map", "diffmap"):
         assert len(browser.find_elements(By.CSS_SELECTOR, f"#{ident} rect[data-tip]")) == 2
