@@ -256,3 +256,49 @@ def test_selection_is_checked_and_part_of_the_resume_key(inputs, tmp_path) -> No
     assert not (tmp_path / "x").exists()
     key = RetrainJob(request(inputs, tmp_path / "y", selection="control")).prepare()["key"]
     assert key["selection"] == "control"
+
+
+def _load_compare_pairs():
+    """docs/paper-retraining/compare_pairs.py, the script the retraining write-up cites."""
+    import importlib.util
+    path = Path(__file__).resolve().parents[1] / "docs/paper-retraining/compare_pairs.py"
+    spec = importlib.util.spec_from_file_location("compare_pairs", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module, path.parent / "other-world"
+
+
+def test_compare_pairs_read_out_on_crafted_maps(tmp_path, capsys):
+    """A pair shows 'selection matters' only when the targeted run leads at >= 2/3 of the blind
+    cells and by > 0.01; cells that were not blind do not count."""
+    compare, _ = _load_compare_pairs()
+    before = {(0.0, 5.0): 0.5, (1.0, 5.0): 0.6, (2.0, 5.0): 0.6, (3.0, 5.0): 0.9}
+    targeted = {(0.0, 5.0): 0.80, (1.0, 5.0): 0.70, (2.0, 5.0): 0.60, (3.0, 5.0): 0.1}
+    control = {(0.0, 5.0): 0.70, (1.0, 5.0): 0.69, (2.0, 5.0): 0.61, (3.0, 5.0): 0.9}
+
+    def write(name: str, after: dict) -> None:
+        (tmp_path / name).mkdir()
+        for file, cells in (("miou_before.csv", before), ("miou_after.csv", after)):
+            rows = "".join(f"{x},{y},{v},7,0,0\n" for (x, y), v in cells.items())
+            (tmp_path / name / file).write_text("x,y,miou,samples,undefined,invalid\n" + rows)
+
+    write("blind", targeted)
+    write("control", control)
+    compare.main(tmp_path)
+    out = capsys.readouterr().out
+    # ahead at 2 of 3 blind cells, mean lead (0.10 + 0.01 - 0.01) / 3 = 0.0333
+    assert "seed 0: targeted ahead at 2 of 3 blind cells, mean lead +0.0333" in out
+    assert "selection matters" in out
+    (tmp_path / "blind" / "miou_after.csv").write_text(
+        (tmp_path / "blind" / "miou_after.csv").read_text().replace("0.8,", "0.72,"))
+    compare.main(tmp_path)
+    assert "not shown" in capsys.readouterr().out
+
+
+def test_compare_pairs_matches_the_published_runs(capsys):
+    """The figures the retraining write-up quotes come from the maps shipped beside it."""
+    compare, runs = _load_compare_pairs()
+    compare.main(runs)
+    out = capsys.readouterr().out
+    assert "seed 0: targeted ahead at 0 of 86 blind cells, mean lead -0.0571" in out
+    assert "seed 1: targeted ahead at 82 of 86 blind cells, mean lead +0.0118" in out

@@ -25,29 +25,24 @@ done
   dataset configs/paper.toml --scans 1000 --seed 1 --first-background 1000 --backgrounds 625 \
   --out "$FIRST/train" --json > /dev/null)
 
-# 3. targeted, then control, one after the other (two torch trainings side by side on 2 cores
-# are 5-10x slower); four whole epochs, no time limit, so the result is exact
-for sel in blind control; do
-  RESUME=""
-  [ -f "$RUNS/$sel/stages.json" ] && RESUME="--resume"
+# 3. the runs one after the other (two torch trainings side by side on 2 cores are 5-10x
+# slower); four whole epochs, no time limit, so each result is exact. A pair is the targeted run
+# (the paper) and its control (as many random cells that are not blind) with one --seed, which
+# sets the control's draw and the training order.
+run() {  # name selection seed
+  R=""; [ -f "$RUNS/$1/stages.json" ] && R="--resume"
   nice -n 5 falsify retrain configs/paper-far.toml --model "$FIRST/model/squeezeseg.onnx" \
     --train-data "$FIRST/train" --validation-backgrounds 0-6 --retraining-backgrounds 7-14 \
-    --out "$RUNS/$sel" --train-scans 1000 --oversample 5 --epochs 4 --workers 2 \
-    --selection $sel $RESUME --json > "$RUNS/$sel.json"
-  mkdir -p "$DOCS/$sel"
+    --out "$RUNS/$1" --train-scans 1000 --oversample 5 --epochs 4 --workers 2 \
+    --selection "$2" --seed "$3" $R --json > "$RUNS/$1.json"
+  mkdir -p "$DOCS/$1"
   for f in summary.json miou_before.csv miou_after.csv config-validation.toml; do
-    cp "$RUNS/$sel/$f" "$DOCS/$sel/"
+    cp "$RUNS/$1/$f" "$DOCS/$1/"
   done
-done
-# the control again with another draw of its cells (and another training order)
-R1=""; [ -f "$RUNS/control-seed1/stages.json" ] && R1="--resume"
-nice -n 5 falsify retrain configs/paper-far.toml --model "$FIRST/model/squeezeseg.onnx" \
-  --train-data "$FIRST/train" --validation-backgrounds 0-6 --retraining-backgrounds 7-14 \
-  --out "$RUNS/control-seed1" --train-scans 1000 --oversample 5 --epochs 4 --workers 2 \
-  --selection control --seed 1 $R1 --json > "$RUNS/control-seed1.json"
-mkdir -p "$DOCS/control-seed1"
-for f in summary.json miou_before.csv miou_after.csv config-validation.toml; do
-  cp "$RUNS/control-seed1/$f" "$DOCS/control-seed1/"
-done
+}
+run blind blind 0
+run control control 0
+run control-seed1 control 1
+run blind-seed1 blind 1
 cp "$RUNS/blind/comparison.html" "$DOCS/blind/"
 falsify gate "$RUNS/blind/after" --baseline "$RUNS/blind/before"
