@@ -267,6 +267,9 @@ def _realism_text(doc: dict, out: Path) -> str:
             share = boot["closer_share"][name]
             lines.append("  closer in this share of the resampled draws: " + ", ".join(
                 f"{key} {share[key]:.2f}" for key in doc["statistics"]))
+        on = cand["closer_on_real_scans"]
+        lines.append(f"  closer against this many of the {cand['real_scans']} real scans, each "
+                     "alone: " + ", ".join(f"{key} {v}" for key, v in on.items()))
     return "\n".join(lines)
 
 

@@ -64,6 +64,9 @@ STATISTICS = (
     ("frechet", "Fréchet distance of fire9 encoder features, per position "
      "(every fire9 cell with a valid input pixel)", "feature units²"),
 )
+# Against each real scan alone: all but the feature distance, whose estimator is biased by the
+# sample count and meaningless on one scan.
+PER_SCAN_STATISTICS = tuple(k for k, _, _ in STATISTICS if k != "frechet")
 # Reported beside the statistics, not compared: the estimator `frechet` replaced.
 REFERENCE = (
     ("frechet_tiles", f"Fréchet distance of fire9 features mean-pooled over {TILE_ROWS}x"
@@ -229,11 +232,13 @@ class SetStats:
     floor: dict | None = None           # frechet_floor, set by compare for synthetic sets
     per_scan: dict[str, list[np.ndarray]] = field(default_factory=dict, repr=False)
     groups: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+    sources: list[str] = field(default_factory=list, repr=False)   # one per scan
     _joined: ScanFeatures | None = field(default=None, repr=False, compare=False)
     _tables: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
-    def add(self, images: np.ndarray, features: ScanFeatures | None) -> None:
-        """Add (B, H, W, 6) scans and their features."""
+    def add(self, images: np.ndarray, features: ScanFeatures | None,
+            sources: list[str] | None = None) -> None:
+        """Add (B, H, W, 6) scans and their features (`sources`: the file of each scan)."""
         valid = images[..., 4] > 0
         table: dict[str, list[np.ndarray]] = {key: [] for key, _, _ in HISTOGRAMS}
         table["classes"] = []
@@ -250,6 +255,8 @@ class SetStats:
             self.per_scan.setdefault(key, []).append(np.stack(values).astype(np.float64))
         self._tables = {}
         self.groups = np.concatenate([self.groups, np.zeros(len(images), np.int64)])
+        self.sources += (list(sources) if sources is not None
+                         else [f"scan {self.scans + i}" for i in range(len(images))])
         self.scans += len(images)
         if features is not None:
             self.features.append(features)
@@ -262,6 +269,7 @@ class SetStats:
         out.features = [*self.features, *other.features]
         out.per_scan = {k: [*self.per_scan[k], *other.per_scan[k]] for k in self.per_scan}
         out.groups = np.concatenate([self.groups, other.groups + self.groups.max(initial=-1) + 1])
+        out.sources = [*self.sources, *other.sources]
         return out
 
     def scan_table(self, key: str, idx: np.ndarray | None = None) -> np.ndarray:
@@ -356,11 +364,10 @@ def wasserstein_hist(a: np.ndarray, b: np.ndarray, edges: np.ndarray) -> float:
     return float((np.abs(ca - cb) * np.diff(edges)).sum())
 
 
-def distances(syn: SetStats, real: SetStats, i_syn: np.ndarray | None = None,
-              i_real: np.ndarray | None = None) -> dict[str, float]:
-    """One scalar per statistic (STATISTICS), lower is closer, between the scans `i_syn` of
-    `syn` and `i_real` of `real` (all when None; indices may repeat: a bootstrap draw); between
-    whole sets also the REFERENCE ones."""
+def profile_distances(syn: SetStats, real: SetStats, i_syn: np.ndarray | None = None,
+                      i_real: np.ndarray | None = None) -> dict[str, float]:
+    """The PER_SCAN_STATISTICS (all but the feature distance) between the scans `i_syn` of
+    `syn` and `i_real` of `real` (all when None; indices may repeat)."""
     out = {"row_valid": float(np.abs(syn.scan_table("row_valid", i_syn).mean(0)
                                      - real.scan_table("row_valid", i_real).mean(0)).mean())}
     for key, _, edges in HISTOGRAMS:
@@ -368,6 +375,26 @@ def distances(syn: SetStats, real: SetStats, i_syn: np.ndarray | None = None,
                                     real.scan_table(key, i_real).sum(0), edges)
     a, b = syn.scan_table("classes", i_syn).sum(0), real.scan_table("classes", i_real).sum(0)
     out["classes"] = float(0.5 * np.abs(_norm(a) - _norm(b)).sum())
+    return out
+
+
+def per_real_scan(synthetic: tuple[SetStats, ...], real: SetStats) -> list[dict]:
+    """Each synthetic set against each real scan alone, on PER_SCAN_STATISTICS. With a few
+    real scans a resample of them is one of few combinations, so a set that is farther from one
+    real scan is farther on every draw that scan dominates: this shows which scan that is."""
+    return [{"source": Path(real.sources[k]).name, "real_set": int(real.groups[k]),
+             "distances": {s.name: {key: round(v, 6) for key, v in
+                                    profile_distances(s, real, None, np.array([k])).items()}
+                           for s in synthetic}}
+            for k in range(real.scans)]
+
+
+def distances(syn: SetStats, real: SetStats, i_syn: np.ndarray | None = None,
+              i_real: np.ndarray | None = None) -> dict[str, float]:
+    """One scalar per statistic (STATISTICS), lower is closer, between the scans `i_syn` of
+    `syn` and `i_real` of `real` (all when None; indices may repeat: a bootstrap draw); between
+    whole sets also the REFERENCE ones."""
+    out = profile_distances(syn, real, i_syn, i_real)
     out["frechet"] = cell_frechet(syn.all_features, real.all_features, i_syn, i_real)
     if i_syn is None and i_real is None:
         out["frechet_tiles"] = frechet_from_samples(syn.all_features.tiles,
@@ -415,10 +442,16 @@ class Realism:
     real: tuple[SetStats, ...]          # each real set, then (if several) all pooled, last
     distances: dict[str, dict[str, dict[str, float]]]   # synthetic name -> real name -> stat
     resampled: dict | None = None       # `bootstrap` against the pooled real scans, if asked
+    per_scan: list[dict] = field(default_factory=list)   # `per_real_scan`, pooled real scans
 
     @property
     def pooled_real(self) -> SetStats:
         return self.real[-1]
+
+    @property
+    def real_sets(self) -> tuple[SetStats, ...]:
+        """The real sets as given (without the pooled one, when there are several)."""
+        return self.real[:-1] if len(self.real) > 1 else self.real
 
     def comparison(self) -> dict | None:
         """With two or more synthetic sets: is each later one closer to the pooled real scans
@@ -431,8 +464,13 @@ class Realism:
         for s in self.synthetic[1:]:
             closer = {k: self.distances[s.name][ref][k] < self.distances[base][ref][k]
                       for k, _, _ in STATISTICS}
+            # on how many of the real scans, each alone, it is closer than the first
+            per_scan = {k: sum(d["distances"][s.name][k] < d["distances"][base][k]
+                               for d in self.per_scan) for k in PER_SCAN_STATISTICS}
             out["candidates"][s.name] = {"closer": closer,
-                                         "closer_on_every_statistic": all(closer.values())}
+                                         "closer_on_every_statistic": all(closer.values()),
+                                         "closer_on_real_scans": per_scan,
+                                         "real_scans": len(self.per_scan)}
         return out
 
     def as_dict(self) -> dict:
@@ -463,6 +501,11 @@ class Realism:
                           for s, rs in self.distances.items()},
             "comparison": self.comparison(),
             **({"bootstrap": self.resampled} if self.resampled is not None else {}),
+            "per_real_scan": {"real": self.pooled_real.name,
+                              "statistics": list(PER_SCAN_STATISTICS),
+                              # `real_set` of each scan indexes these
+                              "real_sets": [r.name for r in self.real_sets],
+                              "scans": self.per_scan},
         }
 
 
@@ -470,14 +513,15 @@ def set_stats(name: str, images_or_set, features: EncoderFeatures) -> SetStats:
     """Statistics of a ScanSet or of a list of .npy paths (read CHUNK at a time)."""
     stats = SetStats(name)
     if isinstance(images_or_set, ScanSet):
-        chunks = (images_or_set.images[i:i + CHUNK]
-                  for i in range(0, len(images_or_set), CHUNK))
+        n, sources = len(images_or_set), list(images_or_set.sources)
+        chunks = (images_or_set.images[i:i + CHUNK] for i in range(0, n, CHUNK))
     else:
         paths = list(images_or_set)
+        n, sources = len(paths), [p.name for p in paths]
         chunks = (np.stack([_checked(p, features) for p in paths[i:i + CHUNK]])
-                  for i in range(0, len(paths), CHUNK))
-    for images in chunks:
-        stats.add(images, features(images))
+                  for i in range(0, n, CHUNK))
+    for i, images in zip(range(0, n, CHUNK), chunks, strict=True):
+        stats.add(images, features(images), sources[i:i + len(images)])
     return stats
 
 
@@ -503,7 +547,7 @@ def compare(synthetic: dict[str, list[Path]], real: list[ScanSet],
     resampled = (bootstrap(syn_stats, all_real[-1], bootstrap_draws) if bootstrap_draws > 0
                  else None)
     return Realism(features.spec.name, features.model_hash, syn_stats, all_real, dist,
-                   resampled)
+                   resampled, per_real_scan(syn_stats, all_real[-1]))
 
 
 def _checked(path: Path, features: EncoderFeatures) -> np.ndarray:

@@ -25,7 +25,9 @@ from falsify.realism import (
     frechet_distance,
     frechet_floor,
     frechet_from_samples,
+    per_real_scan,
     pooled_moments,
+    profile_distances,
     wasserstein_hist,
 )
 from falsify.scene import PlacedCar, Simulator
@@ -230,6 +232,31 @@ def test_bootstrap_is_seeded_paired_and_keeps_real_sets_apart() -> None:
     assert 0.0 <= share["intensity"] <= 1.0 and "far" not in out["closer_share"]
 
 
+def test_per_real_scan_finds_the_scan_a_closer_pool_is_farther_from() -> None:
+    """Against each real scan alone: the distances equal those to a one-scan set, and a world
+    closer to the pool can still be farther from one real scan (what few real scans make a
+    bootstrap hinge on)."""
+    near_a, near_b = _stats("a", 1, 2), _stats("b", 2, 3, shift=10.0)
+    real = near_a.merged(near_b, "pooled")
+    assert real.sources == ["scan 0", "scan 0", "scan 1"]
+    like_a = _stats("like a", 30, 4)
+    like_b = _stats("like b", 30, 5, shift=10.0)
+    rows = per_real_scan((like_a, like_b), real)
+    assert [r["real_set"] for r in rows] == [0, 1, 1]
+    for k, row in enumerate(rows):
+        one = _stats("a", 1, 2) if k == 0 else _stats("b", 2, 3, shift=10.0)
+        want = profile_distances(like_b, one, None, np.array([k - 1 if k else 0]))
+        for key, value in want.items():
+            assert row["distances"]["like b"][key] == pytest.approx(value, abs=1e-6), key
+    # the pool is two thirds like b, so like b is closer to it, yet farther from scan 0 alone
+    pooled = {n: distances(s, real)["range"] for n, s in (("a", like_a), ("b", like_b))}
+    assert pooled["b"] < pooled["a"]
+    assert rows[0]["distances"]["like b"]["range"] > rows[0]["distances"]["like a"]["range"]
+    assert all(r["distances"]["like b"]["range"] < r["distances"]["like a"]["range"]
+               for r in rows[1:])
+    assert set(rows[0]["distances"]["like a"]) == {k for k, _, _ in STATISTICS} - {"frechet"}
+
+
 # -- the command ------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def sets(tmp_path_factory) -> dict[str, Path]:
@@ -286,6 +313,14 @@ def test_realism_json_fields_and_determinism(sets, tmp_path: Path, capsys) -> No
     cand = doc["comparison"]["candidates"][EVIL]
     assert set(cand["closer"]) == set(keys)
     assert cand["closer_on_every_statistic"] == all(cand["closer"].values())
+    per = doc["per_real_scan"]
+    assert per["real"] == "real" and per["real_sets"] == ["real"]
+    assert [r["source"] for r in per["scans"]] == ["000000.npy", "000001.npy"]
+    assert per["statistics"] == [k for k in keys if k != "frechet"]
+    assert cand["real_scans"] == 2
+    for key, closer in cand["closer_on_real_scans"].items():
+        assert closer == sum(r["distances"][EVIL][key] < r["distances"]["old"][key]
+                             for r in per["scans"]), key
     boot = doc["bootstrap"]
     assert boot["draws"] == 15 and boot["real"] == "real"
     assert set(boot["intervals"]) == {"old", EVIL} and set(boot["closer_share"]) == {EVIL}
@@ -304,6 +339,10 @@ def test_realism_default_real_sets(sets, tmp_path: Path, capsys, kitti_dir) -> N
     assert [r["name"] for r in doc["real"]] == ["squeezeseg", "semantickitti", "pooled"]
     assert [r["scans"] for r in doc["real"]] == [4, 3, 7]
     assert doc["comparison"] is None
+    per = doc["per_real_scan"]
+    assert per["real_sets"] == ["squeezeseg", "semantickitti"]
+    assert [r["real_set"] for r in per["scans"]] == [0, 0, 0, 0, 1, 1, 1]
+    assert all(r["source"].endswith((".npy", ".bin")) for r in per["scans"])
     # real KITTI is about 85 % valid in the front view, our streets more
     assert 0.75 < doc["real"][2]["valid_fraction"] < 0.92
 
@@ -371,6 +410,11 @@ def test_page_in_chromium(browser, page_doc, tmp_path: Path) -> None:
     assert EVIL in browser.find_element(By.ID, "distances").text
     cells = browser.find_elements(By.CSS_SELECTOR, "#distances td[data-stat]")
     assert len(cells) == len(STATISTICS) * 2
+    # against each real scan: 2 scans x 2 sets x the statistics but the feature distance
+    per = browser.find_elements(By.CSS_SELECTOR, "#per-scan td[data-scan-stat]")
+    assert len(per) == 2 * 2 * (len(STATISTICS) - 1)
+    marks = browser.find_element(By.ID, "per-scan").text
+    assert marks.count("✓") + marks.count("✗") == 2 * (len(STATISTICS) - 1)
     assert_offline(browser)
     shot = tmp_path / "page.png"
     assert browser.save_screenshot(str(shot)) and shot.stat().st_size > 20_000
