@@ -292,7 +292,15 @@ def test_compare_pairs_read_out_on_crafted_maps(tmp_path, capsys):
     (tmp_path / "blind" / "miou_after.csv").write_text(
         (tmp_path / "blind" / "miou_after.csv").read_text().replace("0.8,", "0.72,"))
     compare.main(tmp_path)
-    assert "not shown" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "not shown" in out and "over 1 pairs: targeted wins 0, control wins 0" in out
+    # a second pair the control wins by the mirror rule: the pool is then not resolved
+    write("blind-seed1", control)
+    write("control-seed1", targeted)
+    compare.main(tmp_path)
+    out = capsys.readouterr().out
+    assert "seed 1: targeted ahead at 1 of 3 blind cells, mean lead -0.0333" in out
+    assert "the control wins" in out and "not resolved with 2 pairs" in out
 
 
 def test_compare_pairs_matches_the_published_runs(capsys):
@@ -302,3 +310,5 @@ def test_compare_pairs_matches_the_published_runs(capsys):
     out = capsys.readouterr().out
     assert "seed 0: targeted ahead at 0 of 86 blind cells, mean lead -0.0571" in out
     assert "seed 1: targeted ahead at 82 of 86 blind cells, mean lead +0.0118" in out
+    assert "seed 2: targeted ahead at 86 of 86 blind cells, mean lead +0.0308" in out
+    assert "not resolved with" in out

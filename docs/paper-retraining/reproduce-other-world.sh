@@ -44,5 +44,7 @@ run blind blind 0
 run control control 0
 run control-seed1 control 1
 run blind-seed1 blind 1
+run blind-seed2 blind 2
+run control-seed2 control 2
 cp "$RUNS/blind/comparison.html" "$DOCS/blind/"
 falsify gate "$RUNS/blind/after" --baseline "$RUNS/blind/before"
