@@ -110,8 +110,9 @@ def naive_scan(space: Space, sample: Sample):
     merged = trimesh.util.concatenate(meshes)
     face_pass = PASS_PROB[np.concatenate(mats)]
     pose = sim.ego_pose(sample.background)
-    d = sensor.directions.reshape(-1, 3) @ pose.rotation(sensor).T
-    o = np.tile(pose.origin(sensor), (len(d), 1))
+    rot = pose.rotation(sensor)
+    d = sensor.directions.reshape(-1, 3) @ rot.T
+    o = np.broadcast_to(sim.ray_starts(pose, rot), d.shape).copy()
     ranges = np.zeros(len(d))
     todo, start = np.arange(len(d)), np.zeros(len(d))
     for _ in range(16):

@@ -217,7 +217,7 @@ class Simulator:
         caster, bg = self.background(bg_id)
         rot = pose.rotation(self.sensor)
         dirs = self.sensor.directions.reshape(-1, 3) @ rot.T
-        t, prim = cast_through(caster.bvh, pose.origin(self.sensor), dirs,
+        t, prim = cast_through(caster.bvh, self.ray_starts(pose, rot), dirs,
                                self.sensor.max_range, caster.face_pass,
                                np.arange(len(dirs)), porosity_seed(bg_id))
         hit = prim >= 0
@@ -239,8 +239,22 @@ class Simulator:
             self._hits.popitem(last=False)
         return layer
 
+    def ray_starts(self, pose: SensorPose, rot: np.ndarray,
+                   rows: np.ndarray | None = None) -> np.ndarray:
+        """World start of each ray: the sensor origin (3,) when every ray starts there, else
+        (n, 3) for the rays of `rows` (each ray's row; all rays, row-major, when None)."""
+        origin = pose.origin(self.sensor)
+        if self.sensor.ray_origins is None:
+            return origin
+        per_row = origin + self.sensor.ray_origins[:, 0, :] @ rot.T
+        if rows is None:
+            return np.repeat(per_row, self.sensor.columns, axis=0)
+        return per_row[rows]
+
     def window(self, car: PlacedCar, pose: SensorPose) -> tuple[np.ndarray, np.ndarray]:
-        """Rows and columns whose rays can reach the car's bounding box (may be empty)."""
+        """Rows and columns whose rays can reach the car's bounding box (may be empty). With
+        per-row ray origins (offset along the sensor's z only, so azimuths do not change) the
+        elevation bounds widen to hold from any of them."""
         _, corners = self.car_caster(car.model)
         s_rot = pose.rotation(self.sensor)
         world = corners @ car.rotation().T + car.translation()
@@ -248,15 +262,17 @@ class Simulator:
         # Distance from the sensor to the box, in the car frame where the box is axis-aligned.
         local = (pose.origin(self.sensor) - car.translation()) @ car.rotation()
         lo, hi = corners.min(axis=0), corners.max(axis=0)
-        d_min = float(np.linalg.norm(local - np.clip(local, lo, hi)))
-        d_max = float(np.linalg.norm(p, axis=1).max())
+        offsets = self.sensor.ring_offsets_m or (0.0,)
+        reach = max(abs(v) for v in offsets)
+        d_min = float(np.linalg.norm(local - np.clip(local, lo, hi))) - reach
+        d_max = float(np.linalg.norm(p, axis=1).max()) + reach
         if d_min > self.sensor.max_range:
             return np.empty(0, np.int64), np.empty(0, np.int64)
         all_rows = np.arange(self.sensor.rows)
         all_cols = np.arange(self.sensor.columns)
         if d_min <= 1e-9:
             return all_rows, all_cols
-        z_lo, z_hi = p[:, 2].min(), p[:, 2].max()
+        z_lo, z_hi = p[:, 2].min() - max(offsets), p[:, 2].max() - min(offsets)
         el_hi = math.asin(min(1.0, z_hi / d_min)) if z_hi > 0 else math.asin(z_hi / d_max)
         el_lo = math.asin(max(-1.0, z_lo / d_min)) if z_lo < 0 else math.asin(z_lo / d_max)
         el = np.radians(np.asarray(self.sensor.elevations_deg))
@@ -285,7 +301,7 @@ class Simulator:
         s_rot = pose.rotation(self.sensor)
         c_rot = car.rotation()
         dirs = self.sensor.directions[r_idx, c_idx] @ (c_rot.T @ s_rot).T
-        origin = (pose.origin(self.sensor) - car.translation()) @ c_rot
+        origin = (self.ray_starts(pose, s_rot, r_idx) - car.translation()) @ c_rot
         current = layer.dist[r_idx, c_idx]
         ray_ids = r_idx * self.sensor.columns + c_idx
         t, prim = cast_through(caster.bvh, origin, dirs, np.minimum(current, self.sensor.max_range),
@@ -331,10 +347,15 @@ class Simulator:
                 valid[valid] = u < p
         image = np.zeros((*s.shape, 6), dtype=np.float32)
         rv = np.where(valid, r, 0.0)
-        image[..., 0:3] = s.directions * rv[..., None]
+        if s.ray_origins is None:
+            image[..., 0:3] = s.directions * rv[..., None]
+            image[..., 4] = rv
+        else:  # points from their rows' origins; range from the sensor origin, as KITTI's
+            xyz = np.where(valid[..., None], s.points(rv), 0.0)
+            image[..., 0:3] = xyz
+            image[..., 4] = np.linalg.norm(xyz, axis=-1)
         if intensity is not None:
             image[..., 3] = np.where(valid, intensity, 0.0)
-        image[..., 4] = rv
         image[..., 5] = np.where(valid, layer.cls, 0)
         return Scan(image, np.where(valid, layer.inst, 0).astype(np.int32))
 

@@ -1,8 +1,10 @@
 """The virtual LiDAR: beam elevations, azimuth grid, mounting, range limits and sensor effects.
 
 A sensor is a fixed fan of rays in its own frame (x forward, y left, z up, origin at the optical
-centre). Row r, column c of the range image is the ray at elevation `elevations[r]` and azimuth
-`az_left - (c + 0.5) * az_step`, so a point at azimuth `a` falls in column
+centre). Each row's rays start at the origin, or `ring_offsets_m[r]` above it: a real HDL-64E's
+lasers sit 0.1-0.2 m above its frame's origin, which moves a ring's elevation seen from the origin
+by `dz / range`. Row r, column c of the range image is the ray at elevation `elevations[r]` and
+azimuth `az_left - (c + 0.5) * az_step`, so a point at azimuth `a` falls in column
 `floor((az_left - a) / az_step)`: SqueezeSeg's layout (column 0 is the left edge).
 """
 
@@ -23,8 +25,9 @@ PRESET_DIR = SENSOR_PRESETS
 SENSOR_KEYS = {
     "name", "description", "elevations_deg", "vertical", "h_fov_deg", "columns", "pitch_deg",
     "mount_height", "max_range", "min_range", "rotation_hz", "ray_drop", "range_noise",
-    "returns", "kitti_rings",
+    "returns", "kitti_rings", "ring_offsets_m",
 }
+MAX_RING_OFFSET_M = 1.0
 
 
 @dataclass(frozen=True)
@@ -47,6 +50,8 @@ class Sensor:
     returns: str = ""  # a fitted return model in configs/returns/ ("" = every hit returns)
     # Rows are the HDL-64E's laser rings: KITTI .bin scans are read by ring (falsify.kitti).
     kitti_rings: bool = False
+    # Per row, how far above the origin (sensor-frame z, metres) its rays start; () = all at it.
+    ring_offsets_m: tuple[float, ...] = ()
 
     @property
     def rows(self) -> int:
@@ -80,6 +85,22 @@ class Sensor:
         return d
 
     @cached_property
+    def ray_origins(self) -> np.ndarray | None:
+        """(H, 1, 3) start of each row's rays in the sensor frame, or None when every ray starts
+        at the origin (the single-origin path, kept so such sensors give the same bytes)."""
+        if not any(self.ring_offsets_m):
+            return None
+        o = np.zeros((self.rows, 1, 3))
+        o[:, 0, 2] = self.ring_offsets_m
+        o.setflags(write=False)
+        return o
+
+    def points(self, ranges: np.ndarray) -> np.ndarray:
+        """(H, W, 3) sensor-frame points of (H, W) laser ranges (each from its row's origin)."""
+        p = self.directions * ranges[..., None]
+        return p if self.ray_origins is None else p + self.ray_origins
+
+    @cached_property
     def row_edges_deg(self) -> np.ndarray:
         """Elevation boundaries between rows (midpoints), descending, length H + 1."""
         el = np.asarray(self.elevations_deg, dtype=np.float64)
@@ -110,9 +131,12 @@ class Sensor:
         """The same sensor resampled to another grid over the same fields of view."""
         el = np.asarray(self.elevations_deg)
         src = np.linspace(0.0, 1.0, len(el))
-        new = np.interp(np.linspace(0.0, 1.0, rows), src, el)
+        at = np.linspace(0.0, 1.0, rows)
+        offsets = (tuple(float(v) for v in np.interp(at, src, self.ring_offsets_m))
+                   if self.ring_offsets_m else ())
         return replace(self, name=f"{self.name}@{rows}x{columns}",
-                       elevations_deg=tuple(float(v) for v in new), columns=columns)
+                       elevations_deg=tuple(float(v) for v in np.interp(at, src, el)),
+                       columns=columns, ring_offsets_m=offsets)
 
 
 @dataclass(frozen=True)
@@ -260,7 +284,22 @@ def parse_sensor(raw: dict, source: str = "<sensor>") -> Sensor:
         range_noise=num("range_noise", 0.0, lo=0.0, hi=1.0),
         returns=_returns_name(raw.get("returns", ""), where),
         kitti_rings=_flag(raw, "kitti_rings", where),
+        ring_offsets_m=_ring_offsets(raw, len(elevations), where),
     )
+
+
+def _ring_offsets(raw: dict, rows: int, where: str) -> tuple[float, ...]:
+    """`ring_offsets_m`: one finite number per row, each within MAX_RING_OFFSET_M (or absent)."""
+    if "ring_offsets_m" not in raw:
+        return ()
+    v = raw["ring_offsets_m"]
+    if not isinstance(v, list) or len(v) != rows or not all(
+            isinstance(a, int | float) and not isinstance(a, bool) and math.isfinite(a)
+            and abs(a) <= MAX_RING_OFFSET_M for a in v):
+        raise ConfigError(f"{where}ring_offsets_m: expected a list of {rows} numbers (one per "
+                          f"row, metres above the sensor origin), each within "
+                          f"±{MAX_RING_OFFSET_M:g}")
+    return tuple(float(a) for a in v)
 
 
 def _flag(raw: dict, key: str, where: str) -> bool:

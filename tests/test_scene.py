@@ -56,8 +56,12 @@ def full_recast(sensor, bg, cars: list[PlacedCar], pose=SensorPose(), lod=2):
         mats.append(car_parts(c.model, lod)[2])
         n += len(v)
     caster = MeshCaster(np.concatenate(verts), np.concatenate(faces))
-    dirs = sensor.directions.reshape(-1, 3) @ pose.rotation(sensor).T
-    t, prim = cast_through(caster, pose.origin(sensor), dirs, sensor.max_range,
+    rot = pose.rotation(sensor)
+    dirs = sensor.directions.reshape(-1, 3) @ rot.T
+    # each ray from its row's origin: dz up the sensor's own z axis (none: all at the origin)
+    dz = np.repeat(np.asarray(sensor.ring_offsets_m or [0.0] * sensor.rows), sensor.columns)
+    starts = pose.origin(sensor) + dz[:, None] * rot[:, 2]
+    t, prim = cast_through(caster, starts, dirs, sensor.max_range,
                            PASS_PROB[np.concatenate(mats)], np.arange(len(dirs)),
                            porosity_seed(bg.bg_id))
     hit = prim >= 0
@@ -67,6 +71,9 @@ def full_recast(sensor, bg, cars: list[PlacedCar], pose=SensorPose(), lod=2):
     out_cls[hit], out_inst[hit] = c_all[prim[hit]], i_all[prim[hit]]
     t = np.where(hit & (t >= sensor.min_range), t, 0.0)
     valid = t > 0
+    # the range channel is the point's distance from the sensor origin, as in KITTI's scans
+    point = dirs @ rot * t[:, None] + np.where(valid, dz, 0.0)[:, None] * [0.0, 0.0, 1.0]
+    t = np.linalg.norm(point, axis=1)
     return (t.reshape(sensor.shape), np.where(valid, out_cls, 0).reshape(sensor.shape),
             np.where(valid, out_inst, 0).reshape(sensor.shape))
 
@@ -122,6 +129,53 @@ def test_composition_on_360_sensor_and_posed_ego():
     cars = [PlacedCar("suv", 5.0, -2.5, 90.0, 1), PlacedCar("wagon", 20.0, 2.0, 0.0, 2),
             PlacedCar("hatchback", 12.0, 2.6, 10.0, 3)]  # beside the ego, across the seam
     assert_same_as_full(sim, 7, cars, pose)
+
+
+def offset_sensor(name: str = "kitti-hdl64e-front"):
+    """A KITTI preset with the real HDL-64E's ring origins: upper block 0.2 m above the origin,
+    lower block 0.11 m (the object frames' fit)."""
+    base = load_sensor(name)
+    return dataclasses.replace(base, ring_offsets_m=(0.2,) * 32 + (0.11,) * 32)
+
+
+def test_composition_with_ring_origins_equals_full_recast():
+    """Rays from per-row origins: the cached background plus windowed car casts still equal a
+    full re-cast, cars close by included (where the offset moves a ring's elevation most)."""
+    sim = Simulator(offset_sensor())
+    cars = [PlacedCar("sedan", 3.6, 0.0, 0.0, 1), PlacedCar("van", 9.0, -2.5, 20.0, 2),
+            PlacedCar("suv", 25.0, 3.0, 90.0, 3)]
+    cars = [sim.settle(3, c) for c in cars]
+    scan = assert_same_as_full(sim, 3, cars, sim.ego_pose(3))
+    assert {1, 2, 3} <= set(np.unique(scan.instance).tolist())
+    sim360 = Simulator(offset_sensor("kitti-hdl64e-360"))
+    assert_same_as_full(sim360, 7, [PlacedCar("hatchback", 12.0, 2.6, 10.0, 1)],
+                        SensorPose(12.0, -2.0, 170.0))
+
+
+def test_ring_origins_on_a_plane_give_the_analytic_ranges():
+    """On flat ground every return's z is -mount_height, and row k meets the ground at the
+    horizontal range (h + dz_k) / tan(-elevation_k): the model the ring fit recovers."""
+    sensor = offset_sensor()
+    scan = Simulator(sensor, background_source=lambda _id: ground_only()).render(0, [])
+    img = scan.image
+    hits = img[..., 4] > 0
+    el = np.radians(np.asarray(sensor.elevations_deg))
+    dz = np.asarray(sensor.ring_offsets_m)
+    np.testing.assert_allclose(img[..., 2][hits], -sensor.mount_height, atol=1e-4)
+    for r in np.flatnonzero(hits.any(axis=1)):
+        horizontal = np.hypot(img[r, :, 0], img[r, :, 1])[hits[r]]
+        want = (sensor.mount_height + dz[r]) / np.tan(-el[r])
+        np.testing.assert_allclose(horizontal, want, rtol=1e-4)
+        # the elevation seen from the origin is the ring's plus about dz / range
+        seen = np.arctan2(img[r, :, 2], np.hypot(img[r, :, 0], img[r, :, 1]))[hits[r]]
+        assert np.all(seen > el[r]) and np.allclose(
+            seen, np.arctan2(-sensor.mount_height, want), atol=1e-6)
+    # all zeros is the single-origin sensor: the same bytes as none at all
+    flat = dataclasses.replace(sensor, ring_offsets_m=(0.0,) * 64)
+    plain = dataclasses.replace(sensor, ring_offsets_m=())
+    a = Simulator(flat).render(2, [PlacedCar("sedan", 9.0, 1.0, 0.0, 1)])
+    b = Simulator(plain).render(2, [PlacedCar("sedan", 9.0, 1.0, 0.0, 1)])
+    assert a.image.tobytes() == b.image.tobytes()
 
 
 def test_box_car_ranges_match_analytic_distance(tmp_path, kitti):

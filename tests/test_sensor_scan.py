@@ -193,11 +193,24 @@ BASE = {"elevations_deg": [2.0, 0.0, -2.0], "h_fov_deg": [45.0, -45.0], "columns
     ({"pitch": 3}, "unknown key 'pitch'"),
     ({"kitti_rings": "yes"}, "kitti_rings: expected true or false"),
     ({"vertical": {"up_deg": 2, "down_deg": -2, "beams": 4}}, "exactly one of"),
+    ({"ring_offsets_m": [0.1, 0.1]}, "ring_offsets_m: expected a list of 3 numbers"),
+    ({"ring_offsets_m": [0.1, "x", 0.1]}, "ring_offsets_m: expected a list of 3 numbers"),
+    ({"ring_offsets_m": [0.1, 0.1, 2.0]}, "each within ±1"),
 ])
 def test_bad_sensor_values_name_the_key(change, message):
     with pytest.raises(ConfigError) as err:
         parse_sensor({**BASE, **change})
     assert message in str(err.value)
+
+
+def test_ring_offsets_parse_and_follow_a_resampled_grid():
+    sensor = parse_sensor({**BASE, "ring_offsets_m": [0.2, 0.2, 0.1]})
+    assert sensor.ring_offsets_m == (0.2, 0.2, 0.1)
+    assert sensor.ray_origins[:, 0, 2].tolist() == [0.2, 0.2, 0.1]
+    finer = sensor.with_resolution(5, 16)
+    assert finer.ring_offsets_m == pytest.approx((0.2, 0.2, 0.2, 0.15, 0.1))
+    assert parse_sensor(BASE).ray_origins is None
+    assert parse_sensor({**BASE, "ring_offsets_m": [0, 0, 0]}).ray_origins is None
 
 
 def test_unknown_preset_lists_the_presets():

@@ -1,0 +1,91 @@
+"""The ring geometry fit: it recovers each row's elevation and origin height from scans cast by
+a sensor with per-row origins, says which ring it cannot fit, refuses evaluation scans, and on
+KITTI's object frames finds the HDL-64E's two blocks of laser origins."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from falsify.backgrounds import build_background
+from falsify.errors import FalsifyError
+from falsify.fit_rings import fit, fit_rings, main
+from falsify.scene import Simulator
+from falsify.sensor import load_sensor
+
+
+def tilted_room():
+    """Ground tilted 4 % along x, inside walls 12-30 m away: every ring of a 360-degree sensor
+    meets surfaces at many ranges."""
+    v = [[-200.0, -200.0, -8.0], [200.0, -200.0, 8.0], [200.0, 200.0, 8.0], [-200.0, 200.0, -8.0]]
+    f = [[0, 1, 2], [0, 2, 3]]
+    x0, x1, y0, y1, top = -14.0, 30.0, -12.0, 20.0, 40.0
+    corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+    for i in range(4):
+        (ax, ay), (bx, by) = corners[i], corners[(i + 1) % 4]
+        n = len(v)
+        v += [[ax, ay, -10.0], [bx, by, -10.0], [bx, by, top], [ax, ay, top]]
+        f += [[n, n + 1, n + 2], [n, n + 2, n + 3]]
+    bg = build_background(0)
+    faces = np.array(f, np.int32)
+    return dataclasses.replace(bg, vertices=np.array(v), faces=faces,
+                               face_class=np.zeros(len(faces), np.uint8),
+                               face_instance=np.zeros(len(faces), np.int32), obstacles=(),
+                               face_material=None, terrain=None)
+
+
+def test_fit_recovers_the_rows_elevations_and_origins():
+    base = load_sensor("kitti-hdl64e-360")
+    dz = tuple(0.21 - 0.0004 * k if k < 32 else 0.12 for k in range(64))
+    sensor = dataclasses.replace(base, ring_offsets_m=dz)
+    scan = Simulator(sensor, background_source=lambda _id: tilted_room()).render(0, [])
+    valid = scan.image[..., 4] > 0
+    rows = np.broadcast_to(np.arange(sensor.rows)[:, None], sensor.shape)[valid]
+    rings = fit_rings(scan.image[..., :3][valid], rows, sensor.rows)
+    np.testing.assert_allclose([r.theta_deg for r in rings], sensor.elevations_deg, atol=2e-3)
+    np.testing.assert_allclose([r.dz_m for r in rings], dz, atol=1e-3)
+    assert all(r.residual_deg < 1e-3 for r in rings)
+    # the same points seen as from one origin do not fit a single elevation per ring
+    plain = Simulator(base, background_source=lambda _id: tilted_room()).render(0, [])
+    flat = fit_rings(plain.image[..., :3][valid], rows, sensor.rows)
+    np.testing.assert_allclose([r.dz_m for r in flat], 0.0, atol=1e-3)
+
+
+def test_fit_names_the_ring_it_cannot_fit():
+    pts = np.array([[10.0 + i, 0.0, -1.0] for i in range(60)])
+    with pytest.raises(FalsifyError, match="ring 1: 0 points"):
+        fit_rings(pts, np.zeros(60, int), 2)
+    same_range = np.array([[10.0 * np.cos(a), 10.0 * np.sin(a), -1.0]
+                           for a in np.linspace(0, 6, 60)])
+    with pytest.raises(FalsifyError, match="ring 0: its points span 0.00 m"):
+        fit_rings(same_range, np.zeros(60, int), 1)
+
+
+def test_cli_refuses_evaluation_scans_and_unordered_files(tmp_path, capsys):
+    semantic = tmp_path / "semantickitti" / "000000.bin"
+    semantic.parent.mkdir()
+    np.zeros((100, 4), np.float32).tofile(semantic)
+    assert main([str(semantic)]) == 2
+    assert "fit only on KITTI object frames" in capsys.readouterr().err
+    shuffled = tmp_path / "object" / "velodyne" / "000009.bin"
+    shuffled.parent.mkdir(parents=True)
+    np.random.default_rng(0).normal(0, 10, (5000, 4)).astype(np.float32).tofile(shuffled)
+    assert main([str(shuffled)]) == 2
+    assert "000009.bin: not in KITTI's ring order" in capsys.readouterr().err
+
+
+def test_object_frames_show_two_blocks_of_laser_origins(kitti_dir):
+    frames = sorted((kitti_dir / "object" / "velodyne").glob("*.bin"))
+    if not frames:
+        pytest.skip("KITTI object frames not found")
+    rings = fit(frames)
+    dz = np.array([r.dz_m for r in rings])
+    assert np.all((dz[:32] > 0.19) & (dz[:32] < 0.22))     # upper block
+    assert np.all((dz[32:] > 0.11) & (dz[32:] < 0.13))     # lower block
+    assert max(r.residual_deg for r in rings) < 0.01
+    # the preset's one-origin elevations are what the rings look like from the origin at the
+    # ranges they usually meet: above each laser's own elevation in every ring
+    preset = np.asarray(load_sensor("kitti-hdl64e-front").elevations_deg)
+    assert np.all(preset > [r.theta_deg for r in rings])
