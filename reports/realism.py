@@ -20,6 +20,7 @@ CSP = ("default-src 'none'; img-src data:; style-src 'unsafe-inline'; base-uri '
 SYN_COLOURS = ("#d55e00", "#0072b2", "#cc79a7", "#e69f00", "#56b4e9")
 REAL_COLOURS = ("#009e73", "#000000", "#999999", "#f0e442")
 W, H, PAD_L, PAD_B, PAD_T, PAD_R = 600, 260, 56, 40, 14, 12
+PER_SCAN_ROWS = 50   # real scans listed one by one on the page (all of them in the JSON)
 
 
 def _n(v: float) -> str:
@@ -169,10 +170,13 @@ def per_scan_table(doc: dict) -> str:
     names = [s["name"] for s in doc["synthetic"]]
     stats = per["statistics"]
     base = names[0]
+    shown = per["scans"][:PER_SCAN_ROWS]
+    more = (f' The first {PER_SCAN_ROWS} of {len(per["scans"])} real scans are shown; the '
+            'JSON holds all.' if len(per["scans"]) > PER_SCAN_ROWS else "")
     head = "".join(f'<th>{esc(n)}<br><span class="sub">{esc(k)}</span></th>'
                    for n in names for k in stats)
     rows = []
-    for scan in per["scans"]:
+    for scan in shown:
         cells = []
         for n in names:
             for k in stats:
@@ -190,7 +194,7 @@ def per_scan_table(doc: dict) -> str:
             f'same distances against one real scan at a time (all but the feature distance, '
             f'whose estimator needs many scans). With few real scans a resample of them is one '
             f'of few combinations, so a set farther from one scan is farther on the draws that '
-            f'scan dominates.</p><table><thead><tr><th>real scan</th>{head}</tr></thead>'
+            f'scan dominates.{more}</p><table><thead><tr><th>real scan</th>{head}</tr></thead>'
             f'<tbody>{"".join(rows)}</tbody></table></section>')
 
 

@@ -396,6 +396,16 @@ def test_page_escapes_and_is_self_contained(page_doc) -> None:
     assert page.count('class="series"') == 4 * 3          # 2 synthetic + 1 real per chart
 
 
+def test_page_lists_at_most_fifty_real_scans(page_doc) -> None:
+    """A large real set keeps the page readable: 50 rows, and it says the JSON has the rest."""
+    doc = json.loads(json.dumps(page_doc))
+    one = doc["per_real_scan"]["scans"][0]
+    doc["per_real_scan"]["scans"] = [dict(one, source=f"{i:06d}.bin") for i in range(120)]
+    page = render_realism(doc)
+    assert page.count("000049.bin") == 1 and "000050.bin" not in page
+    assert "The first 50 of 120 real scans are shown" in page
+
+
 def test_page_in_chromium(browser, page_doc, tmp_path: Path) -> None:
     from selenium.webdriver.common.by import By
 
