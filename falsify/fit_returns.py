@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize
 
-from falsify.kitti import read_kitti
+from falsify.errors import FalsifyError
+from falsify.kitti import fit_frames, read_kitti
 from falsify.sensor import load_sensor
 
 BLOCKED_FIRST_ROW = 55  # rows from here down are checked for the ego body's shadow
@@ -145,12 +146,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("bins", nargs="+", help="KITTI object frames (velodyne/*.bin)")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
-    paths = [Path(p) for p in args.bins]
-    for p in paths:
-        if "object" not in p.parts:
-            print(f"error: {p}: fit only on KITTI object frames (.../object/velodyne/*.bin); "
-                  "the other real scans are evaluation data", file=sys.stderr)
-            return 2
+    try:
+        paths = fit_frames(args.bins)
+    except FalsifyError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     out = fit(paths)
     Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
     p = out["params"]

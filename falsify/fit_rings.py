@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from falsify.errors import FalsifyError
-from falsify.kitti import KITTI_RINGS, kitti_rows, read_bin
+from falsify.kitti import KITTI_RINGS, fit_frames, kitti_rows, read_bin
 from falsify.sensor import load_sensor
 
 MIN_RANGE_M = 2.0     # nearer points are the ego car's body and its shadow's edge
@@ -85,13 +85,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("bins", nargs="+", help="KITTI object frames (velodyne/*.bin)")
     ap.add_argument("--json", action="store_true", help="print the fit as JSON")
     args = ap.parse_args(argv)
-    paths = [Path(p) for p in args.bins]
-    for p in paths:
-        if "object" not in p.parts:
-            print(f"error: {p}: fit only on KITTI object frames (.../object/velodyne/*.bin); "
-                  "the other real scans are evaluation data", file=sys.stderr)
-            return 2
     try:
+        paths = fit_frames(args.bins)
         rings = fit(paths)
     except FalsifyError as exc:
         print(f"error: {exc}", file=sys.stderr)

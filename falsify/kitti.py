@@ -28,6 +28,17 @@ def write_kitti(scan: Scan, bin_path: str | Path, label_path: str | Path) -> Non
     ((inst << 16) | TO_SEMANTICKITTI[cls]).astype(np.uint32).tofile(label_path)
 
 
+def fit_frames(paths: list[str | Path]) -> list[Path]:
+    """The paths, if every one is a KITTI object frame (.../object/...): what the sensor fits
+    may read. Anything else is evaluation data, and a FalsifyError names it."""
+    out = [Path(p) for p in paths]
+    for p in out:
+        if "object" not in p.parts:
+            raise FalsifyError(f"{p}: fit only on KITTI object frames (.../object/velodyne/*.bin); "
+                               "the other real scans are evaluation data")
+    return out
+
+
 def read_bin(path: str | Path) -> np.ndarray:
     """(N, 4) float32 x, y, z, remission of a KITTI .bin as stored (read-only; non-finite rows
     kept, so a .label's rows still line up); FalsifyError naming the file when it is not N x 4."""

@@ -11,6 +11,7 @@ import pytest
 
 from falsify.backgrounds import build_background
 from falsify.errors import FalsifyError
+from falsify.fit_returns import main as fit_returns_main
 from falsify.fit_rings import fit, fit_rings, main
 from falsify.scene import Simulator
 from falsify.sensor import load_sensor
@@ -69,6 +70,10 @@ def test_cli_refuses_evaluation_scans_and_unordered_files(tmp_path, capsys):
     np.zeros((100, 4), np.float32).tofile(semantic)
     assert main([str(semantic)]) == 2
     assert "fit only on KITTI object frames" in capsys.readouterr().err
+    out = tmp_path / "returns.json"          # the return-model fit refuses the same way
+    assert fit_returns_main([str(semantic), "--out", str(out)]) == 2
+    assert "semantickitti/000000.bin: fit only on" in capsys.readouterr().err
+    assert not out.exists()
     shuffled = tmp_path / "object" / "velodyne" / "000009.bin"
     shuffled.parent.mkdir(parents=True)
     np.random.default_rng(0).normal(0, 10, (5000, 4)).astype(np.float32).tofile(shuffled)

@@ -23,6 +23,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
         "falsify/space", "falsify/shapes", "falsify/cars", "falsify/backgrounds",
         "falsify/sensor", "falsify/raycast", "falsify/materials", "falsify/terrain",
         "falsify/vegetation", "falsify/structures", "falsify/road_users", "falsify/fit_returns",
+        "falsify/fit_rings",
         "falsify/scan", "falsify/kitti", "falsify/scene",
         "falsify/dataset", "falsify/preview", "falsify/metrics", "falsify/kitti_frames",
         "falsify/scansets", "falsify/calibration", "falsify/camera", "falsify/kitti_object",
