@@ -46,5 +46,7 @@ run control-seed1 control 1
 run blind-seed1 blind 1
 run blind-seed2 blind 2
 run control-seed2 control 2
+run blind-seed3 blind 3
+run control-seed3 control 3
 cp "$RUNS/blind/comparison.html" "$DOCS/blind/"
 falsify gate "$RUNS/blind/after" --baseline "$RUNS/blind/before"
