@@ -232,7 +232,7 @@ class SetStats:
     floor: dict | None = None           # frechet_floor, set by compare for synthetic sets
     per_scan: dict[str, list[np.ndarray]] = field(default_factory=dict, repr=False)
     groups: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
-    sources: list[str] = field(default_factory=list, repr=False)   # one per scan
+    sources: list[str] = field(default_factory=list, repr=False)   # file name per scan
     _joined: ScanFeatures | None = field(default=None, repr=False, compare=False)
     _tables: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
@@ -382,7 +382,7 @@ def per_real_scan(synthetic: tuple[SetStats, ...], real: SetStats) -> list[dict]
     """Each synthetic set against each real scan alone, on PER_SCAN_STATISTICS. With a few
     real scans a resample of them is one of few combinations, so a set that is farther from one
     real scan is farther on every draw that scan dominates: this shows which scan that is."""
-    return [{"source": Path(real.sources[k]).name, "real_set": int(real.groups[k]),
+    return [{"source": real.sources[k], "real_set": int(real.groups[k]),
              "distances": {s.name: {key: round(v, 6) for key, v in
                                     profile_distances(s, real, None, np.array([k])).items()}
                            for s in synthetic}}
@@ -513,7 +513,7 @@ def set_stats(name: str, images_or_set, features: EncoderFeatures) -> SetStats:
     """Statistics of a ScanSet or of a list of .npy paths (read CHUNK at a time)."""
     stats = SetStats(name)
     if isinstance(images_or_set, ScanSet):
-        n, sources = len(images_or_set), list(images_or_set.sources)
+        n, sources = len(images_or_set), [Path(src).name for src in images_or_set.sources]
         chunks = (images_or_set.images[i:i + CHUNK] for i in range(0, n, CHUNK))
     else:
         paths = list(images_or_set)
