@@ -312,4 +312,6 @@ def test_compare_pairs_matches_the_published_runs(capsys):
     assert "seed 1: targeted ahead at 82 of 86 blind cells, mean lead +0.0118" in out
     assert "seed 2: targeted ahead at 86 of 86 blind cells, mean lead +0.0308" in out
     assert "seed 3: targeted ahead at 27 of 86 blind cells, mean lead -0.0027" in out
-    assert "over 4 pairs: targeted wins 2, control wins 1, mean lead -0.0043: not resolved" in out
+    assert "seed 4: targeted ahead at 0 of 86 blind cells, mean lead -0.0420" in out
+    assert "seed 5: targeted ahead at 47 of 86 blind cells, mean lead +0.0003" in out
+    assert "over 6 pairs: targeted wins 2, control wins 2, mean lead -0.0098: not resolved" in out

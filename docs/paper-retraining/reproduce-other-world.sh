@@ -48,5 +48,9 @@ run blind-seed2 blind 2
 run control-seed2 control 2
 run blind-seed3 blind 3
 run control-seed3 control 3
+run blind-seed4 blind 4
+run control-seed4 control 4
+run control-seed5 control 5
+run blind-seed5 blind 5
 cp "$RUNS/blind/comparison.html" "$DOCS/blind/"
 falsify gate "$RUNS/blind/after" --baseline "$RUNS/blind/before"
