@@ -8,6 +8,7 @@ import json
 import os
 import subprocess
 import sys
+import sysconfig
 import venv
 import zipfile
 from pathlib import Path
@@ -44,10 +45,16 @@ def test_wheel_holds_only_the_falsify_package_and_its_data(wheel):
 
 def test_installed_wheel_runs_outside_the_checkout(wheel, tmp_path):
     env_dir = tmp_path / "venv"
-    # System site-packages give numpy, onnxruntime, ... without a download; the wheel goes into
-    # the venv itself, which comes first on sys.path (checked below).
+    # The running interpreter's packages (numpy, onnxruntime, ...) without a download: its
+    # system site-packages, and, when the tests run inside a venv, that venv's site-packages by a
+    # .pth line (which adds the folder but runs none of its .pth files, so the checkout's editable
+    # install stays out). The wheel goes into the new venv itself, first on sys.path (checked).
     venv.EnvBuilder(system_site_packages=True, with_pip=False).create(env_dir)
     py = env_dir / "bin" / "python"
+    site = env_dir / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / \
+        "site-packages"
+    parent = {sysconfig.get_paths()[k] for k in ("purelib", "platlib")}
+    (site / "_falsify_test_parent.pth").write_text("".join(f"{p}\n" for p in sorted(parent)))
     r = subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps", "--no-index",
                         "--force-reinstall", str(wheel)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
@@ -63,8 +70,6 @@ def test_installed_wheel_runs_outside_the_checkout(wheel, tmp_path):
                 "print(json.dumps([m.__file__ for m in (falsify, falsify.models, "
                 "falsify.sampler, falsify.reports)]))")
     assert where.returncode == 0, where.stderr
-    site = env_dir / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / \
-        "site-packages"
     for f in json.loads(where.stdout):
         assert Path(f).is_relative_to(site), f"{f} is not the installed wheel"
     assert not [g for g in GENERIC if (site / g).exists()]
