@@ -58,15 +58,3 @@ def check_out_file(path: str | Path, option: str = "--out") -> Path:
         raise FalsifyError(f"{option} {path}: is a directory")
     check_out_dir(path.parent, option)
     return path
-
-
-def check_in_file(path: str | Path, option: str) -> Path:
-    """An input file that exists and can be read."""
-    path = Path(path)
-    if not path.exists():
-        raise FalsifyError(f"{option} {path}: no such file")
-    if not path.is_file():
-        raise FalsifyError(f"{option} {path}: not a file")
-    if not os.access(path, os.R_OK):
-        raise FalsifyError(f"{option} {path}: not readable")
-    return path

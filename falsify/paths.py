@@ -11,7 +11,7 @@ from pathlib import Path
 _HERE = Path(__file__).resolve().parent
 CONFIGS = _HERE / "configs" if (_HERE / "configs").is_dir() else _HERE.parent / "configs"
 SENSOR_PRESETS = CONFIGS / "sensors"
-RETURN_MODELS = CONFIGS / "returns"  # fitted sensor return models (falsify.fit_returns)
+RETURN_MODELS = CONFIGS / "returns"  # fitted sensor return models (falsify.jobs.fit_returns)
 
 
 def config_path(path: str | Path) -> Path:

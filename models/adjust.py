@@ -27,7 +27,7 @@ from falsify.models.train import CLASS_WEIGHTS, batch_tensors, list_scans, load_
 
 from falsify.classes import CAR
 from falsify.errors import FalsifyError
-from falsify.metrics import class_scores, confusion
+from falsify.results.metrics import class_scores, confusion
 
 DEFAULT_ALPHAS = tuple(round(0.05 * i, 2) for i in range(21))
 BIAS_KEY = "conv14.conv.bias"

@@ -174,7 +174,7 @@ def quantize_int8(onnx_in: str | Path, onnx_out: str | Path, scans: np.ndarray |
                              nodes_to_exclude=exclude, op_types_to_quantize=["Conv"])
         elif method == "static":
             if scans is None:
-                from falsify.models.variants import plausible_scans
+                from falsify.models.plausible import plausible_scans
 
                 scans = plausible_scans(8, spec.height, spec.width, seed=123)
             import tempfile
@@ -319,8 +319,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     written = {"onnx": str(path), "spec": str(spec_path_for(path)),
                "weights": str(out.with_suffix(".pt"))}
     if a.int8:
-        from falsify.dataset import calibration_scans
-        from falsify.sensor import load_sensor
+        from falsify.data.training import calibration_scans
+        from falsify.sensor.lidar import load_sensor
 
         Path(a.int8).parent.mkdir(parents=True, exist_ok=True)
         scans = calibration_scans(load_sensor("kitti-hdl64e-front"), a.calibration_scans)

@@ -10,75 +10,41 @@ from __future__ import annotations
 import base64
 import json
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
+from falsify.reports.charts import (
+    BLIND_STROKE,
+    FONT,
+    PUOR,
+    VIRIDIS,
+    Grid,
+    axes_svg,
+    cells_svg,
+    diverging,
+    f3,
+    legend_svg,
+    num,
+    svg_element,
+    tip_attr,
+    viridis,
+)
 from falsify.reports.page import esc, head
 
 import falsify
-from falsify.maps import CellMap, fmt_value
-from falsify.maps import compare as compare_maps
-from falsify.metrics import Status
-from falsify.store import RunData
+from falsify.results.metrics import Status
+from falsify.results.miou_maps import CellMap, fmt_value
+from falsify.results.miou_maps import compare as compare_maps
+from falsify.results.store import RunData
 
 WORST = 12
 MAX_MULTIPLES = 30
-# viridis at 0, 0.1, ..., 1 (matplotlib): perceptually uniform and colour-blind safe.
-VIRIDIS = ["#440154", "#482475", "#414487", "#355f8d", "#2a788e", "#21918c", "#22a884",
-           "#44bf70", "#7ad151", "#bddf26", "#fde725"]
-# PuOr (ColorBrewer, colour-blind safe): orange = worse, purple = better.
-PUOR = ["#b35806", "#e08214", "#fdb863", "#fee0b6", "#f7f7f7", "#d8daeb", "#b2abd2", "#8073ac",
-        "#542788"]
-BLIND_STROKE = "#e4002b"
-FONT = 'system-ui, -apple-system, "Segoe UI", Roboto, Helvetica, Arial, sans-serif'
-
-
-# -- small helpers ------------------------------------------------------------------------
-def f3(value: float | None) -> str:
-    """A number rounded to 3 places, or an em dash when undefined."""
-    if value is None or (isinstance(value, float) and math.isnan(value)):
-        return "—"
-    return f"{float(value):.3f}"
-
-
-def _num(value: float) -> str:
-    """SVG coordinate: 1 decimal, no trailing zeros."""
-    s = f"{value:.1f}"
-    return s[:-2] if s.endswith(".0") else s
-
-
-def _hex(c: str) -> np.ndarray:
-    return np.array([int(c[i:i + 2], 16) for i in (1, 3, 5)], np.float64)
-
-
-def _ramp(stops: Sequence[str], t: float) -> str:
-    t = min(1.0, max(0.0, t))
-    pos = t * (len(stops) - 1)
-    i = min(int(pos), len(stops) - 2)
-    rgb = _hex(stops[i]) + (_hex(stops[i + 1]) - _hex(stops[i])) * (pos - i)
-    return "#" + "".join(f"{int(round(v)):02x}" for v in rgb)
-
-
-def viridis(value: float) -> str:
-    """Sequential colour of an IoU in [0, 1]."""
-    return _ramp(VIRIDIS, value)
-
-
-def diverging(change: float, span: float) -> str:
-    """Diverging colour of a change in [-span, span]."""
-    return _ramp(PUOR, 0.5 + change / (2 * span))
-
-
-def ink(fill: str) -> str:
-    """Black or white text, whichever reads better on `fill`."""
-    r, g, b = _hex(fill)
-    return "#000" if 0.299 * r + 0.587 * g + 0.114 * b > 140 else "#fff"
 
 
 def png_uri(rgb: np.ndarray) -> str:
-    from falsify.preview import encode_png
+    from falsify.images.png import encode_png
     return "data:image/png;base64," + base64.b64encode(encode_png(rgb)).decode("ascii")
 
 
@@ -113,129 +79,6 @@ def _bg_values(data: RunData) -> tuple:
     return tuple(data.space.dims["background"].grid()) if "background" in data.space.dims else ()
 
 
-# -- grid geometry --------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Grid:
-    """Pixel layout of an (x, y) map: x left to right, y (forward) upwards, sensor below."""
-
-    xs: tuple
-    ys: tuple
-    cw: float
-    ch: float
-    left: float = 0.0
-    top: float = 0.0
-
-    @property
-    def width(self) -> float:
-        return len(self.xs) * self.cw
-
-    @property
-    def height(self) -> float:
-        return len(self.ys) * self.ch
-
-    def cell(self, i: int, j: int) -> tuple[float, float]:
-        """Top-left pixel of cell (column i, row j); row 0 (nearest) is drawn at the bottom."""
-        return self.left + i * self.cw, self.top + (len(self.ys) - 1 - j) * self.ch
-
-    def px(self, x: float) -> float:
-        return self.left + _interp(x, self.xs, self.cw)
-
-    def py(self, y: float) -> float:
-        return self.top + self.height - _interp(y, self.ys, self.ch)
-
-    @staticmethod
-    def sized(xs: tuple, ys: tuple, width: float, height: float, left: float = 0.0,
-              top: float = 0.0, lo: float = 4.0, hi: float = 110.0) -> Grid:
-        cw = min(hi, max(lo, width / max(1, len(xs))))
-        ch = min(hi * 0.7, max(lo * 0.7, height / max(1, len(ys))))
-        return Grid(xs, ys, cw, ch, left, top)
-
-
-def _interp(v: float, values: tuple, size: float) -> float:
-    """Pixel offset of a value along an axis whose cell centres sit at `values`."""
-    vals = [float(a) for a in values]
-    centres = [(k + 0.5) * size for k in range(len(vals))]
-    if len(vals) == 1:
-        return centres[0] + (v - vals[0]) * size
-    if v <= vals[0]:
-        return centres[0] + (v - vals[0]) / (vals[1] - vals[0]) * size
-    if v >= vals[-1]:
-        return centres[-1] + (v - vals[-1]) / (vals[-1] - vals[-2]) * size
-    return float(np.interp(v, vals, centres))
-
-
-def _tip(text: str) -> str:
-    return f' data-tip="{esc(text)}"'
-
-
-def cells_svg(grid: Grid, values: np.ndarray, fill: Callable[[float], str],
-              tip: Callable[[int, int], str], cls: str, outline: np.ndarray | None = None,
-              label: Callable[[int, int], str] | None = None,
-              attrs: Callable[[int, int], str] | None = None) -> str:
-    """One rect per cell (hatched where NaN), optional in-cell labels and outlines on top."""
-    parts, labels, outlines = [], [], []
-    for j in range(len(grid.ys)):
-        for i in range(len(grid.xs)):
-            x, y = grid.cell(i, j)
-            v = values[j, i]
-            empty = bool(np.isnan(v))
-            colour = "url(#hatch)" if empty else fill(float(v))
-            text = tip(i, j)
-            klass = cls + (" empty" if empty else "") + (
-                " blind" if outline is not None and outline[j, i] else "")
-            extra = attrs(i, j) if attrs else ""
-            parts.append(f'<rect class="{klass}" x="{_num(x)}" y="{_num(y)}" '
-                         f'width="{_num(grid.cw)}" height="{_num(grid.ch)}" fill="{colour}"'
-                         f'{extra}{_tip(text)}><title>{esc(text)}</title></rect>')
-            if label is not None and not empty:
-                labels.append(f'<text class="lbl" x="{_num(x + grid.cw / 2)}" '
-                              f'y="{_num(y + grid.ch / 2 + 3.5)}" fill="{ink(fill(float(v)))}">'
-                              f'{esc(label(i, j))}</text>')
-            if outline is not None and outline[j, i]:
-                outlines.append(f'<rect class="outline" x="{_num(x + 1.5)}" y="{_num(y + 1.5)}" '
-                                f'width="{_num(grid.cw - 3)}" height="{_num(grid.ch - 3)}"/>')
-    return "".join(parts) + "".join(labels) + "".join(outlines)
-
-
-def axes_svg(grid: Grid, sensor: bool = True) -> str:
-    """Tick labels under the columns and left of the rows, axis titles, and the sensor."""
-    out = []
-    every_x = max(1, math.ceil(26 / grid.cw))
-    every_y = max(1, math.ceil(14 / grid.ch))
-    base = grid.top + grid.height
-    for i, xv in enumerate(grid.xs):
-        if i % every_x == 0:
-            cx = grid.left + (i + 0.5) * grid.cw
-            out.append(f'<text x="{_num(cx)}" y="{_num(base + 14)}" text-anchor="middle">'
-                       f'{esc(fmt_value(xv))}</text>')
-    for j, yv in enumerate(grid.ys):
-        if j % every_y == 0:
-            _, cy = grid.cell(0, j)
-            out.append(f'<text x="{_num(grid.left - 6)}" y="{_num(cy + grid.ch / 2 + 4)}" '
-                       f'text-anchor="end">{esc(fmt_value(yv))}</text>')
-    out.append(f'<text x="{_num(grid.left + grid.width / 2)}" y="{_num(base + 30)}" '
-               'text-anchor="middle" class="axis">X (m), right positive</text>')
-    ymid = grid.top + grid.height / 2
-    out.append(f'<text transform="translate({_num(grid.left - 36)} {_num(ymid)}) rotate(-90)" '
-               'text-anchor="middle" class="axis">Y (m), forward ↑</text>')
-    if sensor:
-        sx = min(max(grid.px(0.0), grid.left), grid.left + grid.width)
-        sy = base + 40
-        out.append(f'<path class="sensor" d="M{_num(sx)} {_num(sy)} l-7 12 h14 z"/>'
-                   f'<text x="{_num(sx + 11)}" y="{_num(sy + 11)}">sensor (0, 0)</text>')
-    return "".join(out)
-
-
-def _svg(content: str, width: float, height: float, klass: str, ident: str = "",
-         label: str = "") -> str:
-    idattr = f' id="{ident}"' if ident else ""
-    return (f'<svg{idattr} class="{klass}" xmlns="http://www.w3.org/2000/svg" '
-            f'width="{_num(width)}" height="{_num(height)}" '
-            f'viewBox="0 0 {_num(width)} {_num(height)}" role="img" '
-            f'aria-label="{esc(label)}">{content}</svg>')
-
-
-# -- sections ----------------------------------------------------------------------------
 def _cell_tip(x: float, y: float, miou: float | None, n: int, undefined: int, invalid: int,
               threshold: float) -> str:
     where = f"x = {fmt_value(x)} m, y = {fmt_value(y)} m"
@@ -274,7 +117,7 @@ def heatmap_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     body = cells_svg(grid, cmap.miou, viridis, tip, "cell", blind,
                      (lambda i, j: f3(float(cmap.miou[j, i]))) if show else None, attrs)
     selbox = '<rect id="selbox" x="0" y="0" width="0" height="0" visibility="hidden"/>'
-    svg = _svg(body + axes_svg(grid) + selbox, grid.left + grid.width + 8,
+    svg = svg_element(body + axes_svg(grid) + selbox, grid.left + grid.width + 8,
                grid.top + grid.height + 60, "map", "heatmap", "mIoU heat map over x and y")
     multiples = multiples_section(data, threshold)
     n_blind = int(blind.sum())
@@ -301,30 +144,6 @@ its value; click it to list its samples.</p>
 </section>"""
 
 
-def legend_svg(threshold: float) -> str:
-    """Vertical viridis bar 0..1 with the threshold marked, plus the hatched and blind keys."""
-    top, h, x0 = 20, 240, 8
-    ty = top + h * (1 - threshold)
-    ticks = "".join(
-        f'<text x="{x0 + 24}" y="{_num(top + h * (1 - v) + 4)}">{v:.2f}</text>'
-        for v in (0.0, 0.25, 0.5, 0.75, 1.0))
-    body = (f'<text x="{x0}" y="{top - 8}" class="axis">mIoU</text>'
-            f'<rect x="{x0}" y="{top}" width="16" height="{h}" fill="url(#vir)" stroke="#888"/>'
-            f"{ticks}"
-            f'<line x1="{x0 - 4}" x2="{x0 + 20}" y1="{_num(ty)}" y2="{_num(ty)}" '
-            f'stroke="{BLIND_STROKE}" stroke-width="2.5"/>'
-            f'<text x="{x0 + 62}" y="{_num(ty + 4)}" class="thr">threshold {threshold:.3f}'
-            "</text>"
-            f'<rect x="{x0}" y="{top + h + 18}" width="16" height="16" fill="url(#hatch)" '
-            'stroke="#888"/>'
-            f'<text x="{x0 + 24}" y="{top + h + 30}">no valid sample</text>'
-            f'<rect x="{x0}" y="{top + h + 42}" width="16" height="16" fill="{viridis(0.3)}"/>'
-            f'<rect class="outline" x="{x0 + 1.5}" y="{top + h + 43.5}" width="13" '
-            'height="13"/>'
-            f'<text x="{x0 + 24}" y="{top + h + 54}">blind spot (&lt; {threshold:.3f})</text>')
-    return _svg(body, 170, top + h + 66, "legend", "", "colour scale")
-
-
 def multiples_section(data: RunData, threshold: float) -> str:
     """One small mIoU map per background, same colours and axes as the main map."""
     bgs = _bg_values(data)
@@ -348,7 +167,7 @@ def multiples_section(data: RunData, threshold: float) -> str:
         body = cells_svg(grid, cmap.miou, viridis, tip, "mcell", blind)
         valid = cmap.miou[~np.isnan(cmap.miou)]
         mean = f3(float(valid.mean())) if valid.size else "—"
-        figs.append(f'<figure class="multiple">{_svg(body, grid.width, grid.height, "small", "", f"background {bg}")}'  # noqa: E501
+        figs.append(f'<figure class="multiple">{svg_element(body, grid.width, grid.height, "small", "", f"background {bg}")}'  # noqa: E501
                     f"<figcaption>bg {esc(bg)} · {mean}<br>{int(blind.sum())} blind"
                     "</figcaption></figure>")
     more = (f'<p class="note">showing {len(shown)} of {len(bgs)} backgrounds</p>'
@@ -376,26 +195,26 @@ def distance_section(data: RunData, threshold: float) -> str:
     step = 5.0 if dmax > 10 else 1.0
     for k in range(int(dmax / step) + 1):
         v = k * step
-        out.append(f'<text x="{_num(sx(v))}" y="{top + ph + 15}" text-anchor="middle">'
+        out.append(f'<text x="{num(sx(v))}" y="{top + ph + 15}" text-anchor="middle">'
                    f'{v:g}</text>')
     out.append(f'<text x="{left + pw / 2}" y="{h - 6}" text-anchor="middle" class="axis">'
                "distance of car 1 from the sensor (m)</text>")
-    out.append(f'<line class="thrline" x1="{left}" x2="{left + pw}" y1="{_num(sy(threshold))}" '
-               f'y2="{_num(sy(threshold))}"/><text class="thr" x="{left + pw - 4}" '
-               f'y="{_num(sy(threshold) - 4)}" text-anchor="end">threshold {threshold:.3f}'
+    out.append(f'<line class="thrline" x1="{left}" x2="{left + pw}" y1="{num(sy(threshold))}" '
+               f'y2="{num(sy(threshold))}"/><text class="thr" x="{left + pw - 4}" '
+               f'y="{num(sy(threshold) - 4)}" text-anchor="end">threshold {threshold:.3f}'
                "</text>")
     eval_ix = ok["eval_index"].to_numpy()
     for di, vi, ei in zip(d, iou, eval_ix, strict=True):
-        out.append(f'<circle class="pt" cx="{_num(sx(di))}" cy="{_num(sy(vi))}" r="2.2">'
+        out.append(f'<circle class="pt" cx="{num(sx(di))}" cy="{num(sy(vi))}" r="2.2">'
                    f"<title>eval {int(ei)}: {di:.1f} m, IoU {vi:.3f}</title></circle>")
     if d.size:
         bins = np.floor(d).astype(int)
         pts = []
         for b in sorted(set(bins.tolist())):
             m = float(iou[bins == b].mean())
-            pts.append(f"{_num(sx(b + 0.5))},{_num(sy(m))}")
+            pts.append(f"{num(sx(b + 0.5))},{num(sy(m))}")
         out.append(f'<polyline class="meanline" points="{" ".join(pts)}"/>')
-    svg = _svg("".join(out), w, h, "plot", "distance", "IoU against distance")
+    svg = svg_element("".join(out), w, h, "plot", "distance", "IoU against distance")
     return f"""
 <section id="distance-section">
 <h2>IoU against distance</h2>
@@ -410,8 +229,8 @@ def _iou_frame(left: float, top: float, pw: float, ph: float,
     """A plot's frame with IoU grid lines and labels at 0, 0.25, ..., 1."""
     out = [f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" class="frame"/>']
     for v in (0.0, 0.25, 0.5, 0.75, 1.0):
-        out.append(f'<line class="grid" x1="{left}" x2="{left + pw}" y1="{_num(sy(v))}" '
-                   f'y2="{_num(sy(v))}"/><text x="{left - 6}" y="{_num(sy(v) + 4)}" '
+        out.append(f'<line class="grid" x1="{left}" x2="{left + pw}" y1="{num(sy(v))}" '
+                   f'y2="{num(sy(v))}"/><text x="{left - 6}" y="{num(sy(v) + 4)}" '
                    f'text-anchor="end">{v:.2f}</text>')
     return out
 
@@ -435,24 +254,24 @@ def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
 
     out = _iou_frame(left, top, pw, ph, sy)
     for k in sorted({0, n // 4, n // 2, 3 * n // 4, max(0, n - 1)}):
-        out.append(f'<text x="{_num(sx(k))}" y="{top + ph + 15}" text-anchor="middle">{k}'
+        out.append(f'<text x="{num(sx(k))}" y="{top + ph + 15}" text-anchor="middle">{k}'
                    "</text>")
     out.append(f'<text x="{left + pw / 2}" y="{h - 6}" text-anchor="middle" class="axis">'
                "evaluation</text>")
-    out.append(f'<line class="thrline" x1="{left}" x2="{left + pw}" y1="{_num(sy(threshold))}" '
-               f'y2="{_num(sy(threshold))}"/>')
+    out.append(f'<line class="thrline" x1="{left}" x2="{left + pw}" y1="{num(sy(threshold))}" '
+               f'y2="{num(sy(threshold))}"/>')
     best, steps = math.inf, []
     for k, v in enumerate(vals):
         if v is not None:
-            out.append(f'<circle class="pt" cx="{_num(sx(k))}" cy="{_num(sy(v))}" r="2">'
+            out.append(f'<circle class="pt" cx="{num(sx(k))}" cy="{num(sy(v))}" r="2">'
                        f"<title>eval {k}: IoU {v:.3f}</title></circle>")
             best = min(best, v)
         if best < math.inf:
-            steps.append(f"{_num(sx(k))},{_num(sy(best))}")
+            steps.append(f"{num(sx(k))},{num(sy(best))}")
     if steps:
         out.append(f'<polyline class="minline" points="{" ".join(steps)}"/>')
     lowest = f3(best) if best < math.inf else "—"
-    curve_svg = _svg("".join(out), w, h, "plot", "curve", "lowest IoU against evaluations")
+    curve_svg = svg_element("".join(out), w, h, "plot", "curve", "lowest IoU against evaluations")
 
     # where the search went: the heat map faded, the evaluations in order on top
     grid = Grid.sized(cmap.a_values, cmap.b_values, 480, 430, left=52, top=8)
@@ -464,21 +283,21 @@ def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     lo_y, hi_y = grid.top, grid.top + grid.height
     pts = [(min(max(grid.px(x), lo_x), hi_x), min(max(grid.py(y), lo_y), hi_y))
            for x, y in zip(xs, ys, strict=True)]
-    path = " ".join(f"{_num(px)},{_num(py)}" for px, py in pts)
+    path = " ".join(f"{num(px)},{num(py)}" for px, py in pts)
     dots = []
     for k, ((px, py), ev, v) in enumerate(zip(pts, frame["eval_index"], ious, strict=True)):
         fill = "#9aa0a6" if np.isnan(v) else viridis(float(v))
         text = (f"eval {int(ev)}: x = {xs[k]:.3f}, y = {ys[k]:.3f}, IoU "
                 f"{'undefined' if np.isnan(v) else f'{v:.3f}'}")
-        dots.append(f'<circle class="step" cx="{_num(px)}" cy="{_num(py)}" r="4.5" '
-                    f'fill="{fill}"{_tip(text)}><title>{esc(text)}</title></circle>')
+        dots.append(f'<circle class="step" cx="{num(px)}" cy="{num(py)}" r="4.5" '
+                    f'fill="{fill}"{tip_attr(text)}><title>{esc(text)}</title></circle>')
     if np.isfinite(ious).any():
         k = int(np.nanargmin(ious))
         px, py = pts[k]
-        dots.append(f'<circle class="ring" cx="{_num(px)}" cy="{_num(py)}" r="8"/>')
+        dots.append(f'<circle class="ring" cx="{num(px)}" cy="{num(py)}" r="8"/>')
     body = (faded + f'<polyline class="path" points="{path}"/>' + "".join(dots)
             + axes_svg(grid))
-    path_svg = _svg(body, grid.left + grid.width + 8, grid.top + grid.height + 60, "map",
+    path_svg = svg_element(body, grid.left + grid.width + 8, grid.top + grid.height + 60, "map",
                     "searchpath", "where the search went")
     return f"""
 <section id="search-section">
@@ -521,7 +340,7 @@ def compare_section(before: RunData, after: RunData, after_map: CellMap,
     show = grid.cw >= 34 and grid.ch >= 14
     body = cells_svg(grid, diff, lambda v: diverging(v, span), tip, "dcell",
                      label=(lambda i, j: f"{diff[j, i]:+.3f}") if show else None)
-    diff_svg = _svg(body + axes_svg(grid), grid.left + grid.width + 8,
+    diff_svg = svg_element(body + axes_svg(grid), grid.left + grid.width + 8,
                     grid.top + grid.height + 60, "map", "diffmap", "mIoU difference map")
     legend = diverging_legend(span)
 
@@ -559,17 +378,17 @@ def _blind_keys(cmap: CellMap, threshold: float) -> list[tuple]:
 
 def diverging_legend(span: float) -> str:
     top, h, x0 = 20, 240, 8
-    stops = "".join(f'<rect x="{x0}" y="{_num(top + h * k / 40)}" width="16" '
-                    f'height="{_num(h / 40 + 0.5)}" fill="{diverging(span * (1 - k / 20), span)}"/>'
+    stops = "".join(f'<rect x="{x0}" y="{num(top + h * k / 40)}" width="16" '
+                    f'height="{num(h / 40 + 0.5)}" fill="{diverging(span * (1 - k / 20), span)}"/>'
                     for k in range(40))
-    ticks = "".join(f'<text x="{x0 + 24}" y="{_num(top + h * (1 - (v / span + 1) / 2) + 4)}">'
+    ticks = "".join(f'<text x="{x0 + 24}" y="{num(top + h * (1 - (v / span + 1) / 2) + 4)}">'
                     f"{v:+.2f}</text>" for v in (-span, -span / 2, 0.0, span / 2, span))
     body = (f'<text x="{x0}" y="{top - 8}" class="axis">change</text>{stops}'
             f'<rect x="{x0}" y="{top}" width="16" height="{h}" fill="none" stroke="#888"/>'
             f"{ticks}"
             f'<text x="{x0}" y="{top + h + 18}">purple: better</text>'
             f'<text x="{x0}" y="{top + h + 34}">orange: worse</text>')
-    return _svg(body, 120, top + h + 44, "legend", "", "difference colour scale")
+    return svg_element(body, 120, top + h + 44, "legend", "", "difference colour scale")
 
 
 def improvement_svg(table: pd.DataFrame, span: float) -> str:
@@ -583,8 +402,8 @@ def improvement_svg(table: pd.DataFrame, span: float) -> str:
 
     out = [f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" class="frame"/>']
     for v in (-span, -span / 2, 0.0, span / 2, span):
-        out.append(f'<line class="grid" x1="{left}" x2="{left + pw}" y1="{_num(sy(v))}" '
-                   f'y2="{_num(sy(v))}"/><text x="{left - 6}" y="{_num(sy(v) + 4)}" '
+        out.append(f'<line class="grid" x1="{left}" x2="{left + pw}" y1="{num(sy(v))}" '
+                   f'y2="{num(sy(v))}"/><text x="{left - 6}" y="{num(sy(v) + 4)}" '
                    f'text-anchor="end">{v:+.2f}</text>')
     bw = pw / max(1, n)
     for k, row in enumerate(table.itertuples(index=False)):
@@ -592,15 +411,15 @@ def improvement_svg(table: pd.DataFrame, span: float) -> str:
         y0, y1 = sorted((sy(0.0), sy(c)))
         text = (f"x = {fmt_value(row.x)}, y = {fmt_value(row.y)}: {row.miou_before:.3f} → "
                 f"{row.miou_after:.3f} ({c:+.3f})")
-        out.append(f'<rect class="bar" x="{_num(left + k * bw)}" y="{_num(y0)}" '
-                   f'width="{_num(max(bw - 0.4, 0.6))}" height="{_num(max(y1 - y0, 0.5))}" '
-                   f'fill="{PUOR[-2] if c >= 0 else PUOR[1]}"{_tip(text)}>'
+        out.append(f'<rect class="bar" x="{num(left + k * bw)}" y="{num(y0)}" '
+                   f'width="{num(max(bw - 0.4, 0.6))}" height="{num(max(y1 - y0, 0.5))}" '
+                   f'fill="{PUOR[-2] if c >= 0 else PUOR[1]}"{tip_attr(text)}>'
                    f"<title>{esc(text)}</title></rect>")
-    out.append(f'<line x1="{left}" x2="{left + pw}" y1="{_num(sy(0))}" y2="{_num(sy(0))}" '
+    out.append(f'<line x1="{left}" x2="{left + pw}" y1="{num(sy(0))}" y2="{num(sy(0))}" '
                'stroke="#333"/>')
     out.append(f'<text x="{left + pw / 2}" y="{h - 6}" text-anchor="middle" class="axis">'
                f"{n} cells, sorted by change</text>")
-    return _svg("".join(out), w, h, "plot", "improvement", "sorted per-cell improvement")
+    return svg_element("".join(out), w, h, "plot", "improvement", "sorted per-cell improvement")
 
 
 # -- worst samples with previews ----------------------------------------------------------------
@@ -657,7 +476,7 @@ def _preview(s: ReplayedScan) -> Preview:
 def _pictures(image: np.ndarray, car: tuple[float, float] | None = None) -> tuple[str, str]:
     """Range image (2 px per beam, at most 1024 columns) and a bird's-eye view with car 1
     bracketed, as PNG data URIs."""
-    from falsify.preview import bev_rgb, range_image_rgb
+    from falsify.images.scan_pictures import bev_rgb, range_image_rgb
     ranges = range_image_rgb(image, row_scale=2)
     if ranges.shape[1] > 1024:
         ranges = ranges[:, :: math.ceil(ranges.shape[1] / 1024)]
@@ -813,7 +632,7 @@ def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
 
 def samples_json(data: RunData) -> dict:
     """The rows the click-to-list table needs, keyed to their heat-map cell."""
-    from falsify.maps import snap
+    from falsify.results.miou_maps import snap
 
     f = data.frame
     cx = snap(f["x"], data.space, "x")
@@ -988,7 +807,7 @@ def render(report: ReportInput) -> str:
     if meta.get("command") == "search":
         sections.append(search_section(data, cmap, threshold))
     if before is not None and retrain is not None:
-        from falsify.reports.retrain import retrain_section
+        from falsify.reports.retrain_page import retrain_section
         sections.append(retrain_section(before, data, cmap, threshold, retrain))
     if before is not None:
         sections.append(compare_section(before, data, cmap, threshold,

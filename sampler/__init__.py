@@ -5,6 +5,8 @@ is deterministic given its inputs and the scores it is told, so a resumed run re
 store without recomputing.
 """
 
+import dataclasses
+
 from falsify.sampler.base import (
     ALGORITHMS,
     NLOPT_ALGORITHMS,
@@ -13,8 +15,33 @@ from falsify.sampler.base import (
     Score,
     SearchResult,
     lowest_so_far,
-    make_sampler,
 )
+from falsify.sampler.grid import GridSampler
+from falsify.sampler.nlopt import NloptSampler
+from falsify.sampler.random import RandomSampler
+from falsify.sampler.sobol import SobolSampler
+
+from falsify.errors import ConfigError
+
+
+def make_sampler(name: str, **options: object) -> Sampler:
+    """Build a sampler by name; an unknown name or option raises ConfigError listing the allowed."""
+    classes: dict[str, type] = {"grid": GridSampler, "random": RandomSampler,
+                                "sobol": SobolSampler}
+    if name in classes:
+        cls = classes[name]
+    elif name in NLOPT_ALGORITHMS:
+        cls = NloptSampler
+        options = {"name": name, **options}
+    else:
+        raise ConfigError(f"unknown sampler {name!r}; allowed: {', '.join(ALGORITHMS)}")
+    settable = [f.name for f in dataclasses.fields(cls) if f.init and f.name != "name"]
+    unknown = sorted(set(options) - set(settable) - {"name"})
+    if unknown:
+        raise ConfigError(f"sampler {name}: unknown option {unknown[0]!r}; allowed: "
+                          f"{', '.join(settable) or '(none)'}")
+    return cls(**options)
+
 
 __all__ = [
     "ALGORITHMS",

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 import threading
@@ -13,7 +12,7 @@ from typing import Protocol
 import nlopt
 
 from falsify.errors import ConfigError
-from falsify.space import Sample, Space
+from falsify.world.space import Sample, Space
 
 Score = float | None
 """A sample's car IoU (lower = worse for the network); None = invalid sample or undefined IoU."""
@@ -114,30 +113,6 @@ class Sampler(Protocol):
 
     def run(self, space: Space, evaluate: Evaluate, budget: int | None,
             seed: int) -> SearchResult: ...
-
-
-def make_sampler(name: str, **options: object) -> Sampler:
-    """Build a sampler by name; an unknown name or option raises ConfigError listing the allowed."""
-    from falsify.sampler.grid import GridSampler
-    from falsify.sampler.nlopt import NloptSampler
-    from falsify.sampler.random import RandomSampler
-    from falsify.sampler.sobol import SobolSampler
-
-    classes: dict[str, type] = {"grid": GridSampler, "random": RandomSampler,
-                                "sobol": SobolSampler}
-    if name in classes:
-        cls = classes[name]
-    elif name in NLOPT_ALGORITHMS:
-        cls = NloptSampler
-        options = {"name": name, **options}
-    else:
-        raise ConfigError(f"unknown sampler {name!r}; allowed: {', '.join(ALGORITHMS)}")
-    settable = [f.name for f in dataclasses.fields(cls) if f.init and f.name != "name"]
-    unknown = sorted(set(options) - set(settable) - {"name"})
-    if unknown:
-        raise ConfigError(f"sampler {name}: unknown option {unknown[0]!r}; allowed: "
-                          f"{', '.join(settable) or '(none)'}")
-    return cls(**options)
 
 
 def check_budget(name: str, budget: int | None, required: bool) -> int | None:

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 from falsify.sampler.base import BATCH, Evaluate, SearchResult, check_budget, evaluate_all
 
-from falsify.space import Space
+from falsify.world.space import Space
 
 
 @dataclass(frozen=True)

@@ -51,7 +51,7 @@ from falsify.sampler.base import (
 )
 
 from falsify.errors import ConfigError
-from falsify.space import Categorical, Continuous, Sample, Space, Value
+from falsify.world.space import Categorical, Continuous, Sample, Space, Value
 
 LOCAL_SUBOPTIMISERS = ("LN_BOBYQA", "LN_COBYLA")
 FTOL = 1e-9  # local runs also stop on an exactly flat score (e.g. the penalty plateau)

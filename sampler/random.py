@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from falsify.sampler.base import BATCH, Evaluate, SearchResult, check_budget, evaluate_all
 
-from falsify.space import Categorical, Sample, Space
+from falsify.world.space import Categorical, Sample, Space
 
 
 @dataclass(frozen=True)

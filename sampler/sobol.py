@@ -10,7 +10,7 @@ import numpy as np
 from falsify.sampler.base import BATCH, Evaluate, SearchResult, check_budget, evaluate_all
 from scipy.stats import qmc
 
-from falsify.space import Categorical, Continuous, Sample, Space
+from falsify.world.space import Categorical, Continuous, Sample, Space
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from falsify.scansets import KITTI_DIR as KITTI
+from falsify.data.scansets import KITTI_DIR as KITTI
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from falsify.space import Sample, Space, parse_space
-from falsify.store import STORE_NAME, SampleResult, Store, sample_key
+from falsify.results.store import STORE_NAME, SampleResult, Store, sample_key
+from falsify.world.space import Sample, Space, parse_space
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"

@@ -9,16 +9,16 @@ import pytest
 import trimesh
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-from falsify import backgrounds
-from falsify.backgrounds import (
+from falsify.errors import ConfigError
+from falsify.world import streets
+from falsify.world.materials import MATERIAL_ID, MATERIALS
+from falsify.world.streets import (
     FREE_ZONE,
     MAX_BACKGROUND_ID,
     SENSOR_CLEARANCE,
     Background,
     build_background,
 )
-from falsify.errors import ConfigError
-from falsify.materials import MATERIAL_ID, MATERIALS
 
 IDS = [*range(15), *range(1000, 1005), MAX_BACKGROUND_ID]
 
@@ -54,7 +54,7 @@ def test_arrays_and_size(built):
 
 def test_deterministic_bytes(built):
     for i in (0, 7, 1003):
-        backgrounds._build.cache_clear()
+        streets._build.cache_clear()
         again = build_background(i)
         ref = built[i]
         assert again is not ref
@@ -185,14 +185,14 @@ def test_town_streets_are_narrow_and_built_up_on_both_sides():
     """A town street (drawn with probability TOWN_P from its own stream) has flat roadsides, the
     narrowest road the free zone allows, narrow sidewalks, and blocks close behind them on both
     sides: level rays to the sides from the road's centre line end on them within 25 m."""
-    town = [i for i in range(60) if backgrounds._layout(i).town]
+    town = [i for i in range(60) if streets._layout(i).town]
     other = [i for i in range(60) if i not in town]
     assert 0 < len(town) < 60
-    assert abs(len(town) / 60 - backgrounds.TOWN_P) < 0.2
+    assert abs(len(town) / 60 - streets.TOWN_P) < 0.2
     for i in town[:4]:
-        lay = backgrounds._layout(i)
-        assert backgrounds.TOWN_HALF_WIDTH[0] <= lay.half_width <= backgrounds.TOWN_HALF_WIDTH[1]
-        assert all(backgrounds.TOWN_SIDEWALK[0] <= w <= backgrounds.TOWN_SIDEWALK[1]
+        lay = streets._layout(i)
+        assert streets.TOWN_HALF_WIDTH[0] <= lay.half_width <= streets.TOWN_HALF_WIDTH[1]
+        assert all(streets.TOWN_SIDEWALK[0] <= w <= streets.TOWN_SIDEWALK[1]
                    for w in lay.sidewalk)
         assert [s.kind for s in lay.terrain.sides] == ["flat", "flat"]
         bg = build_background(i)
@@ -205,7 +205,7 @@ def test_town_streets_are_narrow_and_built_up_on_both_sides():
         # free zone's kerbside gap): most end within 25 m sideways.
         lateral = _side_hits(bg, 40.0, 2.0, (30, 60))
         assert np.median(lateral) < 25.0, (i, np.round(lateral, 1))
-    assert all(backgrounds._layout(i).half_width >= 9.0 for i in other)
+    assert all(streets._layout(i).half_width >= 9.0 for i in other)
 
 
 def test_narrowing_streets_keep_the_free_zone_and_narrow_beyond_it():
@@ -214,17 +214,17 @@ def test_narrowing_streets_keep_the_free_zone_and_narrow_beyond_it():
     NARROW_KERB from the centre line: the ground there is road inside the kerb and sidewalk
     outside, the kerb obstacles follow the line, and level rays to the sides from the centre
     line end within a residential street's width."""
-    narrow = [i for i in range(60) if backgrounds._layout(i).terrain.narrow > 0]
-    assert abs(len(narrow) / 60 - backgrounds.NARROW_P) < 0.2
+    narrow = [i for i in range(60) if streets._layout(i).terrain.narrow > 0]
+    assert abs(len(narrow) / 60 - streets.NARROW_P) < 0.2
     for i in narrow[:4]:
-        t = backgrounds._layout(i).terrain
+        t = streets._layout(i).terrain
         (fx0, fx1), _ = FREE_ZONE
-        zone = np.linspace(fx0 - backgrounds.NARROW_WIDE_BEHIND[0],
-                           fx1 + backgrounds.NARROW_WIDE_AHEAD[0], 50)
+        zone = np.linspace(fx0 - streets.NARROW_WIDE_BEHIND[0],
+                           fx1 + streets.NARROW_WIDE_AHEAD[0], 50)
         assert (t.kerb(zone) == t.half_width).all()
         far = np.array([-120.0, -60.0, 90.0, 150.0])
         k = t.kerb(far)
-        assert ((k >= backgrounds.NARROW_KERB[0] - 1e-9) & (k <= backgrounds.NARROW_KERB[1]
+        assert ((k >= streets.NARROW_KERB[0] - 1e-9) & (k <= streets.NARROW_KERB[1]
                                                               + 1e-9)).all()
         # road just inside the kerb, the raised sidewalk just outside it
         for side in (1, -1):
@@ -246,7 +246,7 @@ def test_guard_rails_stand_where_the_ground_falls_away():
     """Streets with an embankment down or a ditch beside the road get a guard rail on that side
     in about 7 of 10 cases (poles and signs, placed after, keep off its line)."""
     falls = [i for i in range(60) if any(s.kind in ("embankment down", "ditch")
-                                         for s in backgrounds._layout(i).terrain.sides)]
+                                         for s in streets._layout(i).terrain.sides)]
     railed = [i for i in falls if any(o.label.startswith("guard rail")
                                       for o in build_background(i).obstacles)]
     assert len(falls) >= 15 and len(railed) >= 0.5 * len(falls)

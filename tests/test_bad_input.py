@@ -154,7 +154,7 @@ def scratch(tmp_path: Path) -> Path:
 def test_bad_input_exits_2_naming_it_and_writes_nothing(scratch, argv, names):
     before = snapshot(scratch)
     cmd = [ROOT / "configs" / "smoke.toml" if a == "SMOKE" else a for a in argv]
-    r = subprocess.run([sys.executable, "-m", "falsify.cli", *map(str, cmd)], cwd=scratch,
+    r = subprocess.run([sys.executable, "-m", "falsify", *map(str, cmd)], cwd=scratch,
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 2, (r.returncode, r.stderr[-2000:])
     assert "Traceback" not in r.stderr, r.stderr[-2000:]
@@ -164,7 +164,7 @@ def test_bad_input_exits_2_naming_it_and_writes_nothing(scratch, argv, names):
 
 
 def test_train_help_lists_its_options():
-    r = subprocess.run([sys.executable, "-m", "falsify.cli", "train", "--help"],
+    r = subprocess.run([sys.executable, "-m", "falsify", "train", "--help"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     for option in ("--data", "--out", "--epochs", "--resume"):

@@ -10,8 +10,8 @@ import json
 
 import pytest
 
-from falsify.cli import build_parser, given_options, main, pipeline_figures_text
-from falsify.space import load_space
+from falsify.cli.commands import build_parser, given_options, main, pipeline_figures_text
+from falsify.world.space import load_space
 
 from .conftest import CONFIGS, ROOT
 
@@ -124,8 +124,8 @@ def test_bench_samples_given_are_honoured_and_defaults_are_each_benchmarks(what)
 def test_bench_search_times_fresh_runs_and_not_resumed_ones(tmp_path):
     """Every algorithm (NLopt on the given workers too) reports its seconds per evaluation and
     the ratio to random's; asked again, the runs resume from the directory and are not timed."""
-    from falsify.bench import bench_search
-    from falsify.store import read_meta
+    from falsify.bench.search import bench_search
+    from falsify.results.store import read_meta
 
     out = tmp_path / "b"
     r = bench_search(CONFIGS / "smoke.toml", out, algorithms=("random", "LN_BOBYQA"),

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from falsify.bench_machine import MemorySample, RssSampler, in_processes, tree_rss
+from falsify.bench.machine import MemorySample, RssSampler, in_processes, tree_rss
 from falsify.errors import FalsifyError
 
 

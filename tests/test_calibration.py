@@ -9,8 +9,11 @@ import math
 import numpy as np
 import pytest
 
-from falsify.calib_check import check_kitti_dir
-from falsify.calibration import (
+from falsify.cli import main
+from falsify.data.kitti_object import format_calib, read_calib
+from falsify.errors import FalsifyError
+from falsify.jobs.calib import check_kitti_dir
+from falsify.sensor.calibration import (
     Extrinsic,
     KittiCalib,
     Pinhole,
@@ -18,10 +21,7 @@ from falsify.calibration import (
     paper_pixel,
     project_points,
 )
-from falsify.camera import KITTI_P2, KITTI_R0_RECT, KITTI_TR_VELO_TO_CAM, camera_preset
-from falsify.cli import main
-from falsify.errors import FalsifyError
-from falsify.kitti_object import format_calib, read_calib
+from falsify.sensor.camera import KITTI_P2, KITTI_R0_RECT, KITTI_TR_VELO_TO_CAM, camera_preset
 
 
 def _points_in_view(intr: Pinhole, n: int, rng, near=0.5, far=200.0, margin=0.0):
@@ -170,3 +170,12 @@ def test_calib_bad_directory_exits_2(tmp_path, capsys):
     assert "not a KITTI object directory" in capsys.readouterr().err
     assert main(["calib"]) == 2
     assert "give a KITTI object DIRECTORY or --scenes" in capsys.readouterr().err
+
+
+def test_calib_writes_overlays_only_into_out(kitti_object, tmp_path, capsys, monkeypatch):
+    """Without --out nothing is written anywhere, the current directory included."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["calib", str(kitti_object), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["pooled"]["points_in_boxes"] > 1000
+    assert summary["overlays"] == [] and list(tmp_path.iterdir()) == []

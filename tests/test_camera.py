@@ -8,15 +8,16 @@ import json
 import numpy as np
 import pytest
 
-from falsify.calib_check import car_points_on_car_pixels
-from falsify.camera import CameraRenderer, Look, camera_preset, parse_look
 from falsify.cli import main
 from falsify.errors import ConfigError
-from falsify.pngread import decode_png
-from falsify.preview import encode_png
-from falsify.scene import PlacedCar, Simulator
-from falsify.sensor import SensorPose, load_sensor
-from falsify.space import load_space
+from falsify.images.png import decode_png, encode_png
+from falsify.jobs.calib import car_points_on_car_pixels
+from falsify.sensor.camera import camera_preset
+from falsify.sensor.lidar import SensorPose, load_sensor
+from falsify.sensor.look import Look, parse_look
+from falsify.sensor.render import CameraRenderer
+from falsify.sensor.simulator import PlacedCar, Simulator
+from falsify.world.space import load_space
 
 from .conftest import CONFIGS
 
@@ -213,7 +214,7 @@ def test_png_reader_round_trip_and_filters():
 
 
 def test_grid_camera_stores_retraining_images(tmp_path, capsys):
-    from falsify.store import read_frame
+    from falsify.results.store import read_frame
 
     from .test_pipeline import BUNDLED, small_config
     if not BUNDLED.exists():
@@ -259,7 +260,7 @@ def test_incremental_shading_equals_full_shading(sim):
 def test_naive_path_renders_the_same_image(sim):
     """`bench camera`'s naive path (one merged trimesh scene, trimesh's ray queries, every pixel
     shaded) makes the image the fast path makes: the speed ratio compares like with like."""
-    from falsify.bench_camera import naive_image
+    from falsify.bench.camera import naive_image
 
     space = load_space(CONFIGS / "paper.toml")
     cam = camera_preset("kitti-centre").scaled(0.3)
@@ -277,8 +278,8 @@ def test_a_climbing_road_is_shaded_as_road_all_the_way_up():
     """The road's colour is decided against the road's own crown height at x, not against
     z = 0: street 9 climbs (0.86 m at x = 100 m), and its far road surface, crown and kerbside,
     stays road; a level surface 1 m above it (a car roof, a bus top) does not."""
-    from falsify import camera
-    from falsify.backgrounds import build_background
+    from falsify.sensor import shading
+    from falsify.world.streets import build_background
 
     bg = build_background(9)
     t = bg.terrain
@@ -288,7 +289,7 @@ def test_a_climbing_road_is_shaded_as_road_all_the_way_up():
     assert z[2] > 0.5  # the street really climbs
     z[4] += 1.0
     col = np.zeros((len(x), 3))
-    camera.ground_colours(bg, x, y, z, np.ones(len(x), bool), col)
+    shading.ground_colours(bg, x, y, z, np.ones(len(x), bool), col)
     for k in range(4):
-        assert tuple(col[k]) == camera._ROAD, (k, x[k], y[k], z[k])
-    assert tuple(col[4]) != camera._ROAD
+        assert tuple(col[k]) == shading._ROAD, (k, x[k], y[k], z[k])
+    assert tuple(col[4]) != shading._ROAD

@@ -7,9 +7,9 @@ import pytest
 import trimesh
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-from falsify import cars
-from falsify.cars import BUILTIN_MODELS, LOD_LEVELS, car_dimensions, car_mesh, load_user_car
 from falsify.errors import ConfigError
+from falsify.world import cars
+from falsify.world.cars import BUILTIN_MODELS, LOD_LEVELS, car_dimensions, car_mesh, load_user_car
 
 EXPECTED = {  # length, width, height in metres
     "sedan": (4.7, 1.8, 1.45),

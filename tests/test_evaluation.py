@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from falsify.cli import main
-from falsify.evaluation import BANDS, band_counts, evaluate
-from falsify.metrics import confusion
-from falsify.scansets import ScanSet, load_sets
-from falsify.sensor import load_sensor
+from falsify.data.scansets import ScanSet, load_sets
+from falsify.jobs.predict import BANDS, band_counts, evaluate
+from falsify.results.metrics import confusion
+from falsify.sensor.lidar import load_sensor
 
 from .conftest import ROOT
 from .test_predict import synthetic_scans

@@ -9,12 +9,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from falsify.backgrounds import build_background
 from falsify.errors import FalsifyError
-from falsify.fit_returns import main as fit_returns_main
-from falsify.fit_rings import fit, fit_rings, main
-from falsify.scene import Simulator
-from falsify.sensor import load_sensor
+from falsify.jobs.fit_returns import main as fit_returns_main
+from falsify.jobs.fit_rings import fit, fit_rings, main
+from falsify.sensor.lidar import load_sensor
+from falsify.sensor.simulator import Simulator
+from falsify.world.streets import build_background
 
 
 def tilted_room():

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from falsify.cli import main
-from falsify.space import Sample
+from falsify.world.space import Sample
 from tests.runfixture import ROOT, write_run
 
 # smoke.toml: x in {-2, 2}, y in {8, 14}, backgrounds {0, 1}: 4 cells of 2 samples each.
@@ -88,7 +88,7 @@ def test_junit(run: Path, tmp_path: Path, capsys) -> None:
     junit = tmp_path / "ci" / "gate.xml"
     assert gate([str(run), "--junit", str(junit)], capsys)[0] == 1
     suite = ET.parse(junit).getroot()
-    assert suite.tag == "testsuite" and suite.get("name") == "falsify.gate"
+    assert suite.tag == "testsuite" and suite.get("name") == "falsify.jobs.gate"
     cases = suite.findall("testcase")
     assert sorted(c.get("name") for c in cases) == sorted(
         ["cell x=-2 y=8", "cell x=2 y=8", "cell x=-2 y=14", "cell x=2 y=14"])
@@ -151,7 +151,7 @@ def test_usage_errors_exit_2(run: Path, tmp_path: Path, capsys) -> None:
 
 def test_console_script(run: Path) -> None:
     exe = shutil.which("falsify")
-    cmd = [exe] if exe else [sys.executable, "-m", "falsify.cli"]
+    cmd = [exe] if exe else [sys.executable, "-m", "falsify"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.run([*cmd, "gate", str(run), "--json"], capture_output=True, text=True,
                           env=env, timeout=60)

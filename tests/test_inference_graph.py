@@ -67,7 +67,7 @@ def test_int8_graph_folds_relus_and_concats_copy(tmp_path):
     onnx = pytest.importorskip("onnx")
     ort = pytest.importorskip("onnxruntime")
     from falsify.models.export import export_onnx, quantize_int8
-    from falsify.models.variants import plausible_scans
+    from falsify.models.plausible import plausible_scans
 
     torch.manual_seed(3)
     m = SqueezeSeg(crf_iterations=1).eval()

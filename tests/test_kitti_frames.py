@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from falsify.kitti_frames import _IGNORE_ID, label_points, read_object_frame
-from falsify.kitti_object import KittiObject
-from falsify.sensor import load_sensor
+from falsify.data.kitti_frames import _IGNORE_ID, label_points, read_object_frame
+from falsify.data.kitti_object import KittiObject
+from falsify.sensor.lidar import load_sensor
 
 from .test_kitti_object import AXES
 

@@ -12,12 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from falsify.calib_check import check_kitti_dir
-from falsify.calibration import KittiCalib
 from falsify.cli import main
-from falsify.dataset import TrafficOptions, scene_for
-from falsify.errors import FalsifyError
-from falsify.kitti_object import (
+from falsify.data.kitti_object import (
     KittiObject,
     format_calib,
     frames,
@@ -27,8 +23,12 @@ from falsify.kitti_object import (
     read_labels,
     read_velodyne,
 )
-from falsify.scene import Simulator
-from falsify.sensor import load_sensor
+from falsify.data.training import TrafficOptions, scene_for
+from falsify.errors import FalsifyError
+from falsify.jobs.calib import check_kitti_dir
+from falsify.sensor.calibration import KittiCalib
+from falsify.sensor.lidar import load_sensor
+from falsify.sensor.simulator import Simulator
 
 from .conftest import CONFIGS
 

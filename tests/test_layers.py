@@ -1,7 +1,8 @@
-"""Layers look only down: no module imports from a layer above its own (read from the source).
+"""Layers look only down, by folder, and no module depends on itself through others.
 
-Every module of the package is placed in exactly one layer below; a new module must be placed
-here before this test passes. Imports inside functions and under TYPE_CHECKING count too.
+A layer is a list of folders; a module's layer is its folder's. A new folder of Python files
+must be placed here before this test passes. Imports inside functions and under TYPE_CHECKING
+count too: a lazy import is still a dependency.
 """
 
 from __future__ import annotations
@@ -12,121 +13,203 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("falsify", "models", "sampler", "reports")
+# The folders that install as falsify.NAME (pyproject's package-dir) besides falsify/ itself.
+TOP = ("sampler", "models", "reports", "configs")
 
 # Lowest first. A module may import from its own layer and the layers before it.
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("base: errors, class ids, atomic files", (
-        "falsify/__init__", "falsify/errors", "falsify/classes", "falsify/fileio",
-        "falsify/paths", "falsify/checks")),
-    ("world: space, meshes, streets, sensor, casting, scans, metrics", (
-        "falsify/space", "falsify/shapes", "falsify/cars", "falsify/backgrounds",
-        "falsify/sensor", "falsify/raycast", "falsify/materials", "falsify/terrain",
-        "falsify/vegetation", "falsify/structures", "falsify/road_users", "falsify/fit_returns",
-        "falsify/fit_rings",
-        "falsify/scan", "falsify/kitti", "falsify/scene",
-        "falsify/dataset", "falsify/preview", "falsify/metrics", "falsify/kitti_frames",
-        "falsify/scansets", "falsify/calibration", "falsify/camera", "falsify/kitti_object",
-        "falsify/kitti_export", "falsify/overlay", "falsify/pngread", "falsify/traffic")),
-    ("network: SqueezeSeg, its spec, runners, export, training", (
-        "models/*",)),
-    ("results: maps, the store and its reader, replay, samplers", (
-        "falsify/maps", "falsify/store", "falsify/replay", "sampler/*")),
-    ("drawing: HTML renderers", (
-        "reports/*",)),
-    ("jobs: runs, pipeline, gate, report, trade-off, bench, presets", (
-        "falsify/pipeline", "falsify/cluster", "falsify/runs", "falsify/gate",
-        "falsify/reporting",
-        "falsify/tradeoff", "falsify/bench", "falsify/fidelity", "falsify/evaluation",
-        "falsify/realism", "falsify/calib_check", "falsify/bench_camera", "falsify/retrain",
-        "falsify/bench_machine")),
-    ("command line", (
-        "falsify/cli", "falsify/camera_cli")),
+    ("base: errors, class ids, atomic files, paths, argument checks, rotations", ("falsify",)),
+    ("images: PNG, scan pictures, overlays", ("falsify/images",)),
+    ("world: the space, meshes, streets, materials", ("falsify/world",)),
+    ("sensor: LiDAR, ray casting, returns, scans, simulator, camera", ("falsify/sensor",)),
+    ("data: formats on disk, scan sets, training scenes", ("falsify/data",)),
+    ("results: metrics, store, maps, replay; samplers", ("falsify/results", "sampler")),
+    ("network: SqueezeSeg, its spec, runners, export, training", ("models",)),
+    ("drawing: HTML renderers", ("reports",)),
+    ("executors: evaluator, driver, processes, Ray", ("falsify/executors",)),
+    ("jobs: run, gate, report, predict, realism, retrain, calib, fits", ("falsify/jobs",)),
+    ("bench: benchmarks and the trade-off", ("falsify/bench",)),
+    ("command line", ("falsify/cli", "falsify/__main__")),
 )
+FOLDERS = {f: i for i, (_, folders) in enumerate(LAYERS) for f in folders}
 
 
-def layer_of(key: str) -> int:
-    """The layer index of a module key such as "falsify/store" or "models/runner"."""
-    for i, (_, members) in enumerate(LAYERS):
-        for m in members:
-            if m == key or (m.endswith("/*") and key.startswith(m[:-1])):
-                return i
-    raise KeyError(key)
+def folder_of_file(path: Path) -> str:
+    """The layer key of a source file: its folder, or falsify/__main__ for that one file."""
+    rel = path.relative_to(ROOT)
+    if rel.as_posix() == "falsify/__main__.py":
+        return "falsify/__main__"
+    return rel.parent.as_posix()
 
 
-def key_of(module: str) -> str | None:
-    """Our module key for an imported dotted name (falsify.models.x and models.x alike);
-    None for third-party modules."""
-    parts = module.split(".")
-    if parts[0] == "falsify" and len(parts) > 1 and parts[1] in PACKAGES[1:]:
-        parts = parts[1:]
-    if parts[0] not in PACKAGES:
+def module_of_file(path: Path) -> str:
+    """The installed dotted name of a source file (sampler/grid.py is falsify.sampler.grid)."""
+    rel = path.relative_to(ROOT).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts if parts[0] == "falsify" else ["falsify", *parts])
+
+
+def folder_of_module(name: str) -> str | None:
+    """The layer key of an imported dotted name; None for third-party modules."""
+    parts = name.split(".")
+    if parts[0] in TOP:   # the source-checkout spelling of falsify.sampler etc.
+        parts = ["falsify", *parts]
+    if parts[0] != "falsify":
         return None
     if len(parts) == 1:
-        return f"{parts[0]}/__init__"
-    return f"{parts[0]}/{parts[1]}"
+        return "falsify"
+    if parts[1] in TOP:
+        return parts[1]
+    if parts[1] == "__main__":
+        return "falsify/__main__"
+    sub = ROOT / "falsify" / parts[1]
+    return f"falsify/{parts[1]}" if sub.is_dir() else "falsify"
 
 
-def modules() -> list[Path]:
-    return sorted(p for pkg in PACKAGES for p in (ROOT / pkg).glob("*.py"))
+def sources() -> list[Path]:
+    out = sorted((ROOT / "falsify").rglob("*.py"))
+    for top in TOP:
+        out += sorted((ROOT / top).rglob("*.py"))
+    return [p for p in out if "__pycache__" not in p.parts]
 
 
-def imports(path: Path) -> list[tuple[int, str]]:
-    """(line, dotted name) of every import in the file, wherever it stands."""
+def imports(path: Path, typing_only: bool = True) -> list[tuple[int, str]]:
+    """(line, dotted name) of every import in the file, wherever it stands; `from falsify.world
+    import shapes` counts as an import of falsify.world.shapes. With typing_only=False, imports
+    under `if TYPE_CHECKING:` are left out (annotations: no dependency at run time)."""
     out = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    tree = ast.parse(path.read_text(), str(path))
+    skip: set[int] = set()
+    if not typing_only:
+        for node in ast.walk(tree):
+            if (isinstance(node, ast.If) and isinstance(node.test, ast.Name)
+                    and node.test.id == "TYPE_CHECKING"):
+                skip.update(id(n) for b in node.body for n in ast.walk(b))
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
         if isinstance(node, ast.Import):
             out += [(node.lineno, a.name) for a in node.names]
         elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
             out.append((node.lineno, node.module))
-            for a in node.names:   # `from falsify import shapes` imports falsify.shapes
-                sub = key_of(f"{node.module}.{a.name}")
-                if sub not in (None, key_of(node.module)) and (ROOT / f"{sub}.py").exists():
-                    out.append((node.lineno, f"{node.module}.{a.name}"))
+            out += [(node.lineno, f"{node.module}.{a.name}") for a in node.names]
     return out
 
 
-def test_every_module_has_a_layer():
-    missing = []
-    for path in modules():
-        key = f"{path.parent.name}/{path.stem}"
-        try:
-            layer_of(key)
-        except KeyError:
-            missing.append(key)
-    assert not missing, f"place these modules in tests/test_layers.py LAYERS: {missing}"
+def known_modules() -> set[str]:
+    return {module_of_file(p) for p in sources()}
 
 
-@pytest.mark.parametrize("path", modules(), ids=lambda p: f"{p.parent.name}/{p.stem}")
+def module_deps() -> dict[str, set[str]]:
+    """Each of our modules -> the modules of ours it imports (a package's __init__ counts)."""
+    known = known_modules()
+    deps: dict[str, set[str]] = {}
+    for path in sources():
+        me = module_of_file(path)
+        got = set()
+        for _, name in imports(path, typing_only=False):
+            parts = name.split(".")
+            if parts[0] in TOP:
+                parts = ["falsify", *parts]
+            full = ".".join(parts)
+            if full in known and full != me:
+                got.add(full)
+        deps[me] = got
+    return deps
+
+
+def test_every_folder_has_a_layer():
+    missing = sorted({folder_of_file(p) for p in sources()} - set(FOLDERS))
+    assert not missing, f"place these folders in tests/test_layers.py LAYERS: {missing}"
+
+
+@pytest.mark.parametrize("path", sources(), ids=lambda p: p.relative_to(ROOT).as_posix())
 def test_imports_look_only_down(path):
-    here = f"{path.parent.name}/{path.stem}"
-    mine = layer_of(here)
+    here = folder_of_file(path)
+    mine = FOLDERS[here]
     upward = []
     for line, name in imports(path):
-        key = key_of(name)
-        if key is None or key == here:
+        there = folder_of_module(name)
+        if there is None or there not in FOLDERS:
             continue
-        theirs = layer_of(key)
-        if theirs > mine:
-            upward.append(f"{here}.py:{line} imports {name} ({LAYERS[theirs][0]}) from "
-                          f"{LAYERS[mine][0]}")
+        if FOLDERS[there] > mine:
+            upward.append(f"{path.relative_to(ROOT)}:{line} imports {name} "
+                          f"({LAYERS[FOLDERS[there]][0]}) from {LAYERS[mine][0]}")
     assert not upward, "\n".join(upward)
 
 
-def test_the_checker_sees_an_upward_import(tmp_path):
-    bad = tmp_path / "models" / "x.py"
-    bad.parent.mkdir()
-    bad.write_text("def f():\n    from falsify.runs import execute\n")
-    assert [key_of(n) for _, n in imports(bad)] == ["falsify/runs"]
-    assert layer_of("falsify/runs") > layer_of("models/x")
+def cycles(deps: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one node (Tarjan), sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in sorted(deps.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(deps):
+        if v not in index:
+            visit(v)
+    return sorted(out)
+
+
+def test_no_import_cycle_between_modules():
+    """Lazy imports inside functions count; imports for annotations only do not."""
+    found = cycles(module_deps())
+    assert not found, f"import cycles: {found}"
+
+
+def test_no_import_cycle_between_folders():
+    """Folders of one layer (results and sampler) may use each other only one way."""
+    by_folder: dict[str, set[str]] = {}
+    for path in sources():
+        here = folder_of_file(path)
+        for _, name in imports(path):
+            there = folder_of_module(name)
+            if there is not None and there != here:
+                by_folder.setdefault(here, set()).add(there)
+    assert not cycles(by_folder), cycles(by_folder)
+
+
+def test_the_checkers_see_an_upward_import_and_a_cycle(tmp_path):
+    bad = tmp_path / "x.py"
+    bad.write_text("def f():\n    from falsify.jobs.run import execute\n")
+    names = [n for _, n in imports(bad)]
+    assert "falsify.jobs.run" in names
+    assert FOLDERS[folder_of_module("falsify.jobs.run")] > FOLDERS["models"]
+    assert folder_of_module("falsify.errors") == "falsify"
+    assert folder_of_module("sampler.grid") == "sampler"
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
 
 
 def test_the_renderers_neither_cast_nor_infer():
     """The HTML renderers draw what they are handed: no scene, sensor, replay or network."""
-    banned = ("falsify/scene", "falsify/raycast", "falsify/sensor", "falsify/replay",
-              "falsify/backgrounds", "falsify/cars")
     for path in (ROOT / "reports").glob("*.py"):
         for line, name in imports(path):
-            key = key_of(name) or ""
-            assert key not in banned and not key.startswith("models/"), \
-                f"reports/{path.name}:{line} imports {name}"
+            bad = (name.startswith(("falsify.sensor", "falsify.models", "models.",
+                                    "falsify.results.replay", "falsify.world.streets",
+                                    "falsify.world.cars", "falsify.executors")))
+            assert not bad, f"reports/{path.name}:{line} imports {name}"

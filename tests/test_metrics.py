@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from falsify.metrics import CLASSES, class_iou, class_scores, confusion, pooled
+from falsify.results.metrics import CLASSES, class_iou, class_scores, confusion, pooled
 
 
 def test_confusion_hand_computed():

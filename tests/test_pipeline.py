@@ -15,10 +15,10 @@ import pandas as pd
 import pytest
 
 from falsify.cli import main
-from falsify.pipeline import EvalSettings, Evaluator
-from falsify.runs import RunRequest, execute
-from falsify.space import load_space
-from falsify.store import TIMING_COLUMNS, read_frame, read_meta
+from falsify.executors.evaluator import EvalSettings, Evaluator
+from falsify.jobs.run import RunRequest, execute
+from falsify.results.store import TIMING_COLUMNS, read_frame, read_meta
+from falsify.world.space import load_space
 
 from .conftest import CONFIGS, ROOT
 
@@ -98,7 +98,7 @@ def test_killed_run_resumes_to_the_same_rows(tmp_path):
     config = small_config(tmp_path, xs=(-4.0, 4.0, 2.0), ys=(6.0, 18.0, 3.0))  # 5×5×2 = 50
     full, killed = tmp_path / "full", tmp_path / "killed"
     assert main(["grid", str(config), "--out", str(full), "--quiet", "--no-report"]) == 0
-    cmd = [sys.executable, "-m", "falsify.cli", "grid", str(config), "--out", str(killed),
+    cmd = [sys.executable, "-m", "falsify", "grid", str(config), "--out", str(killed),
            "--quiet", "--no-report"]
     n = kill_after_rows(cmd, killed / "results.sqlite", 10)
     assert 10 <= n < 50, "the run must be killed in the middle"
@@ -240,7 +240,7 @@ def test_fidelity_presets_run_their_model_variant(tmp_path, capsys, fidelity):
                  "--no-report", "--fidelity", fidelity, "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["samples"] == 8
-    from falsify.store import read_meta
+    from falsify.results.store import read_meta
     meta = read_meta(out)
     assert meta["fidelity"] == fidelity and "int8" in meta["model_path"]
     assert meta["lod"] == 2   # recorded: the report replays with it whatever presets become
@@ -320,7 +320,7 @@ def test_killed_concurrent_search_resumes_to_the_rows_of_one_worker(tmp_path):
                           backgrounds=(0, 1, 2))
     full, killed = tmp_path / "full", tmp_path / "killed"
     whole = search(config, full, "GN_CRS2_LM", workers=1, budget=36)
-    cmd = [sys.executable, "-m", "falsify.cli", "search", str(config), "--algorithm",
+    cmd = [sys.executable, "-m", "falsify", "search", str(config), "--algorithm",
            "GN_CRS2_LM", "--budget", "36", "--seed", "4", "--workers", "2", "--out",
            str(killed), "--quiet", "--no-report"]
     n = kill_after_rows(cmd, killed / "results.sqlite", 8)

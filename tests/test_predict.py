@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from falsify.cli import main
-from falsify.scene import PlacedCar, Simulator
-from falsify.sensor import load_sensor
+from falsify.sensor.lidar import load_sensor
+from falsify.sensor.simulator import PlacedCar, Simulator
 
 from .conftest import ROOT
 

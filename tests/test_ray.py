@@ -19,15 +19,23 @@ import pandas as pd
 import pytest
 from falsify.models.runner import load_segmenter
 from falsify.models.spec import spec_path_for
-from falsify.sampler.base import make_sampler
+from falsify.sampler import make_sampler
 
 from falsify.cli import main
-from falsify.cluster import ActorCrash, EvalActor, RayExecutor, Shipment, import_ray
 from falsify.errors import FalsifyError
-from falsify.pipeline import Driver, EvalSettings, Evaluator, Progress
-from falsify.runs import RunRequest, execute, executors_of
-from falsify.space import load_space
-from falsify.store import STORE_NAME, TIMING_COLUMNS, Store, read_frame, read_meta, sample_key
+from falsify.executors.driver import Driver, Progress
+from falsify.executors.evaluator import EvalSettings, Evaluator
+from falsify.executors.ray import ActorCrash, EvalActor, RayExecutor, Shipment, import_ray
+from falsify.jobs.run import RunRequest, execute, executors_of
+from falsify.results.store import (
+    STORE_NAME,
+    TIMING_COLUMNS,
+    Store,
+    read_frame,
+    read_meta,
+    sample_key,
+)
+from falsify.world.space import load_space
 
 from .test_bad_input import snapshot
 
@@ -86,15 +94,15 @@ def test_killed_actor_gives_the_identical_rows(ray, process_rows, tmp_path):
     killed: list = []
 
     def kill_one(progress, final):   # after the first chunk, kill an actor holding a chunk
-        if not killed and not final and driver.ray.in_flight:
-            chunk, actor = next(iter(driver.ray.in_flight.values()))
+        if not killed and not final and driver.executor.in_flight:
+            chunk, actor = next(iter(driver.executor.in_flight.values()))
             ray.kill(actor)
             killed.append(chunk)
 
     with Driver(EvalSettings(space=space), store, workers=2, executor="ray",
                 progress=Progress(None, kill_one)) as driver:
         make_sampler("grid").run(space, driver.evaluate, None, space.seed)
-        reruns, replaced = driver.ray.reruns, driver.ray.replaced
+        reruns, replaced = driver.executor.reruns, driver.executor.replaced
     store.close()
     # The killed actor's chunk may already have finished (its result is kept), so a re-run is
     # not certain; the replacement and the identical rows are.
@@ -261,7 +269,7 @@ def test_actor_start_failure_exits_2_and_leaves_no_run(tmp_path):
     pytest.importorskip("ray", reason='ray is not installed (pip install "falsify[ray]")')
     before = snapshot(tmp_path)
     env = {**os.environ, "FALSIFY_CACHE": "/proc/falsify-cache"}
-    r = subprocess.run([sys.executable, "-m", "falsify.cli", "grid",
+    r = subprocess.run([sys.executable, "-m", "falsify", "grid",
                         str(ROOT / "configs" / "smoke.toml"), "--out", "run", "--executor", "ray",
                         "--workers", "1", "--quiet"], cwd=tmp_path, env=env,
                        capture_output=True, text=True, timeout=300)

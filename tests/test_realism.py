@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from falsify.reports.realism import render_realism
+from falsify.reports.realism_page import render_realism
 from scipy.linalg import sqrtm
 
 from falsify.cli import main
-from falsify.realism import (
+from falsify.jobs.realism import (
     REFERENCE,
     STATISTICS,
     ScanFeatures,
@@ -30,8 +30,8 @@ from falsify.realism import (
     profile_distances,
     wasserstein_hist,
 )
-from falsify.scene import PlacedCar, Simulator
-from falsify.sensor import load_sensor
+from falsify.sensor.lidar import load_sensor
+from falsify.sensor.simulator import PlacedCar, Simulator
 
 from .conftest import ROOT, assert_offline
 

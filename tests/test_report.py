@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from falsify.cli import main
-from falsify.reporting import render_report, write_report
+from falsify.jobs.report import render_report, write_report
 from tests.conftest import assert_offline
 from tests.runfixture import PAPER, write_run
 
@@ -191,7 +191,7 @@ def test_in_chromium(browser, runs, tmp_path: Path) -> None:
 
 
 def test_replay_uses_the_level_of_detail_the_run_scanned_with() -> None:
-    from falsify.reporting import run_lod
+    from falsify.jobs.report import run_lod
 
     assert run_lod({"lod": 0, "fidelity": "exact"}) == 0       # the meta's own record wins
     assert run_lod({"fidelity": "fast"}) == 2                   # older runs: today's preset

@@ -14,10 +14,9 @@ import pytest
 from falsify.models.runner import BUNDLED_ONNX
 
 from falsify.cli import main
-from falsify.dataset import TrafficOptions, write_dataset
+from falsify.data.training import TrafficOptions, write_dataset
 from falsify.errors import FalsifyError
-from falsify.maps import CellMap
-from falsify.retrain import (
+from falsify.jobs.retrain import (
     STAGES,
     RetrainJob,
     RetrainRequest,
@@ -25,9 +24,10 @@ from falsify.retrain import (
     parse_ids,
     subset_config,
 )
-from falsify.sensor import load_sensor
-from falsify.space import load_space
-from falsify.store import sample_seed
+from falsify.results.miou_maps import CellMap
+from falsify.results.store import sample_seed
+from falsify.sensor.lidar import load_sensor
+from falsify.world.space import load_space
 from tests.conftest import CONFIGS, KITTI, assert_offline
 
 MODEL = BUNDLED_ONNX

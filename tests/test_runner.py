@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from falsify.models.plausible import plausible_scans
 from falsify.models.runner import (
     BUNDLED_ONNX,
     WEIGHTS_DIR,
@@ -17,7 +18,6 @@ from falsify.models.runner import (
     to_prediction,
 )
 from falsify.models.spec import load_spec, model_hash, spec_path_for
-from falsify.models.variants import plausible_scans
 
 from falsify.errors import FalsifyError
 
@@ -203,7 +203,7 @@ def test_runner_imports_and_runs_without_torch(exported):
         "import sys; sys.modules['torch'] = None\n"
         "import numpy as np\n"
         "from falsify.models.runner import load_segmenter\n"
-        "from falsify.models.variants import plausible_scans\n"
+        "from falsify.models.plausible import plausible_scans\n"
         f"seg = load_segmenter({str(exported)!r}, threads=1)\n"
         "p = seg.predict(plausible_scans(1))\n"
         "assert 'torch' not in sys.modules or sys.modules['torch'] is None\n"

@@ -18,19 +18,20 @@ from falsify.sampler.base import Recorder as BaseRecorder
 from falsify.sampler.nlopt import NloptSampler, discrete_combos
 
 from falsify.errors import ConfigError
-from falsify.space import Categorical, Continuous, Sample, Space, parse_space
+from falsify.world.space import Categorical, Continuous, Sample, Space, parse_space
 
 CARS = ("sedan", "suv")
 
 
 def space_of(dims: dict) -> Space:
-    """parse_space with the test's car list; stubs falsify.backgrounds only while it is missing."""
+    """parse_space with the test's car list; stubs falsify.world.streets only while it is
+    missing."""
     raw = {"seed": 0, "dims": dims}
     try:
-        import falsify.backgrounds  # noqa: F401
+        import falsify.world.streets  # noqa: F401
     except ImportError:
         stub = types.SimpleNamespace(MAX_BACKGROUND_ID=999_999)
-        with mock.patch.dict(sys.modules, {"falsify.backgrounds": stub}):
+        with mock.patch.dict(sys.modules, {"falsify.world.streets": stub}):
             return parse_space(raw, builtin_cars=CARS)
     return parse_space(raw, builtin_cars=CARS)
 

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import trimesh
 
-from falsify.backgrounds import build_background
-from falsify.cars import car_mesh, car_parts
-from falsify.materials import MATERIAL_ID, PASS_PROB, cast_through
-from falsify.raycast import MeshCaster
-from falsify.scene import InvalidSample, PlacedCar, Simulator, place, porosity_seed
-from falsify.sensor import SensorPose, load_sensor
-from falsify.space import CarPose, parse_space
+from falsify.sensor.lidar import SensorPose, load_sensor
+from falsify.sensor.raycast import MeshCaster, cast_through
+from falsify.sensor.simulator import InvalidSample, PlacedCar, Simulator, place, porosity_seed
+from falsify.world.cars import car_mesh, car_parts
+from falsify.world.materials import MATERIAL_ID, PASS_PROB
+from falsify.world.space import CarPose, parse_space
+from falsify.world.streets import build_background
 
 from .conftest import CONFIGS
 
@@ -386,7 +386,7 @@ def test_image_only_dims_do_not_change_the_scan(kitti):
 
 
 def test_paper_config_first_sample_scans(sim):
-    from falsify.space import load_space
+    from falsify.world.space import load_space
     space = load_space(CONFIGS / "paper.toml")
     scan = sim.scan(space.grid()[0])
     assert scan.image.shape == (64, 512, 6) and scan.image.dtype == np.float32

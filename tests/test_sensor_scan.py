@@ -7,10 +7,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from falsify.data.range_npy import load_scan_npy
+from falsify.data.velodyne import KITTI_RINGS, kitti_rows, read_kitti, write_kitti
 from falsify.errors import ConfigError, FalsifyError
-from falsify.kitti import KITTI_RINGS, kitti_rows, load_scan_npy, read_kitti, write_kitti
-from falsify.scene import PlacedCar, Simulator
-from falsify.sensor import load_sensor, parse_sensor, preset_names
+from falsify.sensor.lidar import load_sensor, parse_sensor, preset_names
+from falsify.sensor.simulator import PlacedCar, Simulator
 
 
 def test_presets_load():

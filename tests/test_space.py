@@ -7,7 +7,7 @@ import copy
 import pytest
 
 from falsify.errors import ConfigError
-from falsify.space import Continuous, load_space, parse_space
+from falsify.world.space import Continuous, load_space, parse_space
 
 from .conftest import CONFIGS
 

@@ -13,12 +13,12 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 from falsify.errors import ConfigError, FalsifyError
-from falsify.maps import miou_map
-from falsify.metrics import class_scores, confusion
-from falsify.raycast import MeshCaster
-from falsify.scene import PlacedCar, Simulator, place
-from falsify.sensor import load_sensor
-from falsify.space import CarPose, parse_space
+from falsify.results.metrics import class_scores, confusion
+from falsify.results.miou_maps import miou_map
+from falsify.sensor.lidar import load_sensor
+from falsify.sensor.raycast import MeshCaster
+from falsify.sensor.simulator import PlacedCar, Simulator, place
+from falsify.world.space import CarPose, parse_space
 
 from .conftest import ROOT
 
@@ -157,7 +157,7 @@ def test_yaw_wraps_around_by_whole_turns(yaw):
 
 
 def test_nlopt_at_bounds_and_zero_width_bounds():
-    from falsify.sampler.base import make_sampler
+    from falsify.sampler import make_sampler
     space = parse_space({"dims": {"car_model": {"values": ["sedan"]},
                                   "x": {"min": -5.0, "max": 4.0, "step": 1.0},
                                   "y": {"values": [7.0]},
@@ -245,7 +245,7 @@ def test_map_with_missing_cells_and_only_invalid_cells():
 
 
 def test_bad_threshold_and_unknown_sampler_are_clear_errors():
-    from falsify.sampler.base import make_sampler
+    from falsify.sampler import make_sampler
     with pytest.raises(ConfigError, match="allowed: grid, random, sobol"):
         make_sampler("GN_NOPE")
     with pytest.raises(ConfigError, match="threshold"):

@@ -13,9 +13,7 @@ import numpy as np
 import pytest
 from falsify.reports.tradeoff_page import pareto
 
-from falsify.cli import main
-from falsify.maps import CellMap, fill_nearest, jaccard, map_error
-from falsify.tradeoff import (
+from falsify.bench.tradeoff import (
     BUDGET_FRACTIONS,
     BUDGET_SAMPLERS,
     CRF_ITERATIONS,
@@ -25,6 +23,8 @@ from falsify.tradeoff import (
     RESOLUTIONS,
     STEPS,
 )
+from falsify.cli import main
+from falsify.results.miou_maps import CellMap, fill_nearest, jaccard, map_error
 
 CONFIG = """name = "tiny"
 sensor = "kitti-hdl64e-front"
@@ -72,8 +72,8 @@ def run(model, config, tmp_path_factory) -> tuple[Path, dict]:
     """All knobs on the first 3 samples of the 2 × 2 grid (the step knob uses their extent)."""
     out = tmp_path_factory.mktemp("run") / "out"
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr("falsify.dataset.CALIBRATION_SCANS", 2)   # keep the test quick: a short
-        mp.setattr("falsify.tradeoff.TIMING_ROUNDS", 1)       # calibration, one timing round
+        mp.setattr("falsify.data.training.CALIBRATION_SCANS", 2)   # keep the test quick: a short
+        mp.setattr("falsify.bench.tradeoff.TIMING_ROUNDS", 1)       # calibration, one timing round
         assert main(["tradeoff", str(config), "--out", str(out), "--model", str(model),
                      "--limit", "3"]) == 0
     return out, json.loads((out / "tradeoff.json").read_text())

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from falsify.cli import main
-from falsify.dataset import TrafficOptions, scene_for, write_dataset
-from falsify.scene import Simulator, ego_outline, first_overlap
-from falsify.sensor import load_sensor
-from falsify.traffic import SAME_LANE_GAP, lanes_of
+from falsify.data.traffic import SAME_LANE_GAP, lanes_of
+from falsify.data.training import TrafficOptions, scene_for, write_dataset
+from falsify.sensor.lidar import load_sensor
+from falsify.sensor.simulator import Simulator, ego_outline, first_overlap
 from tests.conftest import CONFIGS
 
 # sha256 of the scattered scenes 0, 3, ..., 21 (seed 0): the default must not move unless the

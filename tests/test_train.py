@@ -9,8 +9,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from falsify.models.plausible import plausible_scans  # noqa: E402
 from falsify.models.train import flip, main  # noqa: E402
-from falsify.models.variants import plausible_scans  # noqa: E402
 
 from falsify.errors import FalsifyError  # noqa: E402
 

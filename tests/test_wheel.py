@@ -41,6 +41,12 @@ def test_wheel_holds_only_the_falsify_package_and_its_data(wheel):
                  "falsify/configs/paper.toml", "falsify/configs/ci-baseline.json",
                  "falsify/sampler/nlopt.py", "falsify/reports/run_page.py"):
         assert need in names, need
+    # Every source module is in the wheel: a subpackage missing from pyproject's list fails here.
+    sources = [f.relative_to(ROOT).as_posix() for f in (ROOT / "falsify").rglob("*.py")]
+    for top in ("models", "reports", "sampler"):
+        sources += [f"falsify/{f.relative_to(ROOT).as_posix()}" for f in (ROOT / top).rglob("*.py")]
+    missing = sorted(n for n in sources if "__pycache__" not in n and n not in names)
+    assert not missing, missing
 
 
 def test_installed_wheel_runs_outside_the_checkout(wheel, tmp_path):
@@ -73,6 +79,8 @@ def test_installed_wheel_runs_outside_the_checkout(wheel, tmp_path):
     for f in json.loads(where.stdout):
         assert Path(f).is_relative_to(site), f"{f} is not the installed wheel"
     assert not [g for g in GENERIC if (site / g).exists()]
+    module = run("-m", "falsify", "--help")
+    assert module.returncode == 0 and "grid" in module.stdout, module.stderr
     falsify_cmd = str(env_dir / "bin" / "falsify")
     scan = subprocess.run([falsify_cmd, "scan", "configs/smoke.toml", "--out", "scan", "--json"],
                           cwd=work, env=env, capture_output=True, text=True, timeout=600)

@@ -11,19 +11,13 @@ import sys
 import numpy as np
 import pytest
 
-from falsify import road_users, structures, terrain, vegetation
-from falsify.backgrounds import _layout, _Street, build_background
-from falsify.materials import (
-    MATERIAL_ID,
-    MATERIALS,
-    PASS_PROB,
-    cast_through,
-    load_return_model,
-    unit_hash,
-)
-from falsify.raycast import MeshCaster
-from falsify.scene import PlacedCar, Simulator
-from falsify.sensor import SensorPose, load_sensor
+from falsify.sensor.lidar import SensorPose, load_sensor
+from falsify.sensor.raycast import MeshCaster, cast_through, unit_hash
+from falsify.sensor.returns import load_return_model
+from falsify.sensor.simulator import PlacedCar, Simulator
+from falsify.world import buildings, road_users, terrain, vegetation
+from falsify.world.materials import MATERIAL_ID, MATERIALS, PASS_PROB
+from falsify.world.streets import _layout, _Street, build_background
 
 from .conftest import ROOT
 
@@ -43,12 +37,12 @@ GENERATORS = {
     "tree": lambda st, t, r: vegetation.tree(st, t, r, 5.0, 16.0, 2.0, False, "t"),
     "tree band": lambda st, t, r: vegetation.tree_band(st, t, r, -1, 20.0, (-50.0, 50.0), 12.0,
                                                        6.0),
-    "wall": lambda st, t, r: structures.wall(st, t, r, -30.0, 30.0, 14.0, 1, "w"),
-    "fence": lambda st, t, r: structures.fence(st, t, r, -30.0, 30.0, 14.0, 1, "f"),
-    "railing": lambda st, t, r: structures.railing(st, t, r, -30.0, 30.0, 14.0, 1, "r"),
-    "guard rail": lambda st, t, r: structures.guard_rail(st, t, r, -30.0, 30.0, -10.5, -1, "g"),
-    "sign": lambda st, t, r: structures.sign(st, t, r, 30.0, -10.6, -1, "s"),
-    "building": lambda st, t, r: structures.building(st, t, r, 30.0, 55.0, 20.0, 12.0, 15.0,
+    "wall": lambda st, t, r: buildings.wall(st, t, r, -30.0, 30.0, 14.0, 1, "w"),
+    "fence": lambda st, t, r: buildings.fence(st, t, r, -30.0, 30.0, 14.0, 1, "f"),
+    "railing": lambda st, t, r: buildings.railing(st, t, r, -30.0, 30.0, 14.0, 1, "r"),
+    "guard rail": lambda st, t, r: buildings.guard_rail(st, t, r, -30.0, 30.0, -10.5, -1, "g"),
+    "sign": lambda st, t, r: buildings.sign(st, t, r, 30.0, -10.6, -1, "s"),
+    "building": lambda st, t, r: buildings.building(st, t, r, 30.0, 55.0, 20.0, 12.0, 15.0,
                                                      1, "b"),
 }
 
@@ -199,7 +193,7 @@ def test_scans_are_deterministic_with_returns_and_intensity():
 
 
 def test_fit_refuses_evaluation_scans(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "falsify.fit_returns",
+    r = subprocess.run([sys.executable, "-m", "falsify.jobs.fit_returns",
                         str(tmp_path / "squeezeseg" / "x.bin"), "--out", str(tmp_path / "o")],
                        capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 2 and "object" in r.stderr

@@ -1,0 +1,245 @@
+"""`falsify bench scan`: scans per second of the composed fast path beside the naive path (a
+merged scene re-cast with trimesh), in one run; and what scene size and image-only dims cost.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import multiprocessing as mp
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from falsify.bench.machine import machine
+from falsify.checks import MAX_SAMPLES
+from falsify.errors import FalsifyError
+from falsify.sensor.lidar import load_sensor
+from falsify.sensor.simulator import Simulator
+from falsify.world.space import Sample, Space, load_space
+
+
+def warm(sim: Simulator, samples: list[Sample]) -> None:
+    """Build every background's hits and the car BVHs before the clock starts."""
+    for bg in sorted({s.background for s in samples}):
+        sim.background_hits(bg, sim.ego_pose(bg))
+    for s in samples[:4]:
+        sim.scan(s)
+
+
+def _scan_rate(space: Space, samples: list[Sample], lod: int = 2) -> float:
+    """Scans per second of the fast path in this process, caches warm."""
+    sim = Simulator(load_sensor(space.sensor), space.user_cars, lod=lod)
+    warm(sim, samples)
+    t0 = time.perf_counter()
+    for s in samples:
+        sim.scan(s)
+    return len(samples) / (time.perf_counter() - t0)
+
+
+def _scan_worker(args) -> tuple[int, float, float]:
+    config, start, stop, lod = args
+    space = load_space(config)
+    samples = space.grid()[start:stop]
+    sim = Simulator(load_sensor(space.sensor), space.user_cars, lod=lod)
+    warm(sim, samples)
+    t0 = time.perf_counter()
+    for s in samples:
+        sim.scan(s)
+    return len(samples), t0, time.perf_counter()
+
+
+def naive_scan(space: Space, sample: Sample):
+    """The naive path: rebuild the merged scene for the sample and cast every ray with trimesh's
+    exact `intersects_location` (a new BVH per sample), re-casting past porous and glass
+    surfaces with the same hash-decided passes as the fast path."""
+    import trimesh
+
+    from falsify.sensor.raycast import STEP, unit_hash
+    from falsify.sensor.simulator import porosity_seed
+    from falsify.world.materials import PASS_PROB
+    from falsify.world.streets import build_background
+
+    sensor = load_sensor(space.sensor)
+    sim = Simulator(sensor, space.user_cars)
+    bg = build_background(sample.background)
+    meshes = [trimesh.Trimesh(bg.vertices, bg.faces, process=False)]
+    mats = [bg.materials()]
+    for pc in sim.placed_cars(sample):
+        m = sim.car_mesh(pc.model).copy()
+        m.apply_transform(pc.matrix())
+        meshes.append(m)
+        mats.append(sim.car_materials(pc.model))
+    merged = trimesh.util.concatenate(meshes)
+    face_pass = PASS_PROB[np.concatenate(mats)]
+    pose = sim.ego_pose(sample.background)
+    rot = pose.rotation(sensor)
+    d = sensor.directions.reshape(-1, 3) @ rot.T
+    o = np.broadcast_to(sim.ray_starts(pose, rot), d.shape).copy()
+    ranges = np.zeros(len(d))
+    todo, start = np.arange(len(d)), np.zeros(len(d))
+    for _ in range(16):
+        loc, idx, tri = merged.ray.intersects_location(o[todo] + d[todo] * start[todo, None],
+                                                       d[todo], multiple_hits=False)
+        ray = todo[idx]
+        t = start[ray] + np.linalg.norm(loc - (o[ray] + d[ray] * start[ray, None]), axis=1)
+        passed = unit_hash(ray, tri, porosity_seed(sample.background)) < face_pass[tri]
+        ranges[ray[~passed]] = t[~passed]
+        todo = ray[passed]
+        start[todo] = t[passed] + STEP
+        if len(todo) == 0:
+            break
+    ranges[ranges > sensor.max_range] = 0.0
+    return ranges.reshape(sensor.shape)
+
+
+@dataclass(frozen=True)
+class ScanBench:
+    """Scans/s of the fast path in 1 and `workers` processes against the naive path."""
+
+    config: str
+    sensor: str
+    samples: int
+    workers: int
+    machine: dict
+    fast_1: float          # scans/s, 1 process
+    fast_n: float          # scans/s, `workers` processes
+    naive: float           # scans/s, the naive path
+    naive_samples: int
+    scene_size: dict
+
+    def to_json(self) -> dict:
+        w = self.workers
+        return {
+            "benchmark": "scan", "config": self.config, "sensor": self.sensor,
+            "samples": self.samples, "machine": self.machine,
+            "fast_scans_per_s_1_process": round(self.fast_1, 1),
+            f"fast_scans_per_s_{w}_processes": round(self.fast_n, 1),
+            "naive_scans_per_s": round(self.naive, 3),
+            "naive_samples": self.naive_samples,
+            "speedup_1_process": round(self.fast_1 / self.naive, 1),
+            f"speedup_{w}_processes": round(self.fast_n / self.naive, 1),
+            "scene_size": self.scene_size,
+        }
+
+
+def bench_scan(config: str | Path, samples: int = 1000, naive_samples: int = 5,
+               workers: int = 2) -> ScanBench:
+    """Scans/s of the fast path (1 process and `workers` processes) against the naive path, plus
+    how flat the per-scan time stays when the background grows and image-only dims change."""
+    if samples <= 0 or samples < workers:
+        raise FalsifyError(f"--samples: {samples} must be at least the number of workers")
+    space = load_space(config)
+    space.check_size(MAX_SAMPLES, "the benchmark's limit")
+    grid = space.grid()
+    picked = [grid[i % len(grid)] for i in range(samples)]
+    single = _scan_rate(space, picked)
+
+    chunks = np.array_split(np.arange(samples), workers)
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(workers) as pool:
+        parts = pool.map(_scan_worker, [(str(config), int(c[0]) % len(grid),
+                                         int(c[0]) % len(grid) + len(c), 2) for c in chunks])
+    start = min(p[1] for p in parts)
+    stop = max(p[2] for p in parts)
+    multi = sum(p[0] for p in parts) / (stop - start)
+
+    naive_times = []
+    for s in picked[:naive_samples]:
+        t0 = time.perf_counter()
+        naive_scan(space, s)
+        naive_times.append(time.perf_counter() - t0)
+    naive = 1.0 / float(np.mean(naive_times))
+
+    return ScanBench(str(config), space.sensor, samples, workers, machine(), single, multi,
+                     naive, naive_samples, scene_size_effect(space, picked[: min(900, samples)]))
+
+
+def scene_size_effect(space: Space, samples: list[Sample]) -> dict:
+    """Per-scan time with the street as built, with every triangle split in 4 twice (16× the
+    triangles), and with 10× the objects far beyond max range, and with image-only dims varied."""
+    from falsify.world.streets import build_background
+
+    def rate(transform) -> tuple[float, int]:
+        tri = {}
+
+        def source(bg_id):
+            bg = transform(build_background(bg_id))
+            tri[bg_id] = len(bg.faces)
+            return bg
+        sim = Simulator(load_sensor(space.sensor), space.user_cars, background_source=source)
+        warm(sim, samples)
+        t0 = time.perf_counter()
+        for s in samples:
+            sim.scan(s)
+        return (time.perf_counter() - t0) / len(samples) * 1e3, int(np.mean(list(tri.values())))
+
+    def subdivided(bg):
+        v, f = bg.vertices, bg.faces
+        cls, inst, mat = bg.face_class, bg.face_instance, bg.materials()
+        for _ in range(2):
+            v, f, idx = _subdivide(v, f)
+            cls, inst, mat = cls[idx], inst[idx], mat[idx]
+        return dataclasses.replace(bg, vertices=v, faces=f, face_class=cls, face_instance=inst,
+                                   face_material=mat)
+
+    def far_objects(bg):
+        v, f = [bg.vertices], [bg.faces]
+        n = len(bg.vertices)
+        for k in range(1, 10):
+            v.append(bg.vertices + [1000.0 * k, 0.0, 0.0])
+            f.append(bg.faces + n * k)
+        return dataclasses.replace(
+            bg, vertices=np.concatenate(v), faces=np.concatenate(f).astype(np.int32),
+            face_class=np.tile(bg.face_class, 10), face_instance=np.tile(bg.face_instance, 10),
+            face_material=np.tile(bg.materials(), 10))
+
+    # Best of three, interleaved, so a busy moment of the machine does not land on one variant.
+    runs = [(rate(lambda b: b), rate(subdivided), rate(far_objects)) for _ in range(3)]
+    (base_ms, base_tri), (sub_ms, sub_tri), (far_ms, far_tri) = (
+        min((r[k] for r in runs), key=lambda x: x[0]) for k in range(3))
+    image_ms = min(_image_dims_rate(space, samples) for _ in range(3))
+    return {
+        "ms_per_scan": round(base_ms, 3), "triangles": base_tri,
+        "ms_per_scan_16x_triangles": round(sub_ms, 3), "triangles_16x": sub_tri,
+        "ms_per_scan_10x_objects_beyond_range": round(far_ms, 3), "triangles_10x": far_tri,
+        "ms_per_scan_image_dims_varied": round(image_ms, 3),
+        "ratio_16x_triangles": round(sub_ms / base_ms, 3),
+        "ratio_10x_objects": round(far_ms / base_ms, 3),
+        "ratio_image_dims": round(image_ms / base_ms, 3),
+    }
+
+
+def _image_dims_rate(space: Space, samples: list[Sample]) -> float:
+    """Per-scan ms when every sample also changes colour, weather and time of day."""
+    from falsify.world.space import IMAGE_ONLY, Categorical
+    dims = dict(space.dims)
+    for name, values in zip(IMAGE_ONLY, (("red", "white", "black"), ("sun", "rain", "fog"),
+                                         ("noon", "dusk", "night")), strict=True):
+        dims[name] = Categorical(name, values)
+    wide = dataclasses.replace(space, dims=dims)
+    varied = []
+    for i, s in enumerate(samples):
+        d = s.as_dict()
+        d.update(colour=("red", "white", "black")[i % 3], weather=("sun", "rain", "fog")[i % 3],
+                 time_of_day=("noon", "dusk", "night")[(i // 3) % 3])
+        varied.append(wide.make(d))
+    sim = Simulator(load_sensor(space.sensor), space.user_cars)
+    warm(sim, varied)
+    t0 = time.perf_counter()
+    for s in varied:
+        sim.scan(s)
+    return (time.perf_counter() - t0) / len(varied) * 1e3
+
+
+def _subdivide(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split every triangle into 4 at its edge midpoints (same surface, 4× the triangles)."""
+    a, b, c = f[:, 0], f[:, 1], f[:, 2]
+    n = len(v)
+    m = len(f)
+    ab, bc, ca = n + np.arange(m), n + m + np.arange(m), n + 2 * m + np.arange(m)
+    v2 = np.concatenate([v, (v[a] + v[b]) / 2, (v[b] + v[c]) / 2, (v[c] + v[a]) / 2])
+    f2 = np.concatenate([np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1),
+                         np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1)]).astype(np.int32)
+    return v2, f2, np.tile(np.arange(m), 4)

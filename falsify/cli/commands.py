@@ -1,0 +1,847 @@
+"""The `falsify` command line: one subcommand per job; user errors exit 2 with one clear line."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+from falsify.checks import (
+    MAX_SAMPLES,
+    check_out_dir,
+    check_out_file,
+    check_range,
+    check_seed,
+)
+from falsify.errors import FalsifyError
+from falsify.paths import CONFIGS, config_path
+
+DEFAULT_CONFIG = CONFIGS / "paper.toml"
+# `dataset`'s drop for sensors without a fitted return model: real sensors lose some returns.
+UNIFORM_RAY_DROP = 0.05
+
+
+class UsageError(FalsifyError):
+    """A bad command-line argument."""
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse that reports errors as one line and exit code 2 (its own convention too)."""
+
+    def error(self, message: str):  # noqa: D401 - argparse API
+        self.exit(2, f"falsify: error: {message}\n")
+
+
+def _set_pairs(pairs: list[str]) -> dict[str, str]:
+    out = {}
+    for item in pairs:
+        if "=" not in item:
+            raise UsageError(f"--set {item!r}: expected KEY=VALUE, e.g. --set x=2.5")
+        key, value = item.split("=", 1)
+        out[key.strip()] = value.strip()
+    return out
+
+
+def emit(args, summary: dict, text: str) -> None:
+    """Print the summary as JSON with --json, else as text."""
+    if getattr(args, "json", False):
+        print(json.dumps(summary, indent=2, sort_keys=True, default=str))
+    else:
+        print(text)
+
+
+# -- scan -----------------------------------------------------------------------------------
+def cmd_scan(args) -> int:
+    from falsify.fileio import write_bytes, write_npy
+    from falsify.images.png import encode_png
+    from falsify.images.scan_pictures import scan_picture
+    from falsify.sensor.lidar import load_sensor
+    from falsify.sensor.simulator import InvalidSample, Simulator
+    from falsify.world.space import load_space
+
+    check_out_dir(args.out)
+    space = load_space(args.config)
+    sample = space.make(_set_pairs(args.set or []))
+    sensor = load_sensor(space.sensor)
+    sim = Simulator(sensor, space.user_cars)
+    camera = None
+    if args.camera is not None:
+        from falsify.sensor.camera import camera_preset
+        from falsify.sensor.look import look_of
+        camera = camera_preset(args.camera)
+        look_of(sample)  # a value the camera cannot render fails before anything is written
+    try:
+        scan = sim.scan(sample)
+    except InvalidSample as exc:
+        raise FalsifyError(f"invalid sample: {exc}") from None
+    out = Path(args.out)
+    summary = {
+        "sample": sample.as_dict(), "sensor": sensor.name, "shape": list(scan.image.shape),
+        "points": int(scan.valid.sum()), "car_points": scan.count(1),
+        "files": [str(out / "scan.npy"), str(out / "scan.png")],
+    }
+    extra: dict[str, bytes] = {}
+    if camera is not None:
+        from falsify.cli.camera import scan_camera_files
+        extra, summary["camera"] = scan_camera_files(sim, camera, sample, scan)
+    write_npy(out / "scan.npy", scan.image)
+    write_bytes(out / "scan.png", encode_png(scan_picture(scan.image)))
+    for name, data in extra.items():
+        write_bytes(out / name, data)
+        summary["files"].append(str(out / name))
+    emit(args, summary, f"wrote {out / 'scan.npy'} and {out / 'scan.png'}: "
+         f"{summary['points']} points, {summary['car_points']} on cars")
+    return 0
+
+
+# -- dataset --------------------------------------------------------------------------------
+def cmd_dataset(args) -> int:
+    from falsify.data.training import TrafficOptions, write_dataset
+    from falsify.sensor.lidar import load_sensor
+    from falsify.world.space import load_space
+
+    check_out_dir(args.out)
+    check_seed(args.seed)
+    space = load_space(args.config)
+    if args.scans <= 0:
+        raise UsageError(f"--scans: {args.scans} must be > 0")
+    if not 0 <= args.first_background <= 999_000:
+        raise UsageError(f"--first-background: {args.first_background} must be in 0..999000")
+    if not 0 <= args.max_cars <= 40:
+        raise UsageError(f"--max-cars: {args.max_cars} must be in 0..40")
+    if args.backgrounds < 1:
+        raise UsageError(f"--backgrounds: {args.backgrounds} must be >= 1")
+    if args.ray_drop is None:
+        # A fitted return model already drops returns as the real sensor does.
+        args.ray_drop = 0.0 if load_sensor(space.sensor).returns else UNIFORM_RAY_DROP
+    if not 0 <= args.ray_drop < 1 or not 0 <= args.range_noise <= 1:
+        raise UsageError("--ray-drop must be in [0, 1) and --range-noise in [0, 1] m")
+    used = {int(b) for b in space.dims["background"].grid()}
+    span = set(range(args.first_background, args.first_background + args.backgrounds))
+    if used & span:
+        raise UsageError(f"--first-background {args.first_background}: training backgrounds "
+                         f"overlap the config's test backgrounds {sorted(used & span)[:5]}; "
+                         "choose ids disjoint from the falsification space")
+    sensor = load_sensor(space.sensor, ray_drop=args.ray_drop, range_noise=args.range_noise)
+    opts = TrafficOptions(max_cars=args.max_cars, backgrounds=args.backgrounds,
+                          first_background=args.first_background, traffic=args.traffic)
+    if args.format == "kitti-object":
+        from falsify.cli.camera import dataset_kitti_object
+        summary, text = dataset_kitti_object(sensor, args.camera, Path(args.out), args.scans,
+                                             args.seed, opts)
+        emit(args, summary, text)
+        return 0
+    def progress(done: int, total: int) -> None:
+        print(f"  {done}/{total} scans", flush=True)
+
+    summary = write_dataset(sensor, Path(args.out), args.scans, seed=args.seed, opts=opts,
+                            on_progress=None if args.json else progress)
+    emit(args, summary, f"wrote {summary['written']} scans to {args.out} "
+         f"({summary['scans']} in the set); points per class {summary['points_per_class']}")
+    return 0
+
+
+# -- predict and train ----------------------------------------------------------------------
+def cmd_predict(args) -> int:
+    from falsify.data.scansets import load_sets
+    from falsify.fileio import write_npy
+    from falsify.jobs.predict import evaluate
+    from falsify.models.runner import load_segmenter
+    from falsify.sensor.lidar import load_sensor
+
+    check_out_dir(args.out)
+    sets = load_sets(args.scans, load_sensor(args.sensor))
+    model = load_segmenter(args.model, backend=args.backend)
+    result = evaluate(model, sets)
+    out = Path(args.out)
+    for s in result.sets:
+        folder = out / s.name if len(result.sets) > 1 else out
+        for source, cls in zip(s.sources, s.predictions, strict=True):
+            write_npy(folder / f"{Path(source).stem}.pred.npy", cls)
+    summary = {**result.as_dict(), "backend": args.backend, "out": str(out)}
+    labelled = any(bool((s.images[..., 5] > 0).any()) for s in sets)
+    if not labelled:
+        summary = {k: v for k, v in summary.items() if k not in ("pooled", "sets")}
+    emit(args, summary, _predict_text(result, args.backend, out, labelled))
+    return 0
+
+
+def _predict_text(result, backend: str, out: Path, labelled: bool) -> str:
+    """Per set: pooled scores per class, then car IoU, precision and recall per range band."""
+    def f(v):
+        return "   -  " if v is None else f"{v:6.3f}"
+
+    n = sum(len(s.sources) for s in result.sets)
+    lines = [f"predicted {n} scans with {result.model} ({result.model_hash[:12]}, {backend}) "
+             f"into {out}"]
+    if not labelled:
+        return lines[0]
+    for s in result.sets:
+        lines.append(f"\n{s.name}: {len(s.sources)} scans"
+                     + (f", {s.ignored_pixels} pixels ignored" if s.ignored_pixels else ""))
+        lines.append("class        IoU    precision  recall   (TP, FP, FN pooled over scans)")
+        for c in s.pooled.classes:
+            lines.append(f"{c.name:11s} {f(c.iou)}  {f(c.precision)}    {f(c.recall)}"
+                         + (f"   ({c.note})" if c.note else ""))
+        lines.append("car by range  IoU    precision  recall   TP      FP      FN")
+        for band, sc in s.bands:
+            c = sc.car()
+            lines.append(f"{band:11s} {f(c.iou)}  {f(c.precision)}    {f(c.recall)}  "
+                         f"{c.tp:6d}  {c.fp:6d}  {c.fn:6d}")
+    return "\n".join(lines)
+
+
+def cmd_train(args) -> int:
+    from falsify.models.train import main as train_main
+    return int(train_main(args.train_args) or 0)
+
+
+# -- realism --------------------------------------------------------------------------------
+def cmd_realism(args) -> int:
+    from falsify.data.scansets import load_sets, npy_files, real_sets
+    from falsify.fileio import write_json, write_text
+    from falsify.jobs.realism import EncoderFeatures, compare
+    from falsify.reports.realism_page import render_realism
+    from falsify.sensor.lidar import load_sensor
+
+    if args.scans is not None and args.scans < 1:
+        raise UsageError(f"--scans: {args.scans} must be >= 1")
+    if args.bootstrap < 0:
+        raise UsageError(f"--bootstrap: {args.bootstrap} must be >= 0 (0: no resampling)")
+    synthetic: dict[str, list[Path]] = {}
+    for d in map(Path, args.synthetic):
+        if not d.is_dir():
+            raise UsageError(f"{d}: not a folder (expected a `falsify dataset` folder of .npy)")
+        files = npy_files(d)[: args.scans]
+        if not files:
+            raise UsageError(f"{d}: no .npy scans in this folder")
+        name = d.name if d.name not in synthetic and d.name else str(d)
+        synthetic[name] = files
+    sensor = load_sensor(args.sensor)
+    real = load_sets(args.real, sensor) if args.real else real_sets(sensor)
+    result = compare(synthetic, real, EncoderFeatures(args.model),
+                     bootstrap_draws=args.bootstrap)
+    doc = result.as_dict()
+    page = render_realism(doc)
+    out = Path(args.out)
+    write_json(out / "realism.json", doc)
+    write_text(out / "realism.html", page)
+    summary = {**doc, "files": [str(out / "realism.json"), str(out / "realism.html")]}
+    emit(args, summary, _realism_text(doc, out))
+    return 0
+
+
+def _realism_text(doc: dict, out: Path) -> str:
+    """Distances to the pooled real scans, one line per statistic."""
+    ref = doc["real_pooled"]
+    names = [s["name"] for s in doc["synthetic"]]
+    parts = [r["name"] for r in doc["real"] if r["name"] != ref]
+    lines = [f"realism against {ref} ({', '.join(parts) or ref}), lower is "
+             f"closer; wrote {out / 'realism.json'} and {out / 'realism.html'}",
+             f"{'statistic':12s}" + "".join(f"{n[-24:]:>26s}" for n in names)]
+    for key in doc["statistics"]:
+        lines.append(f"{key:12s}" + "".join(f"{doc['distances'][n][ref][key]:26.4f}"
+                                            for n in names))
+    floors = [s["frechet_floor"] for s in doc["synthetic"]]
+    if all(floors):
+        lines.append(f"{'(floor)':12s}" + "".join(f"{f['mean']:26.4f}" for f in floors)
+                     + f"  frechet of {floors[0]['scans']} scans of the same set against the "
+                     "rest (sampling alone)")
+    for key in doc.get("reference_statistics", {}):
+        lines.append(f"{key:12s}" + "".join(f"{doc['distances'][n][ref][key]:26.4f}"
+                                            for n in names) + "  (reference, not compared)")
+    boot = doc.get("bootstrap")
+    if boot:
+        lo, hi = boot["levels"]
+        lines.append(f"resampled {boot['draws']} times (seed {boot['seed']}): {lo:g}-{hi:g} % "
+                     "of each distance")
+        for key in doc["statistics"]:
+            spans = (boot["intervals"][n][key] for n in names)
+            lines.append(f"{key:12s}" + "".join(f"{f'{a:.4f}-{b:.4f}':>26s}" for a, b in spans))
+    for name, cand in ((doc.get("comparison") or {}).get("candidates") or {}).items():
+        k, n = sum(cand["closer"].values()), len(cand["closer"])
+        lines.append(f"{name}: closer than {doc['comparison']['baseline']} on {k} of {n} "
+                     f"statistics; on every one: {'yes' if k == n else 'no'}")
+        if boot:
+            share = boot["closer_share"][name]
+            lines.append("  closer in this share of the resampled draws: " + ", ".join(
+                f"{key} {share[key]:.2f}" for key in doc["statistics"]))
+        on = cand["closer_on_real_scans"]
+        lines.append(f"  closer against this many of the {cand['real_scans']} real scans, each "
+                     "alone: " + ", ".join(f"{key} {v}" for key, v in on.items()))
+    return "\n".join(lines)
+
+
+# -- grid and search ------------------------------------------------------------------------
+class ProgressBar:
+    """Draws a run's progress as one line on stderr: a bar, rate, ETA and the lowest IoU."""
+
+    def __init__(self) -> None:
+        self._last = 0.0
+
+    def __call__(self, p, final: bool) -> None:
+        now = time.perf_counter()
+        if not final and now - self._last < 0.25:
+            return
+        self._last = now
+        elapsed = now - p.started
+        rate = p.computed / elapsed if elapsed > 0 else 0.0
+        total = f"/{p.total}" if p.total else ""
+        eta = ""
+        if p.total and rate > 0:
+            eta = f" ETA {max(0.0, (p.total - p.done) / rate):5.0f}s"
+        low = "-" if p.lowest is None else f"{p.lowest:.3f}"
+        bar = ""
+        if p.total:
+            filled = int(24 * min(1.0, p.done / p.total))
+            bar = "[" + "#" * filled + "." * (24 - filled) + "] "
+        tty = sys.stderr.isatty()
+        end = "\n" if final or not tty else "\r"
+        if not tty and not final and p.done % 200 and p.done != p.total:
+            return
+        sys.stderr.write(f"{bar}{p.done}{total} samples  {rate:6.1f}/s{eta}  "
+                         f"lowest IoU {low}{end}")
+        sys.stderr.flush()
+
+
+def summary_text(s) -> str:
+    """A run's summary (RunSummary) in a few lines."""
+    low = s.lowest
+    where = "" if low is None else ", ".join(f"{k}={v}" for k, v in low["sample"].items()
+                                             if k in ("x", "y", "yaw", "background",
+                                                      "car_model"))
+    lines = [
+        f"{s.samples} samples ({s.computed_this_time} computed now, {s.invalid} invalid, "
+        f"{s.undefined} undefined) in {s.elapsed_s:.1f} s",
+        f"blind spots: {s.blind_spots} of {s.cells} cells below mIoU {s.threshold}",
+        f"lowest car IoU: {'-' if low is None else low['car_iou']} at {where}",
+        f"mean car IoU: {s.mean_car_iou}",
+        f"retraining set: {s.retraining_samples} scans in {Path(s.run) / 'retrain'}",
+    ]
+    if s.executors:
+        lines.append(f"computed on executors {', then '.join(s.executors)} (resumed on another; "
+                     "the rows do not depend on the executor)")
+    if s.report:
+        lines.append(f"report: {s.report}")
+    return "\n".join(lines)
+
+
+def _run(args, command: str, algorithm: str) -> int:
+    from falsify.jobs.run import RunRequest, execute
+
+    req = RunRequest(
+        config=Path(args.config), out=Path(args.out), command=command, algorithm=algorithm,
+        budget=getattr(args, "budget", None), seed=args.seed, model=args.model,
+        backend=args.backend, workers=args.workers, resume=args.resume,
+        threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
+        camera=args.camera, max_samples=args.max_samples, executor=args.executor,
+        address=args.address)
+    summary = execute(req, on_progress=None if args.quiet else ProgressBar())
+    emit(args, summary.to_json(), summary_text(summary))
+    return 0
+
+
+def cmd_grid(args) -> int:
+    return _run(args, "grid", "grid")
+
+
+def cmd_search(args) -> int:
+    if args.budget is None or args.budget < 1:
+        raise UsageError("--budget: a number of evaluations >= 1 is required")
+    return _run(args, "search", args.algorithm)
+
+
+def _run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config")
+    p.add_argument("--out", required=True, help="run directory (results.sqlite, maps, report)")
+    p.add_argument("--model", default=None,
+                   help="an ONNX segmentation model with its .json spec (default: bundled)")
+    p.add_argument("--backend", choices=["onnx", "torch"], default="onnx")
+    p.add_argument("--workers", type=int, default=1,
+                   help="local worker processes, or Ray actors with --executor ray")
+    p.add_argument("--executor", choices=["process", "ray"], default="process",
+                   help="process: worker processes on this machine; ray: warm actors on a Ray "
+                   'cluster (pip install "falsify[ray]")')
+    p.add_argument("--address", default=None, metavar="HOST:PORT",
+                   help="with --executor ray: the head of an existing Ray cluster (HOST:PORT, "
+                   "ray://HOST:PORT or auto); default: start a local Ray instance")
+    p.add_argument("--seed", type=int, default=None, help="default: the config's seed")
+    p.add_argument("--resume", action="store_true", help="continue a killed run")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="mIoU below which a cell is a blind spot (default: config, 0.65)")
+    p.add_argument("--fidelity", default="exact", choices=["fast", "balanced", "exact"])
+    p.add_argument("--no-report", action="store_true")
+    p.add_argument("--max-samples", type=int, default=MAX_SAMPLES,
+                   help=f"refuse a grid or budget larger than this (default {MAX_SAMPLES:,})")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _camera_option(p, "also store the camera images of the retraining set beside its scans")
+    p.add_argument("--json", action="store_true")
+
+
+def _camera_option(p: argparse.ArgumentParser, help_text: str) -> None:
+    from falsify.sensor.camera import CAMERA_PRESETS, DEFAULT_CAMERA
+    p.add_argument("--camera", nargs="?", const=DEFAULT_CAMERA, default=None, metavar="PRESET",
+                   help=f"{help_text} (presets: {', '.join(CAMERA_PRESETS)}; "
+                   f"default {DEFAULT_CAMERA})")
+
+
+# -- bench ----------------------------------------------------------------------------------
+# Held-out frames `bench model` measures unless --samples says otherwise.
+MODEL_BENCH_FRAMES = 1000
+
+
+def given_options(args, *names: str) -> dict:
+    """The named options the user gave (not None): each benchmark's own defaults stand for the
+    rest, since one shared parser default cannot suit scans, pipelines and camera images."""
+    return {n: getattr(args, n) for n in names if getattr(args, n) is not None}
+
+
+def pipeline_figures_text(r: dict) -> str:
+    """The machine-relative lines of `bench pipeline`: rates, MatMul, FLOPs, ratios, memory."""
+    w, rates, mm, net, q = r["rates"]["workers"], r["rates"], r["matmul"], r["network"], r["ratios"]
+    crf = "" if net["crf_share"] is None else f" (CRF {net['crf_share']:.1%})"
+    mem = r["memory"]
+    return "\n".join([
+        f"1 thread a worker: inference alone {rates['inference_only_1_worker']} samples/s on 1 "
+        f"worker, {rates['inference_only_n_workers']} on {w} at once; end to end "
+        f"{rates['e2e_1_worker']} on 1, {rates['e2e_n_workers']} on {w}",
+        f"machine: fp32 MatMul {mm['shape']} ({mm['library']}, 1 thread) "
+        f"{mm['gflops_1_core']} GFLOP/s on 1 core, {mm['gflops_per_core_all_at_once']} per "
+        f"core with {mm['processes']} at once",
+        f"network: {net['gflop_per_frame']} GFLOP/frame{crf}, {net['achieved_gflops_1_thread']} "
+        f"GFLOP/s on 1 thread",
+        f"ratios: end to end {w}/1 workers {q['e2e_n_over_e2e_1']} (goal >= 1.8 for 2), end "
+        f"to end / inference alone on {w} {q['e2e_n_over_inference_only_n']} (goal >= 0.9), "
+        f"network / MatMul {q['achieved_over_matmul_1_core']} (goal >= 0.5)",
+        f"memory of the {w}-worker run, all processes: {_memory_text(mem)}",
+        f"streets: {r['streets']['count']}, built in every worker before the clock starts "
+        f"(the steady state); each costs a worker {r['streets']['build_ms_each']} ms once",
+    ])
+
+
+def _memory_text(m: dict | None) -> str:
+    """Peak RSS (and PSS) of a process tree, and its early and late means when measured."""
+    if m is None:
+        return "not measured (no /proc)"
+    pss = "" if m["peak_pss_mb"] is None else f" ({m['peak_pss_mb']} MB PSS)"
+    if m["early_rss_mb"] is None:
+        return f"peak {m['peak_rss_mb']} MB RSS{pss}; too short for early and late means"
+    return (f"peak {m['peak_rss_mb']} MB RSS{pss}; mean early {m['early_rss_mb']} MB, late "
+            f"{m['late_rss_mb']} MB")
+
+
+def _search_timing(r: dict) -> str:
+    """A `bench search` row's time: wall seconds, per evaluation, against random's."""
+    if r["s_per_evaluation"] is None:
+        return "not timed (resumed from an earlier invocation)"
+    vs = r["s_per_evaluation_vs_random"]
+    return (f"{r['wall_s']:.1f} s, {r['s_per_evaluation'] * 1e3:.1f} ms/evaluation"
+            + ("" if vs is None else f" ({vs:.2f}x random)"))
+
+
+def cmd_bench(args) -> int:
+    from falsify.bench.machine import machine
+    from falsify.bench.memory import bench_memory
+    from falsify.bench.pipeline import bench_pipeline
+    from falsify.bench.scan import bench_scan
+    from falsify.bench.search import bench_search
+
+    check_range(args.samples, "--samples", 1, MAX_SAMPLES)
+    check_range(args.workers, "--workers", 1, 64)
+    check_range(args.naive_samples, "--naive-samples", 1)
+    check_range(args.repeats, "--repeats", 1)
+    if not 0 < args.fraction <= 1:
+        raise UsageError(f"--fraction: {args.fraction} must be in (0, 1]")
+    if args.out:
+        check_out_dir(args.out)
+    if args.what == "search" and Path(args.config) == DEFAULT_CONFIG:
+        args.config = str(CONFIGS / "yaw.toml")
+    if args.what == "model":
+        import numpy as np
+
+        from falsify.data.scansets import npy_files, read_set
+        from falsify.data.training import calibration_scans, held_out_scans
+        from falsify.models.runner import BUNDLED_ONNX
+        from falsify.models.variants import bench_models
+        from falsify.sensor.lidar import load_sensor
+        sensor = load_sensor("kitti-hdl64e-front")
+        frames = MODEL_BENCH_FRAMES if args.samples is None else args.samples
+        files = npy_files(Path(args.scans))[:frames] if args.scans else []
+        if args.scans and not files:
+            raise UsageError(f"--scans {args.scans}: no .npy scans there")
+        scans = (read_set(args.scans, files, sensor).images if files
+                 else held_out_scans(sensor, frames))
+        onnx = Path(args.model) if args.model else BUNDLED_ONNX
+        rows = bench_models(np.asarray(scans), onnx, repeats=args.repeats,
+                            threads=args.threads,
+                            calibration=calibration_scans(sensor, args.calibration_scans))
+        result = {"benchmark": "model", "model": str(onnx), "frames": len(scans),
+                  "machine": machine(), "variants": rows}
+        text = "\n".join(f"{r['variant']:16s} {r['ms_per_frame']:8.1f} ms/frame "
+                         f"{r['fps']:6.1f} fps  car IoU diff {r['car_iou_diff']:+.4f}"
+                         for r in rows)
+    elif args.what == "pipeline":
+        if args.executor == "ray":
+            from falsify.executors.ray import import_ray
+            import_ray()
+        pipe = bench_pipeline(args.config, workers=args.workers, model=args.model,
+                                    executor=args.executor, **given_options(args, "samples"))
+        result = pipe.to_json()
+        one = result["one_process"]
+        text = (f"pipeline: {pipe.samples_per_s} samples/s on {pipe.workers} workers; one "
+                f"process {one['samples_per_s']} samples/s against "
+                f"{one['inference_only_samples_per_s']} for inference alone (overhead "
+                f"{pipe.overhead:.1%}); store {result['driver_store_rows_per_s']} rows/s")
+        text += "\n" + pipeline_figures_text(result)
+        if pipe.ray is not None:
+            r = pipe.ray
+            text += (f"\nray: {r['samples_per_s']} samples/s on {r['actors']} actors "
+                     f"({r['against_processes']:.2f}x the processes); per task "
+                     f"{r['task_round_trip_ms']} ms round trip, {r['driver_ms_per_task']} ms "
+                     "pipelined")
+    elif args.what == "memory":
+        if args.samples is not None:
+            raise UsageError("--samples: bench memory runs the config's whole grid, as "
+                             "`falsify grid` does")
+        result = bench_memory(args.config, workers=args.workers, model=args.model).to_json()
+        m = result["memory"]
+        text = (f"{result['command']}: {result['samples']} samples in {result['seconds']} s; "
+                + f"all processes together: {_memory_text(m)}")
+    elif args.what == "search":
+        if not args.out:
+            raise UsageError("bench search needs --out DIR (its runs are resumable there)")
+        result = bench_search(args.config, args.out, workers=args.workers,
+                                    model=args.model, fraction=args.fraction)
+        text = "\n".join(
+            f"{r['algorithm']:12s} lowest {r['lowest']} after {r['evaluations']} evaluations; "
+            f"within 0.02 of the grid's {result['grid_lowest']} after "
+            f"{r['evaluations_to_target']}; {_search_timing(r)}" for r in result["algorithms"])
+        text += f"\n{result['per_evaluation_goal']}; on {args.workers} workers"
+    elif args.what == "scan":
+        sb = bench_scan(args.config, workers=args.workers,
+                              **given_options(args, "samples", "naive_samples"))
+        result = sb.to_json()
+        text = (f"scan: {round(sb.fast_n, 1)} scans/s on {sb.workers} processes "
+                f"({round(sb.fast_1, 1)} on 1), naive {round(sb.naive, 3)} scans/s: "
+                f"{round(sb.fast_n / sb.naive, 1)}x")
+    elif args.what == "camera":
+        from falsify.cli.camera import bench_camera_text
+        result, text = bench_camera_text(args.config, args.camera_preset,
+                                         **given_options(args, "samples", "naive_samples"))
+    else:
+        raise UsageError(f"bench {args.what}: not available")
+    emit(args, result, text)
+    return 0
+
+
+# -- retrain --------------------------------------------------------------------------------
+def cmd_retrain(args) -> int:
+    from falsify.data.scansets import KITTI_DIR
+    from falsify.jobs.retrain import RetrainJob, RetrainRequest, parse_ids, result_text
+    from falsify.models.runner import resolve_model
+
+    model = resolve_model(args.model)   # a path, or a bundled name such as squeezeseg-drive
+    req = RetrainRequest(
+        config=config_path(args.config), model=model, train_data=Path(args.train_data),
+        out=Path(args.out), validation=parse_ids(args.validation_backgrounds,
+                                                 "--validation-backgrounds"),
+        retraining=parse_ids(args.retraining_backgrounds, "--retraining-backgrounds"),
+        threshold=args.threshold, epochs=args.epochs, time_limit_min=args.time_limit_min,
+        precision=args.precision, batch=args.batch, lr=args.lr, seed=args.seed,
+        oversample=args.oversample, train_scans=args.train_scans,
+        held_out_scans=args.held_out_scans,
+        kitti=KITTI_DIR if args.kitti is None else Path(args.kitti) if args.kitti else None,
+        workers=args.workers, resume=args.resume, selection=args.selection)
+    result = RetrainJob(req, on_progress=None if args.json else ProgressBar()).run()
+    emit(args, result.to_json(), result_text(result))
+    return 0
+
+
+# -- report, gate and tradeoff ----------------------------------------------------------------
+def cmd_report(args) -> int:
+    from falsify.jobs.report import write_report
+
+    retrain = None
+    if args.retrain:
+        from falsify.jobs.retrain import read_summary
+        if not args.compare:
+            raise UsageError("--retrain needs --compare RUN_BEFORE (the run before retraining)")
+        retrain = read_summary(Path(args.retrain), "--retrain")
+    if args.out:
+        check_out_file(args.out)
+    out = write_report(Path(args.run), Path(args.out) if args.out else None,
+                       Path(args.compare) if args.compare else None,
+                       predict=not args.no_predict, retrain=retrain)
+    size = out.stat().st_size
+    summary = {"run": args.run, "out": str(out), "bytes": size, "compare": args.compare}
+    emit(args, summary, f"wrote {out} ({size / 1024:.0f} KiB)")
+    return 0
+
+
+def cmd_gate(args) -> int:
+    from falsify.jobs.gate import format_text, judge, write_junit
+
+    result = judge(args.run, threshold=args.threshold,
+                      max_blind_spots=args.max_blind_spots, baseline=args.baseline)
+    if args.junit:
+        write_junit(result, args.junit)
+    if args.json:
+        print(json.dumps(result.to_json(), indent=2))
+    else:
+        print(format_text(result))
+    return result.exit_code
+
+
+def cmd_tradeoff(args) -> int:
+    from falsify.bench.tradeoff import parse_knobs, run_tradeoff
+
+    summary = run_tradeoff(args.config, args.out, parse_knobs(args.knobs), model=args.model,
+                           limit=args.limit, threads=args.threads)
+    emit(args, summary, tradeoff_text(summary))
+    return 0
+
+
+def tradeoff_text(summary: dict) -> str:
+    """The rows as a fixed-width text table."""
+    def f(v, spec: str) -> str:
+        return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
+
+    lines = [f"{'knob':10s} {'setting':16s} {'ms/sample':>9s} {'speedup':>7s} {'mean err':>8s} "
+             f"{'max err':>7s} {'jaccard':>7s} {'blind':>5s} {'samples':>7s}  notes"]
+    for r in summary["rows"]:
+        mark = "*" if r["is_reference"] else " "
+        lines.append(f"{r['knob']:10s} {r['setting'] + mark:16s} "
+                     f"{f(r['time_per_sample_ms'], '9.1f')} {f(r['speedup'], '7.2f')} "
+                     f"{f(r['map_mean_abs_error'], '8.4f')} {f(r['map_max_abs_error'], '7.4f')} "
+                     f"{f(r['blind_spot_jaccard'], '7.3f')} {f(r['blind_spots'], '5d')} "
+                     f"{r['samples']:7d}  {r['notes']}")
+    lines.append(f"(* reference; {summary['samples']} samples; wrote {summary['files']['csv']}, "
+                 f"{summary['files']['html']})")
+    return "\n".join(lines)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(prog="falsify", description=__doc__)
+    sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
+
+    s = sub.add_parser("scan", help="ray-cast one sample of a space into a labelled scan")
+    s.add_argument("config")
+    s.add_argument("--out", required=True)
+    s.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="fix a dimension (repeatable); other dims take their first value")
+    _camera_option(s, "also render the camera: image.png, class.png/.npy, instance.npy, "
+                   "depth.npy and overlay.png")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_scan)
+
+    d = sub.add_parser("dataset", help="write training scans from random auto-driving scenes")
+    d.add_argument("config", help="a space config: its sensor is used, not its dims")
+    d.add_argument("--scans", type=int, required=True)
+    d.add_argument("--out", required=True)
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--first-background", type=int, default=1000)
+    d.add_argument("--backgrounds", type=int, default=1000)
+    d.add_argument("--max-cars", type=int, default=12)
+    d.add_argument("--ray-drop", type=float, default=None,
+                   help="extra probability that a return is dropped, on top of the sensor's "
+                   f"return model (default: 0 with a fitted return model, else {UNIFORM_RAY_DROP})")
+    d.add_argument("--range-noise", type=float, default=0.02, help="range noise sigma, m")
+    from falsify.data.training import TRAFFIC_KINDS
+    d.add_argument("--traffic", choices=TRAFFIC_KINDS, default="scattered",
+                   help="scattered: cars anywhere on the road; drive: lane-following traffic "
+                   "like a driving log")
+    d.add_argument("--format", choices=["npy", "kitti-object"], default="npy",
+                   help="npy: range images; kitti-object: velodyne, image_2, calib, label_2")
+    d.add_argument("--camera", default="kitti-centre", metavar="PRESET",
+                   help="kitti-object: the camera preset (kitti-centre or kitti-rig)")
+    d.add_argument("--json", action="store_true")
+    d.set_defaults(func=cmd_dataset)
+
+    pr = sub.add_parser("predict", help="run the network on scans; IoU, precision, recall per set "
+                        "and range band where labelled")
+    pr.add_argument("scans", nargs="+",
+                    help=".npy range images, KITTI .bin scans (+ .label), folders of .npy, or "
+                    "a KITTI object directory (velodyne/, label_2/, calib/: labelled from its "
+                    "3D boxes); scores are pooled per folder")
+    pr.add_argument("--model", default=None)
+    pr.add_argument("--backend", choices=["onnx", "torch"], default="onnx")
+    pr.add_argument("--sensor", default="kitti-hdl64e-front",
+                    help="preset used to project .bin scans")
+    pr.add_argument("--out", required=True)
+    pr.add_argument("--json", action="store_true")
+    pr.set_defaults(func=cmd_predict)
+
+    re_ = sub.add_parser("realism", help="compare synthetic scans with real KITTI scans: "
+                         "statistics, distances, encoder-feature Frechet distance; JSON + HTML")
+    re_.add_argument("synthetic", nargs="+",
+                     help="`falsify dataset` folders of .npy scans (the first is the baseline "
+                     "the others are compared with)")
+    re_.add_argument("--out", required=True, help="folder for realism.json and realism.html")
+    re_.add_argument("--real", nargs="+", default=None,
+                     help="real scans as for predict (default: the SqueezeSeg-layout and "
+                     "SemanticKITTI sets in ../shared/data/kitti)")
+    re_.add_argument("--scans", type=int, default=None,
+                     help="use the first N scans of each synthetic folder")
+    re_.add_argument("--model", default=None,
+                     help="SqueezeSeg ONNX model whose fire9 features are compared "
+                     "(default: bundled)")
+    re_.add_argument("--sensor", default="kitti-hdl64e-front",
+                     help="preset used to project real .bin scans")
+    re_.add_argument("--bootstrap", type=int, default=0, metavar="DRAWS",
+                     help="also resample the scans DRAWS times (seeded): a 5-95 %% interval per "
+                     "distance and, per later set, the share of draws in which it is closer "
+                     "than the first (200 draws of two 200-scan sets: about a minute)")
+    re_.add_argument("--json", action="store_true")
+    re_.set_defaults(func=cmd_realism)
+
+    tr = sub.add_parser("train", add_help=False,
+                        help="train SqueezeSeg (same options as python -m falsify.models.train)")
+    tr.add_argument("train_args", nargs=argparse.REMAINDER)
+    tr.set_defaults(func=cmd_train)
+
+    g = sub.add_parser("grid", help="evaluate the full factorial grid of a space")
+    _run_options(g)
+    g.set_defaults(func=cmd_grid)
+
+    from falsify.sampler.base import ALGORITHMS
+    se = sub.add_parser("search", help="search a space for low car IoU within a budget")
+    _run_options(se)
+    se.add_argument("--algorithm", required=True, choices=[a for a in ALGORITHMS if a != "grid"],
+                    metavar="NAME", help="random, sobol, or an NLopt algorithm: "
+                    + ", ".join(a for a in ALGORITHMS if a not in ("grid", "random", "sobol")))
+    se.add_argument("--budget", type=int, default=None, help="number of evaluations")
+    se.set_defaults(func=cmd_search)
+
+    from falsify.bench.tradeoff import KNOBS
+    b = sub.add_parser("bench", help="measure a fast path beside its naive path")
+    b.add_argument("what", choices=["scan", "model", "pipeline", "search", "camera", "memory"],
+                   help="memory: peak memory of a whole `falsify grid --config ... --workers N` "
+                   "run, all processes together")
+    b.add_argument("--config", default=str(DEFAULT_CONFIG))
+    b.add_argument("--samples", type=int, default=None,
+                   help="how many samples (default: each benchmark's own)")
+    b.add_argument("--naive-samples", type=int, default=None,
+                   help="samples through the naive path (default: each benchmark's own)")
+    b.add_argument("--workers", type=int, default=2)
+    b.add_argument("--executor", choices=["process", "ray"], default="process",
+                   help="bench pipeline: also measure Ray actors against the processes")
+    b.add_argument("--model", default=None,
+                   help="bench model, pipeline, memory: an ONNX model (default bundled)")
+    b.add_argument("--scans", default=None,
+                   help="bench model: a folder of labelled .npy scans (default: generated)")
+    b.add_argument("--repeats", type=int, default=3)
+    b.add_argument("--calibration-scans", type=int, default=None, choices=range(1, 1025),
+                   metavar="N", help="bench model: synthetic scenes to calibrate int8 on "
+                   "(default: the export's 64)")
+    b.add_argument("--threads", type=int, default=2, choices=range(1, 65), metavar="N",
+                   help="bench model: inference threads (a grid worker uses 1)")
+    b.add_argument("--out", default=None, help="bench search: where its runs go")
+    b.add_argument("--fraction", type=float, default=0.2,
+                   help="bench search: budget as a fraction of the dense grid")
+    b.add_argument("--camera-preset", default="kitti-centre",
+                   help="bench camera: the camera preset")
+    b.add_argument("--json", action="store_true")
+    b.set_defaults(func=cmd_bench)
+
+    r = sub.add_parser("report", help="write a self-contained HTML report of a run")
+    r.add_argument("run", help="run directory (holding results.sqlite)")
+    r.add_argument("--compare", metavar="RUN_BEFORE",
+                   help="an earlier run (e.g. before retraining): adds the difference map")
+    r.add_argument("--retrain", metavar="SUMMARY_JSON",
+                   help="a `falsify retrain` summary.json: adds the experiment's section")
+    r.add_argument("--out", metavar="FILE", help="output file (default RUN/report.html)")
+    r.add_argument("--no-predict", action="store_true",
+                   help="show label-only previews (do not load the model)")
+    r.add_argument("--json", action="store_true")
+    r.set_defaults(func=cmd_report)
+
+    g = sub.add_parser("gate", help="fail (exit 1) when a run has too many blind spots",
+                       description="Count blind spots: (x, y) cells whose mIoU is below the "
+                       "threshold. Exit 0 within the limit, 1 over it, 2 on bad input.")
+    g.add_argument("run", help="run directory (holding results.sqlite)")
+    lim = g.add_mutually_exclusive_group()
+    lim.add_argument("--max-blind-spots", type=int, metavar="N",
+                     help="allowed number of blind spots (default 0)")
+    lim.add_argument("--baseline", metavar="RUN_OR_JSON",
+                     help="fail only on blind spots not in this run or `gate --json` file")
+    g.add_argument("--threshold", type=float, metavar="T",
+                   help="mIoU threshold in (0, 1] (default: the run's, else 0.65)")
+    g.add_argument("--junit", metavar="FILE", help="also write JUnit XML, one testcase per cell")
+    g.add_argument("--json", action="store_true", help="print the verdict as JSON")
+    g.set_defaults(func=cmd_gate)
+
+    t = sub.add_parser("tradeoff", help="measure speed against mIoU-map error for each knob",
+                       description="Evaluate one sample set under each setting of each knob "
+                       "against a reference setting; write tradeoff.csv, .json and .html.")
+    t.add_argument("config")
+    t.add_argument("--out", required=True, help="output directory")
+    t.add_argument("--knobs", default=",".join(KNOBS),
+                   help=f"comma-separated subset of {','.join(KNOBS)} (default: all)")
+    t.add_argument("--model", default=None,
+                   help="ONNX model with its .json spec (and .pt beside it for torch and CRF); "
+                   "default: bundled")
+    t.add_argument("--limit", type=int, default=None,
+                   help="use only the first N samples of the grid (quick runs)")
+    t.add_argument("--threads", type=int, default=1, choices=range(1, 65), metavar="N",
+                   help="inference threads while timing (default 1: what each --workers "
+                   "process of a run uses)")
+    t.add_argument("--json", action="store_true")
+    t.set_defaults(func=cmd_tradeoff)
+
+    rt = sub.add_parser("retrain", help="the paper's experiment: blind spots on V, fine-tune on "
+                        "R's scans there, re-test V and held-out sets (resumable)")
+    rt.add_argument("config")
+    rt.add_argument("--model", required=True, help="an .onnx with its .pt beside it, or a "
+                    "bundled name such as squeezeseg-drive")
+    rt.add_argument("--train-data", required=True, help="the model's training scans")
+    rt.add_argument("--validation-backgrounds", required=True, metavar="IDS", help="V, e.g. 0-6")
+    rt.add_argument("--retraining-backgrounds", required=True, metavar="IDS",
+                    help="R, e.g. 7-14")
+    rt.add_argument("--out", required=True)
+    rt.add_argument("--resume", action="store_true", help="continue at the unfinished stage")
+    rt.add_argument("--threshold", type=float, default=None)
+    rt.add_argument("--epochs", type=int, default=1)
+    rt.add_argument("--time-limit-min", type=float, default=None)
+    rt.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp32"])
+    rt.add_argument("--batch", type=int, default=8)
+    rt.add_argument("--lr", type=float, default=3e-4)
+    rt.add_argument("--seed", type=int, default=0)
+    rt.add_argument("--oversample", type=int, default=20,
+                    help="times each selected scan appears in the fine-tuning set")
+    rt.add_argument("--train-scans", type=int, default=None,
+                    help="use only the first N training scans")
+    rt.add_argument("--held-out-scans", type=int, default=200)
+    rt.add_argument("--kitti", default=None,
+                    help="real KITTI sets for the checks (default: ../shared/data/kitti beside "
+                    "the checkout; skipped where absent)")
+    rt.add_argument("--workers", type=int, default=2)
+    rt.add_argument("--selection", default="blind", choices=["blind", "control"],
+                    help="blind: R's scans at V's blind cells (the paper); control: at as many "
+                    "random cells that are not blind, to tell the blind scans' effect from "
+                    "more training's")
+    rt.add_argument("--json", action="store_true")
+    rt.set_defaults(func=cmd_retrain)
+
+    from falsify.cli.camera import register as register_camera
+    register_camera(sub)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["train"]:   # training parses its own options (and its --help)
+        from falsify.models.train import main as train_main
+        return int(train_main(argv[1:]) or 0)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except FalsifyError as exc:
+        print(f"falsify: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("falsify: interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,29 @@
+"""SqueezeSeg's .npy range images (H×W×6: x, y, z, intensity, range, label), ours and KITTI's."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from falsify.errors import FalsifyError
+from falsify.sensor.scan import CHANNELS
+
+
+def load_scan_npy(path: str | Path) -> np.ndarray:
+    """Load an H×W×6 range image (ours or SqueezeSeg's KITTI files), checking shape and values."""
+    path = Path(path)
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise FalsifyError(f"{path}: not a readable .npy range image "
+                           f"({exc or type(exc).__name__})") from None
+    if arr.ndim != 3 or arr.shape[2] != 6:
+        raise FalsifyError(f"{path}: shape {arr.shape}, expected (H, W, 6) with channels "
+                           f"{', '.join(CHANNELS)}")
+    if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+        raise FalsifyError(f"{path}: dtype {arr.dtype}, expected real numbers")
+    arr = arr.astype(np.float32, copy=False)
+    if not np.isfinite(arr).all():
+        raise FalsifyError(f"{path}: contains NaN or inf")
+    return arr

@@ -1,0 +1,115 @@
+"""KITTI's Velodyne files: a .bin of N×4 float32 (x, y, z, remission) and a SemanticKITTI
+.label of uint32 (instance << 16 | class), read into and written from Scans.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from falsify.errors import FalsifyError
+from falsify.fileio import read_bytes
+from falsify.sensor.lidar import Sensor
+from falsify.sensor.scan import Scan, image_from_points
+
+# Our classes as SemanticKITTI ids when writing .label files (unknown -> 0 "unlabeled").
+TO_SEMANTICKITTI = np.array([0, 10, 30, 31], dtype=np.uint32)
+# SemanticKITTI ids read as our classes (moving variants too); anything else is unknown.
+FROM_SEMANTICKITTI = {10: 1, 252: 1, 30: 2, 254: 2, 31: 3, 253: 3, 32: 3, 255: 3}
+
+
+def write_kitti(scan: Scan, bin_path: str | Path, label_path: str | Path) -> None:
+    """Write the valid points as KITTI .bin and SemanticKITTI-style .label."""
+    m = scan.valid
+    scan.image[m][:, :4].astype(np.float32).tofile(bin_path)
+    cls = scan.image[m][:, 5].astype(np.int64)
+    inst = scan.instance[m].astype(np.uint32) & 0xFFFF
+    ((inst << 16) | TO_SEMANTICKITTI[cls]).astype(np.uint32).tofile(label_path)
+
+
+def fit_frames(paths: list[str | Path]) -> list[Path]:
+    """The paths, if every one is a KITTI object frame (.../object/...): what the sensor fits
+    may read. Anything else is evaluation data, and a FalsifyError names it."""
+    out = [Path(p) for p in paths]
+    for p in out:
+        if "object" not in p.parts:
+            raise FalsifyError(f"{p}: fit only on KITTI object frames (.../object/velodyne/*.bin); "
+                               "the other real scans are evaluation data")
+    return out
+
+
+def read_bin(path: str | Path) -> np.ndarray:
+    """(N, 4) float32 x, y, z, remission of a KITTI .bin as stored (read-only; non-finite rows
+    kept, so a .label's rows still line up); FalsifyError naming the file when it is not N x 4."""
+    data = read_bytes(path)
+    if len(data) % 16:
+        raise FalsifyError(f"{path}: size is not a multiple of 4 float32 (x, y, z, remission)")
+    return np.frombuffer(data, np.float32).reshape(-1, 4)
+
+
+KITTI_RINGS = 64
+MIN_RING_POINTS = 200  # a ring with fewer points means the file is not in KITTI's ring order
+
+
+def kitti_rows(sensor: Sensor, points: np.ndarray) -> np.ndarray | None:
+    """Each point's laser ring, from KITTI's storage order, for a sensor whose rows are those
+    rings (`kitti_rings`); None otherwise, or when the file does not hold that order.
+
+    KITTI stores a scan ring by ring, top laser first, each ring sweeping azimuth upward from the
+    front (0°) through the back (±180°) to the front again: 64 wraps from +180° to -180°. So a
+    point's ring is the number of wraps before it, less one for the half ring behind the wrap
+    (azimuth below 0). A scan cut at the back instead (63 wraps) has its rings between the
+    wraps. Azimuths jitter at ±180°: a wrap straight back counts -1. Why not the elevation: a
+    laser sits some 0.1-0.2 m off the sensor's origin, so its points' elevation seen from the
+    origin moves by up to a degree or two at short range, more than the 0.33° between the upper
+    rings; binning by elevation scrambles neighbouring rings (on KITTI's object frames 10-23 %
+    of the upper rows' pixels came out empty and as many held two points)."""
+    if not sensor.kitti_rings or sensor.rows != KITTI_RINGS or len(points) < 2:
+        return None
+    p = np.asarray(points, dtype=np.float64)
+    az = np.degrees(np.arctan2(p[:, 1], p[:, 0]))
+    d = np.diff(az)
+    wraps = np.concatenate([[0], np.cumsum((d < -180.0).astype(np.int64)
+                                           - (d > 180.0).astype(np.int64))])
+    if wraps[-1] == KITTI_RINGS:  # cut at the front (KITTI): each ring wraps once inside
+        ring = np.clip(wraps - (az < 0.0), 0, KITTI_RINGS - 1)  # the cut's points either side
+    elif wraps[-1] == KITTI_RINGS - 1:  # cut at the back: rings end where they wrap
+        ring = wraps
+    else:
+        return None
+    if np.bincount(ring, minlength=KITTI_RINGS).min() < MIN_RING_POINTS:
+        return None
+    return ring
+
+
+def read_kitti(bin_path: str | Path, label_path: str | Path | None,
+               sensor: Sensor) -> Scan:
+    """Read a KITTI .bin (+ SemanticKITTI .label) and project it with `sensor`'s layout (rows
+    by laser ring where the sensor's rows are KITTI's rings: `kitti_rows`)."""
+    bin_path = Path(bin_path)
+    pts = read_bin(bin_path)
+    if len(pts) == 0:
+        raise FalsifyError(f"{bin_path}: empty scan (no points)")
+    cls = np.zeros(len(pts), dtype=np.uint8)
+    inst = np.zeros(len(pts), dtype=np.int32)
+    if label_path is not None:
+        data = read_bytes(label_path)
+        if len(data) % 4:
+            raise FalsifyError(f"{label_path}: size is not a multiple of 4 bytes (uint32 "
+                               "labels)")
+        lab = np.frombuffer(data, np.uint32)
+        if len(lab) != len(pts):
+            raise FalsifyError(f"{label_path}: {len(lab)} labels for {len(pts)} points in "
+                               f"{bin_path.name}")
+        sem = lab & 0xFFFF
+        lut = np.zeros(max(int(sem.max(initial=0)) + 1, 256), dtype=np.uint8)
+        for k, v in FROM_SEMANTICKITTI.items():
+            lut[k] = v
+        cls = lut[sem]
+        inst = (lab >> 16).astype(np.int32)
+    finite = np.isfinite(pts).all(axis=1)
+    if not finite.any():
+        raise FalsifyError(f"{bin_path}: no point with finite x, y, z and remission")
+    return image_from_points(sensor, pts[finite, :3], cls[finite], inst[finite],
+                             intensity=pts[finite, 3], rows=kitti_rows(sensor, pts[finite, :3]))

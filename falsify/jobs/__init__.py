@@ -1,0 +1,1 @@
+"""Jobs: one function per command from plain inputs to a typed result; nothing here prints."""

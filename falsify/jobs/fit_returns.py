@@ -1,0 +1,163 @@
+"""Fit the sensor's return model on the geometry and reflectance of KITTI's object frames.
+
+Run: ``python -m falsify.jobs.fit_returns ../shared/data/kitti/object/velodyne/*.bin
+--out configs/returns/kitti-hdl64e.json``. Only the points are used (never labels), and only
+the three object frames: the SqueezeSeg-layout and SemanticKITTI scans are evaluation data.
+
+What is fitted, from each frame projected into the 64×2048 HDL-64E grid:
+- intensity = reflectivity · cos(incidence)^cos_exp · exp(-range / atten_m): least squares of
+  log intensity over points with an estimated surface normal (from range-image neighbours);
+- reflectivity levels: the median corrected reflectivity of ground points ("road") and the
+  15/50/85/99.7 % quantiles of the rest ("dark", "mid", "bright", "retro");
+- P(return | expected intensity): maximum likelihood over pixels whose left and right
+  neighbours lie on one surface (ranges within 3 %): an empty such pixel is a dropout, and its
+  expected intensity is its neighbours' mean; plus a per-row factor (lasers differ);
+- the ego body's shadow: for the lowest rows, the fraction of frames with a return per
+  azimuth bin.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import minimize
+
+from falsify.data.velodyne import fit_frames, read_kitti
+from falsify.errors import FalsifyError
+from falsify.sensor.lidar import load_sensor
+
+BLOCKED_FIRST_ROW = 55  # rows from here down are checked for the ego body's shadow
+AZ_BINS = 128
+
+
+def _normals_cos(img: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """|cos| of the incidence angle per pixel from neighbour differences (nan where unknown)."""
+    p, r = img[..., :3].astype(np.float64), img[..., 4].astype(np.float64)
+    ok = r > 0
+    dc = np.roll(p, -1, 1) - np.roll(p, 1, 1)
+    dr = np.roll(p, -1, 0) - np.roll(p, 1, 0)
+    okc = ok & np.roll(ok, -1, 1) & np.roll(ok, 1, 1)
+    okr = ok & np.roll(ok, -1, 0) & np.roll(ok, 1, 0)
+    okr[0], okr[-1] = False, False
+    close = (np.abs(np.roll(r, -1, 1) - np.roll(r, 1, 1)) < 0.1 * r) & (
+        np.abs(np.roll(r, -1, 0) - np.roll(r, 1, 0)) < 0.1 * r)
+    n = np.cross(dc, dr)
+    norm = np.linalg.norm(n, axis=-1)
+    good = okc & okr & close & (norm > 1e-9)
+    cos = np.abs((n * dirs).sum(-1)) / np.maximum(norm, 1e-12)
+    return np.where(good, cos, np.nan)
+
+
+def fit(paths: list[Path]) -> dict:
+    sensor = load_sensor("kitti-hdl64e-360")
+    dirs = sensor.directions
+    rows = sensor.rows
+    feats = {"I": [], "cos": [], "r": [], "ground": []}
+    cand_i, cand_ret, cand_row = [], [], []
+    valid_stack = []
+    for path in paths:
+        scan = read_kitti(path, None, sensor)
+        img = scan.image
+        valid = img[..., 4] > 0
+        valid_stack.append(valid)
+        cos = _normals_cos(img, dirs)
+        m = valid & np.isfinite(cos) & (cos > 0.05) & (img[..., 4] < 60)
+        feats["I"].append(img[..., 3][m])
+        feats["cos"].append(cos[m])
+        feats["r"].append(img[..., 4][m])
+        nz = np.abs(np.cross(np.roll(img[..., :3], -1, 1) - np.roll(img[..., :3], 1, 1),
+                             np.roll(img[..., :3], -1, 0) - np.roll(img[..., :3], 1, 0))[..., 2])
+        feats["ground"].append((img[..., 2][m] < -1.3) & (cos[m] > 0.0) & (nz[m] > 0))
+        # Dropout candidates: left and right neighbours on one surface.
+        r = img[..., 4]
+        left, right = np.roll(r, 1, 1), np.roll(r, -1, 1)
+        both = (left > 0) & (right > 0) & (np.abs(left - right) < 0.03 * np.maximum(left, right))
+        both[BLOCKED_FIRST_ROW:] = False
+        inten = (np.roll(img[..., 3], 1, 1) + np.roll(img[..., 3], -1, 1)) / 2
+        cand_i.append(inten[both])
+        cand_ret.append(valid[both])
+        cand_row.append(np.nonzero(both)[0])
+    inten_all = np.concatenate(feats["I"]).astype(np.float64)
+    cos = np.concatenate(feats["cos"])
+    rng = np.concatenate(feats["r"]).astype(np.float64)
+    ground = np.concatenate(feats["ground"])
+    pos = inten_all > 0.005
+    a = np.stack([np.ones(pos.sum()), np.log(cos[pos]), -rng[pos]], axis=1)
+    coef, *_ = np.linalg.lstsq(a, np.log(inten_all[pos]), rcond=None)
+    cos_exp = float(np.clip(coef[1], 0.0, 2.0))
+    atten = float(1.0 / max(coef[2], 1e-4))
+    refl = inten_all / (np.clip(cos, 0.05, 1.0) ** cos_exp * np.exp(-rng / atten))
+    levels = {"road": float(np.median(refl[ground])),
+              "dark": float(np.quantile(refl[~ground], 0.15)),
+              "mid": float(np.quantile(refl[~ground], 0.5)),
+              "bright": float(np.quantile(refl[~ground], 0.85)),
+              "retro": float(np.quantile(refl, 0.997))}
+    ci = np.concatenate(cand_i).astype(np.float64)
+    cr = np.concatenate(cand_ret)
+    crow = np.concatenate(cand_row)
+
+    def p_of(x, ii):
+        p_min, p_max, i0, k = x
+        return p_min + (p_max - p_min) * (1.0 - np.exp(-(np.maximum(ii, 0) / i0) ** k))
+
+    def nll(x):
+        p = np.clip(p_of(x, ci), 1e-6, 1 - 1e-6)
+        return -float(np.sum(np.where(cr, np.log(p), np.log1p(-p))))
+
+    res = minimize(nll, x0=[0.5, 0.98, 0.05, 1.0], method="L-BFGS-B",
+                   bounds=[(0.0, 1.0), (0.5, 1.0), (1e-3, 1.0), (0.2, 5.0)])
+    p_min, p_max, i0, k = (float(v) for v in res.x)
+    pred = p_of(res.x, ci)
+    row_keep = []
+    for rr in range(rows):
+        m = crow == rr
+        if m.sum() < 200:
+            row_keep.append(1.0)
+        else:
+            row_keep.append(float(np.clip(cr[m].mean() / pred[m].mean(), 0.3, 1.0 / p_max)))
+    valid_all = np.mean(valid_stack, axis=0)  # (rows, W) fraction of frames with a return
+    blocked = []
+    for rr in range(BLOCKED_FIRST_ROW, rows):
+        blocked.append([round(float(v), 3)
+                        for v in valid_all[rr].reshape(AZ_BINS, -1).mean(axis=1)])
+    blocked_rows = list(range(BLOCKED_FIRST_ROW, rows))
+    # Above the blocked rows the per-row factor carries the laser's own weakness.
+    return {
+        "name": "kitti-hdl64e",
+        "fitted_on": [p.name for p in paths],
+        "command": "python -m falsify.jobs.fit_returns ../shared/data/kitti/object/velodyne/*.bin "
+                   "--out configs/returns/kitti-hdl64e.json",
+        "points_used": int(pos.sum()),
+        "dropout_candidates": int(len(cr)),
+        "candidate_return_rate": float(cr.mean()),
+        "params": {"reflectivity": levels, "cos_exp": cos_exp, "atten_m": atten,
+                   "p_min": p_min, "p_max": p_max, "i0": i0, "k": k, "retro_gain": 1.0,
+                   "row_keep": [round(v, 4) for v in row_keep],
+                   "blocked_rows": blocked_rows, "blocked": blocked},
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("bins", nargs="+", help="KITTI object frames (velodyne/*.bin)")
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args(argv)
+    try:
+        paths = fit_frames(args.bins)
+    except FalsifyError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out = fit(paths)
+    Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
+    p = out["params"]
+    print(json.dumps({k: p[k] for k in ("reflectivity", "cos_exp", "atten_m", "p_min", "p_max",
+                                        "i0", "k")}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,221 @@
+"""The CI gate: count a run's blind spots (x, y cells below the mIoU threshold) → exit code.
+
+Exit 0 when the count is within the limit (default 0) and no cell became a blind spot that was
+not one in a baseline; 1 otherwise. Bad input raises FalsifyError (exit 2) before anything is
+written. The `--json` output doubles as the baseline file format; `--junit` writes one testcase
+per cell so CI dashboards show which cells fail.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+from falsify.errors import FalsifyError
+from falsify.results.miou_maps import CellMap, fmt_value
+from falsify.results.store import STORE_NAME, open_run
+
+JUNIT_SUITE = "falsify.jobs.gate"
+
+
+def cell_name(x: float, y: float) -> str:
+    return f"cell x={fmt_value(x)} y={fmt_value(y)}"
+
+
+def _key(x, y) -> tuple[float, float]:
+    return (round(float(x), 6), round(float(y), 6))
+
+
+@dataclass(frozen=True)
+class GateCell:
+    """One (x, y) cell as the gate sees it."""
+
+    x: float
+    y: float
+    miou: float | None
+    samples: int
+    blind: bool
+
+    @property
+    def name(self) -> str:
+        return cell_name(self.x, self.y)
+
+    def as_dict(self, threshold: float) -> dict:
+        d = {"x": self.x, "y": self.y,
+             "miou": None if self.miou is None else round(self.miou, 6),
+             "samples": self.samples, "blind": self.blind}
+        if self.blind and self.miou is not None:
+            d["below"] = round(threshold - self.miou, 6)
+        return d
+
+
+@dataclass(frozen=True)
+class GateResult:
+    """The verdict: all cells, the blind spots (worst first), and those the baseline lacked."""
+
+    run: str
+    threshold: float
+    cells: tuple[GateCell, ...]
+    blind_spots: tuple[GateCell, ...]
+    new_blind_spots: tuple[GateCell, ...]
+    limit: int | None          # None when judged against a baseline
+    baseline: str | None
+
+    @property
+    def passed(self) -> bool:
+        if self.baseline is not None:
+            return not self.new_blind_spots
+        return len(self.blind_spots) <= (self.limit or 0)
+
+    @property
+    def exit_code(self) -> int:
+        return 0 if self.passed else 1
+
+    def to_json(self) -> dict:
+        t = self.threshold
+        return {"run": self.run, "threshold": t, "limit": self.limit, "baseline": self.baseline,
+                "cells": [c.as_dict(t) for c in self.cells],
+                "blind_spots": [c.as_dict(t) for c in self.blind_spots],
+                "new_blind_spots": [c.as_dict(t) for c in self.new_blind_spots],
+                "passed": self.passed, "exit_code": self.exit_code}
+
+
+def check_threshold(value: float | None, where: str = "--threshold") -> None:
+    if value is not None and not (math.isfinite(value) and 0.0 < value <= 1.0):
+        raise FalsifyError(f"{where}: {value} must be in (0, 1]")
+
+
+def gate_cells(cmap: CellMap, threshold: float) -> list[GateCell]:
+    """Every cell of the map, rows of y then x ascending, flagged blind below the threshold."""
+    out = []
+    for c in cmap.cells():
+        blind = c.miou is not None and c.miou < threshold
+        out.append(GateCell(float(c.a), float(c.b), c.miou, c.samples, blind))
+    return out
+
+
+def worst_first(cells: list[GateCell]) -> list[GateCell]:
+    return sorted((c for c in cells if c.blind), key=lambda c: (c.miou, c.x, c.y))
+
+
+def read_baseline(source: str | Path, threshold: float) -> set[tuple[float, float]]:
+    """Blind-spot cells of a baseline: a gate --json file, or a run directory (at `threshold`)."""
+    path = Path(source)
+    if path.is_dir():
+        try:
+            base = open_run(path)
+        except FalsifyError as exc:
+            raise FalsifyError(f"--baseline: {exc}") from None
+        return {_key(c.x, c.y) for c in gate_cells(base.cell_map(), threshold) if c.blind}
+    try:
+        raw = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise FalsifyError(f"--baseline {path}: no such file or run directory") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise FalsifyError(f"--baseline {path}: not a readable gate JSON file ({exc})") from None
+    spots = raw.get("blind_spots") if isinstance(raw, dict) else None
+    if not isinstance(spots, list):
+        raise FalsifyError(f"--baseline {path}: expected a JSON object with a 'blind_spots' list "
+                           "(the output of `falsify gate --json`)")
+    keys = set()
+    for i, s in enumerate(spots):
+        try:
+            keys.add(_key(s["x"], s["y"]))
+        except (KeyError, TypeError, ValueError):
+            raise FalsifyError(f"--baseline {path}: blind_spots[{i}] needs numeric x and y") \
+                from None
+    return keys
+
+
+def judge(run: str | Path, threshold: float | None = None, max_blind_spots: int | None = None,
+             baseline: str | Path | None = None) -> GateResult:
+    """Judge a run; every input is checked before any result exists."""
+    if max_blind_spots is not None and baseline is not None:
+        raise FalsifyError("--max-blind-spots and --baseline are mutually exclusive")
+    if max_blind_spots is not None and max_blind_spots < 0:
+        raise FalsifyError(f"--max-blind-spots: {max_blind_spots} must be >= 0")
+    check_threshold(threshold)
+    data = open_run(run)
+    t = data.threshold if threshold is None else float(threshold)
+    check_threshold(t, f"{data.path / STORE_NAME}: stored threshold")
+    base = read_baseline(baseline, t) if baseline is not None else None
+    cells = gate_cells(data.cell_map(), t)
+    if not any(c.miou is not None for c in cells):
+        counts = data.frame["status"].value_counts().to_dict() if len(data.frame) else {}
+        what = ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) or "no rows"
+        raise FalsifyError(f"{data.path / STORE_NAME}: no valid sample in any cell ({what}); "
+                           "nothing to judge")
+    blind = worst_first(cells)
+    new = [c for c in blind if _key(c.x, c.y) not in base] if base is not None else []
+    return GateResult(str(run), t, tuple(cells), tuple(blind), tuple(new),
+                      None if baseline is not None else (max_blind_spots or 0),
+                      None if baseline is None else str(baseline))
+
+
+def format_text(result: GateResult) -> str:
+    """Verdict line, then the failing cells worst first with their margin below the threshold."""
+    t = result.threshold
+    n = len(result.blind_spots)
+    verdict = "PASS" if result.passed else "FAIL"
+    if result.baseline is None:
+        head = (f"falsify gate: {verdict}: {n} blind spot{'s' * (n != 1)} (mIoU < {t:.3f}) in "
+                f"{result.run}; limit {result.limit}")
+    else:
+        k = len(result.new_blind_spots)
+        head = (f"falsify gate: {verdict}: {n} blind spot{'s' * (n != 1)} (mIoU < {t:.3f}) in "
+                f"{result.run}, {k} new against baseline {result.baseline}")
+    lines = [head]
+    scored = sum(c.miou is not None for c in result.cells)
+    lines.append(f"  {len(result.cells)} cells, {scored} with valid samples")
+    new = {_key(c.x, c.y) for c in result.new_blind_spots}
+    for c in result.blind_spots:
+        tag = "  NEW" if _key(c.x, c.y) in new else ""
+        lines.append(f"  {c.name}: mIoU {c.miou:.3f}, {t - c.miou:.3f} below the threshold "
+                     f"({c.samples} samples){tag}")
+    return "\n".join(lines)
+
+
+def junit_xml(result: GateResult) -> str:
+    """JUnit XML: suite "falsify.jobs.gate", one testcase per cell; blind spots fail, empty cells
+    are skipped."""
+    t = result.threshold
+    failures = len(result.blind_spots)
+    skipped = sum(c.miou is None for c in result.cells)
+    suite = ET.Element("testsuite", {
+        "name": JUNIT_SUITE, "tests": str(len(result.cells)), "failures": str(failures),
+        "errors": "0", "skipped": str(skipped)})
+    props = ET.SubElement(suite, "properties")
+    for name, value in (("run", result.run), ("threshold", f"{t:.6g}"),
+                        ("limit", "" if result.limit is None else str(result.limit)),
+                        ("baseline", result.baseline or ""), ("passed", str(result.passed)),
+                        ("exit_code", str(result.exit_code))):
+        ET.SubElement(props, "property", {"name": name, "value": value})
+    new = {_key(c.x, c.y) for c in result.new_blind_spots}
+    for c in result.cells:
+        case = ET.SubElement(suite, "testcase", {"classname": JUNIT_SUITE, "name": c.name})
+        if c.miou is None:
+            ET.SubElement(case, "skipped", {"message": "no valid sample"})
+        elif c.blind:
+            fail = ET.SubElement(case, "failure", {"message": f"mIoU {c.miou:.3f} < {t:.3f}",
+                                                   "type": "BlindSpot"})
+            note = " (new against the baseline)" if _key(c.x, c.y) in new else ""
+            fail.text = (f"{c.name}: mIoU {c.miou:.3f} over {c.samples} samples is "
+                         f"{t - c.miou:.3f} below the threshold {t:.3f}{note}")
+    ET.indent(suite)
+    return '<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(suite, "unicode") + "\n"
+
+
+def write_junit(result: GateResult, path: str | Path) -> None:
+    """Write the JUnit XML atomically."""
+    from falsify.fileio import write_text
+
+    path = Path(path)
+    if path.is_dir():
+        raise FalsifyError(f"--junit {path}: is a directory")
+    try:
+        write_text(path, junit_xml(result))
+    except OSError as exc:
+        raise FalsifyError(f"--junit {path}: cannot write ({exc.strerror})") from None

@@ -1,0 +1,123 @@
+"""Network evaluation on labelled scan sets: IoU, precision and recall per class, pooled per set
+(as the official SqueezeSeg evaluation pools them) and per range band, so a gap can be located.
+
+Ignored pixels (e.g. inside a KITTI `Van` box) count as no class's TP, FP or FN. A band holds the
+valid, not ignored pixels whose measured range falls in it; invalid pixels only ever count as
+unknown, so the car counts of the bands add up to the pooled car counts.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from falsify.data.scansets import ScanSet
+from falsify.models.runner import Segmenter
+from falsify.results.metrics import CLASSES, ClassScore, class_scores, confusion, pooled
+
+# Range bands in metres: [lo, hi).
+BANDS: tuple[tuple[float, float], ...] = ((0.0, 15.0), (15.0, 30.0), (30.0, math.inf))
+CHUNK = 8   # scans per predict call
+
+
+def band_name(lo: float, hi: float) -> str:
+    return f"{lo:g}+ m" if math.isinf(hi) else f"{lo:g}-{hi:g} m"
+
+
+@dataclass(frozen=True)
+class Scores:
+    """Pooled TP/FP/FN counts (n_classes, 3) and the per-class scores they give."""
+
+    counts: np.ndarray
+    classes: tuple[ClassScore, ...]
+
+    @classmethod
+    def of(cls, counts: np.ndarray) -> Scores:
+        return cls(np.asarray(counts, np.int64), tuple(class_scores(counts)))
+
+    def as_dict(self) -> dict:
+        return {s.name: {"iou": s.iou, "precision": s.precision, "recall": s.recall,
+                         "tp": s.tp, "fp": s.fp, "fn": s.fn, "note": s.note}
+                for s in self.classes}
+
+    def car(self) -> ClassScore:
+        return self.classes[1]
+
+
+@dataclass(frozen=True)
+class SetEvaluation:
+    """One set: scores pooled over its scans, per range band, and car IoU per scan."""
+
+    name: str
+    sources: tuple[str, ...]
+    pooled: Scores
+    bands: tuple[tuple[str, Scores], ...]
+    scan_car_iou: tuple[float | None, ...]
+    ignored_pixels: int
+    predictions: np.ndarray = field(repr=False)    # (B, H, W) uint8
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "scans": len(self.sources), "pooled": self.pooled.as_dict(),
+                "bands": {b: s.as_dict() for b, s in self.bands},
+                "ignored_pixels": self.ignored_pixels,
+                "per_scan": [{"scan": s, "car_iou": v}
+                             for s, v in zip(self.sources, self.scan_car_iou, strict=True)]}
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """A model on several sets; `pooled` sums every set's counts."""
+
+    model: str
+    model_hash: str
+    sets: tuple[SetEvaluation, ...]
+    pooled: Scores
+
+    def as_dict(self) -> dict:
+        return {"model": self.model, "model_hash": self.model_hash,
+                "scans": sum(len(s.sources) for s in self.sets),
+                "pooled": self.pooled.as_dict(), "sets": [s.as_dict() for s in self.sets]}
+
+
+def band_counts(pred: np.ndarray, label: np.ndarray, rng: np.ndarray, ignore: np.ndarray,
+                bands: tuple[tuple[float, float], ...] = BANDS) -> np.ndarray:
+    """(n_bands, n_classes, 3) TP/FP/FN of the valid, not ignored pixels in each range band."""
+    out = np.zeros((len(bands), len(CLASSES), 3), np.int64)
+    keep = (rng > 0) & ~ignore
+    for i, (lo, hi) in enumerate(bands):
+        m = keep & (rng >= lo) & (rng < hi)
+        out[i] = confusion(pred[m], label[m], len(CLASSES))
+    return out
+
+
+def evaluate_set(model: Segmenter, scans: ScanSet,
+                 bands: tuple[tuple[float, float], ...] = BANDS) -> SetEvaluation:
+    """Run `model` on one set and pool its counts overall and per band."""
+    preds = []
+    for i in range(0, len(scans), CHUNK):
+        preds.append(model.predict(scans.images[i:i + CHUNK]).classes)
+    pred = np.concatenate(preds).astype(np.uint8)
+    rng = scans.images[..., 4]
+    label = np.where(rng > 0, scans.images[..., 5], 0).astype(np.uint8)
+    totals, per_band, per_scan = [], [], []
+    for k in range(len(scans)):
+        keep = ~scans.ignore[k]
+        c = confusion(pred[k][keep], label[k][keep], len(CLASSES))
+        totals.append(c)
+        per_scan.append(Scores.of(c).car().iou)
+        per_band.append(band_counts(pred[k], label[k], rng[k], scans.ignore[k], bands))
+    band_sum = np.sum(per_band, axis=0)
+    return SetEvaluation(
+        scans.name, scans.sources, Scores.of(pooled(totals)),
+        tuple((band_name(lo, hi), Scores.of(band_sum[i])) for i, (lo, hi) in enumerate(bands)),
+        tuple(per_scan), int(scans.ignore.sum()), pred)
+
+
+def evaluate(model: Segmenter, sets: list[ScanSet],
+             bands: tuple[tuple[float, float], ...] = BANDS) -> Evaluation:
+    """Evaluate `model` on each set (scores pooled per set, per band) and on all together."""
+    results = tuple(evaluate_set(model, s, bands) for s in sets)
+    total = pooled([r.pooled.counts for r in results])
+    return Evaluation(model.spec.name, model.model_hash, results, Scores.of(total))

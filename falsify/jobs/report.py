@@ -1,0 +1,102 @@
+"""The report job: open a run (and the run it is compared with), replay its worst samples'
+scans and predictions, and hand all of it to the HTML renderer, which only draws."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from falsify.errors import FalsifyError
+from falsify.fileio import write_text
+from falsify.models.runner import Segmenter, load_segmenter
+from falsify.reports.run_page import WORST, ReplayedScan, ReportInput, render
+from falsify.results.replay import Replay
+from falsify.results.store import RunData, open_run
+
+
+def open_model(meta: dict, predict: bool, model: Segmenter | None = None
+               ) -> tuple[Segmenter | None, str]:
+    """The run's model (the one given, else loaded from the run's metadata) if `predict` and it
+    loads; else None and a note saying why."""
+    if not predict:
+        return None, "Previews show labels only (--no-predict)."
+    if model is None:
+        try:
+            model = load_segmenter(meta.get("model_path"), backend=meta.get("backend") or "onnx")
+        except Exception as exc:  # any failure: the report is still useful without predictions
+            return None, f"Model not loaded ({exc}); previews show labels only."
+    note = ""
+    have, want = model.model_hash, meta.get("model_hash")
+    if have and want and have != want:
+        note = (f"The model found now (hash {str(have)[:12]}) is not the run's "
+                f"({str(want)[:12]}); predictions may differ from the scores.")
+    return model, note
+
+
+def run_lod(meta: dict) -> int:
+    """The car level of detail a run scanned with: its meta's `lod`; for runs that predate it,
+    its preset's (as presets are defined now); else the full mesh."""
+    if isinstance(meta.get("lod"), int):
+        return int(meta["lod"])
+    from falsify.jobs.fidelity import PRESETS
+
+    fid = PRESETS.get(str(meta.get("fidelity") or "exact"))
+    return fid.lod if fid is not None else 2
+
+
+def replay_worst(data: RunData, worst: int, predict: bool, model: Segmenter | None = None
+                 ) -> tuple[dict[int, ReplayedScan], str]:
+    """Re-cast the worst rows (grouped by background to reuse BVHs) and predict them."""
+    rows = data.worst(worst)
+    if not len(rows):
+        return {}, ""
+    seg, note = open_model(data.meta, predict, model)
+    try:
+        replay = Replay(data.space, lod=run_lod(data.meta))
+    except Exception as exc:
+        return {}, f"Scans could not be regenerated ({exc})."
+    out: dict[int, ReplayedScan] = {}
+    order = rows.sort_values(["background", "eval_index"], kind="stable") \
+        if "background" in rows else rows
+    for _, row in order.iterrows():
+        ev = int(row["eval_index"])
+        try:
+            sample, scan = replay.scan(row)
+        except Exception as exc:
+            out[ev] = ReplayedScan(None, error=f"scan not regenerated: {exc}")
+            continue
+        car = (float(sample.cars[0].x), float(sample.cars[0].y))
+        classes, error = None, ""
+        if seg is not None:
+            try:
+                classes = seg.predict(scan.image[None]).classes[0]
+            except Exception as exc:
+                error = f"prediction failed: {exc}"
+        out[ev] = ReplayedScan(scan.image, car, classes, error)
+    return out, note
+
+
+def render_report(run: Path, compare: Path | None = None, predict: bool = True,
+                  worst: int = WORST, model: Segmenter | None = None,
+                  retrain: dict | None = None) -> str:
+    """The report of `run` as one self-contained HTML string (deterministic for its inputs);
+    `retrain` (a `falsify retrain` summary, with `compare`) adds the experiment's section."""
+    data = open_run(run)
+    before = open_run(compare) if compare is not None else None
+    scans, note = replay_worst(data, worst, predict, model)
+    return render(ReportInput(data, before, scans, note, worst, retrain))
+
+
+def write_report(run: Path, out: Path | None = None, compare: Path | None = None,
+                 predict: bool = True, model: Segmenter | None = None,
+                 retrain: dict | None = None) -> Path:
+    """Render and write the report atomically (default RUN/report.html); returns the path."""
+    text = render_report(Path(run), compare=None if compare is None else Path(compare),
+                         predict=predict, model=model, retrain=retrain)
+    path = Path(out) if out is not None else Path(run) / "report.html"
+    if path.is_dir():
+        raise FalsifyError(f"--out {path}: is a directory")
+    try:
+        write_text(path, text)
+    except OSError as exc:
+        raise FalsifyError(f"--out {path}: cannot write ({exc.strerror})") from None
+    return path

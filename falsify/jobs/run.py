@@ -1,0 +1,385 @@
+"""A falsification run from start to summary: checks, store, sampler loop, maps, retraining set.
+
+Everything a user can get wrong (config, model, sampler, run directory) is checked before the
+run directory is touched, so bad input leaves nothing half-written; what only the workers find
+(an actor that cannot start) removes the run this invocation made while it holds no row.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+import shutil
+import time
+from collections.abc import Collection
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from falsify.checks import MAX_SAMPLES, check_out_dir, check_range, check_seed
+from falsify.errors import FalsifyError
+from falsify.executors.driver import Driver, Progress, ProgressListener
+from falsify.executors.evaluator import EvalSettings
+from falsify.fileio import write_bytes, write_json, write_npy
+from falsify.jobs.fidelity import preset
+from falsify.models.runner import Segmenter, load_segmenter
+from falsify.paths import config_path
+from falsify.results.metrics import Status
+from falsify.results.miou_maps import CellMap, miou_map, snap
+from falsify.results.replay import Replay
+from falsify.results.store import STORE_NAME, RunData, Store, export, read_frame, read_meta
+from falsify.sampler import make_sampler
+from falsify.sampler.base import BATCH, Sampler, SearchResult
+from falsify.sensor.lidar import load_sensor
+from falsify.world.cars import load_user_car
+from falsify.world.space import Space, load_space
+
+BATCHED = ("grid", "random", "sobol")   # samplers that take a batch_size
+# What --resume must find unchanged. The executor, --workers and --address are not here: the rows
+# do not depend on them (each sample's seed comes from the space and the sample alone), so a run
+# may be continued on another; each invocation is kept in the meta's `sessions`.
+RESUME_KEYS = ("config_hash", "model_hash", "algorithm", "seed", "budget", "fidelity")
+
+
+@dataclass(frozen=True)
+class RunRequest:
+    """Everything that defines a run; equal requests give equal rows."""
+
+    config: Path
+    out: Path
+    command: str                 # "grid" or "search"
+    algorithm: str = "grid"
+    budget: int | None = None
+    seed: int | None = None
+    model: str | None = None
+    backend: str = "onnx"
+    workers: int = 1
+    resume: bool = False
+    threshold: float | None = None
+    fidelity: str = "exact"
+    report: bool = True
+    camera: str | None = None    # camera preset: render the retraining set's images too
+    max_samples: int = MAX_SAMPLES   # a grid or budget larger than this is refused up front
+    executor: str = "process"    # "process": local worker processes; "ray": actors on Ray
+    address: str | None = None   # the Ray head with executor "ray" (None: a local instance)
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A checked request: what the run needs, with its model opened once for this process."""
+
+    space: Space
+    sampler: Sampler
+    settings: EvalSettings
+    seed: int
+    meta: dict
+    model: Segmenter
+
+
+def prepare(req: RunRequest) -> Prepared:
+    """Validate the request and open the model, without writing anything."""
+    space = load_space(req.config)
+    fid = preset(req.fidelity)
+    check_range(req.workers, "--workers", 1, 64)
+    check_range(req.budget, "--budget", 1)
+    check_seed(req.seed)
+    check_range(req.max_samples, "--max-samples", 1)
+    if req.budget is not None and req.budget > req.max_samples:
+        raise FalsifyError(f"--budget: {req.budget:,} is more than --max-samples "
+                           f"{req.max_samples:,}; raise --max-samples to run it")
+    check_out_dir(req.out)
+    check_executor(req.executor, req.address)
+    if req.algorithm == "grid" and req.budget is None:
+        space.check_size(req.max_samples)
+    if req.threshold is not None and not 0 < req.threshold <= 1:
+        raise FalsifyError(f"--threshold: {req.threshold} must be in (0, 1]")
+    # Batch samplers hand the driver whole batches; keep every worker busy with two chunks of
+    # 8 each. NLopt asks for one point at a time per discrete combination: run as many
+    # combinations at once as there are workers. Neither changes the samples or the rows.
+    sizes = ({"batch_size": max(BATCH, 16 * req.workers)} if req.algorithm in BATCHED
+             else {"concurrent": req.workers})
+    sampler = make_sampler(req.algorithm, **sizes)
+    if req.camera is not None:
+        from falsify.sensor.camera import camera_preset
+        from falsify.sensor.look import check_looks
+        camera_preset(req.camera)
+        check_looks(space)
+    if req.backend == "torch" and req.fidelity != "exact":
+        raise FalsifyError(f"--fidelity {req.fidelity} runs an ONNX variant of the network; "
+                           "use --backend onnx or --fidelity exact")
+    model = fid.model(req.model)
+    seed = space.seed if req.seed is None else req.seed
+    threads = 2 if req.workers == 1 else 1
+    settings = EvalSettings(space=space, model=model, backend=req.backend, threads=threads,
+                            lod=fid.lod)
+    # Open the model once here: a missing, corrupt or mismatched model fails before any sample.
+    seg = load_segmenter(model, backend=req.backend, threads=threads)
+    sensor = load_sensor(space.sensor)
+    seg.spec.check_fits(sensor, req.model or "bundled")
+    for car in space.user_cars.values():   # a missing or broken mesh fails before the run dir
+        load_user_car(car.file, car.scale, car.forward, car.up)
+    store_path = req.out / STORE_NAME
+    meta = {
+        "command": req.command, "config_path": str(req.config),
+        "config_text": config_path(req.config).read_text(), "config_hash": space.config_hash,
+        "space_name": space.name, "sensor": sensor.name, "model_path": model,
+        "model_name": seg.spec.name, "model_hash": seg.model_hash, "backend": req.backend,
+        "seed": seed, "algorithm": req.algorithm, "budget": req.budget,
+        "threshold": req.threshold or space.threshold, "workers": req.workers,
+        "fidelity": req.fidelity, "lod": fid.lod, "executor": req.executor,
+    }
+    if store_path.exists():
+        if not req.resume:
+            raise FalsifyError(f"{req.out} already holds a run; pass --resume to continue it "
+                               "or choose another --out")
+        old = read_meta(req.out)
+        for key in RESUME_KEYS:
+            if old.get(key) != meta[key]:
+                raise FalsifyError(f"--resume: {key} differs from the run in {req.out} "
+                                   f"({old.get(key)!r} there, {meta[key]!r} now)")
+    elif req.resume:
+        raise FalsifyError(f"--resume: {req.out} holds no run to resume ({STORE_NAME} missing)")
+    elif req.out.exists() and any(req.out.iterdir()):
+        raise FalsifyError(f"--out {req.out}: directory exists and is not empty")
+    return Prepared(space, sampler, settings, seed, meta, seg)
+
+
+def check_executor(executor: str, address: str | None) -> None:
+    """A known executor; for ray, ray importable and the --address (if any) answering."""
+    from falsify.executors import EXECUTORS
+    from falsify.executors.ray import check_address, import_ray
+    if executor not in EXECUTORS:
+        raise FalsifyError(f"--executor {executor!r}; allowed: {', '.join(EXECUTORS)}")
+    check_address(address, executor)
+    if executor == "ray":
+        import_ray()
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """The outcome of a run (summary.json holds all but `report` and `search`)."""
+
+    run: str
+    command: str | None
+    algorithm: str | None
+    config: str | None
+    model: str | None
+    model_hash: str | None
+    samples: int
+    computed_this_time: int
+    ok: int
+    invalid: int
+    undefined: int
+    threshold: float
+    cells: int
+    blind_spots: int
+    blind_spot_cells: list[dict]
+    lowest: dict | None          # {"car_iou": ..., "sample": {dim: value}}
+    elapsed_s: float | None
+    retraining_samples: int
+    mean_car_iou: float | None
+    report: str | None = None
+    retraining_camera: str | None = None   # the camera preset whose images sit beside the scans
+    executors: list[str] | None = None     # set when resumed on another executor: all, in order
+    search: SearchResult | None = field(default=None, repr=False)
+
+    def to_json(self) -> dict:
+        """Plain JSON data; `report`, `retraining_camera` and `executors` only when set."""
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "search"}
+        for optional in ("report", "retraining_camera", "executors"):
+            if out[optional] is None:
+                del out[optional]
+        return out
+
+
+def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> RunSummary:
+    """Run the sampler to the end, then write maps, retraining set, tables and report."""
+    p = prepare(req)
+    made = missing_folders(req.out)
+    try:
+        req.out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FalsifyError(f"--out {req.out}: cannot be made ({exc.strerror})") from None
+    store = Store(req.out / STORE_NAME, p.space)
+    old = store.meta()
+    now = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+    started = time.perf_counter()
+    if not old:
+        store.set_meta(**p.meta, started=now, elapsed_s=0.0, curve=[])
+    total = req.budget if req.budget is not None else (
+        len(p.space.grid()) if req.algorithm == "grid" else None)
+    progress = Progress(total, on_progress)
+    try:
+        with Driver(p.settings, store, workers=req.workers, progress=progress,
+                    model=p.model, executor=req.executor, address=req.address) as driver:
+            store.set_meta(sessions=[*sessions_of(old), session(req, now)])
+            search = p.sampler.run(p.space, driver.evaluate, req.budget, p.seed)
+            progress.tell(final=True)
+        # Rows of concurrent combinations arrive in an order that depends on timing (and a
+        # resumed run may hold rows of a killed one): number them in the sampler's order.
+        store.renumber(search.samples)
+        elapsed = float(old.get("elapsed_s", 0.0)) + time.perf_counter() - started
+        store.set_meta(elapsed_s=round(elapsed, 3), curve=list(search.curve),
+                       computed_last=progress.computed)
+    except BaseException:
+        if not old and not len(store):   # this invocation's run, and it holds no row
+            store.close()
+            remove_run(req.out, made)
+        raise
+    finally:
+        store.close()
+    return finish(req.out, p.space, threshold=req.threshold, report=req.report,
+                  lod=p.settings.lod, model=p.model, search=search,
+                  camera=req.camera)
+
+
+def missing_folders(path: Path) -> list[Path]:
+    """`path` and those of its parents that do not exist yet, deepest first (what mkdir makes)."""
+    out = []
+    while not path.exists() and path != path.parent:
+        out.append(path)
+        path = path.parent
+    return out
+
+
+def remove_run(out: Path, made: list[Path]) -> None:
+    """Delete a run store that holds no row, and the empty folders `made` for it: left behind,
+    it would make the next invocation ask for --resume, then refuse a fixed model or config."""
+    for suffix in ("", "-wal", "-shm", "-journal"):
+        (out / f"{STORE_NAME}{suffix}").unlink(missing_ok=True)
+    for folder in made:
+        try:
+            folder.rmdir()
+        except OSError:   # not empty (or gone): keep it and its parents
+            break
+
+
+def session(req: RunRequest, started: str) -> dict:
+    """One invocation that computed on a run: when, on which executor and how many workers."""
+    out = {"started": started, "executor": req.executor, "workers": req.workers}
+    if req.address is not None:
+        out["address"] = req.address
+    return out
+
+
+def sessions_of(meta: dict) -> list[dict]:
+    """The run's sessions so far; a run made before they were kept has its first one made up
+    from its meta (executor, workers, started)."""
+    if not meta:
+        return []
+    if "sessions" in meta:
+        return list(meta["sessions"])
+    return [{"started": meta.get("started"), "executor": meta.get("executor", "process"),
+             "workers": meta.get("workers")}]
+
+
+def executors_of(meta: dict) -> list[str]:
+    """Every executor that has computed on the run, in the order first used."""
+    names = [s.get("executor", "process") for s in sessions_of(meta)]
+    return list(dict.fromkeys(names))
+
+
+def finish(run: Path, space: Space, threshold: float | None = None, report: bool = True,
+           lod: int = 2, model: Segmenter | None = None,
+           search: SearchResult | None = None,
+           camera: str | None = None) -> RunSummary:
+    """Maps, blind spots, retraining set, CSV/Parquet, report and the summary of a run."""
+    data = RunData(run, read_meta(run), read_frame(run), space)
+    meta, frame = data.meta, data.frame
+    thr = threshold if threshold is not None else float(meta.get("threshold", space.threshold))
+    cmap = miou_map(frame, space, "x", "y")
+    blind = cmap.blind_spots(thr)
+    maps_dir = run / "maps"
+    write_bytes(maps_dir / "miou_x_y.csv", cmap.to_frame().to_csv(index=False).encode())
+    for a, b in extra_map_pairs(space):
+        write_bytes(maps_dir / f"miou_{a}_{b}.csv",
+                    miou_map(frame, space, a, b).to_frame().to_csv(index=False).encode())
+    export(frame, run / "results")
+    retrain = write_retraining_set(data, cmap, thr, lod, camera)
+    ok = data.ok
+    lowest = None
+    if len(ok):
+        row = ok.loc[ok["car_iou"].astype(float).idxmin()]
+        lowest = {"car_iou": round(float(row["car_iou"]), 4),
+                  "sample": {d: _plain(row[d]) for d in space.dims}}
+    summary = RunSummary(
+        run=str(run), command=meta.get("command"), algorithm=meta.get("algorithm"),
+        config=meta.get("config_path"), model=meta.get("model_name"),
+        model_hash=meta.get("model_hash"), samples=int(len(frame)),
+        computed_this_time=int(meta.get("computed_last", 0)),
+        ok=int(len(ok)), invalid=int((frame["status"] == Status.INVALID).sum()),
+        undefined=int((frame["status"] == Status.UNDEFINED).sum()),
+        threshold=thr, cells=int(np.isfinite(cmap.miou).sum()),
+        blind_spots=len(blind),
+        blind_spot_cells=[{"x": c.a, "y": c.b, "miou": round(c.miou, 4), "samples": c.samples}
+                          for c in blind],
+        lowest=lowest, elapsed_s=meta.get("elapsed_s"), retraining_samples=retrain,
+        retraining_camera=camera,
+        executors=executors if len(executors := executors_of(meta)) > 1 else None,
+        mean_car_iou=None if not len(ok) else round(float(ok["car_iou"].mean()), 4),
+        search=search)
+    write_json(run / "summary.json", summary.to_json())
+    if report:
+        from falsify.jobs.report import write_report
+        summary = dataclasses.replace(summary, report=str(write_report(run, model=model)))
+    return summary
+
+
+def extra_map_pairs(space: Space) -> list[tuple[str, str]]:
+    """Other dim pairs worth a map: every pair of dims that vary, besides (x, y)."""
+    varying = [n for n, d in space.dims.items() if len(d.grid()) > 1 and n != "background"]
+    pairs = []
+    for i, a in enumerate(varying):
+        for b in varying[i + 1:]:
+            if (a, b) != ("x", "y"):
+                pairs.append((a, b))
+    return pairs
+
+
+def write_retraining_set(data: RunData, cmap: CellMap, threshold: float, lod: int = 2,
+                         camera: str | None = None,
+                         cells: Collection[tuple] | None = None) -> int:
+    """Scans of every valid sample in a blind-spot cell (or in `cells`, (a, b) pairs, when
+    given: a control set), in SqueezeSeg's layout, plus index.csv; with a camera preset, each
+    scan's camera files (NNNNNN.image.png, ...) beside it."""
+    space, frame = data.space, data.frame
+    out = data.path / "retrain"
+    if out.exists():
+        shutil.rmtree(out)
+    blind = (set(cells) if cells is not None
+             else {(c.a, c.b) for c in cmap.blind_spots(threshold)})
+    if not blind or not len(frame):
+        return 0
+    ok = data.ok.copy()
+    ok["_a"], ok["_b"] = snap(ok["x"], space, "x"), snap(ok["y"], space, "y")
+    chosen = ok[[(a, b) in blind for a, b in zip(ok["_a"], ok["_b"], strict=True)]]
+    if not len(chosen):
+        return 0
+    replay = Replay(space, lod=lod)
+    renderer = None
+    if camera is not None:
+        from falsify.sensor.camera import camera_files, camera_preset
+        from falsify.sensor.render import CameraRenderer
+        renderer = CameraRenderer(replay.sim, camera_preset(camera))
+    rows = []
+    for _, row in chosen.iterrows():
+        sample, scan = replay.scan(row)
+        name = f"{int(row['eval_index']):06d}.npy"
+        write_npy(out / name, scan.image)
+        if renderer is not None:
+            for fname, data in camera_files(renderer.render_sample(sample), name[:-3]).items():
+                write_bytes(out / fname, data)
+        rows.append({"file": name, "eval_index": int(row["eval_index"]),
+                     **{d: _plain(row[d]) for d in space.dims},
+                     "car_iou": float(row["car_iou"])})
+    write_bytes(out / "index.csv", pd.DataFrame(rows).to_csv(index=False).encode())
+    return len(rows)
+
+
+def _plain(v):
+    """numpy scalars to Python values, integral floats of integer dims kept as stored."""
+    if isinstance(v, np.generic):
+        return v.item()
+    return v

@@ -1,0 +1,1 @@
+"""Results: per-class metrics, the run's SQLite store, mIoU maps and replaying stored rows."""

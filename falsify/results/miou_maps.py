@@ -1,0 +1,177 @@
+"""mIoU maps over pairs of dims, blind-spot cells, and the paper's per-cell comparison.
+
+mIoU(i, j) is the mean car IoU of the valid samples in cell (i, j): over backgrounds in the
+paper's grid, and over every other dim where those vary too. Samples of a search land in the
+cell of the nearest grid value. Samples whose IoU is undefined (no car in label or prediction)
+or that are invalid are counted per cell but never averaged in.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from falsify.results.metrics import Status
+from falsify.world.space import Continuous, Space
+
+
+def fmt_value(v: float | int | str) -> str:
+    """A coordinate as users write it: -5.0 → "-5", 2.5 → "2.5"."""
+    if isinstance(v, str):
+        return v
+    return f"{float(v):g}"
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One map cell: its coordinates, mIoU, and how many samples stand behind it."""
+
+    a: float | int | str
+    b: float | int | str
+    miou: float | None
+    samples: int      # valid samples averaged
+    undefined: int
+    invalid: int
+
+
+@dataclass(frozen=True)
+class CellMap:
+    """A grid of cells over dims `a` (columns) × `b` (rows); miou NaN where no valid sample."""
+
+    a: str
+    b: str
+    a_values: tuple
+    b_values: tuple
+    miou: np.ndarray      # (len(b_values), len(a_values)) float64
+    samples: np.ndarray   # int64, same shape
+    undefined: np.ndarray
+    invalid: np.ndarray
+
+    def cells(self) -> list[Cell]:
+        out = []
+        for j, bv in enumerate(self.b_values):
+            for i, av in enumerate(self.a_values):
+                m = self.miou[j, i]
+                out.append(Cell(av, bv, None if np.isnan(m) else float(m),
+                                int(self.samples[j, i]), int(self.undefined[j, i]),
+                                int(self.invalid[j, i])))
+        return out
+
+    def blind_spots(self, threshold: float) -> list[Cell]:
+        """Cells whose mIoU is below the threshold, worst first."""
+        cells = [c for c in self.cells() if c.miou is not None and c.miou < threshold]
+        return sorted(cells, key=lambda c: (c.miou, str(c.a), str(c.b)))
+
+    def to_frame(self) -> pd.DataFrame:
+        return pd.DataFrame([c.__dict__ for c in self.cells()]).rename(
+            columns={"a": self.a, "b": self.b})
+
+
+def axis_values(space: Space, dim: str) -> tuple:
+    return tuple(space.dims[dim].grid())
+
+
+def snap(values: pd.Series, space: Space, dim: str) -> pd.Series:
+    """Map sampled values of a dim onto its grid (nearest value); categorical values stay."""
+    d = space.dims[dim]
+    if not isinstance(d, Continuous):
+        return values
+    grid = np.asarray(d.grid(), dtype=np.float64)
+    v = values.to_numpy(dtype=np.float64)
+    idx = np.abs(v[:, None] - grid[None, :]).argmin(axis=1)
+    return pd.Series(grid[idx], index=values.index)
+
+
+def miou_map(frame: pd.DataFrame, space: Space, a: str = "x", b: str = "y") -> CellMap:
+    """The mIoU map of dims a × b over a run's rows (all other dims averaged)."""
+    a_vals, b_vals = axis_values(space, a), axis_values(space, b)
+    shape = (len(b_vals), len(a_vals))
+    miou = np.full(shape, np.nan)
+    samples = np.zeros(shape, np.int64)
+    undefined = np.zeros(shape, np.int64)
+    invalid = np.zeros(shape, np.int64)
+    if len(frame):
+        ai = {v: i for i, v in enumerate(a_vals)}
+        bi = {v: j for j, v in enumerate(b_vals)}
+        sa, sb = snap(frame[a], space, a), snap(frame[b], space, b)
+        for (av, bv), grp in frame.groupby([sa, sb], sort=True):
+            i, j = ai.get(_match(av, a_vals)), bi.get(_match(bv, b_vals))
+            if i is None or j is None:
+                continue
+            ok = grp[grp["status"] == Status.OK]
+            samples[j, i] = len(ok)
+            undefined[j, i] = int((grp["status"] == Status.UNDEFINED).sum())
+            invalid[j, i] = int((grp["status"] == Status.INVALID).sum())
+            if len(ok):
+                miou[j, i] = float(ok["car_iou"].astype(float).mean())
+    return CellMap(a, b, a_vals, b_vals, miou, samples, undefined, invalid)
+
+
+def _match(value, values: tuple):
+    """Find `value` among the axis values, tolerating float round-off and str/int storage."""
+    for v in values:
+        if isinstance(v, str) or isinstance(value, str):
+            if str(v) == str(value):
+                return v
+        elif abs(float(v) - float(value)) < 1e-6:
+            return v
+    return None
+
+
+def compare(before: CellMap, after: CellMap) -> pd.DataFrame:
+    """Per-cell mIoU change (after − before) over cells both runs score, sorted descending:
+    the paper's sorted per-cell improvement plot."""
+    fb, fa = before.to_frame(), after.to_frame()
+    keys = [before.a, before.b]
+    merged = fb.merge(fa, on=keys, suffixes=("_before", "_after"))
+    merged = merged.dropna(subset=["miou_before", "miou_after"])
+    merged["change"] = merged["miou_after"] - merged["miou_before"]
+    return merged.sort_values("change", ascending=False, kind="stable").reset_index(drop=True)
+
+
+# -- a map against a reference map (the trade-off's measure) -----------------------------
+def jaccard(a: set, b: set) -> float:
+    """|A ∩ B| / |A ∪ B|; 1.0 when both sets are empty (full agreement)."""
+    union = a | b
+    return 1.0 if not union else len(a & b) / len(union)
+
+
+def fill_nearest(cells: CellMap, xs: Sequence[float], ys: Sequence[float]) -> np.ndarray:
+    """Values on the (ys, xs) grid, each from the nearest cell of `cells` that has one (metric
+    distance in x, y; ties go to the lower y, then the lower x). NaN if no cell has a value."""
+    jj, ii = np.nonzero(np.isfinite(cells.miou))
+    if not len(jj):
+        return np.full((len(ys), len(xs)), np.nan)
+    px = np.asarray(cells.a_values, float)[ii]
+    py = np.asarray(cells.b_values, float)[jj]
+    gx, gy = np.meshgrid(np.asarray(xs, float), np.asarray(ys, float))
+    d2 = (gx[..., None] - px) ** 2 + (gy[..., None] - py) ** 2
+    return cells.miou[jj, ii][d2.argmin(axis=-1)]
+
+
+@dataclass(frozen=True)
+class MapError:
+    """How a map differs from the reference map on the reference's cells."""
+
+    mean_abs: float | None
+    max_abs: float | None
+    jaccard: float
+    blind_spots: int
+    lost_cells: int   # cells with an mIoU in the reference but none here
+
+
+def map_error(ref: CellMap, values: np.ndarray, threshold: float) -> MapError:
+    """Errors over cells both maps define; blind spots (mIoU < threshold) over the reference's
+    defined cells."""
+    has_ref, has = np.isfinite(ref.miou), np.isfinite(values)
+    both = has_ref & has
+    diff = np.abs(ref.miou[both] - values[both])
+    ref_bs = set(zip(*np.nonzero(has_ref & (np.where(has_ref, ref.miou, 1.0) < threshold)),
+                     strict=True))
+    bs = set(zip(*np.nonzero(both & (np.where(has, values, 1.0) < threshold)), strict=True))
+    return MapError(float(diff.mean()) if len(diff) else None,
+                    float(diff.max()) if len(diff) else None,
+                    jaccard(ref_bs, bs), len(bs), int((has_ref & ~has).sum()))

@@ -1,0 +1,292 @@
+"""The run's SQLite file: run metadata and one row per sample, committed as results arrive.
+
+Rows are keyed by the sample (its dims as canonical JSON), so a resumed run finds what a killed
+one finished and neither recomputes nor duplicates it. WAL mode keeps a kill -9 from losing any
+committed row. A Store may be used from several threads (a search running combinations
+concurrently): one connection, every use of it and of the key cache under one lock.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+import tomllib
+import zlib
+from collections.abc import Iterable, Sequence
+from contextlib import closing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pandas as pd
+
+from falsify.errors import FalsifyError
+from falsify.results.metrics import CLASSES, Status
+from falsify.results.miou_maps import CellMap, miou_map
+from falsify.world.space import DEFAULT_THRESHOLD, Sample, Space, parse_space
+
+STORE_NAME = "results.sqlite"
+METRIC_COLUMNS = [f"{c}_{m}" for c in CLASSES for m in ("tp", "fp", "fn", "iou", "precision",
+                                                           "recall")]
+FIXED_COLUMNS = ["eval_index", "sample_key", "status", "reason", "car_points", "label_points",
+                 "t_scan", "t_infer", "t_total", "seed", "model_hash", "config_hash"]
+TIMING_COLUMNS = ("t_scan", "t_infer", "t_total")
+
+
+@dataclass(frozen=True)
+class SampleResult:
+    """What one evaluated sample produced; metrics are None where undefined or invalid."""
+
+    sample: Sample
+    status: Status
+    reason: str = ""
+    metrics: dict[str, float | int | None] = field(default_factory=dict)
+    car_points: int = 0         # points predicted car
+    label_points: int = 0       # points labelled car
+    t_scan: float = 0.0
+    t_infer: float = 0.0
+    t_total: float = 0.0
+    seed: int = 0
+
+    @property
+    def score(self) -> float | None:
+        """The car IoU the samplers minimise; None when invalid or undefined."""
+        v = self.metrics.get("car_iou")
+        return None if v is None else float(v)
+
+
+def sample_key(sample: Sample) -> str:
+    return json.dumps(sample.values, separators=(",", ":"))
+
+
+def sample_seed(space: Space, sample: Sample) -> int:
+    """A per-sample seed for sensor effects: fixed by the space's seed and the sample alone."""
+    return (space.seed * 1_000_003 + zlib.crc32(sample_key(sample).encode())) % (2**31)
+
+
+class Store:
+    """Append-only result table of one run."""
+
+    def __init__(self, path: str | Path, space: Space):
+        self.path = Path(path)
+        self.space = space
+        self.dim_names = list(space.dims)
+        # One connection shared by the driver's threads; the lock serialises every use of it.
+        self.db = sqlite3.connect(self.path, timeout=30.0, check_same_thread=False)
+        self._lock = threading.RLock()
+        self.db.execute("PRAGMA journal_mode=WAL")
+        self.db.execute("PRAGMA synchronous=NORMAL")
+        dims = ", ".join(f'"{d}" {_sql_type(space, d)}' for d in self.dim_names)
+        metrics = ", ".join(f"{m} REAL" for m in METRIC_COLUMNS)
+        self.db.execute("CREATE TABLE IF NOT EXISTS run (key TEXT PRIMARY KEY, value TEXT)")
+        self.db.execute(
+            "CREATE TABLE IF NOT EXISTS samples (eval_index INTEGER, sample_key TEXT UNIQUE "
+            f"NOT NULL, {dims}, status TEXT NOT NULL, reason TEXT, {metrics}, car_points "
+            "INTEGER, label_points INTEGER, t_scan REAL, t_infer REAL, t_total REAL, seed "
+            "INTEGER, model_hash TEXT, config_hash TEXT)")
+        self.db.commit()
+        self._cache: dict[str, float | None] = {
+            k: v for k, v in self.db.execute("SELECT sample_key, car_iou FROM samples")}
+
+    def close(self) -> None:
+        with self._lock:
+            self.db.close()
+
+    # -- metadata ---------------------------------------------------------------------------
+    def set_meta(self, **values) -> None:
+        with self._lock, self.db:
+            self.db.executemany("INSERT OR REPLACE INTO run VALUES (?, ?)",
+                                [(k, json.dumps(v)) for k, v in values.items()])
+
+    def meta(self) -> dict:
+        with self._lock:
+            return {k: json.loads(v) for k, v in self.db.execute("SELECT key, value FROM run")}
+
+    # -- rows -------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._cache)
+
+    def __contains__(self, sample: Sample) -> bool:
+        key = sample_key(sample)
+        with self._lock:
+            return key in self._cache
+
+    def score(self, sample: Sample) -> float | None:
+        key = sample_key(sample)
+        with self._lock:
+            return self._cache[key]
+
+    def add(self, results: Iterable[SampleResult], model_hash: str, config_hash: str) -> int:
+        """Insert a batch of results in one transaction (skipping any already stored); returns
+        how many rows were new. eval_index is the order of arrival (see `renumber`)."""
+        with self._lock:
+            rows = []
+            for r in results:
+                key = sample_key(r.sample)
+                if key in self._cache:
+                    continue
+                self._cache[key] = r.score
+                values = [r.sample[d] for d in self.dim_names]
+                metrics = [r.metrics.get(m) for m in METRIC_COLUMNS]
+                rows.append([len(self._cache) - 1, key, *values, str(r.status), r.reason,
+                             *metrics, r.car_points, r.label_points, r.t_scan, r.t_infer,
+                             r.t_total, r.seed, model_hash, config_hash])
+            if not rows:
+                return 0
+            cols = FIXED_COLUMNS[:2] + self.dim_names + ["status", "reason"] + METRIC_COLUMNS + \
+                FIXED_COLUMNS[4:]
+            sql = (f"INSERT INTO samples ({', '.join(_q(c) for c in cols)}) VALUES "
+                   f"({', '.join('?' * len(cols))})")
+            with self.db:
+                self.db.executemany(sql, rows)
+            return len(rows)
+
+    def renumber(self, order: Iterable[Sample]) -> int:
+        """Set eval_index to each row's first place in `order` (the sampler's order), rows not
+        in it after, as they were; one transaction. Rows of concurrent callers arrive in an
+        order that depends on timing; this makes the finished table independent of it (where
+        rows arrived in the sampler's order already, as in a sequential run, nothing changes).
+        Returns how many rows changed."""
+        with self._lock:
+            now = dict(self.db.execute("SELECT sample_key, eval_index FROM samples"))
+            want: dict[str, int] = {}
+            for s in order:
+                key = sample_key(s)
+                if key in now and key not in want:
+                    want[key] = len(want)
+            for key in sorted(set(now) - set(want), key=lambda k: now[k]):
+                want[key] = len(want)
+            changed = [(i, k) for k, i in want.items() if now[k] != i]
+            if changed:
+                with self.db:
+                    self.db.executemany("UPDATE samples SET eval_index = ? WHERE sample_key = ?",
+                                        changed)
+            return len(changed)
+
+
+def _read_only(path: str | Path, query):
+    """Run `query(connection)` on a run's SQLite file opened read-only; clear errors."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / STORE_NAME
+    if not path.exists():
+        raise FalsifyError(f"{path}: no results file (is this a run directory?)")
+    # Without a -wal beside it the file is complete: open it immutable, so that reading never
+    # creates -wal or -shm files in a run the reader did not make.
+    wal = path.with_name(path.name + "-wal")
+    uri = path.absolute().as_uri() + "?mode=ro" + ("" if wal.exists() else "&immutable=1")
+    try:
+        with closing(sqlite3.connect(uri, uri=True)) as db:
+            return query(db)
+    except (sqlite3.DatabaseError, pd.errors.DatabaseError) as exc:
+        raise FalsifyError(f"{path}: not a readable results file ({exc})") from None
+
+
+def read_frame(path: str | Path) -> pd.DataFrame:
+    """All sample rows of a run, in evaluation order."""
+    return _read_only(path, lambda db: pd.read_sql_query(
+        "SELECT * FROM samples ORDER BY eval_index", db))
+
+
+def read_meta(path: str | Path) -> dict:
+    """The run's metadata (config, model, seed, curve, ...)."""
+    return _read_only(path, lambda db: {
+        k: json.loads(v) for k, v in db.execute("SELECT key, value FROM run")})
+
+
+def export(frame: pd.DataFrame, out: Path, formats: Sequence[str] = ("csv", "parquet")) -> list:
+    """Write the table as CSV and Parquet (Parquet only where pyarrow is installed)."""
+    from falsify.fileio import write_bytes
+    written = []
+    if "csv" in formats:
+        write_bytes(out.with_suffix(".csv"), frame.to_csv(index=False).encode())
+        written.append(out.with_suffix(".csv"))
+    if "parquet" in formats:
+        try:
+            import pyarrow  # noqa: F401
+        except ImportError:
+            return written
+        import io
+        buf = io.BytesIO()
+        frame.to_parquet(buf, index=False)
+        write_bytes(out.with_suffix(".parquet"), buf.getvalue())
+        written.append(out.with_suffix(".parquet"))
+    return written
+
+
+def _q(name: str) -> str:
+    return f'"{name}"'
+
+
+def _sql_type(space: Space, dim: str) -> str:
+    """TEXT for named values, INTEGER for ids and counts, REAL for coordinates."""
+    from falsify.world.space import Categorical
+    d = space.dims[dim]
+    if isinstance(d, Categorical) and any(isinstance(v, str) for v in d.values):
+        return "TEXT"
+    if isinstance(d, Categorical) and all(isinstance(v, int) for v in d.values):
+        return "INTEGER"
+    return "REAL"
+
+
+# -- reading a run directory ------------------------------------------------------------------
+@dataclass(frozen=True)
+class RunData:
+    """A stored run opened for reading: metadata, rows, and the space rebuilt from its config."""
+
+    path: Path
+    meta: dict
+    frame: pd.DataFrame
+    space: Space
+
+    @property
+    def ok(self) -> pd.DataFrame:
+        """The valid rows (status ok)."""
+        return self.frame[self.frame["status"] == Status.OK]
+
+    def worst(self, n: int) -> pd.DataFrame:
+        """The n valid rows of lowest car IoU, ties by evaluation order."""
+        ok = self.ok
+        return ok.assign(_iou=ok["car_iou"].astype(float)).sort_values(
+            ["_iou", "eval_index"], kind="stable").head(n)
+
+    @property
+    def threshold(self) -> float:
+        t = self.meta.get("threshold")
+        return float(t) if isinstance(t, int | float) and not isinstance(t, bool) else \
+            DEFAULT_THRESHOLD
+
+    def cell_map(self, frame: pd.DataFrame | None = None) -> CellMap:
+        """The (x, y) mIoU map of the run (or of a subset of its rows)."""
+        return miou_map(self.frame if frame is None else frame, self.space, "x", "y")
+
+
+def open_run(run: str | Path) -> RunData:
+    """Read a run directory (or its results.sqlite); FalsifyError names the file if unusable."""
+    path = Path(run)
+    if not path.exists():
+        raise FalsifyError(f"{path}: no such run directory")
+    if path.is_file() and path.name == STORE_NAME:
+        path = path.parent
+    if not path.is_dir():
+        raise FalsifyError(f"{path}: not a run directory (expected a directory holding "
+                           f"{STORE_NAME})")
+    meta = read_meta(path)
+    frame = read_frame(path)
+    text = meta.get("config_text")
+    if not isinstance(text, str):
+        raise FalsifyError(f"{path / STORE_NAME}: run metadata has no config_text; was the run "
+                           "finished by `falsify grid` or `falsify search`?")
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise FalsifyError(f"{path / STORE_NAME}: stored config is not valid TOML ({exc})") \
+            from None
+    source = str(meta.get("config_path") or "<stored config>")
+    space = parse_space(raw, source=source, base_dir=Path(source).parent,
+                        config_hash=str(meta.get("config_hash") or ""), builtin_cars=None)
+    missing = [c for c in ("x", "y", "status", "car_iou") if c not in frame.columns]
+    if missing:
+        raise FalsifyError(f"{path / STORE_NAME}: samples table lacks column {missing[0]!r}")
+    return RunData(path, meta, frame, space)

@@ -1,0 +1,64 @@
+"""A labelled LiDAR scan in SqueezeSeg's range-image layout, and points projected into one.
+
+The range image is H×W×6 float32 with channels x, y, z, intensity, range, label (sensor frame,
+empty pixels zero): exactly the layout of SqueezeSeg's KITTI `.npy` files. Casting a scene into
+a scan is scene.py's; reading and writing the files is kitti.py's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from falsify.sensor.lidar import Sensor
+
+CHANNELS = ("x", "y", "z", "intensity", "range", "label")
+
+
+@dataclass(frozen=True)
+class Scan:
+    """One scan: the H×W×6 range image plus the per-pixel instance id."""
+
+    image: np.ndarray      # (H, W, 6) float32
+    instance: np.ndarray   # (H, W) int32, 0 where no instance
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.image[..., 4] > 0
+
+    @property
+    def label(self) -> np.ndarray:
+        return self.image[..., 5].astype(np.uint8)
+
+    @property
+    def points(self) -> np.ndarray:
+        """(N, 7) float32 rows x, y, z, intensity, range, class, instance of valid pixels."""
+        m = self.valid
+        return np.concatenate([self.image[m], self.instance[m][:, None].astype(np.float32)], 1)
+
+    def count(self, cls: int) -> int:
+        return int((self.valid & (self.image[..., 5] == cls)).sum())
+
+
+
+def image_from_points(sensor: Sensor, points: np.ndarray, cls: np.ndarray,
+                      instance: np.ndarray, intensity: np.ndarray | None = None,
+                      rows: np.ndarray | None = None) -> Scan:
+    """Project sensor-frame points into the sensor's range image; the nearest point wins a pixel.
+    `rows` gives each point's row (a laser ring) instead of its elevation's."""
+    points = np.asarray(points, dtype=np.float64)
+    ranges = np.linalg.norm(points, axis=1)
+    row, col, inside = sensor.pixel_of(points, rows)
+    inside &= ranges <= sensor.max_range
+    order = np.argsort(-ranges[inside], kind="stable")  # far first, so near points overwrite
+    idx = np.flatnonzero(inside)[order]
+    image = np.zeros((*sensor.shape, 6), dtype=np.float32)
+    inst = np.zeros(sensor.shape, dtype=np.int32)
+    r, c = row[idx], col[idx]
+    image[r, c, 0:3] = points[idx]
+    image[r, c, 3] = 0.0 if intensity is None else intensity[idx]
+    image[r, c, 4] = ranges[idx]
+    image[r, c, 5] = cls[idx]
+    inst[r, c] = instance[idx]
+    return Scan(image, inst)

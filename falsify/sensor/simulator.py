@@ -1,0 +1,485 @@
+"""Scenes from samples, cast into scans: background hits cached per pose, cars cast in a window.
+
+The background never changes inside a run, so its BVH is built once and every sensor ray is cast
+at it once per (background, sensor pose). A sampled car covers a small window of the range image:
+only the rays inside the window of its bounding box are moved into the car's own frame and cast
+at the car's BVH, and the nearer hit wins per pixel. That gives exactly the first returns of the
+merged scene (tests compare against a full re-cast).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import Protocol
+
+import numpy as np
+
+import falsify.world.cars as cars
+import falsify.world.road_users as road_users
+import falsify.world.streets as streets
+from falsify.classes import CAR
+from falsify.rotations import rot_x, rot_y, rot_z
+from falsify.sensor.lidar import Sensor, SensorPose
+from falsify.sensor.raycast import MeshCaster, cast_through
+from falsify.sensor.returns import load_return_model
+from falsify.sensor.scan import Scan
+from falsify.world.materials import GLASS, PAINTS, PASS_PROB, mid
+from falsify.world.space import CarPose, Sample, UserCar
+from falsify.world.terrain import Terrain
+
+# The ego vehicle's footprint around the sensor (KITTI's Passat, sensor behind the front axle);
+# a sampled car that overlaps it cannot exist. It is not drawn: real scans filter the ego car.
+EGO_FOOTPRINT = np.array([[-2.8, -0.95], [1.9, -0.95], [1.9, 0.95], [-2.8, 0.95]])
+FIRST_CAR_INSTANCE = 1
+EGO_TRIES = 50  # draws of a training scene's ego pose before a street counts as full
+# Where training scenes stand the ego along the road (x), heading +x and heading -x: beyond the
+# test site too, so narrowing streets are seen from inside their narrow stretches.
+EGO_X_FORWARD: tuple[float, float] = (-90.0, 90.0)
+EGO_X_BACKWARD: tuple[float, float] = (-50.0, 130.0)
+PAINT_IDS = np.array(PAINTS, dtype=np.uint8)
+
+
+def porosity_seed(bg_id: int) -> int:
+    """The seed of a background's pass-through decisions (fixed per street, so cached hits and a
+    full re-cast agree)."""
+    return 0x5EED0000 + int(bg_id)
+
+
+class InvalidSample(Exception):
+    """The sample's objects would intersect each other, the ego car or the background."""
+
+
+@dataclass(frozen=True)
+class PlacedCar:
+    """A car mesh at a world pose: the car frame's origin at (x, y) on the ground, turned by
+    `heading_deg` counter-clockwise from the world's +x (forward) axis."""
+
+    model: str
+    x: float
+    y: float
+    heading_deg: float
+    instance: int
+    cls: int = CAR
+    z: float = 0.0  # ground height, pitch and roll where it stands (Background.pose_on)
+    pitch_deg: float = 0.0
+    roll_deg: float = 0.0
+    paint: int | None = None  # material id replacing the model's paint; None keeps it
+
+    def rotation(self) -> np.ndarray:
+        r = rot_z(self.heading_deg)
+        if self.pitch_deg or self.roll_deg:
+            r = r @ rot_y(self.pitch_deg) @ rot_x(self.roll_deg)
+        return r
+
+    def translation(self) -> np.ndarray:
+        return np.array([self.x, self.y, self.z])
+
+    def matrix(self) -> np.ndarray:
+        """4x4 homogeneous car-to-world transform (rotation, then translation): the pose as a
+        mesh library such as trimesh takes it, for the naive paths that merge posed meshes."""
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = self.rotation(), self.translation()
+        return m
+
+
+def place(pose: CarPose, instance: int) -> PlacedCar:
+    """Space coordinates (x to the right, y forward, yaw 0 = facing forward) to the world frame."""
+    heading = math.remainder(pose.yaw, 360.0)  # -180, 180 and 540 are one pose
+    return PlacedCar(pose.model, x=pose.y, y=-pose.x, heading_deg=heading, instance=instance)
+
+
+@dataclass
+class _Layer:
+    """Per-pixel nearest hit so far: range (inf = none), class, instance, material and the
+    cosine of the incidence angle (for the sensor's return model)."""
+
+    dist: np.ndarray
+    cls: np.ndarray
+    inst: np.ndarray
+    mat: np.ndarray
+    cos: np.ndarray
+
+    def copy(self) -> _Layer:
+        return _Layer(self.dist.copy(), self.cls.copy(), self.inst.copy(), self.mat.copy(),
+                      self.cos.copy())
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit normals per triangle (float64; zero for degenerate ones)."""
+    tri = np.asarray(vertices, np.float64)[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+@dataclass(frozen=True)
+class _Caster:
+    """A BVH with what the sensor model needs per triangle: material, pass probability, normal."""
+
+    bvh: MeshCaster
+    material: np.ndarray
+    face_pass: np.ndarray
+    normals: np.ndarray
+
+    @classmethod
+    def of(cls, vertices, faces, material, anchor=None) -> _Caster:
+        mat = np.asarray(material, np.uint8)
+        return cls(MeshCaster(vertices, faces, anchor=anchor), mat, PASS_PROB[mat],
+                   face_normals(vertices, faces))
+
+
+class Scanner(Protocol):
+    """What scores samples needs from a scanner: its sensor, the ego pose on a street, warm
+    background hits, scans."""
+
+    sensor: Sensor
+
+    def ego_pose(self, bg_id: int, pose: SensorPose = ...) -> SensorPose: ...
+
+    def background_hits(self, bg_id: int, pose: SensorPose) -> object: ...
+
+    def scan(self, sample: Sample, pose: SensorPose = ...,
+             rng: np.random.Generator | None = None) -> Scan: ...
+
+
+class Simulator:
+    """Holds the expensive state (BVHs, background hits) warm across many samples.
+
+    `background_source` builds a background from its id (default: the procedural streets);
+    `max_bvh` backgrounds' BVHs and `max_hits` cached (background, pose) casts are kept."""
+
+    def __init__(self, sensor: Sensor, user_cars: dict[str, UserCar] | None = None,
+                 lod: int = 2, max_bvh: int = 2, max_hits: int = 256,
+                 background_source: Callable[[int], streets.Background] | None = None):
+        self.sensor = sensor
+        self.user_cars = dict(user_cars or {})
+        self.lod = lod
+        self._bvh: OrderedDict[int, tuple[_Caster, object]] = OrderedDict()
+        self._hits: OrderedDict[tuple, _Layer] = OrderedDict()
+        self._cars: dict[str, tuple[_Caster, np.ndarray]] = {}
+        self._obstacles: dict[int, Obstacles] = {}
+        self._terrain: dict[int, Terrain | None] = {}
+        self._max_bvh, self._max_hits = max_bvh, max_hits
+        self.background_source = background_source or streets.build_background
+        self.returns = load_return_model(sensor.returns) if sensor.returns else None
+        self._keep = (None if self.returns is None else
+                      self.returns.keep_map(sensor.rows, sensor.azimuths_deg))
+
+    # -- meshes ---------------------------------------------------------------------------
+    def car_mesh(self, model: str):
+        if model in self.user_cars:
+            u = self.user_cars[model]
+            return cars.load_user_car(u.file, u.scale, u.forward, u.up)
+        if model in road_users.OTHER_VEHICLES:
+            return road_users.vehicle_model(model)[0]
+        return cars.car_mesh(model, lod=self.lod)
+
+    def car_materials(self, model: str) -> np.ndarray:
+        """Per-face materials of a model (user meshes: mid paint everywhere)."""
+        if model in self.user_cars:
+            return np.full(len(self.car_mesh(model).faces), mid("paint mid"), np.uint8)
+        if model in road_users.OTHER_VEHICLES:
+            return road_users.vehicle_model(model)[1]
+        return cars.car_parts(model, self.lod)[2]
+
+    def car_caster(self, model: str) -> tuple[_Caster, np.ndarray]:
+        """The car's BVH in its own frame and its bounding box corners (8×3)."""
+        if model not in self._cars:
+            mesh = self.car_mesh(model)
+            lo, hi = np.asarray(mesh.bounds[0]), np.asarray(mesh.bounds[1])
+            corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                                for z in (lo[2], hi[2])])
+            self._cars[model] = (_Caster.of(mesh.vertices, mesh.faces, self.car_materials(model),
+                                            anchor=np.zeros(3)), corners)
+        return self._cars[model]
+
+    def background(self, bg_id: int):
+        """The background and its BVH (a few kept, least recently used dropped)."""
+        if bg_id in self._bvh:
+            self._bvh.move_to_end(bg_id)
+            return self._bvh[bg_id]
+        bg = self.background_source(bg_id)
+        entry = (_Caster.of(bg.vertices, bg.faces, bg.materials()), bg)
+        self._obstacles[bg_id] = Obstacles.of(bg.obstacles)
+        self._terrain[bg_id] = bg.terrain
+        self._bvh[bg_id] = entry
+        while len(self._bvh) > self._max_bvh:
+            self._bvh.popitem(last=False)
+        return entry
+
+    # -- casting --------------------------------------------------------------------------
+    def background_hits(self, bg_id: int, pose: SensorPose) -> _Layer:
+        """Every sensor ray cast at the background once per (background, pose), then cached."""
+        key = (bg_id, pose)
+        if key in self._hits:
+            self._hits.move_to_end(key)
+            return self._hits[key]
+        caster, bg = self.background(bg_id)
+        rot = pose.rotation(self.sensor)
+        dirs = self.sensor.directions.reshape(-1, 3) @ rot.T
+        t, prim = cast_through(caster.bvh, self.ray_starts(pose, rot), dirs,
+                               self.sensor.max_range, caster.face_pass,
+                               np.arange(len(dirs)), porosity_seed(bg_id))
+        hit = prim >= 0
+        cls = np.zeros(t.shape, dtype=np.uint8)
+        inst = np.zeros(t.shape, dtype=np.int32)
+        mat = np.zeros(t.shape, dtype=np.uint8)
+        cos = np.zeros(t.shape, dtype=np.float32)
+        cls[hit] = bg.face_class[prim[hit]]
+        inst[hit] = bg.face_instance[prim[hit]]
+        mat[hit] = caster.material[prim[hit]]
+        cos[hit] = np.abs((caster.normals[prim[hit]] * dirs[hit]).sum(axis=1))
+        shape = self.sensor.shape
+        layer = _Layer(t.reshape(shape), cls.reshape(shape), inst.reshape(shape),
+                       mat.reshape(shape), cos.reshape(shape))
+        for a in (layer.dist, layer.cls, layer.inst, layer.mat, layer.cos):
+            a.setflags(write=False)
+        self._hits[key] = layer
+        while len(self._hits) > self._max_hits:
+            self._hits.popitem(last=False)
+        return layer
+
+    def ray_starts(self, pose: SensorPose, rot: np.ndarray,
+                   rows: np.ndarray | None = None) -> np.ndarray:
+        """World start of each ray: the sensor origin (3,) when every ray starts there, else
+        (n, 3) for the rays of `rows` (each ray's row; all rays, row-major, when None)."""
+        origin = pose.origin(self.sensor)
+        if self.sensor.ray_origins is None:
+            return origin
+        per_row = origin + self.sensor.ray_origins[:, 0, :] @ rot.T
+        if rows is None:
+            return np.repeat(per_row, self.sensor.columns, axis=0)
+        return per_row[rows]
+
+    def window(self, car: PlacedCar, pose: SensorPose) -> tuple[np.ndarray, np.ndarray]:
+        """Rows and columns whose rays can reach the car's bounding box (may be empty). With
+        per-row ray origins (offset along the sensor's z only, so azimuths do not change) the
+        elevation bounds widen to hold from any of them."""
+        _, corners = self.car_caster(car.model)
+        s_rot = pose.rotation(self.sensor)
+        world = corners @ car.rotation().T + car.translation()
+        p = (world - pose.origin(self.sensor)) @ s_rot  # corners in the sensor frame
+        # Distance from the sensor to the box, in the car frame where the box is axis-aligned.
+        local = (pose.origin(self.sensor) - car.translation()) @ car.rotation()
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        offsets = self.sensor.ring_offsets_m or (0.0,)
+        reach = max(abs(v) for v in offsets)
+        d_min = float(np.linalg.norm(local - np.clip(local, lo, hi))) - reach
+        d_max = float(np.linalg.norm(p, axis=1).max()) + reach
+        if d_min > self.sensor.max_range:
+            return np.empty(0, np.int64), np.empty(0, np.int64)
+        all_rows = np.arange(self.sensor.rows)
+        all_cols = np.arange(self.sensor.columns)
+        if d_min <= 1e-9:
+            return all_rows, all_cols
+        z_lo, z_hi = p[:, 2].min() - max(offsets), p[:, 2].max() - min(offsets)
+        el_hi = math.asin(min(1.0, z_hi / d_min)) if z_hi > 0 else math.asin(z_hi / d_max)
+        el_lo = math.asin(max(-1.0, z_lo / d_min)) if z_lo < 0 else math.asin(z_lo / d_max)
+        el = np.radians(np.asarray(self.sensor.elevations_deg))
+        eps = 1e-9
+        rows = all_rows[(el >= el_lo - eps) & (el <= el_hi + eps)]
+        # Azimuth: the arc the corners span is the complement of the largest gap between them.
+        az = np.sort(np.degrees(np.arctan2(p[:, 1], p[:, 0])))
+        gaps = np.diff(np.concatenate([az, [az[0] + 360.0]]))
+        k = int(np.argmax(gaps))
+        if gaps[k] <= 180.0:  # the sensor is inside the box's outline: every column
+            return rows, all_cols
+        start = az[(k + 1) % len(az)]  # arc runs counter-clockwise from start by span
+        span = 360.0 - gaps[k]
+        rel = (self.sensor.azimuths_deg - start) % 360.0
+        cols = all_cols[(rel <= span + eps) | (rel >= 360.0 - eps)]
+        return rows, cols
+
+    def cast_car(self, layer: _Layer, car: PlacedCar, pose: SensorPose) -> int:
+        """Cast the car's window rays at its BVH and keep the nearer hits; returns rays cast."""
+        rows, cols = self.window(car, pose)
+        if len(rows) == 0 or len(cols) == 0:
+            return 0
+        caster, _ = self.car_caster(car.model)
+        r_idx, c_idx = np.meshgrid(rows, cols, indexing="ij")
+        r_idx, c_idx = r_idx.ravel(), c_idx.ravel()
+        s_rot = pose.rotation(self.sensor)
+        c_rot = car.rotation()
+        dirs = self.sensor.directions[r_idx, c_idx] @ (c_rot.T @ s_rot).T
+        origin = (self.ray_starts(pose, s_rot, r_idx) - car.translation()) @ c_rot
+        current = layer.dist[r_idx, c_idx]
+        ray_ids = r_idx * self.sensor.columns + c_idx
+        t, prim = cast_through(caster.bvh, origin, dirs, np.minimum(current, self.sensor.max_range),
+                               caster.face_pass, ray_ids, 0)
+        nearer = (prim >= 0) & (t < current)
+        rn, cn, pn = r_idx[nearer], c_idx[nearer], prim[nearer]
+        layer.dist[rn, cn] = t[nearer]
+        layer.cls[rn, cn] = car.cls
+        layer.inst[rn, cn] = car.instance
+        mat = caster.material[pn]
+        if car.paint is not None:
+            mat = np.where(np.isin(mat, PAINT_IDS), car.paint, mat)
+        layer.mat[rn, cn] = mat
+        layer.cos[rn, cn] = np.abs((caster.normals[pn] * dirs[nearer]).sum(axis=1))
+        return len(t)
+
+    def render(self, bg_id: int, placed: Sequence[PlacedCar], pose: SensorPose = SensorPose(),
+               rng: np.random.Generator | None = None) -> Scan:
+        """Compose the cached background with the cars and turn first returns into a Scan."""
+        layer = self.background_hits(bg_id, pose).copy()
+        for car in placed:
+            self.cast_car(layer, car, pose)
+        return self.to_scan(layer, rng)
+
+    def to_scan(self, layer: _Layer, rng: np.random.Generator | None) -> Scan:
+        """Apply range limits and sensor effects, then build the H×W×6 image."""
+        s = self.sensor
+        r = layer.dist
+        if rng is not None and s.range_noise > 0:
+            r = r + rng.normal(0.0, s.range_noise, r.shape)
+        valid = np.isfinite(r) & (r >= s.min_range) & (r <= s.max_range)
+        if rng is not None and s.ray_drop > 0:
+            valid &= rng.random(r.shape) >= s.ray_drop
+        intensity = None
+        if self.returns is not None:
+            valid &= ~GLASS[layer.mat]
+            intensity = np.zeros(r.shape, np.float32)
+            intensity[valid] = self.returns.intensity(layer.mat[valid], layer.cos[valid],
+                                                      r[valid])
+            if rng is not None:
+                u = rng.random(r.shape)[valid]
+                p = self.returns.p_return(intensity[valid]) * self._keep[valid]
+                valid[valid] = u < p
+        image = np.zeros((*s.shape, 6), dtype=np.float32)
+        rv = np.where(valid, r, 0.0)
+        if s.ray_origins is None:
+            image[..., 0:3] = s.directions * rv[..., None]
+            image[..., 4] = rv
+        else:  # points from their rows' origins; range from the sensor origin, as KITTI's
+            xyz = np.where(valid[..., None], s.points(rv), 0.0)
+            image[..., 0:3] = xyz
+            image[..., 4] = np.linalg.norm(xyz, axis=-1)
+        if intensity is not None:
+            image[..., 3] = np.where(valid, intensity, 0.0)
+        image[..., 5] = np.where(valid, layer.cls, 0)
+        return Scan(image, np.where(valid, layer.inst, 0).astype(np.int32))
+
+    # -- samples --------------------------------------------------------------------------
+    def placed_cars(self, sample: Sample) -> list[PlacedCar]:
+        """The sample's cars in the world, or InvalidSample naming what they would intersect."""
+        placed = [place(c, FIRST_CAR_INSTANCE + i) for i, c in enumerate(sample.cars)]
+        check_placement(placed, [self.footprint(c) for c in placed],
+                        self.obstacles(sample.background))
+        return [self.settle(sample.background, c) for c in placed]
+
+    def settle(self, bg_id: int, car: PlacedCar) -> PlacedCar:
+        """The car standing on the background's ground (z, pitch, roll from its wheelbase)."""
+        _, corners = self.car_caster(car.model)
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        z, pitch, roll = self.pose_on(
+            bg_id, car.x, car.y, car.heading_deg, max((hi[0] - lo[0]) / 2 - 0.6, 0.3),
+            max((hi[1] - lo[1]) / 2 - 0.15, 0.3))
+        return replace(car, z=z, pitch_deg=pitch, roll_deg=roll)
+
+    def ego_pose(self, bg_id: int, pose: SensorPose = SensorPose()) -> SensorPose:
+        """The ego vehicle standing on the background's ground at the pose's x, y, heading."""
+        z, pitch, roll = self.pose_on(bg_id, pose.x, pose.y, pose.heading_deg)
+        return replace(pose, z=z, pitch_deg=pitch, roll_deg=roll)
+
+    def pose_on(self, bg_id: int, x: float, y: float, heading_deg: float,
+                half_length: float = 1.4, half_width: float = 0.8) -> tuple[float, float, float]:
+        """(z, pitch, roll) of a vehicle on the background's terrain (kept after its BVH is
+        dropped; a background without terrain is the plane z = 0)."""
+        if bg_id not in self._terrain:
+            self.background(bg_id)
+        t = self._terrain[bg_id]
+        if t is None:
+            return 0.0, 0.0, 0.0
+        return t.pose_on(x, y, heading_deg, half_length, half_width)
+
+    def obstacles(self, bg_id: int) -> Obstacles:
+        """The background's obstacle outlines, kept after its BVH is dropped."""
+        if bg_id not in self._obstacles:
+            self.background(bg_id)
+        return self._obstacles[bg_id]
+
+    def footprint(self, car: PlacedCar) -> np.ndarray:
+        """The car's outline on the ground (4×2, counter-clockwise) in the world frame."""
+        _, corners = self.car_caster(car.model)
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        box = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+        return box @ car.rotation()[:2, :2].T + [car.x, car.y]
+
+    def scan(self, sample: Sample, pose: SensorPose = SensorPose(),
+             rng: np.random.Generator | None = None) -> Scan:
+        """The labelled scan of a sample; raises InvalidSample for impossible scenes."""
+        return self.render(sample.background, self.placed_cars(sample),
+                           self.ego_pose(sample.background, pose), rng)
+
+
+@dataclass(frozen=True)
+class Obstacles:
+    """A background's obstacle outlines with their bounding boxes, for a quick first test."""
+
+    items: tuple
+    lo: np.ndarray  # (N, 2)
+    hi: np.ndarray  # (N, 2)
+
+    @classmethod
+    def of(cls, items: Sequence) -> Obstacles:
+        items = tuple(items)
+        lo = np.array([o.polygon.min(axis=0) for o in items]).reshape(-1, 2)
+        hi = np.array([o.polygon.max(axis=0) for o in items]).reshape(-1, 2)
+        return cls(items, lo, hi)
+
+
+def check_placement(placed: Sequence[PlacedCar], outlines: Sequence[np.ndarray],
+                    obstacles: Obstacles, ego: np.ndarray = EGO_FOOTPRINT) -> None:
+    """Raise InvalidSample if car outlines overlap each other, the ego car or an obstacle."""
+    for i, (car, poly) in enumerate(zip(placed, outlines, strict=True)):
+        if polygons_overlap(poly, ego):
+            raise InvalidSample(f"car {i + 1} ({car.model}) intersects the ego vehicle")
+        for j in range(i):
+            if polygons_overlap(poly, outlines[j]):
+                raise InvalidSample(f"car {i + 1} ({car.model}) intersects car {j + 1}")
+        obstacle = first_overlap(poly, obstacles)
+        if obstacle is not None:
+            raise InvalidSample(f"car {i + 1} ({car.model}) intersects the background's "
+                                f"{obstacle.label}")
+
+
+def free_ego(sim: Simulator, bg_id: int, draw: Callable[[], SensorPose],
+             what: str) -> tuple[SensorPose, np.ndarray]:
+    """The first pose from `draw()`, stood on the terrain, whose ego outline keeps off the
+    background's obstacles, and that outline (a training scene's ego once stood in parked
+    buses); InvalidSample naming `what` after EGO_TRIES draws."""
+    obstacles = sim.obstacles(bg_id)
+    for _ in range(EGO_TRIES):
+        pose = sim.ego_pose(bg_id, draw())
+        ego = ego_outline(pose)
+        if first_overlap(ego, obstacles) is None:
+            return pose, ego
+    raise InvalidSample(f"{what}: no free ego pose on background {bg_id} in {EGO_TRIES} draws")
+
+
+def first_overlap(poly: np.ndarray, obstacles: Obstacles):
+    """The first of the background's obstacles that the outline `poly` overlaps, or None."""
+    lo, hi = poly.min(axis=0), poly.max(axis=0)
+    near = np.flatnonzero(~((obstacles.lo > hi).any(axis=1) | (obstacles.hi < lo).any(axis=1)))
+    for k in near:
+        if polygons_overlap(poly, obstacles.items[k].polygon):
+            return obstacles.items[k]
+    return None
+
+
+def ego_outline(pose: SensorPose) -> np.ndarray:
+    """The ego vehicle's outline on the ground for a sensor pose."""
+    return EGO_FOOTPRINT @ rot_z(pose.heading_deg)[:2, :2].T + [pose.x, pose.y]
+
+
+def polygons_overlap(a: np.ndarray, b: np.ndarray) -> bool:
+    """Separating-axis test for two convex polygons (touching counts as overlap)."""
+    for poly in (a, b):
+        edges = np.roll(poly, -1, axis=0) - poly
+        normals = np.stack([-edges[:, 1], edges[:, 0]], axis=1)
+        pa, pb = a @ normals.T, b @ normals.T
+        if np.any((pa.max(axis=0) < pb.min(axis=0)) | (pb.max(axis=0) < pa.min(axis=0))):
+            return False
+    return True

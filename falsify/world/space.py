@@ -1,0 +1,484 @@
+"""The modification space: dimensions read from a TOML config, validated, and the samples in it.
+
+A config names the sensor preset and one table per dimension. Car 1 is described by `car_model`,
+`x`, `y`, `yaw`; car k >= 2 by `car_model_k`, `x_k`, `y_k`, `yaw_k` (defaulting to car 1's
+ranges). `count` says how many cars a sample holds, `background` which street it stands on, and
+image-only dims (`colour`, `weather`, `time_of_day`) are carried along but never change a scan.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from falsify.checks import SEED_MAX
+from falsify.errors import ConfigError
+from falsify.fileio import read_bytes
+from falsify.paths import config_path
+
+CONTINUOUS_BASE = ("x", "y", "yaw")
+IMAGE_ONLY = ("colour", "weather", "time_of_day")
+TOP_KEYS = {"name", "description", "sensor", "seed", "threshold", "dims", "car_models"}
+MAX_CARS = 8
+# How far a coordinate may reach: metres for x and y (far beyond any sensor's range), degrees
+# for yaw (one turn either way; the scene wraps any angle, a config needs no more).
+LIMITS = {"x": 1000.0, "y": 1000.0, "yaw": 360.0}
+MAX_VALUES = 1_000_000   # values one dim may list or range over
+DEFAULT_THRESHOLD = 0.65   # mIoU below which a cell is a blind spot (the paper's)
+CAR_FILE_KEYS = {"file", "scale", "forward", "up"}
+
+Value = float | int | str
+
+
+@dataclass(frozen=True)
+class Continuous:
+    """A real-valued dim with inclusive bounds and the step the grid uses."""
+
+    name: str
+    lo: float
+    hi: float
+    step: float
+
+    @property
+    def size(self) -> int:
+        """How many values the grid takes, computed without making them."""
+        return int(math.floor((self.hi - self.lo) / self.step + 1e-9)) + 1
+
+    def grid(self) -> tuple[float, ...]:
+        return tuple(round(self.lo + i * self.step, 10) for i in range(self.size))
+
+    def contains(self, value: float) -> bool:
+        return self.lo - 1e-9 <= value <= self.hi + 1e-9
+
+
+@dataclass(frozen=True)
+class Categorical:
+    """A dim that takes one of a listed set of values (strings or integers)."""
+
+    name: str
+    values: tuple[Value, ...]
+
+    @property
+    def size(self) -> int:
+        return len(self.values)
+
+    def grid(self) -> tuple[Value, ...]:
+        return self.values
+
+    def contains(self, value: Value) -> bool:
+        return value in self.values
+
+
+Dim = Continuous | Categorical
+
+
+@dataclass(frozen=True)
+class UserCar:
+    """A car model the user brings as a mesh file."""
+
+    name: str
+    file: Path
+    scale: float = 1.0
+    forward: str = "+x"
+    up: str = "+z"
+
+
+@dataclass(frozen=True)
+class CarPose:
+    """One car in a sample: model and pose in the space's coordinates (x right, y forward)."""
+
+    model: str
+    x: float
+    y: float
+    yaw: float
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One point of the space: a value for every dim, in the space's dim order."""
+
+    values: tuple[tuple[str, Value], ...]
+
+    def __getitem__(self, key: str) -> Value:
+        for name, value in self.values:
+            if name == key:
+                return value
+        raise KeyError(key)
+
+    def get(self, key: str, default: Value | None = None) -> Value | None:
+        try:
+            return self[key]
+        except KeyError:
+            return default
+
+    def as_dict(self) -> dict[str, Value]:
+        return dict(self.values)
+
+    @property
+    def count(self) -> int:
+        return int(self.get("count", 1))
+
+    @property
+    def background(self) -> int:
+        return int(self["background"])
+
+    @property
+    def cars(self) -> tuple[CarPose, ...]:
+        """The sample's cars, car 1 first; dims of cars beyond `count` are ignored."""
+        out = []
+        for k in range(1, self.count + 1):
+            sfx = "" if k == 1 else f"_{k}"
+            out.append(
+                CarPose(
+                    model=str(self["car_model" + sfx]),
+                    x=float(self["x" + sfx]),
+                    y=float(self["y" + sfx]),
+                    yaw=float(self["yaw" + sfx]),
+                )
+            )
+        return tuple(out)
+
+    def scene_key(self) -> tuple:
+        """What the LiDAR scan depends on: cars (up to count) and background, not image dims."""
+        return (self.background, tuple(self.cars))
+
+
+@dataclass(frozen=True)
+class Space:
+    """A validated modification space."""
+
+    name: str
+    sensor: str
+    seed: int
+    threshold: float
+    dims: dict[str, Dim]
+    user_cars: dict[str, UserCar] = field(default_factory=dict)
+    source: str = ""
+    config_hash: str = ""
+
+    @property
+    def max_count(self) -> int:
+        count = self.dims["count"]
+        return max(int(v) for v in count.grid())
+
+    def continuous(self, count: int | None = None) -> tuple[Continuous, ...]:
+        """Continuous dims that are active for samples holding `count` cars (default: all)."""
+        return tuple(d for d in self.dims.values() if isinstance(d, Continuous)
+                     and self.active(d.name, count))
+
+    def discrete(self) -> tuple[Categorical, ...]:
+        return tuple(d for d in self.dims.values() if isinstance(d, Categorical))
+
+    def active(self, name: str, count: int | None) -> bool:
+        """Whether dim `name` changes a sample holding `count` cars."""
+        if count is None:
+            return True
+        return car_index(name) <= count
+
+    def first(self) -> dict[str, Value]:
+        return {name: dim.grid()[0] for name, dim in self.dims.items()}
+
+    def make(self, values: dict[str, Value]) -> Sample:
+        """Build a sample from a partial dict: missing dims take their first value, and dims of
+        cars beyond `count` are pinned to their first value so equal scenes give equal samples."""
+        unknown = sorted(set(values) - set(self.dims))
+        if unknown:
+            raise ConfigError(
+                f"unknown dim {unknown[0]!r}; the space has: {', '.join(self.dims)}")
+        merged = self.first()
+        for name, raw in values.items():
+            merged[name] = self.coerce(name, raw)
+        count = int(merged.get("count", 1))
+        for name, dim in self.dims.items():
+            if not self.active(name, count):
+                merged[name] = dim.grid()[0]
+        return Sample(tuple((name, merged[name]) for name in self.dims))
+
+    def coerce(self, name: str, raw: Value) -> Value:
+        """Convert a raw value (e.g. a `--set` string) to the dim's type; check it is in range."""
+        dim = self.dims[name]
+        if isinstance(dim, Continuous):
+            try:
+                value = float(raw)
+            except (TypeError, ValueError):
+                raise ConfigError(f"{name}: {raw!r} is not a number") from None
+            if not math.isfinite(value) or not dim.contains(value):
+                raise ConfigError(f"{name}: {raw!r} is outside [{dim.lo:g}, {dim.hi:g}]")
+            return value
+        for allowed in dim.values:
+            if str(allowed) == str(raw):
+                return allowed
+        raise ConfigError(
+            f"{name}: {raw!r} is not one of {', '.join(str(v) for v in dim.values)}")
+
+    def size(self) -> int:
+        """How many samples `grid()` holds, computed without enumerating them."""
+        total = 0
+        for count in self.dims["count"].grid():
+            n = 1
+            for name, dim in self.dims.items():
+                if name != "count" and self.active(name, int(count)):
+                    n *= dim.size
+            total += n
+        return total
+
+    def check_size(self, limit: int, option: str = "--max-samples") -> None:
+        """ConfigError unless the grid holds at most `limit` samples (counted, not made)."""
+        n = self.size()
+        if n > limit:
+            raise ConfigError(f"{self.source}: the grid holds {n:,} samples, more than {option} "
+                              f"{limit:,}; take larger steps or fewer values")
+
+    def grid(self) -> list[Sample]:
+        """The full factorial set at the configured steps, no duplicates, in a fixed order.
+
+        Dims of cars beyond a sample's `count` are not enumerated (they cannot change it)."""
+        out: list[Sample] = []
+        for count in self.dims["count"].grid():
+            axes = []
+            for name, dim in self.dims.items():
+                axes.append(dim.grid() if self.active(name, int(count)) or name == "count"
+                            else dim.grid()[:1])
+            names = list(self.dims)
+            ci = names.index("count")
+            axes[ci] = (count,)
+            for combo in itertools.product(*axes):
+                out.append(Sample(tuple(zip(names, combo, strict=True))))
+        return out
+
+
+def car_index(name: str) -> int:
+    """1 for car 1's dims, k for `*_k`, 0 for dims that are not per car."""
+    for base in ("car_model", *CONTINUOUS_BASE):
+        if name == base:
+            return 1
+        if name.startswith(base + "_") and name[len(base) + 1:].isdigit():
+            return int(name[len(base) + 1:])
+    return 0
+
+
+def load_space(path: str | Path, builtin_cars: tuple[str, ...] | None = None) -> Space:
+    """Read and validate a space config (a file, or a bundled config by its name); every problem
+    names its key and the allowed values."""
+    path = config_path(path)
+    text = read_bytes(path, "config", ConfigError)
+    try:
+        raw = tomllib.loads(text.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    return parse_space(raw, source=str(path), base_dir=path.parent,
+                       config_hash=hashlib.sha256(text).hexdigest(), builtin_cars=builtin_cars)
+
+
+def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | None = None,
+                config_hash: str = "", builtin_cars: tuple[str, ...] | None = None) -> Space:
+    """Validate a parsed config dict into a Space."""
+    if builtin_cars is None:
+        from falsify.world.cars import BUILTIN_MODELS
+        builtin_cars = BUILTIN_MODELS
+    from falsify.world.streets import MAX_BACKGROUND_ID
+
+    where = f"{source}: "
+    extra = sorted(set(raw) - TOP_KEYS)
+    if extra:
+        raise ConfigError(f"{where}unknown key {extra[0]!r}; allowed: "
+                          f"{', '.join(sorted(TOP_KEYS))}")
+    name = _typed(raw, "name", str, where, default=Path(source).stem)
+    sensor = _typed(raw, "sensor", str, where, default="kitti-hdl64e-front")
+    seed = _typed(raw, "seed", int, where, default=0)
+    if not 0 <= seed <= SEED_MAX:
+        raise ConfigError(f"{where}seed: {seed} must be between 0 and {SEED_MAX}")
+    threshold = float(_typed(raw, "threshold", (int, float), where, default=DEFAULT_THRESHOLD))
+    if not 0.0 < threshold <= 1.0:
+        raise ConfigError(f"{where}threshold: {threshold} must be in (0, 1]")
+
+    user_cars = _user_cars(raw.get("car_models", {}), where, base_dir or Path("."), builtin_cars)
+    models = (*builtin_cars, *user_cars)
+
+    dims_raw = raw.get("dims")
+    if not isinstance(dims_raw, dict):
+        raise ConfigError(f"{where}missing table [dims] (with car_model, x, y, yaw, count, "
+                          "background)")
+    for required in ("car_model", "x", "y", "background"):
+        if required not in dims_raw:
+            raise ConfigError(f"{where}dims.{required} is missing; required dims: car_model, x, "
+                              "y, background (yaw and count default to 0 and 1)")
+    dims_raw = dict(dims_raw)
+    dims_raw.setdefault("yaw", {"values": [0.0]})
+    dims_raw.setdefault("count", {"values": [1]})
+
+    count = _categorical("count", dims_raw["count"], where, int)
+    for c in count.values:
+        if not 1 <= int(c) <= MAX_CARS:
+            raise ConfigError(f"{where}dims.count: {c} must be between 1 and {MAX_CARS}")
+    max_count = max(int(c) for c in count.values)
+
+    allowed = {"car_model", *CONTINUOUS_BASE, "count", "background", *IMAGE_ONLY}
+    for k in range(2, max_count + 1):
+        allowed |= {f"car_model_{k}", *(f"{b}_{k}" for b in CONTINUOUS_BASE)}
+    unknown = sorted(set(dims_raw) - allowed)
+    if unknown:
+        raise ConfigError(f"{where}unknown dim dims.{unknown[0]}; allowed: "
+                          f"{', '.join(sorted(allowed))}")
+
+    dims: dict[str, Dim] = {}
+    for k in range(1, max_count + 1):
+        sfx = "" if k == 1 else f"_{k}"
+        spec = dims_raw.get("car_model" + sfx, dims_raw["car_model"])
+        dim = _categorical("car_model" + sfx, spec, where, str)
+        for v in dim.values:
+            if v not in models:
+                raise ConfigError(f"{where}dims.car_model{sfx}: unknown car model {v!r}; "
+                                  f"allowed: {', '.join(models)}")
+        dims["car_model" + sfx] = dim
+        for base in CONTINUOUS_BASE:
+            spec = dims_raw.get(base + sfx, dims_raw[base])
+            dims[base + sfx] = _continuous_or_values(base + sfx, spec, where)
+    dims["count"] = count
+    bg = _categorical("background", dims_raw["background"], where, int)
+    for v in bg.values:
+        if not 0 <= int(v) <= MAX_BACKGROUND_ID:
+            raise ConfigError(f"{where}dims.background: unknown background {v}; allowed: "
+                              f"integer ids 0..{MAX_BACKGROUND_ID}")
+    dims["background"] = bg
+    for image_dim in IMAGE_ONLY:
+        if image_dim in dims_raw:
+            dims[image_dim] = _categorical(image_dim, dims_raw[image_dim], where, str)
+    return Space(name=name, sensor=sensor, seed=seed, threshold=threshold, dims=dims,
+                 user_cars=user_cars, source=source, config_hash=config_hash)
+
+
+def _typed(raw: dict, key: str, types, where: str, default):
+    if key not in raw:
+        return default
+    value = raw[key]
+    if isinstance(value, bool) or not isinstance(value, types):
+        names = (types.__name__ if isinstance(types, type)
+                 else " or ".join(t.__name__ for t in types))
+        raise ConfigError(f"{where}{key}: expected {names}, got {value!r}")
+    return value
+
+
+def _categorical(name: str, spec: Any, where: str, kind: type) -> Categorical:
+    """`{values = [...]}` or, for integers, `{range = [start, stop]}` (stop exclusive)."""
+    key = f"dims.{name}"
+    if not isinstance(spec, dict):
+        raise ConfigError(f"{where}{key}: expected a table with 'values' (a list)")
+    extra = sorted(set(spec) - {"values", "range"})
+    if extra:
+        raise ConfigError(f"{where}{key}: unknown key {extra[0]!r}; allowed: values"
+                          + (", range" if kind is int else ""))
+    if "range" in spec and kind is int:
+        r = spec["range"]
+        if (not isinstance(r, list) or len(r) != 2
+                or not all(isinstance(v, int) and not isinstance(v, bool) for v in r)):
+            raise ConfigError(f"{where}{key}.range: expected [start, stop] integers")
+        if not 0 < r[1] - r[0] <= MAX_VALUES:
+            raise ConfigError(f"{where}{key}.range: [{r[0]}, {r[1]}) holds {r[1] - r[0]} values; "
+                              f"allowed 1 to {MAX_VALUES}")
+        values = list(range(r[0], r[1]))
+    elif "values" in spec:
+        values = spec["values"]
+    else:
+        raise ConfigError(f"{where}{key}: needs 'values'" + (" or 'range'" if kind is int else ""))
+    if not isinstance(values, list) or not values:
+        raise ConfigError(f"{where}{key}.values: expected a non-empty list")
+    if len(values) > MAX_VALUES:
+        raise ConfigError(f"{where}{key}.values: {len(values)} values; at most {MAX_VALUES}")
+    for v in values:
+        if isinstance(v, bool) or not isinstance(v, kind):
+            raise ConfigError(f"{where}{key}.values: {v!r} is not {kind.__name__}")
+    if len(set(values)) != len(values):
+        raise ConfigError(f"{where}{key}.values: duplicate values")
+    return Categorical(name, tuple(values))
+
+
+def _continuous_or_values(name: str, spec: Any, where: str) -> Dim:
+    """`{min, max, step}` for a range, or `{values = [...]}` for fixed values (all numbers),
+    within the dim's limit (LIMITS) and at most MAX_VALUES of them."""
+    key = f"dims.{name}"
+    limit = LIMITS[name.split("_")[0]]
+    unit = "degrees" if name.startswith("yaw") else "m"
+
+    def within(v: float, what: str) -> None:
+        if abs(v) > limit:
+            raise ConfigError(f"{where}{what}: {v:g} is beyond the allowed -{limit:g} to "
+                              f"{limit:g} {unit}")
+    if not isinstance(spec, dict):
+        raise ConfigError(f"{where}{key}: expected a table with min, max, step (or values)")
+    if "values" in spec:
+        if set(spec) != {"values"}:
+            raise ConfigError(f"{where}{key}: give either values or min/max/step, not both")
+        values = spec["values"]
+        if not isinstance(values, list) or not values:
+            raise ConfigError(f"{where}{key}.values: expected a non-empty list of numbers")
+        for v in values:
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise ConfigError(f"{where}{key}.values: {v!r} is not a finite number")
+            within(float(v), f"{key}.values")
+        if len(values) > MAX_VALUES:
+            raise ConfigError(f"{where}{key}.values: {len(values)} values; at most {MAX_VALUES}")
+        if len(values) == 1:
+            v = float(values[0])
+            return Continuous(name, v, v, 1.0)
+        return Categorical(name, tuple(float(v) for v in values))
+    missing = [k for k in ("min", "max", "step") if k not in spec]
+    if missing:
+        raise ConfigError(f"{where}{key}: missing {missing[0]!r}; a range needs min, max, step")
+    extra = sorted(set(spec) - {"min", "max", "step"})
+    if extra:
+        raise ConfigError(f"{where}{key}: unknown key {extra[0]!r}; allowed: min, max, step, "
+                          "values")
+    nums = {}
+    for k in ("min", "max", "step"):
+        v = spec[k]
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise ConfigError(f"{where}{key}.{k}: expected a finite number, got {v!r}")
+        nums[k] = float(v)
+    if nums["step"] <= 0:
+        raise ConfigError(f"{where}{key}.step: {nums['step']:g} must be > 0")
+    if nums["max"] < nums["min"]:
+        raise ConfigError(f"{where}{key}: empty range, max {nums['max']:g} < min {nums['min']:g}")
+    within(nums["min"], f"{key}.min")
+    within(nums["max"], f"{key}.max")
+    dim = Continuous(name, nums["min"], nums["max"], nums["step"])
+    if dim.size > MAX_VALUES:
+        raise ConfigError(f"{where}{key}.step: {nums['step']:g} makes {dim.size} values; at most "
+                          f"{MAX_VALUES} (take a larger step)")
+    return dim
+
+
+def _user_cars(raw: Any, where: str, base_dir: Path, builtin: tuple[str, ...]) -> dict:
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{where}car_models: expected tables like [car_models.mine] file = ...")
+    out: dict[str, UserCar] = {}
+    for name, spec in raw.items():
+        key = f"car_models.{name}"
+        if name in builtin:
+            raise ConfigError(f"{where}{key}: {name!r} is a built-in model; choose another name")
+        if not isinstance(spec, dict) or "file" not in spec:
+            raise ConfigError(f"{where}{key}: needs file = 'path/to/mesh' (OBJ, STL, PLY, GLB)")
+        extra = sorted(set(spec) - CAR_FILE_KEYS)
+        if extra:
+            raise ConfigError(f"{where}{key}: unknown key {extra[0]!r}; allowed: "
+                              f"{', '.join(sorted(CAR_FILE_KEYS))}")
+        scale = spec.get("scale", 1.0)
+        if isinstance(scale, bool) or not isinstance(scale, int | float) or not (
+                math.isfinite(scale) and scale > 0):
+            raise ConfigError(f"{where}{key}.scale: {scale!r} must be a finite number > 0")
+        for axis_key in ("forward", "up"):
+            v = spec.get(axis_key, "+x" if axis_key == "forward" else "+z")
+            if v not in ("+x", "-x", "+y", "-y", "+z", "-z"):
+                raise ConfigError(f"{where}{key}.{axis_key}: {v!r}; allowed: +x, -x, +y, -y, "
+                                  "+z, -z")
+        file = Path(spec["file"])
+        if not file.is_absolute():
+            file = base_dir / file
+        out[name] = UserCar(name, file, float(scale), spec.get("forward", "+x"),
+                            spec.get("up", "+z"))
+    return out
