@@ -19,7 +19,7 @@ from falsify.data.velodyne import read_kitti
 from falsify.errors import FalsifyError
 from falsify.sensor.lidar import Sensor
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]   # the source checkout
 # The shared real KITTI data beside the repository (evaluation only; never copied in).
 KITTI_DIR = ROOT.parent / "shared" / "data" / "kitti"
 
