@@ -595,6 +595,15 @@ def cmd_gate(args) -> int:
     return result.exit_code
 
 
+def cmd_explain(args) -> int:
+    from falsify.jobs.explain import explain_run, format_text
+
+    result = explain_run(args.run, threshold=args.threshold, depth=args.depth,
+                         rules=args.rules, clusters=args.clusters, seed=args.seed)
+    emit(args, result.as_dict(), format_text(result))
+    return 0
+
+
 def cmd_tradeoff(args) -> int:
     from falsify.bench.tradeoff import parse_knobs, run_tradeoff
 
@@ -772,6 +781,21 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--junit", metavar="FILE", help="also write JUnit XML, one testcase per cell")
     g.add_argument("--json", action="store_true", help="print the verdict as JSON")
     g.set_defaults(func=cmd_gate)
+
+    x = sub.add_parser("explain", help="what a run's failing samples have in common: rules over "
+                       "the dims, each dim's share of the IoU variance, clusters",
+                       description="Read a run (read-only) and describe its samples below the "
+                       "threshold as readable rules, e.g. 'y >= 16 and |x| >= 3: 33 of 33 "
+                       "samples below 0.65'.")
+    x.add_argument("run", help="run directory (holding results.sqlite)")
+    x.add_argument("--threshold", type=float, metavar="T",
+                   help="per-sample car IoU below which a sample fails (default: the run's)")
+    x.add_argument("--depth", type=int, default=2, help="conditions per rule, at most (1-4)")
+    x.add_argument("--rules", type=int, default=5, help="rules to find, at most")
+    x.add_argument("--clusters", type=int, default=4, help="clusters of failing samples")
+    x.add_argument("--seed", type=int, default=0, help="seed of the clustering")
+    x.add_argument("--json", action="store_true")
+    x.set_defaults(func=cmd_explain)
 
     t = sub.add_parser("tradeoff", help="measure speed against mIoU-map error for each knob",
                        description="Evaluate one sample set under each setting of each knob "
