@@ -16,6 +16,7 @@ from falsify.sampler.base import (
     SearchResult,
     lowest_so_far,
 )
+from falsify.sampler.cross_entropy import CrossEntropySampler
 from falsify.sampler.grid import GridSampler
 from falsify.sampler.nlopt import NloptSampler
 from falsify.sampler.random import RandomSampler
@@ -27,7 +28,7 @@ from falsify.errors import ConfigError
 def make_sampler(name: str, **options: object) -> Sampler:
     """Build a sampler by name; an unknown name or option raises ConfigError listing the allowed."""
     classes: dict[str, type] = {"grid": GridSampler, "random": RandomSampler,
-                                "sobol": SobolSampler}
+                                "sobol": SobolSampler, "cross-entropy": CrossEntropySampler}
     if name in classes:
         cls = classes[name]
     elif name in NLOPT_ALGORITHMS:

@@ -29,7 +29,7 @@ _NLOPT_CANDIDATES = (
 NLOPT_ALGORITHMS: tuple[str, ...] = tuple(n for n in _NLOPT_CANDIDATES if hasattr(nlopt, n))
 """NLopt algorithms offered by name (those this NLopt build provides)."""
 
-ALGORITHMS: tuple[str, ...] = ("grid", "random", "sobol", *NLOPT_ALGORITHMS)
+ALGORITHMS: tuple[str, ...] = ("grid", "random", "sobol", "cross-entropy", *NLOPT_ALGORITHMS)
 """Every name `make_sampler` accepts."""
 
 

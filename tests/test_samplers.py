@@ -87,7 +87,8 @@ def test_registry_names_and_unknown_name():
     for name in ("GN_DIRECT_L", "GN_CRS2_LM", "GN_ISRES", "G_MLSL_LDS", "LN_BOBYQA",
                  "LN_COBYLA", "LN_NELDERMEAD", "LN_SBPLX"):
         assert name in NLOPT_ALGORITHMS
-    with pytest.raises(ConfigError, match="allowed: grid, random, sobol, GN_DIRECT_L"):
+    with pytest.raises(ConfigError,
+                       match="allowed: grid, random, sobol, cross-entropy, GN_DIRECT_L"):
         make_sampler("annealing")
     with pytest.raises(ConfigError, match="unknown option 'bogus'; allowed: batch_size"):
         make_sampler("grid", bogus=1)

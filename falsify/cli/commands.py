@@ -719,8 +719,9 @@ def build_parser() -> argparse.ArgumentParser:
     se = sub.add_parser("search", help="search a space for low car IoU within a budget")
     _run_options(se)
     se.add_argument("--algorithm", required=True, choices=[a for a in ALGORITHMS if a != "grid"],
-                    metavar="NAME", help="random, sobol, or an NLopt algorithm: "
-                    + ", ".join(a for a in ALGORITHMS if a not in ("grid", "random", "sobol")))
+                    metavar="NAME", help="random, sobol, cross-entropy, or an NLopt algorithm: "
+                    + ", ".join(a for a in ALGORITHMS
+                                if a not in ("grid", "random", "sobol", "cross-entropy")))
     se.add_argument("--budget", type=int, default=None, help="number of evaluations")
     se.set_defaults(func=cmd_search)
 

@@ -30,7 +30,7 @@ from falsify.results.metrics import Status
 from falsify.results.miou_maps import CellMap, miou_map, snap
 from falsify.results.replay import Replay
 from falsify.results.store import STORE_NAME, RunData, Store, export, read_frame, read_meta
-from falsify.sampler import make_sampler
+from falsify.sampler import NLOPT_ALGORITHMS, make_sampler
 from falsify.sampler.base import BATCH, Sampler, SearchResult
 from falsify.sensor.lidar import load_sensor
 from falsify.world.cars import load_user_car
@@ -98,8 +98,9 @@ def prepare(req: RunRequest) -> Prepared:
     # Batch samplers hand the driver whole batches; keep every worker busy with two chunks of
     # 8 each. NLopt asks for one point at a time per discrete combination: run as many
     # combinations at once as there are workers. Neither changes the samples or the rows.
+    # Cross-entropy's round size is part of the algorithm, so it keeps its own.
     sizes = ({"batch_size": max(BATCH, 16 * req.workers)} if req.algorithm in BATCHED
-             else {"concurrent": req.workers})
+             else {"concurrent": req.workers} if req.algorithm in NLOPT_ALGORITHMS else {})
     sampler = make_sampler(req.algorithm, **sizes)
     if req.camera is not None:
         from falsify.sensor.camera import camera_preset
