@@ -147,50 +147,94 @@ def cmd_dataset(args) -> int:
 # -- predict and train ----------------------------------------------------------------------
 def cmd_predict(args) -> int:
     from falsify.data.scansets import load_sets
-    from falsify.fileio import write_npy
+    from falsify.fileio import write_bytes, write_npy
+    from falsify.images.png import encode_png
+    from falsify.images.scan_pictures import prediction_picture
     from falsify.jobs.predict import evaluate
     from falsify.models.runner import load_segmenter
     from falsify.sensor.lidar import load_sensor
 
     check_out_dir(args.out)
-    sets = load_sets(args.scans, load_sensor(args.sensor))
+    sequences = _predict_sequences(args.sequences, args.scans)
+    sets = load_sets(args.scans, load_sensor(args.sensor), sequences=sequences)
+    for s in sets:
+        for source in s.unlabelled:
+            print(f"falsify: warning: no labels for {source} (looked for {Path(source).stem}"
+                  ".label beside it and in ../labels/)", file=sys.stderr)
     model = load_segmenter(args.model, backend=args.backend)
     result = evaluate(model, sets)
     out = Path(args.out)
-    for s in result.sets:
+    for s, scans in zip(result.sets, sets, strict=True):
         folder = out / s.name if len(result.sets) > 1 else out
-        for source, cls in zip(s.sources, s.predictions, strict=True):
+        labelled = scans.labelled()
+        for k, (source, cls) in enumerate(zip(s.sources, s.predictions, strict=True)):
             write_npy(folder / f"{Path(source).stem}.pred.npy", cls)
+            picture = prediction_picture(scans.images[k], cls, labelled=bool(labelled[k]))
+            write_bytes(folder / f"{Path(source).stem}.png", encode_png(picture))
     summary = {**result.as_dict(), "backend": args.backend, "out": str(out)}
-    labelled = any(bool((s.images[..., 5] > 0).any()) for s in sets)
+    labelled = result.labelled_sets > 0
     if not labelled:
-        summary = {k: v for k, v in summary.items() if k not in ("pooled", "sets")}
+        summary = {k: v for k, v in summary.items() if k not in ("pooled", "bands", "sets")}
     emit(args, summary, _predict_text(result, args.backend, out, labelled))
     return 0
 
 
+def _predict_sequences(value: str | None, scans: list[str]) -> list[str] | None:
+    """--sequences as a list of two-digit ids found under the SemanticKITTI roots named; a
+    UsageError names the option and the allowed values."""
+    if value is None:
+        return None
+    from falsify.data.scansets import SEQUENCE_ID, available_sequences
+
+    allowed = available_sequences(scans)
+    hint = (f"allowed: {', '.join(allowed)}" if allowed else "no SemanticKITTI root or "
+            "sequences/ folder (sequences/SS/velodyne/*.bin) among the scans")
+    ids = [v.strip() for v in value.split(",")]
+    for v in ids:
+        if not SEQUENCE_ID.fullmatch(v):
+            raise UsageError(f"--sequences {value}: {v!r} is not a two-digit sequence id; {hint}")
+        if v not in allowed:
+            raise UsageError(f"--sequences {value}: no sequence {v} in the scans named; {hint}")
+    return sorted(set(ids))
+
+
 def _predict_text(result, backend: str, out: Path, labelled: bool) -> str:
-    """Per set: pooled scores per class, then car IoU, precision and recall per range band."""
+    """Per set: pooled scores per class, then car IoU, precision and recall per range band; the
+    same pooled over every set when several are labelled."""
     def f(v):
         return "   -  " if v is None else f"{v:6.3f}"
 
-    n = sum(len(s.sources) for s in result.sets)
-    lines = [f"predicted {n} scans with {result.model} ({result.model_hash[:12]}, {backend}) "
-             f"into {out}"]
-    if not labelled:
-        return lines[0]
-    for s in result.sets:
-        lines.append(f"\n{s.name}: {len(s.sources)} scans"
-                     + (f", {s.ignored_pixels} pixels ignored" if s.ignored_pixels else ""))
-        lines.append("class        IoU    precision  recall   (TP, FP, FN pooled over scans)")
-        for c in s.pooled.classes:
+    def scores(pooled, bands) -> list[str]:
+        lines = ["class        IoU    precision  recall   (TP, FP, FN pooled over scans)"]
+        for c in pooled.classes:
             lines.append(f"{c.name:11s} {f(c.iou)}  {f(c.precision)}    {f(c.recall)}"
                          + (f"   ({c.note})" if c.note else ""))
         lines.append("car by range  IoU    precision  recall   TP      FP      FN")
-        for band, sc in s.bands:
+        for band, sc in bands:
             c = sc.car()
             lines.append(f"{band:11s} {f(c.iou)}  {f(c.precision)}    {f(c.recall)}  "
                          f"{c.tp:6d}  {c.fp:6d}  {c.fn:6d}")
+        return lines
+
+    n = sum(len(s.sources) for s in result.sets)
+    lines = [f"predicted {n} scans with {result.model} ({result.model_hash[:12]}, {backend}) "
+             f"into {out} (.pred.npy classes and .png pictures per scan)"]
+    if result.unlabelled:
+        lines.append(f"{len(result.unlabelled)} scans without labels (named above): predicted, "
+                     "left out of every score")
+    if not labelled:
+        return "\n".join(lines)
+    for s in result.sets:
+        lines.append(f"\n{s.name}: {len(s.sources)} scans"
+                     + (f", {len(s.unlabelled)} without labels, not scored" if s.unlabelled
+                        else "")
+                     + (f", {s.ignored_pixels} pixels ignored" if s.ignored_pixels else ""))
+        if s.scored:
+            lines += scores(s.pooled, s.bands)
+    if result.labelled_sets > 1:
+        scored = sum(s.scored for s in result.sets)
+        lines.append(f"\nall {result.labelled_sets} labelled sets pooled: {scored} scans")
+        lines += scores(result.pooled, result.bands)
     return "\n".join(lines)
 
 
@@ -672,9 +716,14 @@ def build_parser() -> argparse.ArgumentParser:
     pr = sub.add_parser("predict", help="run the network on scans; IoU, precision, recall per set "
                         "and range band where labelled")
     pr.add_argument("scans", nargs="+",
-                    help=".npy range images, KITTI .bin scans (+ .label), folders of .npy, or "
-                    "a KITTI object directory (velodyne/, label_2/, calib/: labelled from its "
-                    "3D boxes); scores are pooled per folder")
+                    help=".npy range images, KITTI .bin scans (labels: x.label beside or "
+                    "../labels/x.label), folders of .npy / .bin, a SemanticKITTI root, its "
+                    "sequences/ folder or one sequence folder (one set per sequence), or a KITTI "
+                    "object directory (velodyne/, label_2/, calib/: labelled from its 3D "
+                    "boxes); scores are pooled per folder or sequence, and over all")
+    pr.add_argument("--sequences", default=None, metavar="SS,SS",
+                    help="only these SemanticKITTI sequences of a root or sequences/ folder, "
+                    "e.g. 00,03,06,08")
     pr.add_argument("--model", default=None)
     pr.add_argument("--backend", choices=["onnx", "torch"], default="onnx")
     pr.add_argument("--sensor", default="kitti-hdl64e-front",

@@ -1,12 +1,17 @@
-"""Sets of labelled scans read from disk: our .npy range images, KITTI .bin (+ .label) scans and
-KITTI object frame directories, grouped into named sets for pooled evaluation and realism.
+"""Sets of labelled scans read from disk: our .npy range images, KITTI .bin (+ .label) scans,
+SemanticKITTI's layout and KITTI object frame directories, grouped into named sets for pooled
+evaluation and realism.
 
 Files are grouped by the folder they sit in (one set per folder); a KITTI object directory
-(velodyne/, label_2/, calib/) is one set whose points are labelled from its 3D boxes.
+(velodyne/, label_2/, calib/) is one set whose points are labelled from its 3D boxes; each
+SemanticKITTI sequence (SS/velodyne/*.bin, SS/labels/*.label) is one set named by its id. A .bin
+whose labels are not found is still read (it can be predicted) but marked unlabelled, so no score
+counts it: the caller says so.
 """
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,7 +20,7 @@ import numpy as np
 from falsify.data.kitti_frames import read_object_frame
 from falsify.data.kitti_object import frames, is_object_dir
 from falsify.data.range_npy import load_scan_npy
-from falsify.data.velodyne import read_kitti
+from falsify.data.velodyne import label_file, read_kitti
 from falsify.errors import FalsifyError
 from falsify.sensor.lidar import Sensor
 
@@ -32,25 +37,35 @@ class ScanSet:
     images: np.ndarray
     ignore: np.ndarray          # (B, H, W) bool
     sources: tuple[str, ...]    # one per scan: the file (or object frame) it came from
+    unlabelled: tuple[str, ...] = ()   # the sources whose labels were not found: never scored
 
     def __len__(self) -> int:
         return len(self.images)
 
+    def labelled(self) -> np.ndarray:
+        """(B,) bool: the scans whose labels were read, the only ones a score may count."""
+        missing = set(self.unlabelled)
+        return np.array([s not in missing for s in self.sources], bool)
+
 
 def read_set(name: str, paths: list[Path], sensor: Sensor) -> ScanSet:
-    """One set from .npy range images and KITTI .bin scans (a .label beside a .bin is read)."""
-    images, sources = [], []
+    """One set from .npy range images and KITTI .bin scans; a .bin's labels are read from
+    x.label beside it or ../labels/x.label, and a .bin with neither is listed as unlabelled."""
+    images, sources, unlabelled = [], [], []
     for p in paths:
         if p.suffix == ".bin":
-            label = p.with_suffix(".label")
-            images.append(read_kitti(p, label if label.exists() else None, sensor).image)
+            label = label_file(p)
+            if label is None:
+                unlabelled.append(str(p))
+            images.append(read_kitti(p, label, sensor).image)
         elif p.suffix == ".npy":
             images.append(load_scan_npy(p))
         else:
             raise FalsifyError(f"{p}: expected a .npy range image, a KITTI .bin scan or a "
                                "KITTI object directory (velodyne/, label_2/, calib/)")
         sources.append(str(p))
-    return _stack(name, images, [np.zeros(im.shape[:2], bool) for im in images], sources)
+    return _stack(name, images, [np.zeros(im.shape[:2], bool) for im in images], sources,
+                  unlabelled)
 
 
 def read_object_set(root: Path, sensor: Sensor) -> ScanSet:
@@ -66,30 +81,76 @@ def npy_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.glob("*.npy") if not p.name.endswith(".pred.npy"))
 
 
-def load_sets(paths: list[str], sensor: Sensor) -> list[ScanSet]:
-    """Named sets from command-line paths: one per object directory or folder of .npy scans,
-    and loose files grouped by their folder, in the order first named."""
+SEQUENCE_ID = re.compile(r"\d\d")   # SemanticKITTI's sequence folders: 00 .. 21
+
+
+def is_sequence_dir(path: Path) -> bool:
+    """A SemanticKITTI sequence folder (SS/ holding velodyne/; labels/ when labelled)."""
+    return (path / "velodyne").is_dir() and not is_object_dir(path)
+
+
+def sequence_dirs(path: Path) -> dict[str, Path] | None:
+    """id -> folder of the sequences under a SemanticKITTI root (holding sequences/) or a
+    sequences/ folder, sorted by id; None when `path` is neither."""
+    if not path.is_dir():
+        return None
+    folder = path / "sequences" if (path / "sequences").is_dir() else path
+    found = {d.name: d for d in sorted(folder.iterdir())
+             if d.is_dir() and SEQUENCE_ID.fullmatch(d.name) and is_sequence_dir(d)}
+    return found or None
+
+
+def available_sequences(paths: list[str]) -> list[str]:
+    """The sequence ids found under the SemanticKITTI roots and sequences/ folders named."""
+    ids: set[str] = set()
+    for p in map(Path, paths):
+        if not is_sequence_dir(p):
+            ids.update(sequence_dirs(p) or {})
+    return sorted(ids)
+
+
+def load_sets(paths: list[str], sensor: Sensor,
+              sequences: list[str] | None = None) -> list[ScanSet]:
+    """Named sets from command-line paths, in the order first named: one per object directory,
+    SemanticKITTI sequence (only `sequences`' ids of a root or sequences/ folder, when given) or
+    folder of .npy / .bin scans, and loose files grouped by their folder."""
     groups: dict[Path, list[Path]] = {}
     objects: dict[Path, None] = {}
+    if sequences is not None:
+        allowed = available_sequences(paths)
+        unknown = [q for q in sequences if q not in allowed]
+        if unknown or not sequences:
+            raise FalsifyError(f"sequences {', '.join(unknown) or '(none)'}: not among the "
+                               f"SemanticKITTI sequences named ({', '.join(allowed) or 'none'})")
     for p in map(Path, paths):
         if p.is_dir():
             if is_object_dir(p):
                 objects[p] = None
                 groups.setdefault(p, [])
                 continue
-            files = npy_files(p)
+            if is_sequence_dir(p):
+                groups.setdefault(p, []).extend(_sequence_files(p))
+                continue
+            found = sequence_dirs(p)
+            if found is not None:
+                for sid, d in found.items():
+                    if sequences is None or sid in sequences:
+                        groups.setdefault(d, []).extend(_sequence_files(d))
+                continue
+            files = sorted([*npy_files(p), *p.glob("*.bin")])
             if not files:
-                raise FalsifyError(f"{p}: a folder with no .npy scans and not a KITTI object "
-                                   "directory (velodyne/, label_2/, calib/)")
+                raise FalsifyError(f"{p}: no .npy or .bin scans here, and not a SemanticKITTI "
+                                   "root, sequences/ or sequence folder (SS/velodyne/*.bin) nor "
+                                   "a KITTI object directory (velodyne/, label_2/, calib/)")
             groups.setdefault(p, []).extend(files)
         elif not p.exists():
             raise FalsifyError(f"{p}: no such file")
         else:
             groups.setdefault(p.parent, []).append(p)
-    names = [g.name or str(g) for g in groups]
+    names = [_set_name(g) for g in groups]
     sets = []
     for folder, files in groups.items():
-        name = folder.name or str(folder)
+        name = _set_name(folder)
         if names.count(name) > 1:
             name = str(folder)
         sets.append(read_object_set(folder, sensor) if folder in objects
@@ -98,6 +159,21 @@ def load_sets(paths: list[str], sensor: Sensor) -> list[ScanSet]:
     if len(shapes) > 1:
         raise FalsifyError(f"scans have different shapes: {sorted(shapes)}")
     return sets
+
+
+def _sequence_files(folder: Path) -> list[Path]:
+    """A sequence's .bin scans, sorted; FalsifyError naming its velodyne/ when it holds none."""
+    files = sorted((folder / "velodyne").glob("*.bin"))
+    if not files:
+        raise FalsifyError(f"{folder / 'velodyne'}: no .bin scans in this sequence")
+    return files
+
+
+def _set_name(folder: Path) -> str:
+    """A folder's set name: its own, or its sequence's for a velodyne/ folder."""
+    if folder.name == "velodyne" and folder.parent.name:
+        return folder.parent.name
+    return folder.name or str(folder)
 
 
 def real_sets(sensor: Sensor, root: Path = KITTI_DIR) -> list[ScanSet]:
@@ -112,8 +188,9 @@ def real_sets(sensor: Sensor, root: Path = KITTI_DIR) -> list[ScanSet]:
 
 
 def _stack(name: str, images: list[np.ndarray], ignore: list[np.ndarray],
-           sources: list[str]) -> ScanSet:
+           sources: list[str], unlabelled: list[str] | None = None) -> ScanSet:
     shapes = {im.shape for im in images}
     if len(shapes) > 1:
         raise FalsifyError(f"set {name}: scans have different shapes: {sorted(shapes)}")
-    return ScanSet(name, np.stack(images), np.stack(ignore), tuple(sources))
+    return ScanSet(name, np.stack(images), np.stack(ignore), tuple(sources),
+                   tuple(unlabelled or ()))

@@ -50,3 +50,48 @@ def scan_picture(image: np.ndarray) -> np.ndarray:
     pad[:, x0:x0 + bev.shape[1]] = bev
     gap = np.full((4, width, 3), 255, np.uint8)
     return np.concatenate([top, gap, pad], axis=0)
+
+
+# bird's-eye view of a prediction: other points, car found, car missed, false car
+HIT_RGB = CLASS_RGB[1]
+MISS_RGB = np.array([255, 0, 255], np.uint8)
+FALSE_CAR_RGB = np.array([0, 220, 255], np.uint8)
+
+
+def car_errors_bev_rgb(image: np.ndarray, pred: np.ndarray, size: int = 512,
+                       ahead: float = 50.0, side: float = 25.0) -> np.ndarray:
+    """(size, size, 3) uint8 top view: other points grey, cars found red, cars missed (label car,
+    predicted not) magenta, false cars (predicted car, label not) cyan, errors drawn on top."""
+    car, said = image[..., 5] == 1, pred == 1
+    code = np.where(car & said, 1, np.where(car, 2, np.where(said, 3, 0)))
+    coded = image.copy()
+    coded[..., 5] = code
+    bev = bev_rgb(coded, size=size, ahead=ahead, side=side)
+    # bev_rgb paints exact CLASS_RGB colours (it draws higher codes last): recolour the codes
+    out = bev.copy()
+    for k, rgb in ((1, HIT_RGB), (2, MISS_RGB), (3, FALSE_CAR_RGB)):
+        out[(bev == CLASS_RGB[k]).all(axis=-1)] = rgb
+    return out
+
+
+def prediction_picture(image: np.ndarray, pred: np.ndarray, labelled: bool = True) -> np.ndarray:
+    """The range image coloured by label over the same coloured by prediction, then a top view
+    of the car errors (of the prediction alone where the scan has no labels), as wide as the
+    range image."""
+    predicted = image.copy()
+    predicted[..., 5] = np.where(image[..., 4] > 0, pred, 0)
+    top = np.concatenate([range_image_rgb(image), _gap(image.shape[1]),
+                          range_image_rgb(predicted)], axis=0)
+    width = top.shape[1]
+    size = min(width, 512)
+    bev = (car_errors_bev_rgb(image, pred, size=size) if labelled
+           else bev_rgb(predicted, size=size, ahead=50.0, side=25.0))
+    pad = np.zeros((bev.shape[0], width, 3), np.uint8)
+    pad[:] = EMPTY_RGB
+    x0 = (width - bev.shape[1]) // 2
+    pad[:, x0:x0 + bev.shape[1]] = bev
+    return np.concatenate([top, _gap(width), pad], axis=0)
+
+
+def _gap(width: int) -> np.ndarray:
+    return np.full((4, width, 3), 255, np.uint8)

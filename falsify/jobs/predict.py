@@ -3,7 +3,9 @@
 
 Ignored pixels (e.g. inside a KITTI `Van` box) count as no class's TP, FP or FN. A band holds the
 valid, not ignored pixels whose measured range falls in it; invalid pixels only ever count as
-unknown, so the car counts of the bands add up to the pooled car counts.
+unknown, so the car counts of the bands add up to the pooled car counts. Scans whose labels were
+not found are predicted but never scored: read as all unknown, every car predicted on them would
+count as a false positive.
 """
 
 from __future__ import annotations
@@ -48,7 +50,8 @@ class Scores:
 
 @dataclass(frozen=True)
 class SetEvaluation:
-    """One set: scores pooled over its scans, per range band, and car IoU per scan."""
+    """One set: scores pooled over its labelled scans, per range band, and car IoU per scan
+    (None for a scan without labels)."""
 
     name: str
     sources: tuple[str, ...]
@@ -57,28 +60,51 @@ class SetEvaluation:
     scan_car_iou: tuple[float | None, ...]
     ignored_pixels: int
     predictions: np.ndarray = field(repr=False)    # (B, H, W) uint8
+    unlabelled: tuple[str, ...] = ()               # sources predicted but left out of the scores
+
+    @property
+    def scored(self) -> int:
+        """How many scans the scores count."""
+        return len(self.sources) - len(self.unlabelled)
 
     def as_dict(self) -> dict:
-        return {"name": self.name, "scans": len(self.sources), "pooled": self.pooled.as_dict(),
+        missing = set(self.unlabelled)
+        return {"name": self.name, "scans": len(self.sources), "scored_scans": self.scored,
+                "unlabelled": list(self.unlabelled), "pooled": self.pooled.as_dict(),
                 "bands": {b: s.as_dict() for b, s in self.bands},
                 "ignored_pixels": self.ignored_pixels,
-                "per_scan": [{"scan": s, "car_iou": v}
+                "per_scan": [{"scan": s, "car_iou": v, "labelled": s not in missing}
                              for s, v in zip(self.sources, self.scan_car_iou, strict=True)]}
 
 
 @dataclass(frozen=True)
 class Evaluation:
-    """A model on several sets; `pooled` sums every set's counts."""
+    """A model on several sets; `pooled` and `bands` sum every set's counts."""
 
     model: str
     model_hash: str
     sets: tuple[SetEvaluation, ...]
     pooled: Scores
+    bands: tuple[tuple[str, Scores], ...] = ()
+
+    @property
+    def unlabelled(self) -> tuple[str, ...]:
+        """Every set's scans without labels, in order."""
+        return tuple(u for s in self.sets for u in s.unlabelled)
+
+    @property
+    def labelled_sets(self) -> int:
+        """How many sets have at least one scored scan."""
+        return sum(1 for s in self.sets if s.scored)
 
     def as_dict(self) -> dict:
         return {"model": self.model, "model_hash": self.model_hash,
                 "scans": sum(len(s.sources) for s in self.sets),
-                "pooled": self.pooled.as_dict(), "sets": [s.as_dict() for s in self.sets]}
+                "scored_scans": sum(s.scored for s in self.sets),
+                "unlabelled": list(self.unlabelled),
+                "pooled": self.pooled.as_dict(),
+                "bands": {b: s.as_dict() for b, s in self.bands},
+                "sets": [s.as_dict() for s in self.sets]}
 
 
 def band_counts(pred: np.ndarray, label: np.ndarray, rng: np.ndarray, ignore: np.ndarray,
@@ -94,25 +120,29 @@ def band_counts(pred: np.ndarray, label: np.ndarray, rng: np.ndarray, ignore: np
 
 def evaluate_set(model: Segmenter, scans: ScanSet,
                  bands: tuple[tuple[float, float], ...] = BANDS) -> SetEvaluation:
-    """Run `model` on one set and pool its counts overall and per band."""
+    """Run `model` on every scan of one set and pool the labelled scans' counts overall and per
+    band."""
     preds = []
     for i in range(0, len(scans), CHUNK):
         preds.append(model.predict(scans.images[i:i + CHUNK]).classes)
     pred = np.concatenate(preds).astype(np.uint8)
     rng = scans.images[..., 4]
     label = np.where(rng > 0, scans.images[..., 5], 0).astype(np.uint8)
-    totals, per_band, per_scan = [], [], []
+    labelled = scans.labelled()
+    totals, per_scan = [], []
+    band_sum = np.zeros((len(bands), len(CLASSES), 3), np.int64)
     for k in range(len(scans)):
+        if not labelled[k]:
+            per_scan.append(None)
+            continue
         keep = ~scans.ignore[k]
         c = confusion(pred[k][keep], label[k][keep], len(CLASSES))
         totals.append(c)
         per_scan.append(Scores.of(c).car().iou)
-        per_band.append(band_counts(pred[k], label[k], rng[k], scans.ignore[k], bands))
-    band_sum = np.sum(per_band, axis=0)
+        band_sum += band_counts(pred[k], label[k], rng[k], scans.ignore[k], bands)
     return SetEvaluation(
-        scans.name, scans.sources, Scores.of(pooled(totals)),
-        tuple((band_name(lo, hi), Scores.of(band_sum[i])) for i, (lo, hi) in enumerate(bands)),
-        tuple(per_scan), int(scans.ignore.sum()), pred)
+        scans.name, scans.sources, Scores.of(pooled(totals)), _band_scores(band_sum, bands),
+        tuple(per_scan), int(scans.ignore[labelled].sum()), pred, scans.unlabelled)
 
 
 def evaluate(model: Segmenter, sets: list[ScanSet],
@@ -120,4 +150,13 @@ def evaluate(model: Segmenter, sets: list[ScanSet],
     """Evaluate `model` on each set (scores pooled per set, per band) and on all together."""
     results = tuple(evaluate_set(model, s, bands) for s in sets)
     total = pooled([r.pooled.counts for r in results])
-    return Evaluation(model.spec.name, model.model_hash, results, Scores.of(total))
+    band_sum = np.zeros((len(bands), len(CLASSES), 3), np.int64)
+    for r in results:
+        band_sum += np.stack([sc.counts for _, sc in r.bands])
+    return Evaluation(model.spec.name, model.model_hash, results, Scores.of(total),
+                      _band_scores(band_sum, bands))
+
+
+def _band_scores(counts: np.ndarray, bands: tuple[tuple[float, float], ...]
+                 ) -> tuple[tuple[str, Scores], ...]:
+    return tuple((band_name(lo, hi), Scores.of(counts[i])) for i, (lo, hi) in enumerate(bands))
