@@ -1,5 +1,7 @@
 """`falsify bench scan`: scans per second of the composed fast path beside the naive path (a
 merged scene re-cast with trimesh), in one run; and what scene size and image-only dims cost.
+`bench_effects` (also `python -m falsify.bench.scan CONFIG`) times the same samples with their
+weather and faults on and off in one process.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from falsify.checks import MAX_SAMPLES
 from falsify.errors import FalsifyError
 from falsify.sensor.lidar import load_sensor
 from falsify.sensor.simulator import Simulator
-from falsify.world.space import Sample, Space, load_space
+from falsify.world.space import EFFECT_DIMS, Sample, Space, load_space
 
 
 def warm(sim: Simulator, samples: list[Sample]) -> None:
@@ -243,3 +245,88 @@ def _subdivide(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     f2 = np.concatenate([np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1),
                          np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1)]).astype(np.int32)
     return v2, f2, np.tile(np.arange(m), 4)
+
+
+# -- weather and faults -----------------------------------------------------------------------
+# Every effect at once, for the worst case of `bench_effects`.
+ALL_EFFECTS = {"fog": 50.0, "rain": 10.0, "snow": 1.0, "wet_road": 1.0, "beam_loss": 4,
+               "crosstalk": 100, "ego_speed": 50.0}
+
+
+@dataclass(frozen=True)
+class EffectsBench:
+    """Per-scan time of the same samples with their effect dims and without (clear twins, the
+    same generator seeds), and with every effect at once; best of `repeats` interleaved runs."""
+
+    config: str
+    samples: int
+    with_effects: int      # samples whose effect dims are not all zero
+    machine: dict
+    ms_clear: float
+    ms_effects: float
+    ms_all_effects: float
+
+    def to_json(self) -> dict:
+        return {
+            "benchmark": "scan effects", "config": self.config, "samples": self.samples,
+            "samples_with_effects": self.with_effects, "machine": self.machine,
+            "ms_per_scan_clear": round(self.ms_clear, 3),
+            "ms_per_scan_effects": round(self.ms_effects, 3),
+            "ms_per_scan_all_effects": round(self.ms_all_effects, 3),
+            "rate_effects_vs_clear": round(self.ms_clear / self.ms_effects, 3),
+            "rate_all_effects_vs_clear": round(self.ms_clear / self.ms_all_effects, 3),
+        }
+
+
+def without_effects(sample: Sample) -> Sample:
+    """The sample with its effect dims left out: today's clear scan of the same scene."""
+    return Sample(tuple(v for v in sample.values if v[0] not in EFFECT_DIMS))
+
+
+def bench_effects(config: str | Path, samples: int | None = None,
+                  repeats: int = 3) -> EffectsBench:
+    """Simulator.scan with the samples' weather and faults against their clear twins (and with
+    every effect at once), in one warm simulator, each with its run's seed (as a worker)."""
+    from falsify.results.store import sample_seed
+    from falsify.sensor.weather import Effects, effects_of
+
+    space = load_space(config)
+    grid = space.grid()
+    picked = grid if samples is None else [grid[i % len(grid)] for i in range(samples)]
+    sim = Simulator(load_sensor(space.sensor), space.user_cars)
+    warm(sim, picked)
+    seeds = [sample_seed(space, s) for s in picked]
+    clear = [without_effects(s) for s in picked]
+    every = Effects(**ALL_EFFECTS)
+    for s, seed in zip(picked, seeds, strict=True):   # fog peaks and tables cached, as in a run
+        sim.scan(s, rng=np.random.default_rng(seed))
+
+    def per_scan(run) -> float:
+        t0 = time.perf_counter()
+        for i in range(len(picked)):
+            run(i)
+        return (time.perf_counter() - t0) / len(picked) * 1e3
+
+    def on(i: int) -> None:
+        sim.scan(picked[i], rng=np.random.default_rng(seeds[i]))
+
+    def off(i: int) -> None:
+        sim.scan(clear[i], rng=np.random.default_rng(seeds[i]))
+
+    def everything(i: int) -> None:   # as scan() composes the scene, every effect on
+        s = picked[i]
+        sim.render(s.background, sim.placed_cars(s), sim.ego_pose(s.background),
+                   np.random.default_rng(seeds[i]), every, seeds[i])
+
+    runs = [(per_scan(off), per_scan(on), per_scan(everything)) for _ in range(repeats)]
+    best = [min(r[k] for r in runs) for k in range(3)]
+    return EffectsBench(str(config), len(picked),
+                        sum(not effects_of(s).clear for s in picked), machine(), *best)
+
+
+if __name__ == "__main__":   # python -m falsify.bench.scan CONFIG [SAMPLES]
+    import json
+    import sys
+
+    result = bench_effects(sys.argv[1], int(sys.argv[2]) if len(sys.argv) > 2 else None)
+    print(json.dumps(result.to_json(), indent=1))

@@ -4,12 +4,14 @@ The background never changes inside a run, so its BVH is built once and every se
 at it once per (background, sensor pose). A sampled car covers a small window of the range image:
 only the rays inside the window of its bounding box are moved into the car's own frame and cast
 at the car's BVH, and the nearer hit wins per pixel. That gives exactly the first returns of the
-merged scene (tests compare against a full re-cast).
+merged scene (tests compare against a full re-cast). A sample's weather and sensor faults
+(falsify.sensor.weather) act on those first hits per ray, after casting, so the caches hold.
 """
 
 from __future__ import annotations
 
 import math
+import zlib
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -26,6 +28,14 @@ from falsify.sensor.lidar import Sensor, SensorPose
 from falsify.sensor.raycast import MeshCaster, cast_through
 from falsify.sensor.returns import load_return_model
 from falsify.sensor.scan import Scan
+from falsify.sensor.weather import (
+    NOMINAL_INTENSITY,
+    Echoes,
+    Effects,
+    Weather,
+    effect_seed,
+    effects_of,
+)
 from falsify.world.materials import GLASS, PAINTS, PASS_PROB, mid
 from falsify.world.space import CarPose, Sample, UserCar
 from falsify.world.terrain import Terrain
@@ -93,18 +103,21 @@ def place(pose: CarPose, instance: int) -> PlacedCar:
 
 @dataclass
 class _Layer:
-    """Per-pixel nearest hit so far: range (inf = none), class, instance, material and the
-    cosine of the incidence angle (for the sensor's return model)."""
+    """Per-pixel nearest hit so far: range (inf = none), class, instance, material, the
+    cosine of the incidence angle (for the sensor's return model) and the surface's unit normal
+    in the sensor frame, turned to face the sensor (H×W×3, zero where nothing is hit; for
+    weather and ego motion)."""
 
     dist: np.ndarray
     cls: np.ndarray
     inst: np.ndarray
     mat: np.ndarray
     cos: np.ndarray
+    normal: np.ndarray
 
     def copy(self) -> _Layer:
         return _Layer(self.dist.copy(), self.cls.copy(), self.inst.copy(), self.mat.copy(),
-                      self.cos.copy())
+                      self.cos.copy(), self.normal.copy())
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -166,6 +179,7 @@ class Simulator:
         self.returns = load_return_model(sensor.returns) if sensor.returns else None
         self._keep = (None if self.returns is None else
                       self.returns.keep_map(sensor.rows, sensor.azimuths_deg))
+        self.weather = Weather(sensor, self.returns)
 
     # -- meshes ---------------------------------------------------------------------------
     def car_mesh(self, model: str):
@@ -227,14 +241,18 @@ class Simulator:
         inst = np.zeros(t.shape, dtype=np.int32)
         mat = np.zeros(t.shape, dtype=np.uint8)
         cos = np.zeros(t.shape, dtype=np.float32)
+        normal = np.zeros((len(t), 3), dtype=np.float32)
         cls[hit] = bg.face_class[prim[hit]]
         inst[hit] = bg.face_instance[prim[hit]]
         mat[hit] = caster.material[prim[hit]]
-        cos[hit] = np.abs((caster.normals[prim[hit]] * dirs[hit]).sum(axis=1))
+        facing = (caster.normals[prim[hit]] * dirs[hit]).sum(axis=1)
+        cos[hit] = np.abs(facing)
+        # World to sensor frame, turned towards the sensor.
+        normal[hit] = (caster.normals[prim[hit]] @ rot) * np.where(facing > 0, -1.0, 1.0)[:, None]
         shape = self.sensor.shape
         layer = _Layer(t.reshape(shape), cls.reshape(shape), inst.reshape(shape),
-                       mat.reshape(shape), cos.reshape(shape))
-        for a in (layer.dist, layer.cls, layer.inst, layer.mat, layer.cos):
+                       mat.reshape(shape), cos.reshape(shape), normal.reshape(*shape, 3))
+        for a in (layer.dist, layer.cls, layer.inst, layer.mat, layer.cos, layer.normal):
             a.setflags(write=False)
         self._hits[key] = layer
         while len(self._hits) > self._max_hits:
@@ -302,7 +320,8 @@ class Simulator:
         r_idx, c_idx = r_idx.ravel(), c_idx.ravel()
         s_rot = pose.rotation(self.sensor)
         c_rot = car.rotation()
-        dirs = self.sensor.directions[r_idx, c_idx] @ (c_rot.T @ s_rot).T
+        to_car = c_rot.T @ s_rot   # sensor frame to the car's
+        dirs = self.sensor.directions[r_idx, c_idx] @ to_car.T
         origin = (self.ray_starts(pose, s_rot, r_idx) - car.translation()) @ c_rot
         current = layer.dist[r_idx, c_idx]
         ray_ids = r_idx * self.sensor.columns + c_idx
@@ -317,36 +336,59 @@ class Simulator:
         if car.paint is not None:
             mat = np.where(np.isin(mat, PAINT_IDS), car.paint, mat)
         layer.mat[rn, cn] = mat
-        layer.cos[rn, cn] = np.abs((caster.normals[pn] * dirs[nearer]).sum(axis=1))
+        facing = (caster.normals[pn] * dirs[nearer]).sum(axis=1)
+        layer.cos[rn, cn] = np.abs(facing)
+        # Car to sensor frame, turned towards the sensor.
+        layer.normal[rn, cn] = (caster.normals[pn] @ to_car) * np.where(facing > 0, -1.0,
+                                                                         1.0)[:, None]
         return len(t)
 
     def render(self, bg_id: int, placed: Sequence[PlacedCar], pose: SensorPose = SensorPose(),
-               rng: np.random.Generator | None = None) -> Scan:
-        """Compose the cached background with the cars and turn first returns into a Scan."""
+               rng: np.random.Generator | None = None, effects: Effects | None = None,
+               seed: int = 0) -> Scan:
+        """Compose the cached background with the cars and turn first returns into a Scan, with
+        `effects` (weather, faults) drawn from `rng`'s state (from `seed` without one)."""
         layer = self.background_hits(bg_id, pose).copy()
         for car in placed:
             self.cast_car(layer, car, pose)
-        return self.to_scan(layer, rng)
+        return self.to_scan(layer, rng, effects, seed)
 
-    def to_scan(self, layer: _Layer, rng: np.random.Generator | None) -> Scan:
-        """Apply range limits and sensor effects, then build the H×W×6 image."""
+    def to_scan(self, layer: _Layer, rng: np.random.Generator | None,
+                effects: Effects | None = None, seed: int = 0) -> Scan:
+        """Apply range limits, weather and sensor effects, then build the H×W×6 image. Clear
+        effects take exactly today's path; others read their seed from `rng` without drawing
+        from it, so the scan's own draws are those of a clear scan."""
         s = self.sensor
+        fx = None if effects is None or effects.clear else effects
+        fx_seed = 0 if fx is None else effect_seed(rng, seed)
         r = layer.dist
+        if fx is not None and fx.ego_speed:
+            r = self.weather.moving_ranges(r, layer.normal, layer.cos, fx.ego_speed)
         if rng is not None and s.range_noise > 0:
             r = r + rng.normal(0.0, s.range_noise, r.shape)
         valid = np.isfinite(r) & (r >= s.min_range) & (r <= s.max_range)
         if rng is not None and s.ray_drop > 0:
             valid &= rng.random(r.shape) >= s.ray_drop
         intensity = None
+        cls, inst = layer.cls, layer.inst
         if self.returns is not None:
             valid &= ~GLASS[layer.mat]
             intensity = np.zeros(r.shape, np.float32)
             intensity[valid] = self.returns.intensity(layer.mat[valid], layer.cos[valid],
                                                       r[valid])
-            if rng is not None:
-                u = rng.random(r.shape)[valid]
-                p = self.returns.p_return(intensity[valid]) * self._keep[valid]
-                valid[valid] = u < p
+        if fx is not None and fx.medium:
+            clear_i = (valid * np.float32(NOMINAL_INTENSITY) if intensity is None
+                       else intensity)
+            e = self.weather.medium(fx, fx_seed, Echoes(r, valid, intensity, cls, inst),
+                                    clear_i, layer.mat, layer.cos, layer.normal)
+            r, valid, intensity, cls, inst = e.r, e.valid, e.intensity, e.cls, e.inst
+        if self.returns is not None and rng is not None:
+            u = rng.random(r.shape)[valid]
+            p = self.returns.p_return(intensity[valid]) * self._keep[valid]
+            valid[valid] = u < p
+        if fx is not None and (fx.crosstalk or fx.beam_loss):
+            e = self.weather.faults(fx, fx_seed, Echoes(r, valid, intensity, cls, inst))
+            r, valid, intensity, cls, inst = e.r, e.valid, e.intensity, e.cls, e.inst
         image = np.zeros((*s.shape, 6), dtype=np.float32)
         rv = np.where(valid, r, 0.0)
         if s.ray_origins is None:
@@ -358,8 +400,8 @@ class Simulator:
             image[..., 4] = np.linalg.norm(xyz, axis=-1)
         if intensity is not None:
             image[..., 3] = np.where(valid, intensity, 0.0)
-        image[..., 5] = np.where(valid, layer.cls, 0)
-        return Scan(image, np.where(valid, layer.inst, 0).astype(np.int32))
+        image[..., 5] = np.where(valid, cls, 0)
+        return Scan(image, np.where(valid, inst, 0).astype(np.int32))
 
     # -- samples --------------------------------------------------------------------------
     def placed_cars(self, sample: Sample) -> list[PlacedCar]:
@@ -409,9 +451,12 @@ class Simulator:
 
     def scan(self, sample: Sample, pose: SensorPose = SensorPose(),
              rng: np.random.Generator | None = None) -> Scan:
-        """The labelled scan of a sample; raises InvalidSample for impossible scenes."""
+        """The labelled scan of a sample, with its weather and faults (effect dims); raises
+        InvalidSample for impossible scenes."""
+        effects = effects_of(sample)
+        seed = 0 if effects.clear else zlib.crc32(repr(sample.values).encode())
         return self.render(sample.background, self.placed_cars(sample),
-                           self.ego_pose(sample.background, pose), rng)
+                           self.ego_pose(sample.background, pose), rng, effects, seed)
 
 
 @dataclass(frozen=True)

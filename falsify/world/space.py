@@ -4,6 +4,9 @@ A config names the sensor preset and one table per dimension. Car 1 is described
 `x`, `y`, `yaw`; car k >= 2 by `car_model_k`, `x_k`, `y_k`, `yaw_k` (defaulting to car 1's
 ranges). `count` says how many cars a sample holds, `background` which street it stands on, and
 image-only dims (`colour`, `weather`, `time_of_day`) are carried along but never change a scan.
+Effect dims (EFFECT_DIMS: `fog`, `rain`, `snow`, `wet_road`, `beam_loss`, `crosstalk`,
+`ego_speed`) are weather and faults in physical units that the sensor applies to each ray after
+casting (falsify.sensor.weather); absent or 0 is today's clear scan.
 """
 
 from __future__ import annotations
@@ -31,6 +34,17 @@ LIMITS = {"x": 1000.0, "y": 1000.0, "yaw": 360.0}
 MAX_VALUES = 1_000_000   # values one dim may list or range over
 DEFAULT_THRESHOLD = 0.65   # mIoU below which a cell is a blind spot (the paper's)
 CAR_FILE_KEYS = {"file", "scale", "forward", "up"}
+# Weather and sensor faults on the LiDAR: name -> (lowest, highest, unit, whole numbers only).
+# 0 is no effect; fog is the meteorological visibility (0 = no fog, small = dense).
+EFFECT_DIMS: dict[str, tuple[float, float, str, bool]] = {
+    "fog": (0.0, 100_000.0, "m of visibility", False),
+    "rain": (0.0, 500.0, "mm/h", False),
+    "snow": (0.0, 100.0, "mm/h of water", False),
+    "wet_road": (0.0, 20.0, "mm of water film", False),
+    "beam_loss": (0.0, 128.0, "lasers", True),
+    "crosstalk": (0.0, 100_000.0, "points per scan", True),
+    "ego_speed": (0.0, 300.0, "km/h", False),
+}
 
 Value = float | int | str
 
@@ -143,9 +157,15 @@ class Sample:
             )
         return tuple(out)
 
+    @property
+    def effects(self) -> tuple[tuple[str, float], ...]:
+        """The sample's non-zero weather and fault dims (EFFECT_DIMS), in dim order."""
+        return tuple((n, float(v)) for n, v in self.values if n in EFFECT_DIMS and float(v))
+
     def scene_key(self) -> tuple:
-        """What the LiDAR scan depends on: cars (up to count) and background, not image dims."""
-        return (self.background, tuple(self.cars))
+        """What the LiDAR scan depends on: cars (up to count), background and the effect dims
+        (zero ones left out: they change nothing), not image dims."""
+        return (self.background, tuple(self.cars), self.effects)
 
 
 @dataclass(frozen=True)
@@ -213,6 +233,14 @@ class Space:
         for allowed in dim.values:
             if str(allowed) == str(raw):
                 return allowed
+        if all(isinstance(v, float) for v in dim.values):   # `--set fog=50` for 50.0
+            try:
+                number = float(raw)
+            except (TypeError, ValueError):
+                number = math.nan
+            for allowed in dim.values:
+                if allowed == number:
+                    return allowed
         raise ConfigError(
             f"{name}: {raw!r} is not one of {', '.join(str(v) for v in dim.values)}")
 
@@ -318,7 +346,7 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
             raise ConfigError(f"{where}dims.count: {c} must be between 1 and {MAX_CARS}")
     max_count = max(int(c) for c in count.values)
 
-    allowed = {"car_model", *CONTINUOUS_BASE, "count", "background", *IMAGE_ONLY}
+    allowed = {"car_model", *CONTINUOUS_BASE, "count", "background", *IMAGE_ONLY, *EFFECT_DIMS}
     for k in range(2, max_count + 1):
         allowed |= {f"car_model_{k}", *(f"{b}_{k}" for b in CONTINUOUS_BASE)}
     unknown = sorted(set(dims_raw) - allowed)
@@ -349,6 +377,9 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
     for image_dim in IMAGE_ONLY:
         if image_dim in dims_raw:
             dims[image_dim] = _categorical(image_dim, dims_raw[image_dim], where, str)
+    for effect in EFFECT_DIMS:
+        if effect in dims_raw:
+            dims[effect] = _continuous_or_values(effect, dims_raw[effect], where)
     return Space(name=name, sensor=sensor, seed=seed, threshold=threshold, dims=dims,
                  user_cars=user_cars, source=source, config_hash=config_hash)
 
@@ -400,15 +431,23 @@ def _categorical(name: str, spec: Any, where: str, kind: type) -> Categorical:
 
 def _continuous_or_values(name: str, spec: Any, where: str) -> Dim:
     """`{min, max, step}` for a range, or `{values = [...]}` for fixed values (all numbers),
-    within the dim's limit (LIMITS) and at most MAX_VALUES of them."""
+    within the dim's limit (LIMITS, or EFFECT_DIMS' bounds, whole numbers where it says so) and at
+    most MAX_VALUES of them."""
     key = f"dims.{name}"
-    limit = LIMITS[name.split("_")[0]]
-    unit = "degrees" if name.startswith("yaw") else "m"
+    whole = False
+    if name in EFFECT_DIMS:
+        lo, hi, unit, whole = EFFECT_DIMS[name]
+    else:
+        limit = LIMITS[name.split("_")[0]]
+        lo, hi = -limit, limit
+        unit = "degrees" if name.startswith("yaw") else "m"
 
     def within(v: float, what: str) -> None:
-        if abs(v) > limit:
-            raise ConfigError(f"{where}{what}: {v:g} is beyond the allowed -{limit:g} to "
-                              f"{limit:g} {unit}")
+        if not lo <= v <= hi:
+            raise ConfigError(f"{where}{what}: {v:g} is beyond the allowed {lo:g} to "
+                              f"{hi:g} {unit}")
+        if whole and v != int(v):
+            raise ConfigError(f"{where}{what}: {v:g} is not a whole number of {unit}")
     if not isinstance(spec, dict):
         raise ConfigError(f"{where}{key}: expected a table with min, max, step (or values)")
     if "values" in spec:
@@ -446,6 +485,8 @@ def _continuous_or_values(name: str, spec: Any, where: str) -> Dim:
         raise ConfigError(f"{where}{key}: empty range, max {nums['max']:g} < min {nums['min']:g}")
     within(nums["min"], f"{key}.min")
     within(nums["max"], f"{key}.max")
+    if whole and nums["step"] != int(nums["step"]):
+        raise ConfigError(f"{where}{key}.step: {nums['step']:g} is not a whole number of {unit}")
     dim = Continuous(name, nums["min"], nums["max"], nums["step"])
     if dim.size > MAX_VALUES:
         raise ConfigError(f"{where}{key}.step: {nums['step']:g} makes {dim.size} values; at most "
