@@ -305,3 +305,41 @@ def test_effect_dims_in_the_space():
     drawn = {weather.draw_effects(space, np.random.default_rng(k)) for k in range(20)}
     assert {d.fog for d in drawn} == {0.0, 50.0}
     assert all(0 <= d.beam_loss <= 8 for d in drawn) and len({d.beam_loss for d in drawn}) > 2
+
+
+def test_dataset_draws_the_spaces_weather_and_clear_sets_keep_their_bytes(tmp_path):
+    """Training scans of a space with effect dims are in that weather (seeded, recorded in
+    index.json); a space without them writes the same bytes as no space at all."""
+    import json
+
+    from falsify.cli import main
+    from falsify.data.training import TrafficOptions, write_dataset
+    from falsify.sensor.lidar import load_sensor
+    from falsify.world.space import parse_space
+
+    dims = {"car_model": {"values": ["sedan"]}, "x": {"values": [0.0]},
+            "y": {"values": [10.0]}, "background": {"values": [0]}}
+    clear = parse_space({"dims": dims})
+    foggy = parse_space({"dims": {**dims, "fog": {"values": [30.0]}}})
+    sensor = load_sensor("kitti-hdl64e-front")
+    opts = TrafficOptions(first_background=1000)
+    outs = {name: tmp_path / name for name in ("none", "clear", "foggy", "foggy2")}
+    for name, space in (("none", None), ("clear", clear), ("foggy", foggy), ("foggy2", foggy)):
+        write_dataset(sensor, outs[name], 3, seed=0, opts=opts, weather=space)
+    for i in range(3):
+        f = f"{i:06d}.npy"
+        assert (outs["none"] / f).read_bytes() == (outs["clear"] / f).read_bytes()
+        assert (outs["foggy"] / f).read_bytes() == (outs["foggy2"] / f).read_bytes()
+        c, g = np.load(outs["clear"] / f), np.load(outs["foggy"] / f)
+        # Dense fog: far returns gone, near soft returns added.
+        assert g[..., 4].max() < c[..., 4].max() and (g[..., 4] > 0).sum() != (c[..., 4] > 0).sum()
+    drawn = json.loads((outs["foggy"] / "index.json").read_text())["effects"]["fog"]
+    assert drawn in ({"values": [30.0]}, {"min": 30.0, "max": 30.0})
+    assert (outs["none"] / "index.json").read_bytes() == (outs["clear"] / "index.json").read_bytes()
+    cfg = tmp_path / "foggy.toml"
+    cfg.write_text('[dims.car_model]\nvalues = ["sedan"]\n[dims.x]\nvalues = [0.0]\n'
+                   '[dims.y]\nvalues = [10.0]\n[dims.background]\nvalues = [0]\n'
+                   '[dims.fog]\nvalues = [30.0]\n')
+    assert main(["dataset", str(cfg), "--out", str(tmp_path / "cli"), "--scans", "1",
+                 "--first-background", "1000", "--json"]) == 0
+    assert json.loads((tmp_path / "cli" / "index.json").read_text())["effects"]["fog"]

@@ -138,7 +138,7 @@ def cmd_dataset(args) -> int:
         print(f"  {done}/{total} scans", flush=True)
 
     summary = write_dataset(sensor, Path(args.out), args.scans, seed=args.seed, opts=opts,
-                            on_progress=None if args.json else progress)
+                            on_progress=None if args.json else progress, weather=space)
     emit(args, summary, f"wrote {summary['written']} scans to {args.out} "
          f"({summary['scans']} in the set); points per class {summary['points_per_class']}")
     return 0

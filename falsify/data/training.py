@@ -28,9 +28,11 @@ from falsify.sensor.simulator import (
     check_placement,
     free_ego,
 )
+from falsify.sensor.weather import draw_effects
 from falsify.world.cars import BUILTIN_MODELS
 from falsify.world.materials import PAINTS
 from falsify.world.road_users import OTHER_VEHICLES
+from falsify.world.space import EFFECT_DIMS, Categorical, Space
 
 TRAIN_BACKGROUND_FIRST = 1000
 SCANS_PER_BACKGROUND = 8
@@ -107,12 +109,16 @@ def scene_for(index: int, seed: int, sim: Simulator,
 
 def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
                   opts: TrafficOptions = TrafficOptions(), start: int = 0,
-                  on_progress: Callable[[int, int], None] | None = None) -> dict:
-    """Write scans start..scans-1 as NNNNNN.npy (skipping ones already there) plus index.json."""
+                  on_progress: Callable[[int, int], None] | None = None,
+                  weather: Space | None = None) -> dict:
+    """Write scans start..scans-1 as NNNNNN.npy (skipping ones already there) plus index.json.
+    With `weather`, each scan draws its weather and faults from that space's effect dims (a
+    training set that sees what the falsification space tests); without, scans are clear."""
     if scans <= 0:
         raise ConfigError(f"--scans: {scans} must be > 0")
     out.mkdir(parents=True, exist_ok=True)
     sim = Simulator(sensor, max_bvh=1, max_hits=8)
+    drawn = [] if weather is None else [d for d in EFFECT_DIMS if d in weather.dims]
     counts = np.zeros(len(CLASSES), np.int64)
     written = 0
     for i in range(start, scans):
@@ -121,7 +127,9 @@ def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
             continue
         bg_id, pose, placed = scene_for(i, seed, sim, opts)
         rng = np.random.default_rng([seed, i, 1])
-        scan = sim.render(bg_id, placed, pose, rng)
+        effects = (None if not drawn else
+                   draw_effects(weather, np.random.default_rng([seed, i, 3])))
+        scan = sim.render(bg_id, placed, pose, rng, effects=effects)
         write_npy(path, scan.image)
         lab = scan.image[..., 5][scan.valid].astype(np.int64)
         counts += np.bincount(lab, minlength=len(CLASSES))[:len(CLASSES)]
@@ -134,6 +142,8 @@ def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
              "range_noise": sensor.range_noise}
     if opts.traffic != "scattered":  # scattered sets keep their index byte for byte
         index["traffic"] = opts.traffic
+    if drawn:   # so do clear sets
+        index["effects"] = {d: _drawn_from(weather.dims[d]) for d in drawn}
     write_json(out / "index.json", index)
     return {**index, "written": written, "points_per_class": dict(
         zip(CLASSES, counts.tolist(), strict=True))}
@@ -163,3 +173,9 @@ def held_out_scans(sensor: Sensor, n: int) -> np.ndarray:
     opts = TrafficOptions(backgrounds=max(1, n), first_background=HELD_OUT_BACKGROUND_FIRST)
     return traffic_scans(sensor, n, 77, opts, stride=8)
 
+
+def _drawn_from(dim) -> dict:
+    """What an effect dim's draws come from, for the set's index."""
+    if isinstance(dim, Categorical):
+        return {"values": list(dim.values)}
+    return {"min": dim.lo, "max": dim.hi}
