@@ -293,3 +293,37 @@ def test_a_climbing_road_is_shaded_as_road_all_the_way_up():
     for k in range(4):
         assert tuple(col[k]) == shading._ROAD, (k, x[k], y[k], z[k])
     assert tuple(col[4]) != shading._ROAD
+
+
+def test_the_lidars_fog_visibility_drives_the_camera(sim):
+    """A sample's `fog` visibility V sets the camera's extinction ln(20) / V (as the LiDAR's),
+    denser fog hides more of the far street, and a `weather` dim keeps its own say."""
+    import math
+
+    from falsify.sensor.look import look_of
+    from falsify.world.space import parse_space
+
+    dims = {"car_model": {"values": ["sedan"]}, "x": {"values": [1.0]}, "y": {"values": [10.0]},
+            "background": {"values": [1]}, "fog": {"values": [0.0, 30.0, 300.0]},
+            "rain": {"values": [0.0, 20.0]}}
+    space = parse_space({"dims": dims})
+    looks = {(s["fog"], s["rain"]): look_of(s) for s in space.grid()}
+    assert looks[(0.0, 0.0)] == Look()
+    assert looks[(30.0, 0.0)].weather == "fog"
+    assert looks[(30.0, 0.0)].extinction == pytest.approx(math.log(20.0) / 30.0)
+    assert looks[(0.0, 20.0)].weather == "rain" and looks[(0.0, 20.0)].extinction is None
+    with_weather = parse_space({"dims": {**dims, "weather": {"values": ["cloudy"]}}})
+    s = with_weather.make({"fog": 30.0})
+    assert look_of(s).weather == "cloudy" and look_of(s).extinction is not None
+    cam = camera_preset("kitti-centre").scaled(0.3)
+    r = CameraRenderer(sim, cam)
+    cars = [PlacedCar("sedan", 10.0, 1.0, 0.0, 1)]
+    clear = r.render(1, cars, look=looks[(0.0, 0.0)])
+    dense = r.render(1, cars, look=looks[(30.0, 0.0)])
+    light = r.render(1, cars, look=looks[(300.0, 0.0)])
+    far = clear.depth > 40
+    assert far.any() and np.array_equal(dense.cls, clear.cls)
+
+    def contrast(img):   # spread of the far pixels' brightness: fog flattens it
+        return float(img.rgb[far].astype(float).mean(axis=1).std())
+    assert contrast(dense) < contrast(light) < contrast(clear)

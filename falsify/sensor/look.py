@@ -5,6 +5,7 @@ Only the camera's RGB image reads these dims; the LiDAR scan never does.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 from falsify.errors import ConfigError
@@ -27,11 +28,13 @@ SUN_KEPT = {"clear": 1.0, "cloudy": 0.2, "rain": 0.08, "fog": 0.25}
 
 @dataclass(frozen=True)
 class Look:
-    """What the image-only dims set: car paint (linear RGB), weather and the hour (0..24)."""
+    """What the image-only dims set: car paint (linear RGB), weather and the hour (0..24);
+    `extinction` (1/m) overrides the weather's own when a `fog` visibility sets it."""
 
     colour: tuple[float, float, float] = COLOURS["silver"]
     weather: str = "clear"
     hour: float = 12.0
+    extinction: float | None = None
 
 
 def parse_look(values: dict[str, object]) -> Look:
@@ -72,7 +75,18 @@ def parse_look(values: dict[str, object]) -> Look:
 
 
 def look_of(sample: Sample) -> Look:
-    return parse_look({d: sample[d] for d in IMAGE_ONLY if sample.get(d) is not None})
+    """The sample's look; the LiDAR's weather dims drive the camera from the same values: a
+    `fog` visibility V sets the extinction ln(20) / V (Koschmieder, as the LiDAR's fog) and, with
+    no `weather` dim, the weather "fog"; a `rain` rate with no `weather` dim the weather "rain"."""
+    look = parse_look({d: sample[d] for d in IMAGE_ONLY if sample.get(d) is not None})
+    fog, rain = float(sample.get("fog") or 0.0), float(sample.get("rain") or 0.0)
+    own = sample.get("weather") is not None
+    if fog > 0:
+        look = replace(look, extinction=math.log(20.0) / fog,
+                       weather=look.weather if own else "fog")
+    elif rain > 0 and not own:
+        look = replace(look, weather="rain")
+    return look
 
 
 def check_looks(space: Space) -> None:

@@ -167,7 +167,8 @@ def shade(r: CameraRenderer, bg, placed, paints, hits: Hits, dirs, origin, axis:
     out = np.where(hit[:, None], out, sky)
     # Weather: attenuation towards the horizon's colour with distance.
     dist = np.where(hit, hits.t, r.camera.max_depth * 4)
-    keep = np.exp(-dist * EXTINCTION[look.weather])[:, None]
+    ext = EXTINCTION[look.weather] if look.extinction is None else look.extinction
+    keep = np.exp(-dist * ext)[:, None]
     haze = _sky(look, _HAZE_RAY)[0] if look.weather in ("fog", "rain") else sky
     out = out * keep + haze * (1 - keep)
     if look.weather == "rain":
