@@ -113,11 +113,14 @@ class _Layer:
     inst: np.ndarray
     mat: np.ndarray
     cos: np.ndarray
-    normal: np.ndarray
+    normal: np.ndarray | None
 
-    def copy(self) -> _Layer:
+    def copy(self, normals: bool = True) -> _Layer:
+        """A writable copy; without `normals` its normal is None (a clear scan needs none, and
+        copying them would cost every scan)."""
+        normal = self.normal.copy() if normals and self.normal is not None else None
         return _Layer(self.dist.copy(), self.cls.copy(), self.inst.copy(), self.mat.copy(),
-                      self.cos.copy(), self.normal.copy())
+                      self.cos.copy(), normal)
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -338,9 +341,9 @@ class Simulator:
         layer.mat[rn, cn] = mat
         facing = (caster.normals[pn] * dirs[nearer]).sum(axis=1)
         layer.cos[rn, cn] = np.abs(facing)
-        # Car to sensor frame, turned towards the sensor.
-        layer.normal[rn, cn] = (caster.normals[pn] @ to_car) * np.where(facing > 0, -1.0,
-                                                                         1.0)[:, None]
+        if layer.normal is not None:   # car to sensor frame, turned towards the sensor
+            layer.normal[rn, cn] = (caster.normals[pn] @ to_car) * np.where(facing > 0, -1.0,
+                                                                             1.0)[:, None]
         return len(t)
 
     def render(self, bg_id: int, placed: Sequence[PlacedCar], pose: SensorPose = SensorPose(),
@@ -348,7 +351,9 @@ class Simulator:
                seed: int = 0) -> Scan:
         """Compose the cached background with the cars and turn first returns into a Scan, with
         `effects` (weather, faults) drawn from `rng`'s state (from `seed` without one)."""
-        layer = self.background_hits(bg_id, pose).copy()
+        normals = effects is not None and not effects.clear and bool(effects.ego_speed
+                                                                     or effects.medium)
+        layer = self.background_hits(bg_id, pose).copy(normals)
         for car in placed:
             self.cast_car(layer, car, pose)
         return self.to_scan(layer, rng, effects, seed)
