@@ -179,12 +179,12 @@ def scene_size_effect(space: Space, samples: list[Sample]) -> dict:
 
     def subdivided(bg):
         v, f = bg.vertices, bg.faces
-        cls, inst, mat = bg.face_class, bg.face_instance, bg.materials()
+        cls, inst, mat, sem = bg.face_class, bg.face_instance, bg.materials(), bg.semantics()
         for _ in range(2):
             v, f, idx = _subdivide(v, f)
-            cls, inst, mat = cls[idx], inst[idx], mat[idx]
+            cls, inst, mat, sem = cls[idx], inst[idx], mat[idx], sem[idx]
         return dataclasses.replace(bg, vertices=v, faces=f, face_class=cls, face_instance=inst,
-                                   face_material=mat)
+                                   face_material=mat, face_semantic=sem)
 
     def far_objects(bg):
         v, f = [bg.vertices], [bg.faces]
@@ -195,7 +195,7 @@ def scene_size_effect(space: Space, samples: list[Sample]) -> dict:
         return dataclasses.replace(
             bg, vertices=np.concatenate(v), faces=np.concatenate(f).astype(np.int32),
             face_class=np.tile(bg.face_class, 10), face_instance=np.tile(bg.face_instance, 10),
-            face_material=np.tile(bg.materials(), 10))
+            face_material=np.tile(bg.materials(), 10), face_semantic=np.tile(bg.semantics(), 10))
 
     # Best of three, interleaved, so a busy moment of the machine does not land on one variant.
     runs = [(rate(lambda b: b), rate(subdivided), rate(far_objects)) for _ in range(3)]

@@ -1,5 +1,5 @@
 """KITTI's Velodyne files: a .bin of N×4 float32 (x, y, z, remission) and a SemanticKITTI
-.label of uint32 (instance << 16 | class), read into and written from Scans.
+.label of uint32 (instance << 16 | raw semantic id), read into and written from Scans.
 """
 
 from __future__ import annotations
@@ -10,22 +10,34 @@ import numpy as np
 
 from falsify.errors import FalsifyError
 from falsify.fileio import read_bytes
+from falsify.semantic import join_label, kitti4, split_label
 from falsify.sensor.lidar import Sensor
 from falsify.sensor.scan import Scan, image_from_points
 
-# Our classes as SemanticKITTI ids when writing .label files (unknown -> 0 "unlabeled").
+# Our classes as SemanticKITTI ids when writing .label files of scans without semantic ids
+# (unknown -> 0 "unlabeled"). Reading maps raw ids back with falsify.semantic.kitti4.
 TO_SEMANTICKITTI = np.array([0, 10, 30, 31], dtype=np.uint32)
-# SemanticKITTI ids read as our classes (moving variants too); anything else is unknown.
-FROM_SEMANTICKITTI = {10: 1, 252: 1, 30: 2, 254: 2, 31: 3, 253: 3, 32: 3, 255: 3}
+
+
+def kitti_arrays(scan: Scan) -> tuple[np.ndarray, np.ndarray]:
+    """The valid points as a KITTI .bin holds them ((N, 4) float32 x, y, z, remission) and their
+    SemanticKITTI .label values ((N,) uint32): the scan's raw semantic ids where it has them,
+    else its classes as SemanticKITTI ids."""
+    m = scan.valid
+    points = scan.image[m][:, :4].astype(np.float32)
+    inst = scan.instance[m].astype(np.uint32) & 0xFFFF
+    if scan.semantic is not None:
+        sem = scan.semantic[m].astype(np.uint32)
+    else:
+        sem = TO_SEMANTICKITTI[scan.image[m][:, 5].astype(np.int64)]
+    return points, join_label(sem, inst).astype(np.uint32)
 
 
 def write_kitti(scan: Scan, bin_path: str | Path, label_path: str | Path) -> None:
-    """Write the valid points as KITTI .bin and SemanticKITTI-style .label."""
-    m = scan.valid
-    scan.image[m][:, :4].astype(np.float32).tofile(bin_path)
-    cls = scan.image[m][:, 5].astype(np.int64)
-    inst = scan.instance[m].astype(np.uint32) & 0xFFFF
-    ((inst << 16) | TO_SEMANTICKITTI[cls]).astype(np.uint32).tofile(label_path)
+    """Write the valid points as KITTI .bin and SemanticKITTI .label (`kitti_arrays`)."""
+    points, labels = kitti_arrays(scan)
+    points.tofile(bin_path)
+    labels.tofile(label_path)
 
 
 def fit_frames(paths: list[str | Path]) -> list[Path]:
@@ -75,7 +87,8 @@ def kitti_rows(sensor: Sensor, points: np.ndarray) -> np.ndarray | None:
     origin moves by up to a degree or two at short range, more than the 0.33° between the upper
     rings; binning by elevation scrambles neighbouring rings (on KITTI's object frames 10-23 %
     of the upper rows' pixels came out empty and as many held two points)."""
-    if not sensor.kitti_rings or sensor.rows != KITTI_RINGS or len(points) < 2:
+    if (not sensor.kitti_rings or sensor.projection != "rings" or sensor.rows != KITTI_RINGS
+            or len(points) < 2):
         return None
     p = np.asarray(points, dtype=np.float64)
     az = np.degrees(np.arctan2(p[:, 1], p[:, 0]))
@@ -96,13 +109,15 @@ def kitti_rows(sensor: Sensor, points: np.ndarray) -> np.ndarray | None:
 def read_kitti(bin_path: str | Path, label_path: str | Path | None,
                sensor: Sensor) -> Scan:
     """Read a KITTI .bin (+ SemanticKITTI .label) and project it with `sensor`'s layout (rows
-    by laser ring where the sensor's rows are KITTI's rings: `kitti_rows`)."""
+    by laser ring where the sensor's rows are KITTI's rings: `kitti_rows`; a spherical sensor
+    gives RangeNet++'s projection of the scan, as the SemanticKITTI networks read it)."""
     bin_path = Path(bin_path)
     pts = read_bin(bin_path)
     if len(pts) == 0:
         raise FalsifyError(f"{bin_path}: empty scan (no points)")
     cls = np.zeros(len(pts), dtype=np.uint8)
     inst = np.zeros(len(pts), dtype=np.int32)
+    sem = None
     if label_path is not None:
         data = read_bytes(label_path)
         if len(data) % 4:
@@ -112,14 +127,12 @@ def read_kitti(bin_path: str | Path, label_path: str | Path | None,
         if len(lab) != len(pts):
             raise FalsifyError(f"{label_path}: {len(lab)} labels for {len(pts)} points in "
                                f"{bin_path.name}")
-        sem = lab & 0xFFFF
-        lut = np.zeros(max(int(sem.max(initial=0)) + 1, 256), dtype=np.uint8)
-        for k, v in FROM_SEMANTICKITTI.items():
-            lut[k] = v
-        cls = lut[sem]
-        inst = (lab >> 16).astype(np.int32)
+        sem, high = split_label(lab)
+        cls = kitti4(sem)
+        inst = high.astype(np.int32)
     finite = np.isfinite(pts).all(axis=1)
     if not finite.any():
         raise FalsifyError(f"{bin_path}: no point with finite x, y, z and remission")
     return image_from_points(sensor, pts[finite, :3], cls[finite], inst[finite],
-                             intensity=pts[finite, 3], rows=kitti_rows(sensor, pts[finite, :3]))
+                             intensity=pts[finite, 3], rows=kitti_rows(sensor, pts[finite, :3]),
+                             semantic=None if sem is None else sem[finite])

@@ -24,9 +24,9 @@ floor: the weakest power today's clear return model reports (the darkest materia
 88 deg from its normal), so that clear weather is exactly today's scan. Received power is in
 the units where a hard target of intensity I at range R gives I / R^2 (the return model's
 intensity is range-compensated).
-Spurious points get label 0 and instance 0. Every random draw comes from a seed fixed by the
-sample (derived from the scan's generator without consuming it), so a sample gives the same
-bytes every time and zero severity gives today's scan.
+Spurious points get label 0, instance 0 and SemanticKITTI id 0 (unlabeled). Every random draw
+comes from a seed fixed by the sample (derived from the scan's generator without consuming it),
+so a sample gives the same bytes every time and zero severity gives today's scan.
 """
 
 from __future__ import annotations
@@ -379,13 +379,14 @@ def _wet_table(film_mm: float, albedo: float) -> tuple[np.ndarray, np.ndarray]:
 @dataclass
 class Echoes:
     """Per pixel what the sensor records: range, validity, intensity (None without a return
-    model), class and instance."""
+    model), class, instance and raw SemanticKITTI id (None: not tracked)."""
 
     r: np.ndarray
     valid: np.ndarray
     intensity: np.ndarray | None
     cls: np.ndarray
     inst: np.ndarray
+    semantic: np.ndarray | None = None
 
 
 class Weather:
@@ -445,15 +446,16 @@ class Weather:
                 best, best_r, spur = best.copy(), hard_r.copy(), np.zeros(hard.shape, bool)
             self._particles(p, stream(seed, which), alpha, hard_r, best, best_r, spur)
         ok = best >= self.floor
-        cls, inst, intensity = e.cls, e.inst, None
+        cls, inst, sem, intensity = e.cls, e.inst, e.semantic, None
         if spur is not None:
             real = ~(ok & spur)
             cls, inst = cls * real, inst * real
+            sem = None if sem is None else sem * real
         if e.intensity is not None:
             if spur is not None:
                 hard_i = np.where(spur, best * np.where(ok, best_r, 0.0) ** 2, hard_i)
             intensity = (hard_i * ok).astype(np.float32)
-        return Echoes(best_r, ok, intensity, cls, inst)
+        return Echoes(best_r, ok, intensity, cls, inst, sem)
 
     def _fog(self, alpha: float, beta: float, hard_r: np.ndarray, hard_p: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -533,7 +535,8 @@ class Weather:
     def faults(self, fx: Effects, seed: int, e: Echoes) -> Echoes:
         """Crosstalk points written over the image, then the lost lasers' rows emptied."""
         s = self.sensor
-        r, valid, intensity, cls, inst = e.r, e.valid, e.intensity, e.cls, e.inst
+        r, valid, intensity, cls, inst, sem = (e.r, e.valid, e.intensity, e.cls, e.inst,
+                                               e.semantic)
         if fx.crosstalk > 0:
             # Row k: point k's pixel, range and intensity (more points: more rows, same first).
             u = stream(seed, _CROSSTALK).random((fx.crosstalk, 3))
@@ -546,6 +549,9 @@ class Weather:
             valid[rows, cols] = True
             cls[rows, cols] = 0
             inst[rows, cols] = 0
+            if sem is not None:
+                sem = sem.copy()
+                sem[rows, cols] = 0
             if intensity is not None:
                 intensity = intensity.copy()
                 intensity[rows, cols] = u[:, 2]
@@ -553,7 +559,7 @@ class Weather:
             order = np.argsort(stream(seed, _BEAMS).random(s.rows), kind="stable")
             valid = valid.copy()
             valid[order[:min(fx.beam_loss, s.rows)]] = False
-        return Echoes(r, valid, intensity, cls, inst)
+        return Echoes(r, valid, intensity, cls, inst, sem)
 
 
 def detection_floor(sensor: Sensor, returns: ReturnModel | None) -> float:

@@ -3,7 +3,7 @@ guard rails, sign posts with retro-reflective plates, and buildings whose window
 glass (rays pass the glass and end on the floors and walls inside).
 
 Each builder follows the terrain (pieces stand on the lowest ground under them) and tags every
-triangle with its material.
+triangle with its material and its raw SemanticKITTI id.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from falsify.semantic import RAW_ID
 from falsify.world import shapes
 from falsify.world.materials import mid
 
@@ -19,6 +20,11 @@ if TYPE_CHECKING:
     from falsify.world.terrain import Terrain
 
 UNKNOWN = 0
+# Raw SemanticKITTI ids of the pieces. Boundary walls (0.6-2.4 m) are fence, not building:
+# SemanticKITTI's annotators label small walls and crash barriers as fence and keep building for
+# buildings and large walls.
+BUILDING, FENCE = RAW_ID["building"], RAW_ID["fence"]
+POLE, SIGN = RAW_ID["pole"], RAW_ID["traffic-sign"]
 
 
 def _rect(x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
@@ -44,7 +50,7 @@ def wall(st, t: Terrain, rng: np.random.Generator, xa: float, xb: float, y_in: f
         x1 = min(x0 + 4.0, xb)
         base = _base(t, x0, x1, y_in) - 0.2
         st.add(shapes.boxes([x0, ya, base], [x1, yb, base + 0.2 + h]), UNKNOWN, 0,
-               mid("concrete"))
+               mid("concrete"), FENCE)
     st.occupy(label, _rect(xa, xb, ya, yb))
 
 
@@ -58,12 +64,12 @@ def fence(st, t: Terrain, rng: np.random.Generator, xa: float, xb: float, y_in: 
         x1 = min(x0 + step, xb)
         z0, z1 = (float(v) for v in t.height(np.array([x0, x1]), np.array([y, y])))
         st.add(_quad([x0, y, z0], [x1, y, z1], [x1, y, z1 + h], [x0, y, z0 + h]), UNKNOWN, 0,
-               mid("chain-link"))
+               mid("chain-link"), FENCE)
         st.add(shapes.boxes([x0 - 0.03, y - 0.03, z0 - 0.2], [x0 + 0.03, y + 0.03, z0 + h + 0.05]),
-               UNKNOWN, 0, mid("metal"))
+               UNKNOWN, 0, mid("metal"), FENCE)
         st.add(shapes.boxes([x0, y - 0.02, min(z0, z1) + h - 0.02], [x1, y + 0.02,
                                                                       max(z0, z1) + h + 0.02]),
-               UNKNOWN, 0, mid("metal"))
+               UNKNOWN, 0, mid("metal"), FENCE)
     ya, yb = sorted((y - 0.05, y + 0.05))
     st.occupy(label, _rect(xa, xb, ya, yb))
 
@@ -78,12 +84,12 @@ def railing(st, t: Terrain, rng: np.random.Generator, xa: float, xb: float, y_in
     base = t.height(xs, np.full(len(xs), y))
     lo = np.stack([xs - 0.012, np.full_like(xs, y - 0.012), base - 0.1], axis=1)
     hi = np.stack([xs + 0.012, np.full_like(xs, y + 0.012), base + h], axis=1)
-    st.add(shapes.boxes(lo, hi), UNKNOWN, 0, mid("metal"))
+    st.add(shapes.boxes(lo, hi), UNKNOWN, 0, mid("metal"), FENCE)
     for x0 in np.arange(xa, xb, 4.0):
         x1 = min(x0 + 4.0, xb)
         zb = _base(t, x0, x1, y)
         st.add(shapes.boxes([x0, y - 0.03, zb + h], [x1, y + 0.03, zb + h + 0.06]),
-               UNKNOWN, 0, mid("metal"))
+               UNKNOWN, 0, mid("metal"), FENCE)
     ya, yb = sorted((y - 0.05, y + 0.05))
     st.occupy(label, _rect(xa, xb, ya, yb))
 
@@ -96,12 +102,13 @@ def guard_rail(st, t: Terrain, rng: np.random.Generator, xa: float, xb: float, y
     off = side * 0.12  # the beam stands on the road side of its posts
     for i in range(len(xs)):
         st.add(shapes.boxes([xs[i] - 0.05, y - 0.05, z[i] - 0.2],
-                            [xs[i] + 0.05, y + 0.05, z[i] + 0.75]), UNKNOWN, 0, mid("metal"))
+                            [xs[i] + 0.05, y + 0.05, z[i] + 0.75]), UNKNOWN, 0, mid("metal"),
+               FENCE)
         if i + 1 < len(xs):
             x0, x1, z0, z1 = xs[i], xs[i + 1], z[i], z[i + 1]
             yb = y - off
             st.add(_quad([x0, yb, z0 + 0.45], [x1, yb, z1 + 0.45], [x1, yb, z1 + 0.75],
-                         [x0, yb, z0 + 0.75]), UNKNOWN, 0, mid("metal"))
+                         [x0, yb, z0 + 0.75]), UNKNOWN, 0, mid("metal"), FENCE)
     ya, yb = sorted((y - 0.1, y + 0.1 - 2 * off))
     st.occupy(label, _rect(xa, xb, min(ya, yb), max(ya, yb)))
 
@@ -115,10 +122,11 @@ def sign(st, t: Terrain, rng: np.random.Generator, x: float, y: float, side: int
     z = float(t.height(np.array([x]), np.array([y]))[0])
     h = float(rng.uniform(2.0, 3.0))
     iid = st.new_instance()
-    st.add(shapes.cylinder([x, y, z - 0.1], [x, y, z + h], 0.04, 6), UNKNOWN, iid, mid("metal"))
+    st.add(shapes.cylinder([x, y, z - 0.1], [x, y, z + h], 0.04, 6), UNKNOWN, iid, mid("metal"),
+           POLE)
     w = float(rng.uniform(0.5, 0.9))
     st.add(shapes.boxes([x - 0.02, y - w / 2, z + h - w], [x + 0.02, y + w / 2, z + h]),
-           UNKNOWN, iid, mid("retro"))
+           UNKNOWN, iid, mid("retro"), SIGN)
     st.occupy(label, poly)
     return True
 
@@ -135,7 +143,7 @@ def building(st, t: Terrain, rng: np.random.Generator, xa: float, xb: float, nea
     front = (4, 5) if side > 0 else (6, 7)  # the -y or +y side of the cube
     keep = np.ones(len(f), bool)
     keep[list(front)] = False
-    st.add((v, f[keep]), UNKNOWN, 0, mid("facade"))
+    st.add((v, f[keep]), UNKNOWN, 0, mid("facade"), BUILDING)
     st.occupy(label, _rect(xa, xb, ya, yb))
     floor_h = float(rng.uniform(2.8, 3.6))
     floors = int((height - 0.8) // floor_h)
@@ -144,7 +152,7 @@ def building(st, t: Terrain, rng: np.random.Generator, xa: float, xb: float, nea
     recess = float(rng.uniform(0.1, 0.3))
     if floors < 1 or n_win < 1:
         st.add(_quad([xa, y_front, base], [xb, y_front, base], [xb, y_front, top],
-                     [xa, y_front, top]), UNKNOWN, 0, mid("facade"))
+                     [xa, y_front, top]), UNKNOWN, 0, mid("facade"), BUILDING)
         return
     win_w = min(float(rng.uniform(0.9, 1.6)), pitch - 0.5)
     win_h = min(float(rng.uniform(1.2, 1.8)), floor_h - 0.8)
@@ -173,13 +181,13 @@ def building(st, t: Terrain, rng: np.random.Generator, xa: float, xb: float, nea
         parts.append(_quad([x0, y_front, z1], [x1, y_front, z1], [x1, yg, z1], [x0, yg, z1]))
         parts.append(_quad([x0, y_front, z0], [x0, yg, z0], [x0, yg, z1], [x0, y_front, z1]))
         parts.append(_quad([x1, y_front, z0], [x1, yg, z0], [x1, yg, z1], [x1, y_front, z1]))
-    st.add(shapes.merge(parts), UNKNOWN, 0, mid("facade"))
+    st.add(shapes.merge(parts), UNKNOWN, 0, mid("facade"), BUILDING)
     glass = [_quad([xl[i], yg, zb[k]], [xr[i], yg, zb[k]], [xr[i], yg, zt[k]],
                    [xl[i], yg, zt[k]]) for i, k in zip(gx.ravel(), gz.ravel(), strict=True)]
-    st.add(shapes.merge(glass), UNKNOWN, 0, mid("glass"))
+    st.add(shapes.merge(glass), UNKNOWN, 0, mid("glass"), BUILDING)
     # Floor slabs inside (what a ray through a window ends on), and curtains in some rooms.
     slabs = [_quad([xa, ya, z], [xb, ya, z], [xb, yb, z], [xa, yb, z]) for z in z_floor]
-    st.add(shapes.merge(slabs), UNKNOWN, 0, mid("concrete"))
+    st.add(shapes.merge(slabs), UNKNOWN, 0, mid("concrete"), BUILDING)
     shut = rng.random(len(glass)) < float(rng.uniform(0.0, 0.5))
     if shut.any():
         yc = yg + side * 0.1
@@ -187,4 +195,4 @@ def building(st, t: Terrain, rng: np.random.Generator, xa: float, xb: float, nea
                         [xl[i], yc, zt[k]])
                   for (i, k), s in zip(zip(gx.ravel(), gz.ravel(), strict=True), shut,
                                        strict=True) if s]
-        st.add(shapes.merge(blinds), UNKNOWN, 0, mid("clothing"))
+        st.add(shapes.merge(blinds), UNKNOWN, 0, mid("clothing"), BUILDING)

@@ -10,11 +10,11 @@ and nothing but road lies within 3 m of the sensor. Kerbs stand at y = ±road_ha
 the centre); sidewalks, buildings, walls, fences, railings, guard rails, hedges, bushes, trees (and
 the far band of trees), poles, signs, parked cars, vans, trucks, buses, trailers, bicycles,
 pedestrians and cyclists lie beyond them or outside the free zone. Every triangle carries a
-class and a material (falsify.world.materials). Which mix a street gets is drawn from its id, so the
-15 backgrounds of configs/paper.toml are different places. About one street in four
-(TOWN_P) is a town street, enclosed like the KITTI frames' residential streets: flat roadsides,
-the narrowest road the free zone allows, narrow sidewalks and blocks on both sides close
-behind them.
+class, a material (falsify.world.materials) and a raw SemanticKITTI id (falsify.semantic).
+Which mix a street gets is drawn from its id, so the 15 backgrounds of configs/paper.toml are
+different places. About one street in four (TOWN_P) is a town street, enclosed like the KITTI
+frames' residential streets: flat roadsides, the narrowest road the free zone allows, narrow
+sidewalks and blocks on both sides close behind them.
 """
 
 from __future__ import annotations
@@ -28,10 +28,13 @@ import numpy as np
 from falsify.classes import CAR, CYCLIST, PEDESTRIAN, UNKNOWN
 from falsify.errors import ConfigError
 from falsify.rotations import rot_x, rot_y, rot_z
+from falsify.semantic import RAW_ID
 from falsify.world import buildings, shapes, vegetation
 from falsify.world.cars import BUILTIN_MODELS, car_parts
 from falsify.world.materials import PAINTS, mid
 from falsify.world.road_users import (
+    BICYCLE_SEMANTIC,
+    OTHER_VEHICLE_SEMANTIC,
     OTHER_VEHICLES,
     bicycle_parts,
     merge_parts,
@@ -48,6 +51,10 @@ TERRAIN_HALF_WIDTH: float = 300.0  # the ground reaches out to |y| = this
 
 _FIRST_INSTANCE = 1000
 _DEFAULT_MAT = mid("concrete")
+# Our classes (unknown, car, pedestrian, cyclist) as raw SemanticKITTI ids, for pieces that name
+# no id of their own: unknown stays 0 "unlabeled".
+SEMANTIC_OF_CLASS = np.array([0, RAW_ID["car"], RAW_ID["person"], RAW_ID["bicyclist"]],
+                             np.uint16)
 
 
 @dataclass(frozen=True)
@@ -60,8 +67,8 @@ class Footprint:
 
 @dataclass(frozen=True)
 class Background:
-    """The static street around the sensor: one triangle soup with per-face class, instance and
-    material, and the terrain it stands on.
+    """The static street around the sensor: one triangle soup with per-face class, instance,
+    material and raw SemanticKITTI id, and the terrain it stands on.
 
     ``road_half_width``: the kerbs stand at y = ±road_half_width; the drivable road is
     |y| < road_half_width for x in ``road_x``. Arrays are read-only (the object is cached).
@@ -78,12 +85,21 @@ class Background:
     road_x: tuple[float, float] = ROAD_X
     face_material: np.ndarray | None = None  # (M,) uint8 material ids; None: concrete
     terrain: Terrain | None = None  # None: the flat plane z = 0
+    face_semantic: np.ndarray | None = None  # (M,) uint16 raw SemanticKITTI ids; None: by class
 
     def materials(self) -> np.ndarray:
         """Per-face material ids (concrete everywhere for a background built without them)."""
         if self.face_material is not None:
             return self.face_material
         return np.full(len(self.faces), _DEFAULT_MAT, np.uint8)
+
+    def semantics(self) -> np.ndarray:
+        """Per-face raw SemanticKITTI ids; derived from the classes (car 10, pedestrian 30,
+        cyclist 31, else 0) when there are none or they do not match the faces (a background
+        whose faces were replaced without them)."""
+        if self.face_semantic is not None and len(self.face_semantic) == len(self.faces):
+            return self.face_semantic
+        return SEMANTIC_OF_CLASS[self.face_class]
 
 
 def _rect(x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
@@ -99,17 +115,22 @@ class _Street:
         self.cls: list[int] = []
         self.inst: list[int] = []
         self.mat: list[np.ndarray] = []
+        self.sem: list[np.ndarray] = []  # raw SemanticKITTI ids per face
         self.obstacles: list[Footprint] = []
         self.boxes: list[np.ndarray] = []  # (4,) x0, x1, y0, y1 of placed objects
         self.next_id = _FIRST_INSTANCE
 
     def add(self, mesh: shapes.Mesh, cls: int = UNKNOWN, instance: int = 0,
-            mat: int | np.ndarray = _DEFAULT_MAT) -> None:
-        """Add a mesh; `mat` is one material id or one per face."""
+            mat: int | np.ndarray = _DEFAULT_MAT, sem: int | np.ndarray | None = None) -> None:
+        """Add a mesh; `mat` is one material id or one per face, `sem` one raw SemanticKITTI id
+        or one per face (None: the class's, SEMANTIC_OF_CLASS)."""
         self.meshes.append(mesh)
         self.cls.append(cls)
         self.inst.append(instance)
         self.mat.append(np.broadcast_to(np.asarray(mat, np.uint8), (len(mesh[1]),)))
+        if sem is None:
+            sem = SEMANTIC_OF_CLASS[cls]
+        self.sem.append(np.broadcast_to(np.asarray(sem, np.uint16), (len(mesh[1]),)))
 
     def new_instance(self) -> int:
         self.next_id += 1
@@ -213,11 +234,19 @@ def _side_kind(lay: _Layout, side: int) -> str:
     return lay.terrain.sides[0 if side > 0 else 1].kind
 
 
+# The ground's pieces by material (terrain_meshes): the road surface is road (one mesh from kerb
+# to kerb, so there is no separate parking lane), kerb faces and sidewalks sidewalk (SemanticKITTI
+# counts kerbs as sidewalk), verges, ditches, embankments and fields terrain.
+_GROUND_SEMANTIC: dict[int, int] = {mid("asphalt"): RAW_ID["road"],
+                                    mid("concrete"): RAW_ID["sidewalk"],
+                                    mid("grass"): RAW_ID["terrain"], mid("soil"): RAW_ID["terrain"]}
+
+
 def _ground(st: _Street, lay: _Layout) -> None:
     """Road, kerb faces, sidewalks and the roadsides out to the far field."""
     x0, x1 = ROAD_X
     for mesh, mat in terrain_meshes(lay.terrain, ROAD_X, TERRAIN_HALF_WIDTH):
-        st.add(mesh, UNKNOWN, 0, mat)
+        st.add(mesh, UNKNOWN, 0, mat, _GROUND_SEMANTIC[mat])
     t, far = lay.terrain, TERRAIN_HALF_WIDTH
     br = t.kerb_breaks(x0, x1)
     for k, (u, v) in enumerate(zip(br[:-1], br[1:], strict=False)):
@@ -381,15 +410,17 @@ def _poles(st: _Street, lay: _Layout, bg_id: int) -> None:
                     h = rng.uniform(6.0, 10.0)
                     edge = 8.8 if t.narrow == 0.0 or _near_zone(x) else kerb - 2.5
                     arm_end = max(off - rng.uniform(1.0, 2.5), edge)
+                    # A street light is pole throughout (SemanticKITTI: lamp posts), its arm
+                    # and lamp head too.
                     st.add(shapes.cylinder([x, y, base - 0.1], [x, y, base + h], 0.1, 8, 0.07),
-                           UNKNOWN, iid, mid("metal"))
+                           UNKNOWN, iid, mid("metal"), RAW_ID["pole"])
                     st.add(shapes.boxes([x - 0.05, min(y, side * arm_end), base + h - 0.3],
                                         [x + 0.05, max(y, side * arm_end), base + h - 0.2]),
-                           UNKNOWN, iid, mid("metal"))
+                           UNKNOWN, iid, mid("metal"), RAW_ID["pole"])
                     ye = side * arm_end
                     st.add(shapes.boxes([x - 0.3, ye - 0.15, base + h - 0.45],
                                         [x + 0.3, ye + 0.15, base + h - 0.25]), UNKNOWN, iid,
-                           mid("metal"))
+                           mid("metal"), RAW_ID["pole"])
                     st.occupy(f"pole {n}", poly)
                     n += 1
             elif buildings.sign(st, t, rng, x, y, side, f"sign {n}"):
@@ -398,15 +429,16 @@ def _poles(st: _Street, lay: _Layout, bg_id: int) -> None:
 
 
 def _place(st: _Street, t: Terrain, v: np.ndarray, f: np.ndarray, mat: np.ndarray | int,
-           x: float, y: float, yaw: float, cls: int, label: str) -> None:
-    """Add one labelled object instance turned by ``yaw`` (radians), standing on the ground."""
+           x: float, y: float, yaw: float, cls: int, label: str, sem: int | None = None) -> None:
+    """Add one labelled object instance turned by ``yaw`` (radians), standing on the ground;
+    ``sem``: its raw SemanticKITTI id (None: its class's)."""
     lo, hi = v.min(axis=0), v.max(axis=0)
     hl, hw = max((hi[0] - lo[0]) / 2 - 0.3, 0.2), max((hi[1] - lo[1]) / 2 - 0.1, 0.2)
     z, pitch, roll = t.pose_on(x, y, math.degrees(yaw), hl, hw)
     rot = rot_z(math.degrees(yaw)) @ rot_y(pitch) @ rot_x(roll)
     v = v @ rot.T + [x, y, z]
     iid = st.new_instance()
-    st.add((v, f), cls, iid, mat)
+    st.add((v, f), cls, iid, mat, sem)
     st.occupy(label, _footprint(v))
 
 
@@ -450,12 +482,12 @@ def _parked_vehicles(st: _Street, lay: _Layout, bg_id: int) -> None:
             if rng.random() < other_p and not (forced and x > 20.0):
                 kind = str(rng.choice(OTHER_VEHICLES))
                 v, f, mat = merge_parts(vehicle_parts(kind, rng))
-                cls, label = UNKNOWN, f"parked {kind} {n}"
+                cls, label, sem = UNKNOWN, f"parked {kind} {n}", OTHER_VEHICLE_SEMANTIC[kind]
             else:
                 name = str(rng.choice(BUILTIN_MODELS))
                 v, f, mat = car_parts(name, lod)
                 mat = np.where(mat == mid("paint mid"), PAINTS[int(rng.integers(3))], mat)
-                cls, label = CAR, f"parked car {n}"
+                cls, label, sem = CAR, f"parked car {n}", RAW_ID["car"]
             length, width = float(np.ptp(v[:, 0])), float(np.ptp(v[:, 1]))
             cx = x + length / 2
             x += length + rng.uniform(0.8, 6.0)
@@ -469,7 +501,8 @@ def _parked_vehicles(st: _Street, lay: _Layout, bg_id: int) -> None:
             cy = side * (kerb - 0.25 - width / 2 - rng.uniform(0.0, 0.3))
             if not want or not st.fits(_candidate_footprint(length, width, cx, cy, yaw), 0.2):
                 continue
-            _place(st, lay.terrain, np.asarray(v), np.asarray(f), mat, cx, cy, yaw, cls, label)
+            _place(st, lay.terrain, np.asarray(v), np.asarray(f), mat, cx, cy, yaw, cls, label,
+                   sem)
             n += 1
 
 
@@ -496,7 +529,7 @@ def _people(st: _Street, lay: _Layout, bg_id: int) -> None:
             continue
         v, f, mat = merge_parts(pedestrian_parts(rng))
         _place(st, t, v, f, mat, x, y, rng.uniform(-np.pi, np.pi), PEDESTRIAN,
-               f"pedestrian {placed}")
+               f"pedestrian {placed}", RAW_ID["person"])
         placed += 1
 
     n_cyc = int(rng.integers(1, 5))
@@ -518,7 +551,9 @@ def _people(st: _Street, lay: _Layout, bg_id: int) -> None:
         if not st.fits(_candidate_footprint(1.8, 0.7, x, y, heading), 0.3):
             continue
         v, f = shapes.cyclist(rng.uniform(1.6, 1.9))
-        _place(st, t, v, f, mid("clothing"), x, y, heading, CYCLIST, f"cyclist {placed}")
+        # Rider and bicycle both bicyclist, as SemanticKITTI labels a ridden bicycle.
+        _place(st, t, v, f, mid("clothing"), x, y, heading, CYCLIST, f"cyclist {placed}",
+               RAW_ID["bicyclist"])
         placed += 1
 
     n_bikes = int(rng.integers(0, 8))
@@ -530,7 +565,7 @@ def _people(st: _Street, lay: _Layout, bg_id: int) -> None:
         if not st.fits(_candidate_footprint(1.8, 0.6, x, y, yaw), 0.2):
             continue
         v, f, mat = merge_parts(bicycle_parts(rng))
-        _place(st, t, v, f, mat, x, y, yaw, UNKNOWN, f"bicycle {i}")
+        _place(st, t, v, f, mat, x, y, yaw, UNKNOWN, f"bicycle {i}", BICYCLE_SEMANTIC)
 
 
 def _side(rng: np.random.Generator, lay: _Layout) -> tuple[int, float]:
@@ -554,14 +589,15 @@ def _assemble(bg_id: int, st: _Street, lay: _Layout) -> Background:
     cls = np.repeat(np.array(st.cls, dtype=np.uint8), counts)[keep]
     inst = np.repeat(np.array(st.inst, dtype=np.int32), counts)[keep]
     mat = np.concatenate(st.mat).astype(np.uint8)[keep]
+    sem = np.concatenate(st.sem).astype(np.uint16)[keep]
     f = f[keep]
     faces = f.astype(np.int32)
-    for arr in (v, faces, cls, inst, mat):
+    for arr in (v, faces, cls, inst, mat, sem):
         arr.setflags(write=False)
     return Background(bg_id=bg_id, vertices=v, faces=faces, face_class=cls,
                       face_instance=inst, obstacles=tuple(st.obstacles),
                       road_half_width=lay.half_width, curb_height=lay.curb_h,
-                      face_material=mat, terrain=lay.terrain)
+                      face_material=mat, terrain=lay.terrain, face_semantic=sem)
 
 
 def build_background(bg_id: int) -> Background:

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from falsify.semantic import RAW_ID
 from falsify.world import shapes
 from falsify.world.materials import mid
 
@@ -19,6 +20,8 @@ if TYPE_CHECKING:
     from falsify.world.terrain import Terrain
 
 UNKNOWN = 0
+# Raw SemanticKITTI ids: bushes, hedges and crowns are vegetation, a tree's bark trunk.
+VEGETATION, TRUNK = RAW_ID["vegetation"], RAW_ID["trunk"]
 
 
 def _rect(x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
@@ -54,7 +57,7 @@ def bushes(st, t: Terrain, rng: np.random.Generator, side: int, u_range: tuple[f
         z = float(t.height(np.array([x]), np.array([y]))[0])
         h = r * rng.uniform(0.6, 1.1)
         st.add(blob(rng, [x, y, z + 0.6 * h], [r, r * rng.uniform(0.7, 1.2), h], 1),
-               UNKNOWN, 0, mid("foliage"))
+               UNKNOWN, 0, mid("foliage"), VEGETATION)
         made += 1
     return made
 
@@ -73,7 +76,7 @@ def hedge(st, t: Terrain, rng: np.random.Generator, xa: float, xb: float, y_in: 
         top = base + 0.1 + height + float(rng.normal(0.0, 0.06))
         v, f = shapes.boxes([x0, ya, base], [x1, yb, top])
         v = v + rng.normal(0.0, 0.04, size=v.shape) * [0, 1, 1]
-        st.add((v, f), UNKNOWN, 0, mid("hedge"))
+        st.add((v, f), UNKNOWN, 0, mid("hedge"), VEGETATION)
     st.occupy(label, _rect(xa, xb, ya, yb))
 
 
@@ -88,17 +91,20 @@ def tree(st, t: Terrain, rng: np.random.Generator, x: float, y: float, crown: fl
     trunk_h = float(rng.uniform(1.6, 3.5))
     iid = st.new_instance()
     st.add(shapes.cylinder([x, y, ground - 0.1], [x, y, ground + trunk_h + crown], trunk_r,
-                           8 if detail > 1 else 5, 0.6 * trunk_r), UNKNOWN, iid, mid("bark"))
+                           8 if detail > 1 else 5, 0.6 * trunk_r), UNKNOWN, iid, mid("bark"),
+           TRUNK)
     if conifer:
         top = ground + trunk_h + float(rng.uniform(2.5, 3.5)) * crown
         st.add(shapes.cylinder([x, y, ground + trunk_h * 0.6], [x, y, top], crown,
-                               10 if detail > 1 else 6, 0.0), UNKNOWN, iid, mid("foliage"))
+                               10 if detail > 1 else 6, 0.0), UNKNOWN, iid, mid("foliage"),
+               VEGETATION)
     else:
         c = [x, y, ground + trunk_h + 0.8 * crown]
         st.add(blob(rng, c, [crown, crown, crown * 0.9], detail, 0.15), UNKNOWN, iid,
-               mid("foliage"))
+               mid("foliage"), VEGETATION)
         if detail > 1:
-            st.add(blob(rng, c, [crown * 0.55] * 3, 1, 0.2), UNKNOWN, iid, mid("foliage"))
+            st.add(blob(rng, c, [crown * 0.55] * 3, 1, 0.2), UNKNOWN, iid, mid("foliage"),
+                   VEGETATION)
     st.occupy(label, poly)
     return True
 

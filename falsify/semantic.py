@@ -1,0 +1,91 @@
+"""SemanticKITTI's label set: raw ids as `.label` files hold them, the 19-class learning map that
+networks are trained and scored on, and the four-class view (unknown, car, pedestrian, cyclist)
+that the SqueezeSeg networks use.
+
+Ids and the learning map are those of SemanticKITTI's `semantic-kitti.yaml` (Behley et al.,
+"SemanticKITTI: A Dataset for Semantic Scene Understanding of LiDAR Sequences", ICCV 2019).
+A `.label` value is `instance << 16 | semantic` (uint32).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from falsify.classes import CAR, CYCLIST, PEDESTRIAN
+
+# Raw SemanticKITTI ids and their names (moving-* ids are the moving versions of the same class).
+RAW_NAMES: dict[int, str] = {
+    0: "unlabeled", 1: "outlier", 10: "car", 11: "bicycle", 13: "bus", 15: "motorcycle",
+    16: "on-rails", 18: "truck", 20: "other-vehicle", 30: "person", 31: "bicyclist",
+    32: "motorcyclist", 40: "road", 44: "parking", 48: "sidewalk", 49: "other-ground",
+    50: "building", 51: "fence", 52: "other-structure", 60: "lane-marking", 70: "vegetation",
+    71: "trunk", 72: "terrain", 80: "pole", 81: "traffic-sign", 99: "other-object",
+    252: "moving-car", 253: "moving-bicyclist", 254: "moving-person", 255: "moving-motorcyclist",
+    256: "moving-on-rails", 257: "moving-bus", 258: "moving-truck", 259: "moving-other-vehicle",
+}
+RAW_ID: dict[str, int] = {name: i for i, name in RAW_NAMES.items()}
+
+# The 19 classes networks are trained on (index 0 is "unlabeled", ignored in scoring).
+TRAIN_CLASSES: tuple[str, ...] = (
+    "unlabeled", "car", "bicycle", "motorcycle", "truck", "other-vehicle", "person", "bicyclist",
+    "motorcyclist", "road", "parking", "sidewalk", "other-ground", "building", "fence",
+    "vegetation", "trunk", "terrain", "pole", "traffic-sign",
+)
+TRAIN_ID: dict[str, int] = {name: i for i, name in enumerate(TRAIN_CLASSES)}
+IGNORE = 0
+
+_LEARNING_MAP: dict[int, str] = {
+    0: "unlabeled", 1: "unlabeled", 10: "car", 11: "bicycle", 13: "other-vehicle",
+    15: "motorcycle", 16: "other-vehicle", 18: "truck", 20: "other-vehicle", 30: "person",
+    31: "bicyclist", 32: "motorcyclist", 40: "road", 44: "parking", 48: "sidewalk",
+    49: "other-ground", 50: "building", 51: "fence", 52: "unlabeled", 60: "road",
+    70: "vegetation", 71: "trunk", 72: "terrain", 80: "pole", 81: "traffic-sign",
+    99: "unlabeled", 252: "car", 253: "bicyclist", 254: "person", 255: "motorcyclist",
+    256: "other-vehicle", 257: "other-vehicle", 258: "truck", 259: "other-vehicle",
+}
+# raw id (0..259) -> train id; ids the map does not name are unlabeled
+LEARNING_MAP = np.zeros(260, np.uint8)
+for _raw, _name in _LEARNING_MAP.items():
+    LEARNING_MAP[_raw] = TRAIN_ID[_name]
+
+# raw id -> the SqueezeSeg networks' four classes (motorcyclists count as cyclists there)
+_KITTI4 = {10: CAR, 252: CAR, 30: PEDESTRIAN, 254: PEDESTRIAN, 31: CYCLIST, 253: CYCLIST,
+           32: CYCLIST, 255: CYCLIST}
+KITTI4_OF_RAW = np.zeros(260, np.uint8)
+for _raw, _cls in _KITTI4.items():
+    KITTI4_OF_RAW[_raw] = _cls
+
+# train id -> RGB for pictures: our own palette, one hue family per group of classes
+TRAIN_RGB = np.array([
+    [0, 0, 0], [230, 60, 50], [250, 130, 200], [180, 60, 160], [150, 40, 40], [255, 120, 60],
+    [50, 120, 230], [240, 190, 30], [130, 90, 230], [120, 120, 130], [170, 120, 170],
+    [90, 60, 110], [120, 60, 60], [230, 190, 120], [150, 110, 40], [40, 160, 60], [110, 70, 30],
+    [150, 200, 90], [230, 230, 100], [250, 40, 250],
+], np.uint8)
+
+
+def split_label(label: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A `.label` array (uint32) -> (semantic raw id uint16, instance uint16)."""
+    label = np.asarray(label, np.uint32)
+    return (label & 0xFFFF).astype(np.uint16), (label >> 16).astype(np.uint16)
+
+
+def join_label(semantic: np.ndarray, instance: np.ndarray) -> np.ndarray:
+    """Raw semantic ids and instance ids -> `.label` values (uint32)."""
+    return (np.asarray(instance, np.uint32) << 16) | np.asarray(semantic, np.uint32)
+
+
+def _lookup(table: np.ndarray, raw: np.ndarray) -> np.ndarray:
+    raw = np.asarray(raw)
+    return table[np.where(raw < len(table), raw, 0)]
+
+
+def train_ids(raw: np.ndarray) -> np.ndarray:
+    """Raw SemanticKITTI ids -> train ids 0..19 (unknown raw ids: 0, unlabeled)."""
+    return _lookup(LEARNING_MAP, raw)
+
+
+def kitti4(raw: np.ndarray) -> np.ndarray:
+    """Raw SemanticKITTI ids -> the four SqueezeSeg classes (0 unknown, 1 car, 2 pedestrian,
+    3 cyclist)."""
+    return _lookup(KITTI4_OF_RAW, raw)
