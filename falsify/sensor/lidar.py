@@ -6,6 +6,12 @@ lasers sit 0.1-0.2 m above its frame's origin, which moves a ring's elevation se
 by `dz / range`. Row r, column c of the range image is the ray at elevation `elevations[r]` and
 azimuth `az_left - (c + 0.5) * az_step`, so a point at azimuth `a` falls in column
 `floor((az_left - a) / az_step)`: SqueezeSeg's layout (column 0 is the left edge).
+
+A sensor with `projection = "spherical"` still casts those rays but stores its scans in RangeNet++'s
+range image (Milioto et al., IROS 2019), the input of networks trained on SemanticKITTI: rows by
+pitch evenly from `fov_up_deg` (row 0) down to `fov_down_deg`, columns by azimuth over 360° with
+straight ahead (+x) at column W/2, the nearest point winning a pixel (`Sensor.pixel_of`);
+the image keeps the ray grid's H x W.
 """
 
 from __future__ import annotations
@@ -26,8 +32,9 @@ PRESET_DIR = SENSOR_PRESETS
 SENSOR_KEYS = {
     "name", "description", "elevations_deg", "vertical", "h_fov_deg", "columns", "pitch_deg",
     "mount_height", "max_range", "min_range", "rotation_hz", "ray_drop", "range_noise",
-    "returns", "kitti_rings", "ring_offsets_m",
+    "returns", "kitti_rings", "ring_offsets_m", "projection", "fov_up_deg", "fov_down_deg",
 }
+PROJECTIONS = ("rings", "spherical")
 MAX_RING_OFFSET_M = 1.0
 
 
@@ -53,6 +60,11 @@ class Sensor:
     kitti_rings: bool = False
     # Per row, how far above the origin (sensor-frame z, metres) its rays start; () = all at it.
     ring_offsets_m: tuple[float, ...] = ()
+    # The scan image's layout: "rings" (row = ray row, column = azimuth bin) or "spherical"
+    # (RangeNet++'s projection between fov_up_deg and fov_down_deg; see pixel_of).
+    projection: str = "rings"
+    fov_up_deg: float = 3.0
+    fov_down_deg: float = -25.0
 
     @property
     def rows(self) -> int:
@@ -113,9 +125,12 @@ class Sensor:
     def pixel_of(self, points: np.ndarray, rows: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Project sensor-frame points to (row, col, inside) with this sensor's layout; `rows`,
-        when given, is each point's row (a laser ring) in place of its elevation's."""
+        when given, is each point's row (a laser ring) in place of its elevation's (ignored by
+        a spherical sensor)."""
         p = np.asarray(points, dtype=np.float64)
         r = np.linalg.norm(p, axis=1)
+        if self.projection == "spherical":
+            return self._spherical_pixel(p, r)
         az = np.degrees(np.arctan2(p[:, 1], p[:, 0]))
         col = np.floor((self.az_left_deg - az) / self.az_step_deg).astype(np.int64)
         if self.full_circle:
@@ -127,6 +142,23 @@ class Sensor:
             row = np.searchsorted(-self.row_edges_deg, -el, side="right") - 1
         inside = (col >= 0) & (col < self.columns) & (row >= 0) & (row < self.rows) & (r > 0)
         return row, col, inside
+
+    def _spherical_pixel(self, p: np.ndarray, r: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """RangeNet++'s spherical projection (Milioto et al., IROS 2019): yaw = -atan2(y, x),
+        pitch = asin(z / |p|); col = floor((yaw / pi + 1) W / 2), row = floor((1 - (pitch +
+        |fov_down|) / fov) H), fov = |fov_up| + |fov_down|. Both are clamped into the image, so
+        points above fov_up or below fov_down land in the top or bottom row, as in the images
+        the SemanticKITTI networks were trained on; every point with |p| > 0 is inside."""
+        h, w = self.shape
+        down = math.radians(self.fov_down_deg)
+        fov = abs(down) + abs(math.radians(self.fov_up_deg))
+        yaw = -np.arctan2(p[:, 1], p[:, 0])
+        sin = np.divide(p[:, 2], r, out=np.zeros_like(r), where=r > 0)
+        pitch = np.arcsin(np.clip(sin, -1.0, 1.0))
+        col = np.clip(np.floor(0.5 * (yaw / np.pi + 1.0) * w), 0, w - 1).astype(np.int64)
+        row = np.clip(np.floor((1.0 - (pitch + abs(down)) / fov) * h), 0, h - 1).astype(np.int64)
+        return row, col, r > 0
 
     def with_resolution(self, rows: int, columns: int) -> Sensor:
         """The same sensor resampled to another grid over the same fields of view."""
@@ -272,7 +304,45 @@ def parse_sensor(raw: dict, source: str = "<sensor>") -> Sensor:
         returns=_returns_name(raw.get("returns", ""), where),
         kitti_rings=_flag(raw, "kitti_rings", where),
         ring_offsets_m=_ring_offsets(raw, len(elevations), where),
+        **_projection(raw, where, full_circle=abs(left - right - 360.0) < 1e-9),
     )
+
+
+def _projection(raw: dict, where: str, full_circle: bool) -> dict:
+    """`projection` ("rings", the default, or "spherical") and, for spherical only, its
+    vertical field of view `fov_up_deg` in [0, 90) and `fov_down_deg` in (-90, 0]."""
+    kind = raw.get("projection", "rings")
+    if kind not in PROJECTIONS:
+        raise ConfigError(f"{where}projection: {kind!r} is not allowed; allowed: "
+                          f"{', '.join(repr(k) for k in PROJECTIONS)}")
+    if kind == "rings":
+        for key in ("fov_up_deg", "fov_down_deg"):
+            if key in raw:
+                raise ConfigError(f"{where}{key}: only for projection = \"spherical\" (the "
+                                  "ring layout's rows are the sensor's own)")
+        return {}
+    if not full_circle:
+        raise ConfigError(f"{where}h_fov_deg: projection = \"spherical\" spans 360 deg; "
+                          "allowed: a left minus right of 360, e.g. [180, -180]")
+    if raw.get("kitti_rings", False):
+        raise ConfigError(f"{where}kitti_rings: must be false with projection = \"spherical\" "
+                          "(its rows are pitch bins, not laser rings)")
+    out = {}
+    for key, lo, hi in (("fov_up_deg", 0.0, 90.0), ("fov_down_deg", -90.0, 0.0)):
+        if key not in raw:
+            raise ConfigError(f"{where}missing key {key!r} (projection = \"spherical\" needs "
+                              "fov_up_deg and fov_down_deg, e.g. 3 and -25)")
+        v = raw[key]
+        if (isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v)
+                or not lo <= v <= hi or abs(v) == 90.0):
+            span = "[0, 90)" if lo == 0.0 else "(-90, 0]"
+            raise ConfigError(f"{where}{key}: {v!r} is not allowed with projection = "
+                              f"\"spherical\"; allowed: a number of degrees in {span}")
+        out[key] = float(v)
+    if out["fov_up_deg"] == out["fov_down_deg"]:
+        raise ConfigError(f"{where}fov_up_deg, fov_down_deg: both 0; allowed: fov_up_deg above "
+                          "fov_down_deg")
+    return {"projection": kind, **out}
 
 
 def _ring_offsets(raw: dict, rows: int, where: str) -> tuple[float, ...]:

@@ -18,10 +18,12 @@ CHANNELS = ("x", "y", "z", "intensity", "range", "label")
 
 @dataclass(frozen=True)
 class Scan:
-    """One scan: the H×W×6 range image plus the per-pixel instance id."""
+    """One scan: the H×W×6 range image, the per-pixel instance id and, where known, the raw
+    SemanticKITTI id per pixel (falsify.semantic; the label channel is its four-class view)."""
 
     image: np.ndarray      # (H, W, 6) float32
     instance: np.ndarray   # (H, W) int32, 0 where no instance
+    semantic: np.ndarray | None = None   # (H, W) uint16 raw SemanticKITTI ids, 0 where empty
 
     @property
     def valid(self) -> np.ndarray:
@@ -44,9 +46,11 @@ class Scan:
 
 def image_from_points(sensor: Sensor, points: np.ndarray, cls: np.ndarray,
                       instance: np.ndarray, intensity: np.ndarray | None = None,
-                      rows: np.ndarray | None = None) -> Scan:
+                      rows: np.ndarray | None = None,
+                      semantic: np.ndarray | None = None) -> Scan:
     """Project sensor-frame points into the sensor's range image; the nearest point wins a pixel.
-    `rows` gives each point's row (a laser ring) instead of its elevation's."""
+    `rows` gives each point's row (a laser ring) instead of its elevation's; `semantic` (raw
+    SemanticKITTI ids per point) fills the scan's semantic image."""
     points = np.asarray(points, dtype=np.float64)
     ranges = np.linalg.norm(points, axis=1)
     row, col, inside = sensor.pixel_of(points, rows)
@@ -61,4 +65,20 @@ def image_from_points(sensor: Sensor, points: np.ndarray, cls: np.ndarray,
     image[r, c, 4] = ranges[idx]
     image[r, c, 5] = cls[idx]
     inst[r, c] = instance[idx]
-    return Scan(image, inst)
+    sem = None
+    if semantic is not None:
+        sem = np.zeros(sensor.shape, dtype=np.uint16)
+        sem[r, c] = np.asarray(semantic)[idx]
+    return Scan(image, inst, sem)
+
+
+def project_scan(sensor: Sensor, scan: Scan) -> Scan:
+    """A scan cast on `sensor`'s ray grid, stored in its image layout: unchanged for the ring
+    layout; for a spherical sensor its valid points re-projected (RangeNet++'s projection, the
+    nearest point winning a pixel), so a simulated scan reads as a real one does."""
+    if sensor.projection != "spherical":
+        return scan
+    m = scan.valid
+    px = scan.image[m]
+    return image_from_points(sensor, px[:, 0:3], px[:, 5], scan.instance[m], intensity=px[:, 3],
+                             semantic=None if scan.semantic is None else scan.semantic[m])

@@ -14,7 +14,7 @@ import math
 import zlib
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -24,10 +24,11 @@ import falsify.world.road_users as road_users
 import falsify.world.streets as streets
 from falsify.classes import CAR
 from falsify.rotations import rot_x, rot_y, rot_z
+from falsify.semantic import RAW_ID
 from falsify.sensor.lidar import Sensor, SensorPose
 from falsify.sensor.raycast import MeshCaster, cast_through
 from falsify.sensor.returns import load_return_model
-from falsify.sensor.scan import Scan
+from falsify.sensor.scan import Scan, project_scan
 from falsify.sensor.weather import (
     NOMINAL_INTENSITY,
     Echoes,
@@ -77,6 +78,9 @@ class PlacedCar:
     pitch_deg: float = 0.0
     roll_deg: float = 0.0
     paint: int | None = None  # material id replacing the model's paint; None keeps it
+    # Raw SemanticKITTI id (other-vehicle models: their kind's). Out of the repr, which scenes'
+    # fingerprints hash.
+    semantic: int = field(default=RAW_ID["car"], repr=False)
 
     def rotation(self) -> np.ndarray:
         r = rot_z(self.heading_deg)
@@ -104,9 +108,9 @@ def place(pose: CarPose, instance: int) -> PlacedCar:
 @dataclass
 class _Layer:
     """Per-pixel nearest hit so far: range (inf = none), class, instance, material, the
-    cosine of the incidence angle (for the sensor's return model) and the surface's unit normal
+    cosine of the incidence angle (for the sensor's return model), the surface's unit normal
     in the sensor frame, turned to face the sensor (H×W×3, zero where nothing is hit; for
-    weather and ego motion)."""
+    weather and ego motion), and the raw SemanticKITTI id (uint16, 0 where nothing is hit)."""
 
     dist: np.ndarray
     cls: np.ndarray
@@ -114,13 +118,14 @@ class _Layer:
     mat: np.ndarray
     cos: np.ndarray
     normal: np.ndarray | None
+    semantic: np.ndarray
 
     def copy(self, normals: bool = True) -> _Layer:
         """A writable copy; without `normals` its normal is None (a clear scan needs none, and
         copying them would cost every scan)."""
         normal = self.normal.copy() if normals and self.normal is not None else None
         return _Layer(self.dist.copy(), self.cls.copy(), self.inst.copy(), self.mat.copy(),
-                      self.cos.copy(), normal)
+                      self.cos.copy(), normal, self.semantic.copy())
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -201,6 +206,13 @@ class Simulator:
             return road_users.vehicle_model(model)[1]
         return cars.car_parts(model, self.lod)[2]
 
+    def car_semantic(self, car: PlacedCar) -> int:
+        """The raw SemanticKITTI id a placed car's points carry: its kind's for the other
+        vehicles' models (truck, bus, other-vehicle), as car_mesh picks their mesh; else its own."""
+        if car.model not in self.user_cars and car.model in road_users.OTHER_VEHICLES:
+            return road_users.OTHER_VEHICLE_SEMANTIC[car.model]
+        return car.semantic
+
     def car_caster(self, model: str) -> tuple[_Caster, np.ndarray]:
         """The car's BVH in its own frame and its bounding box corners (8×3)."""
         if model not in self._cars:
@@ -245,8 +257,10 @@ class Simulator:
         mat = np.zeros(t.shape, dtype=np.uint8)
         cos = np.zeros(t.shape, dtype=np.float32)
         normal = np.zeros((len(t), 3), dtype=np.float32)
+        sem = np.zeros(t.shape, dtype=np.uint16)
         cls[hit] = bg.face_class[prim[hit]]
         inst[hit] = bg.face_instance[prim[hit]]
+        sem[hit] = bg.semantics()[prim[hit]]
         mat[hit] = caster.material[prim[hit]]
         facing = (caster.normals[prim[hit]] * dirs[hit]).sum(axis=1)
         cos[hit] = np.abs(facing)
@@ -254,8 +268,10 @@ class Simulator:
         normal[hit] = (caster.normals[prim[hit]] @ rot) * np.where(facing > 0, -1.0, 1.0)[:, None]
         shape = self.sensor.shape
         layer = _Layer(t.reshape(shape), cls.reshape(shape), inst.reshape(shape),
-                       mat.reshape(shape), cos.reshape(shape), normal.reshape(*shape, 3))
-        for a in (layer.dist, layer.cls, layer.inst, layer.mat, layer.cos, layer.normal):
+                       mat.reshape(shape), cos.reshape(shape), normal.reshape(*shape, 3),
+                       sem.reshape(shape))
+        for a in (layer.dist, layer.cls, layer.inst, layer.mat, layer.cos, layer.normal,
+                  layer.semantic):
             a.setflags(write=False)
         self._hits[key] = layer
         while len(self._hits) > self._max_hits:
@@ -335,6 +351,7 @@ class Simulator:
         layer.dist[rn, cn] = t[nearer]
         layer.cls[rn, cn] = car.cls
         layer.inst[rn, cn] = car.instance
+        layer.semantic[rn, cn] = self.car_semantic(car)
         mat = caster.material[pn]
         if car.paint is not None:
             mat = np.where(np.isin(mat, PAINT_IDS), car.paint, mat)
@@ -375,7 +392,7 @@ class Simulator:
         if rng is not None and s.ray_drop > 0:
             valid &= rng.random(r.shape) >= s.ray_drop
         intensity = None
-        cls, inst = layer.cls, layer.inst
+        cls, inst, sem = layer.cls, layer.inst, layer.semantic
         if self.returns is not None:
             valid &= ~GLASS[layer.mat]
             intensity = np.zeros(r.shape, np.float32)
@@ -384,16 +401,18 @@ class Simulator:
         if fx is not None and fx.medium:
             clear_i = (valid * np.float32(NOMINAL_INTENSITY) if intensity is None
                        else intensity)
-            e = self.weather.medium(fx, fx_seed, Echoes(r, valid, intensity, cls, inst),
+            e = self.weather.medium(fx, fx_seed, Echoes(r, valid, intensity, cls, inst, sem),
                                     clear_i, layer.mat, layer.cos, layer.normal)
-            r, valid, intensity, cls, inst = e.r, e.valid, e.intensity, e.cls, e.inst
+            r, valid, intensity, cls, inst, sem = (e.r, e.valid, e.intensity, e.cls, e.inst,
+                                                   e.semantic)
         if self.returns is not None and rng is not None:
             u = rng.random(r.shape)[valid]
             p = self.returns.p_return(intensity[valid]) * self._keep[valid]
             valid[valid] = u < p
         if fx is not None and (fx.crosstalk or fx.beam_loss):
-            e = self.weather.faults(fx, fx_seed, Echoes(r, valid, intensity, cls, inst))
-            r, valid, intensity, cls, inst = e.r, e.valid, e.intensity, e.cls, e.inst
+            e = self.weather.faults(fx, fx_seed, Echoes(r, valid, intensity, cls, inst, sem))
+            r, valid, intensity, cls, inst, sem = (e.r, e.valid, e.intensity, e.cls, e.inst,
+                                                   e.semantic)
         image = np.zeros((*s.shape, 6), dtype=np.float32)
         rv = np.where(valid, r, 0.0)
         if s.ray_origins is None:
@@ -406,7 +425,8 @@ class Simulator:
         if intensity is not None:
             image[..., 3] = np.where(valid, intensity, 0.0)
         image[..., 5] = np.where(valid, cls, 0)
-        return Scan(image, np.where(valid, inst, 0).astype(np.int32))
+        return project_scan(s, Scan(image, np.where(valid, inst, 0).astype(np.int32),
+                                   np.where(valid, sem, 0).astype(np.uint16)))
 
     # -- samples --------------------------------------------------------------------------
     def placed_cars(self, sample: Sample) -> list[PlacedCar]:
