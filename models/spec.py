@@ -1,8 +1,9 @@
 """Model spec: the JSON file beside a model (``<model>.onnx`` -> ``<model>.json``).
 
 It says how to turn a scan (H, W, 6: x, y, z, intensity, range, label) into the model's input
-tensors and how to read its output, so a runner can check a model before any sample runs.
-Importing this module needs numpy only (no torch).
+tensors (a range image, or the scan's valid points for `input_kind` "points") and how to read its
+output, so a runner can check a model before any sample runs. Class names are our four or
+SemanticKITTI's train classes. Importing this module needs numpy only (no torch).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 
 from falsify.classes import CLASSES
 from falsify.errors import FalsifyError
+from falsify.semantic import KITTI4_OF_RAW, LEARNING_MAP, TRAIN_CLASSES, TRAIN_ID
 
 ALL_CHANNELS = ("x", "y", "z", "intensity", "range")
 DEFAULT_CHANNELS = ("x", "y", "z", "range")  # the paper leaves intensity out for synthetic data
@@ -26,7 +28,29 @@ SCAN_INDEX = {"x": 0, "y": 1, "z": 2, "intensity": 3, "range": 4}
 INPUT_MEAN = (10.88, 0.23, -1.04, 0.21, 12.12)
 INPUT_STD = (11.47, 6.91, 0.86, 0.16, 12.32)
 OUTPUT_KINDS = ("logits", "probabilities")
+# "range": (B, C, H, W) range-image tensors in; "points": each scan's valid points, (N, 4) x, y, z,
+# intensity (the remission), in; per-point classes out.
+INPUT_KINDS = ("range", "points")
+POINT_CHANNELS = ("x", "y", "z", "intensity")
 SPEC_VERSION = 1
+# Names a spec may map output indices to: our four, then SemanticKITTI's train classes.
+SPEC_CLASSES: tuple[str, ...] = (*CLASSES, *(n for n in TRAIN_CLASSES[1:] if n not in CLASSES))
+# Our names that are SemanticKITTI classes under another name.
+ALIASES = {"pedestrian": "person", "cyclist": "bicyclist"}
+# train id -> our four classes, as `falsify.semantic.kitti4` reads labels (motorcyclists count
+# as cyclists), so a prediction and a label of the same thing fold alike.
+_FOUR_OF_TRAIN = np.zeros(len(TRAIN_CLASSES), np.uint8)
+_FOUR_OF_TRAIN[LEARNING_MAP[KITTI4_OF_RAW > 0]] = KITTI4_OF_RAW[KITTI4_OF_RAW > 0]
+
+
+def train_id_of(name: str) -> int:
+    """The SemanticKITTI train id of a spec class name (0, unlabeled, for 'unknown')."""
+    return 0 if name == "unknown" else TRAIN_ID[ALIASES.get(name, name)]
+
+
+def four_class_of(name: str) -> int:
+    """Our class id (0 unknown, 1 car, 2 pedestrian, 3 cyclist) of a spec class name."""
+    return int(_FOUR_OF_TRAIN[train_id_of(name)])
 
 NORMALISATION_NOTE = (
     "each channel c except 'mask': (scan[..., c] - mean[c]) / std[c], then multiplied by the "
@@ -58,16 +82,50 @@ class ModelSpec:
     crf_iterations: int = 0
     notes: str = NORMALISATION_NOTE
     extra: Mapping[str, Any] = field(default_factory=dict)
+    input_kind: str = "range"
 
     def check_fits(self, sensor: Any, model: str) -> None:
-        """FalsifyError unless the sensor's range images have this model's H x W."""
+        """FalsifyError unless the sensor's range images have this model's H x W (a points
+        model takes any sensor's points)."""
+        if self.input_kind == "points":
+            return
         if (self.height, self.width) != tuple(sensor.shape):
             raise FalsifyError(f"model {model} takes {self.height}×{self.width} range images but "
                                f"sensor {sensor.name} makes {sensor.shape[0]}×{sensor.shape[1]}")
 
+    def four_class_outputs(self) -> list[list[int]]:
+        """The output indices folded into each of our four classes, by our class id."""
+        out: list[list[int]] = [[] for _ in CLASSES]
+        for name, ids in self.classes.items():
+            out[four_class_of(name)] += ids
+        return out
+
+    def four_class_table(self) -> np.ndarray:
+        """Output index -> our class id, (num_classes,) uint8; 0 (unknown) for unmapped ones."""
+        table = np.zeros(self.num_classes, np.uint8)
+        for name, ids in self.classes.items():
+            table[list(ids)] = four_class_of(name)
+        return table
+
+    @property
+    def semantic(self) -> bool:
+        """Whether the spec names any SemanticKITTI class besides our four."""
+        return any(name not in CLASSES for name in self.classes)
+
+    def train_id_table(self) -> np.ndarray:
+        """Output index -> SemanticKITTI train id, (num_classes,) uint8; 0 for indices mapped
+        to no train class."""
+        table = np.zeros(self.num_classes, np.uint8)
+        for name, ids in self.classes.items():
+            table[list(ids)] = train_id_of(name)
+        return table
+
     def to_json(self) -> str:
-        """Deterministic JSON text (sorted keys) for the spec file."""
+        """Deterministic JSON text (sorted keys) for the spec file; `input_kind` only when it
+        is not the default "range" (range-model spec files keep their bytes)."""
         d = asdict(self)
+        if self.input_kind == "range":
+            del d["input_kind"]
         d["version"] = SPEC_VERSION
         d["classes"] = {k: list(v) if len(v) > 1 else v[0] for k, v in self.classes.items()}
         d["channels"], d["mean"], d["std"] = list(self.channels), list(self.mean), list(self.std)
@@ -104,7 +162,7 @@ def save_spec(spec: ModelSpec, path: str | Path) -> Path:
     return path
 
 
-def _get(d: Mapping[str, Any], key: str, path: Path, kind: type | tuple[type, ...],
+def _get(d: Mapping[str, Any], key: str, path: str | Path, kind: type | tuple[type, ...],
          default: Any = ..., nullable: bool = False) -> Any:
     if key not in d:
         if default is ...:
@@ -128,13 +186,34 @@ def load_spec(path: str | Path) -> ModelSpec:
             f"model spec {path} not found (a model needs <model>.json beside it)") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise FalsifyError(f"model spec {path}: not valid JSON ({e})") from e
+    return spec_from_dict(d, path)
+
+
+def spec_from_dict(d: Any, path: str | Path) -> ModelSpec:
+    """Validate spec data (as a spec file holds it); FalsifyError names `path` (the file, or
+    what the data came from) and the key on any problem.
+
+    A "points" spec may leave out what only range images need: channels (x, y, z, intensity),
+    mean 0 and std 1 (the raw values), height and width (0: any sensor), input_name "points",
+    output_name "logits" and output_kind "logits"."""
     if not isinstance(d, dict):
         raise FalsifyError(f"model spec {path}: top level must be a JSON object")
 
     def bad(key: str, why: str) -> FalsifyError:
         return FalsifyError(f"model spec {path}: key '{key}' {why}")
 
+    input_kind = _get(d, "input_kind", path, str, "range")
+    if input_kind not in INPUT_KINDS:
+        raise bad("input_kind", f"must be one of {list(INPUT_KINDS)}, got {input_kind!r}")
+    points = input_kind == "points"
+    if points:
+        d = {"channels": list(POINT_CHANNELS), "mean": [0.0] * 4, "std": [1.0] * 4,
+             "height": 0, "width": 0, "input_name": "points", "output_name": "logits",
+             "output_kind": "logits", **d}
     channels = _get(d, "channels", path, list)
+    if points and tuple(channels) != POINT_CHANNELS:
+        raise bad("channels", f"must be {list(POINT_CHANNELS)} for a points model (its (N, 4) "
+                  f"input), got {channels}")
     allowed = (*ALL_CHANNELS, "mask")
     if not channels or any(c not in allowed for c in channels) or len(set(channels)) != len(
             channels):
@@ -152,7 +231,7 @@ def load_spec(path: str | Path) -> ModelSpec:
     height = _get(d, "height", path, int)
     width = _get(d, "width", path, int)
     for key, v in (("height", height), ("width", width)):
-        if v <= 0:
+        if v < 0 or v == 0 and not points:
             raise bad(key, f"must be > 0, got {v}")
     layout = _get(d, "layout", path, str, "NCHW")
     if layout != "NCHW":
@@ -166,15 +245,15 @@ def load_spec(path: str | Path) -> ModelSpec:
     raw_classes = _get(d, "classes", path, dict)
     classes: dict[str, tuple[int, ...]] = {}
     for name, idx in raw_classes.items():
-        if name not in CLASSES:
-            raise bad("classes", f"has unknown class {name!r}; allowed {list(CLASSES)}")
+        if name not in SPEC_CLASSES:
+            raise bad("classes", f"has unknown class {name!r}; allowed {list(SPEC_CLASSES)}")
         ids = idx if isinstance(idx, list) else [idx]
         if not ids or not all(isinstance(i, int) and not isinstance(i, bool)
                               and 0 <= i < num_classes for i in ids):
             raise bad("classes", f"'{name}' must map to output indices in [0, {num_classes})")
         classes[name] = tuple(ids)
-    if "car" not in classes:
-        raise bad("classes", "must map at least 'car'")
+    if all(name == "unknown" for name in classes):
+        raise bad("classes", "must map at least one class besides 'unknown' (e.g. 'car')")
     used = [i for ids in classes.values() for i in ids]
     if len(used) != len(set(used)):
         raise bad("classes", "maps one output index to two classes")
@@ -194,6 +273,7 @@ def load_spec(path: str | Path) -> ModelSpec:
         crf_iterations=crf,
         notes=_get(d, "notes", path, str, NORMALISATION_NOTE),
         extra=_get(d, "extra", path, dict, {}),
+        input_kind=input_kind,
     )
 
 

@@ -34,7 +34,7 @@ from falsify.reports.charts import (
 from falsify.reports.page import esc, head
 
 import falsify
-from falsify.results.metrics import Status
+from falsify.results.metrics import Status, column
 from falsify.results.miou_maps import CellMap, fmt_value
 from falsify.results.miou_maps import compare as compare_maps
 from falsify.results.store import RunData
@@ -174,6 +174,45 @@ def multiples_section(data: RunData, threshold: float) -> str:
             if len(bgs) > len(shown) else "")
     return (f'<div class="multiples-wrap"><h3>Per background</h3><div class="multiples">'
             f'{"".join(figs)}</div>{more}</div>')
+
+
+def class_maps_section(data: RunData, threshold: float) -> str:
+    """One small (x, y) IoU map per class the run scored (runs with SemanticKITTI classes or
+    an objective other than car): where each class, not only the objective, is lost."""
+    names = [c for c in data.meta.get("scored_classes") or [] if c not in ("unknown",
+                                                                          "unlabeled")]
+    figs = []
+    for name in names:
+        col = f"{column(name)}_iou"
+        if col not in data.frame:
+            continue
+        cmap = data.cell_map(column=col)
+        grid = Grid.sized(cmap.a_values, cmap.b_values, 84, 96, lo=3, hi=42)
+        blind = np.nan_to_num(cmap.miou, nan=1.0) < threshold
+
+        def tip(i: int, j: int, cmap: CellMap = cmap, name: str = name) -> str:
+            m = cmap.miou[j, i]
+            return f"{name}\n" + _cell_tip(
+                cmap.a_values[i], cmap.b_values[j], None if np.isnan(m) else float(m),
+                int(cmap.samples[j, i]), int(cmap.undefined[j, i]), int(cmap.invalid[j, i]),
+                threshold)
+
+        body = cells_svg(grid, cmap.miou, viridis, tip, "mcell", blind)
+        valid = cmap.miou[~np.isnan(cmap.miou)]
+        mean = f3(float(valid.mean())) if valid.size else "—"
+        svg = svg_element(body, grid.width, grid.height, "small", "", f"{name} IoU")
+        figs.append(f'<figure class="multiple">{svg}<figcaption>{esc(name)} · {mean}'
+                    "</figcaption></figure>")
+    if not figs:
+        return ""
+    return f"""
+<section id="class-maps">
+<h2>IoU per class over position</h2>
+<p class="note">Each class's mean IoU per cell over the samples where the class is in the label
+or the prediction (blank: nowhere); the main map above shows the objective,
+{esc(data.objective)}.</p>
+<div class="multiples">{"".join(figs)}</div>
+</section>"""
 
 
 def distance_section(data: RunData, threshold: float) -> str:
@@ -804,6 +843,8 @@ def render(report: ReportInput) -> str:
     meta = data.meta
     name = meta.get("space_name") or data.space.name
     sections = [summary_section(data, cmap, threshold), heatmap_section(data, cmap, threshold)]
+    if meta.get("scored_classes"):
+        sections.append(class_maps_section(data, threshold))
     if meta.get("command") == "search":
         sections.append(search_section(data, cmap, threshold))
     if before is not None and retrain is not None:

@@ -22,6 +22,12 @@ from falsify.paths import CONFIGS, config_path
 DEFAULT_CONFIG = CONFIGS / "paper.toml"
 # `dataset`'s drop for sensors without a fitted return model: real sensors lose some returns.
 UNIFORM_RAY_DROP = 0.05
+MODEL_HELP = ("an ONNX segmentation model with its .json spec, a bundled model's name, or a "
+              "Python plug-in MODULE:FACTORY or FILE.py:FACTORY (see falsify.models.plugin) "
+              "(default: bundled)")
+BACKEND_HELP = "onnx or torch for a model file; python (set by itself) for a plug-in"
+DEVICE_HELP = ("where the network runs: cpu, or cuda (torch and plug-ins: a CUDA build of "
+               "torch; onnx: pip install onnxruntime-gpu)")
 
 
 class UsageError(FalsifyError):
@@ -55,6 +61,7 @@ def emit(args, summary: dict, text: str) -> None:
 
 # -- scan -----------------------------------------------------------------------------------
 def cmd_scan(args) -> int:
+    from falsify.data.velodyne import kitti_arrays
     from falsify.fileio import write_bytes, write_npy
     from falsify.images.png import encode_png
     from falsify.images.scan_pictures import scan_picture
@@ -81,7 +88,7 @@ def cmd_scan(args) -> int:
     summary = {
         "sample": sample.as_dict(), "sensor": sensor.name, "shape": list(scan.image.shape),
         "points": int(scan.valid.sum()), "car_points": scan.count(1),
-        "files": [str(out / "scan.npy"), str(out / "scan.png")],
+        "files": [str(out / f"scan.{e}") for e in ("npy", "png", "bin", "label")],
     }
     extra: dict[str, bytes] = {}
     if camera is not None:
@@ -89,17 +96,20 @@ def cmd_scan(args) -> int:
         extra, summary["camera"] = scan_camera_files(sim, camera, sample, scan)
     write_npy(out / "scan.npy", scan.image)
     write_bytes(out / "scan.png", encode_png(scan_picture(scan.image)))
+    points, labels = kitti_arrays(scan)   # SemanticKITTI's own files: x, y, z, remission; labels
+    write_bytes(out / "scan.bin", points.tobytes())
+    write_bytes(out / "scan.label", labels.tobytes())
     for name, data in extra.items():
         write_bytes(out / name, data)
         summary["files"].append(str(out / name))
-    emit(args, summary, f"wrote {out / 'scan.npy'} and {out / 'scan.png'}: "
+    emit(args, summary, f"wrote {out / 'scan.npy'}, .png, .bin and .label: "
          f"{summary['points']} points, {summary['car_points']} on cars")
     return 0
 
 
 # -- dataset --------------------------------------------------------------------------------
 def cmd_dataset(args) -> int:
-    from falsify.data.training import TrafficOptions, write_dataset
+    from falsify.data.training import TrafficOptions, write_dataset, write_dataset_parallel
     from falsify.sensor.lidar import load_sensor
     from falsify.world.space import load_space
 
@@ -137,8 +147,20 @@ def cmd_dataset(args) -> int:
     def progress(done: int, total: int) -> None:
         print(f"  {done}/{total} scans", flush=True)
 
-    summary = write_dataset(sensor, Path(args.out), args.scans, seed=args.seed, opts=opts,
-                            on_progress=None if args.json else progress, weather=space)
+    if args.workers < 1 or args.workers > 64:
+        raise UsageError(f"--workers: {args.workers} must be in 1..64")
+    if args.workers > 1 and args.format != "npy":
+        raise UsageError(f"--workers {args.workers}: only --format npy writes in parallel")
+    if args.labels != "kitti4" and args.format != "npy":
+        raise UsageError(f"--labels {args.labels}: only --format npy holds labels in channel 5 "
+                         "(semantickitti files carry SemanticKITTI's ids anyway)")
+    kwargs = dict(seed=args.seed, opts=opts, weather=space, fmt=args.format, labels=args.labels)
+    if args.workers > 1:
+        summary = write_dataset_parallel(args.workers, sensor, Path(args.out), args.scans,
+                                         **kwargs)
+    else:
+        summary = write_dataset(sensor, Path(args.out), args.scans,
+                                on_progress=None if args.json else progress, **kwargs)
     emit(args, summary, f"wrote {summary['written']} scans to {args.out} "
          f"({summary['scans']} in the set); points per class {summary['points_per_class']}")
     return 0
@@ -151,7 +173,7 @@ def cmd_predict(args) -> int:
     from falsify.images.png import encode_png
     from falsify.images.scan_pictures import prediction_picture
     from falsify.jobs.predict import evaluate
-    from falsify.models.runner import load_segmenter
+    from falsify.models.runner import backend_for, load_segmenter
     from falsify.sensor.lidar import load_sensor
 
     check_out_dir(args.out)
@@ -161,7 +183,8 @@ def cmd_predict(args) -> int:
         for source in s.unlabelled:
             print(f"falsify: warning: no labels for {source} (looked for {Path(source).stem}"
                   ".label beside it and in ../labels/)", file=sys.stderr)
-    model = load_segmenter(args.model, backend=args.backend)
+    model = load_segmenter(args.model, backend=args.backend, device=args.device)
+    args.backend = backend_for(args.model, args.backend)
     result = evaluate(model, sets)
     out = Path(args.out)
     for s, scans in zip(result.sets, sets, strict=True):
@@ -209,6 +232,8 @@ def _predict_text(result, backend: str, out: Path, labelled: bool) -> str:
         for c in pooled.classes:
             lines.append(f"{c.name:11s} {f(c.iou)}  {f(c.precision)}    {f(c.recall)}"
                          + (f"   ({c.note})" if c.note else ""))
+        if pooled.miou is not None:
+            lines.append(f"mIoU over the classes in the labels: {pooled.miou:.3f}")
         lines.append("car by range  IoU    precision  recall   TP      FP      FN")
         for band, sc in bands:
             c = sc.car()
@@ -354,6 +379,9 @@ class ProgressBar:
 def summary_text(s) -> str:
     """A run's summary (RunSummary) in a few lines."""
     low = s.lowest
+    what = "car IoU" if s.objective is None else (
+        "mIoU" if s.objective == "miou" else f"{s.objective} IoU")
+    key = next((k for k in low if k != "sample"), "car_iou") if low else "car_iou"
     where = "" if low is None else ", ".join(f"{k}={v}" for k, v in low["sample"].items()
                                              if k in ("x", "y", "yaw", "background",
                                                       "car_model"))
@@ -361,8 +389,8 @@ def summary_text(s) -> str:
         f"{s.samples} samples ({s.computed_this_time} computed now, {s.invalid} invalid, "
         f"{s.undefined} undefined) in {s.elapsed_s:.1f} s",
         f"blind spots: {s.blind_spots} of {s.cells} cells below mIoU {s.threshold}",
-        f"lowest car IoU: {'-' if low is None else low['car_iou']} at {where}",
-        f"mean car IoU: {s.mean_car_iou}",
+        f"lowest {what}: {'-' if low is None else low[key]} at {where}",
+        f"mean {what}: {s.mean_car_iou if s.objective is None else s.mean_objective}",
         f"retraining set: {s.retraining_samples} scans in {Path(s.run) / 'retrain'}",
     ]
     if s.executors:
@@ -379,7 +407,8 @@ def _run(args, command: str, algorithm: str) -> int:
     req = RunRequest(
         config=Path(args.config), out=Path(args.out), command=command, algorithm=algorithm,
         budget=getattr(args, "budget", None), seed=args.seed, model=args.model,
-        backend=args.backend, workers=args.workers, resume=args.resume,
+        backend=args.backend, device=args.device, objective=args.objective,
+        workers=args.workers, resume=args.resume,
         threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
         camera=args.camera, max_samples=args.max_samples, executor=args.executor,
         address=args.address)
@@ -401,9 +430,13 @@ def cmd_search(args) -> int:
 def _run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("config")
     p.add_argument("--out", required=True, help="run directory (results.sqlite, maps, report)")
-    p.add_argument("--model", default=None,
-                   help="an ONNX segmentation model with its .json spec (default: bundled)")
-    p.add_argument("--backend", choices=["onnx", "torch"], default="onnx")
+    p.add_argument("--model", default=None, help=MODEL_HELP)
+    p.add_argument("--backend", choices=["onnx", "torch", "python"], default="onnx",
+                   help=BACKEND_HELP)
+    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help=DEVICE_HELP)
+    p.add_argument("--objective", default="car", metavar="CLASS",
+                   help="what the samplers minimise and the maps show: a class the model "
+                        "predicts (car, person, ... SemanticKITTI's names) or miou")
     p.add_argument("--workers", type=int, default=1,
                    help="local worker processes, or Ray actors with --executor ray")
     p.add_argument("--executor", choices=["process", "ray"], default="process",
@@ -618,7 +651,7 @@ def cmd_report(args) -> int:
         check_out_file(args.out)
     out = write_report(Path(args.run), Path(args.out) if args.out else None,
                        Path(args.compare) if args.compare else None,
-                       predict=not args.no_predict, retrain=retrain)
+                       predict=not args.no_predict, retrain=retrain, device=args.device)
     size = out.stat().st_size
     summary = {"run": args.run, "out": str(out), "bytes": size, "compare": args.compare}
     emit(args, summary, f"wrote {out} ({size / 1024:.0f} KiB)")
@@ -706,8 +739,12 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--traffic", choices=TRAFFIC_KINDS, default="scattered",
                    help="scattered: cars anywhere on the road; drive: lane-following traffic "
                    "like a driving log")
-    d.add_argument("--format", choices=["npy", "kitti-object"], default="npy",
-                   help="npy: range images; kitti-object: velodyne, image_2, calib, label_2")
+    d.add_argument("--labels", choices=["kitti4", "semantickitti"], default="kitti4",
+                   help="npy label channel: our four classes or SemanticKITTI's train ids")
+    d.add_argument("--workers", type=int, default=1, help="processes writing scans (npy)")
+    d.add_argument("--format", choices=["npy", "kitti-object", "semantickitti"], default="npy",
+                   help="npy: range images; kitti-object: velodyne, image_2, calib, label_2; "
+                   "semantickitti: sequences/00/velodyne/*.bin, labels/*.label (raw ids)")
     d.add_argument("--camera", default="kitti-centre", metavar="PRESET",
                    help="kitti-object: the camera preset (kitti-centre or kitti-rig)")
     d.add_argument("--json", action="store_true")
@@ -724,8 +761,10 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("--sequences", default=None, metavar="SS,SS",
                     help="only these SemanticKITTI sequences of a root or sequences/ folder, "
                     "e.g. 00,03,06,08")
-    pr.add_argument("--model", default=None)
-    pr.add_argument("--backend", choices=["onnx", "torch"], default="onnx")
+    pr.add_argument("--model", default=None, help=MODEL_HELP)
+    pr.add_argument("--backend", choices=["onnx", "torch", "python"], default="onnx",
+                    help=BACKEND_HELP)
+    pr.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help=DEVICE_HELP)
     pr.add_argument("--sensor", default="kitti-hdl64e-front",
                     help="preset used to project .bin scans")
     pr.add_argument("--out", required=True)
@@ -814,6 +853,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", metavar="FILE", help="output file (default RUN/report.html)")
     r.add_argument("--no-predict", action="store_true",
                    help="show label-only previews (do not load the model)")
+    r.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                   help="where the run's model predicts the previews")
     r.add_argument("--json", action="store_true")
     r.set_defaults(func=cmd_report)
 

@@ -83,7 +83,7 @@ class Driver:
         inline = self.kind != "ray" and self.workers <= 1
         if self.model is None and not inline:   # workers open the model for themselves
             self.model = load_segmenter(self.settings.model, backend=self.settings.backend,
-                                        threads=1)
+                                        threads=1, device=self.settings.device)
         self.executor = make_executor(self.kind, self.settings, self.workers, self.address,
                                       self.model).__enter__()
         self.model_hash = self.executor.model_hash if inline else self.model.model_hash
@@ -106,9 +106,9 @@ class Driver:
                 seen.add(s)
         known = [s for s in samples if s in self.store and s not in seen]
         if known:
-            self.progress.update([SampleResult(s, Status.OK,
-                                               metrics={"car_iou": self.store.score(s)})
-                                  for s in known], 0)
+            col = self.store.scoring.score_column
+            self.progress.update([SampleResult(s, Status.OK, metrics={col: self.store.score(s)},
+                                               score_column=col) for s in known], 0)
         chunks = [todo[i:i + self.batch] for i in range(0, len(todo), self.batch)]
         for chunk_results in self.executor.map(chunks):
             fresh = self.store.add(chunk_results, self.model_hash,

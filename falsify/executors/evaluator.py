@@ -12,9 +12,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from falsify.errors import FalsifyError
 from falsify.models.runner import Segmenter, load_segmenter
-from falsify.results.metrics import CLASSES, Status, class_scores, confusion
-from falsify.results.store import SampleResult, sample_seed
+from falsify.results.metrics import Scoring, Status
+from falsify.results.store import CAR_SCORING, SampleResult, sample_seed
+from falsify.semantic import train_ids
 from falsify.sensor.lidar import load_sensor
 from falsify.sensor.simulator import InvalidSample, Scanner, Simulator
 from falsify.world.space import Sample, Space
@@ -31,6 +33,8 @@ class EvalSettings:
     lod: int = 2
     # Streets to build when the worker starts (benchmarks time the steady state with them)
     warm_backgrounds: tuple[int, ...] = ()
+    device: str = "cpu"          # "cpu" or "cuda": where the network runs
+    scoring: Scoring = CAR_SCORING   # the classes scored and the objective
 
 
 class Evaluator:
@@ -44,7 +48,7 @@ class Evaluator:
         self.sim = scanner or Simulator(load_sensor(self.space.sensor), self.space.user_cars,
                                         lod=settings.lod)
         self.model = model or load_segmenter(settings.model, backend=settings.backend,
-                                             threads=settings.threads)
+                                             threads=settings.threads, device=settings.device)
         self.model.spec.check_fits(self.sim.sensor, settings.model or "bundled")
         for bg in settings.warm_backgrounds:
             self.sim.background_hits(bg, self.sim.ego_pose(bg))
@@ -59,7 +63,8 @@ class Evaluator:
 
     def score_batch(self, samples: Sequence[Sample]) -> list[SampleResult]:
         results: list[SampleResult | None] = [None] * len(samples)
-        images, where, t_scans = [], [], []
+        images, truths, where, t_scans = [], [], [], []
+        scoring = self.settings.scoring
         for i, sample in enumerate(samples):
             t0 = time.perf_counter()
             try:
@@ -70,26 +75,34 @@ class Evaluator:
                                           seed=sample_seed(self.space, sample))
                 continue
             images.append(scan.image)
+            truths.append(truth_ids(scan, scoring))
             where.append(i)
             t_scans.append(time.perf_counter() - t0)
         if images:
             t0 = time.perf_counter()
             pred = self.model.predict(np.stack(images))
             t_infer = (time.perf_counter() - t0) / len(images)
+            ids = pred.train_ids if scoring.semantic else pred.classes
             for k, i in enumerate(where):
                 label = images[k][..., 5].astype(np.uint8)
-                counts = confusion(pred.classes[k], label, len(CLASSES))
-                metrics: dict[str, float | int | None] = {}
-                notes = {}
-                for cs in class_scores(counts):
-                    for m in ("tp", "fp", "fn", "iou", "precision", "recall"):
-                        metrics[f"{cs.name}_{m}"] = getattr(cs, m)
-                    notes[cs.name] = cs.note
-                status = Status.OK if metrics["car_iou"] is not None else Status.UNDEFINED
+                metrics, note = scoring.score(ids[k], truths[k])
+                col = scoring.score_column
+                status = Status.OK if metrics[col] is not None else Status.UNDEFINED
                 results[i] = SampleResult(
-                    samples[i], status, "" if status == Status.OK else notes["car"], metrics,
+                    samples[i], status, "" if status == Status.OK else note, metrics,
                     car_points=int((pred.classes[k] == 1).sum()),
                     label_points=int((label == 1).sum()),
                     t_scan=t_scans[k], t_infer=t_infer, t_total=t_scans[k] + t_infer,
-                    seed=sample_seed(self.space, samples[i]))
+                    seed=sample_seed(self.space, samples[i]), score_column=col)
         return [r for r in results if r is not None]
+
+
+def truth_ids(scan, scoring: Scoring) -> np.ndarray:
+    """The scan's labels as class ids of `scoring`: the four-class label channel, or the
+    SemanticKITTI train ids of its semantic image (FalsifyError if the scan has none)."""
+    if not scoring.semantic:
+        return scan.image[..., 5].astype(np.uint8)
+    if scan.semantic is None:
+        raise FalsifyError("this scan carries no SemanticKITTI labels, which a model with "
+                           "SemanticKITTI classes is scored on")
+    return train_ids(scan.semantic)

@@ -29,6 +29,7 @@ from pathlib import Path
 
 from falsify.errors import FalsifyError
 from falsify.executors.evaluator import EvalSettings, Evaluator
+from falsify.models.plugin import absolute_ref, is_plugin
 from falsify.models.runner import resolve_model
 from falsify.models.spec import spec_path_for
 from falsify.results.store import SampleResult
@@ -122,8 +123,11 @@ def materialise(blob: Blob, folder: str | None = None) -> Path:
     return path
 
 
-def model_files(settings: EvalSettings) -> tuple[Path, Path]:
-    """The model file the settings load (as load_segmenter resolves it) and its spec."""
+def model_files(settings: EvalSettings) -> tuple[Path, Path] | None:
+    """The model file the settings load (as load_segmenter resolves it) and its spec; None for
+    a plug-in (MODULE:FACTORY), which every node imports as named: not shipped."""
+    if is_plugin(settings.model):
+        return None
     p = resolve_model(settings.model, settings.backend)
     return p, spec_path_for(p)
 
@@ -133,37 +137,44 @@ class Shipment:
     """What an actor needs besides the package: settings with paths replaced by blobs."""
 
     settings: EvalSettings
-    model: Blob
-    spec: Blob
+    model: Blob | None      # None: a plug-in, imported by each node as named
+    spec: Blob | None
     cars: dict[str, Blob]
 
     @classmethod
     def of(cls, settings: EvalSettings) -> Shipment:
-        model, spec = model_files(settings)
+        files = model_files(settings)
         cars = {n: Blob.of(c.file) for n, c in settings.space.user_cars.items()}
-        return cls(settings, Blob.of(model), Blob.of(spec), cars)
+        if files is None:   # a file plug-in by its absolute path: actors start elsewhere
+            settings = dataclasses.replace(settings, model=absolute_ref(str(settings.model)))
+            return cls(settings, None, None, cars)
+        return cls(settings, Blob.of(files[0]), Blob.of(files[1]), cars)
 
     @property
     def model_folder(self) -> str:
         """The cache folder of the model and its spec (<stem>.json beside it), named by both
         hashes: the same network with an edited spec must not find the old spec there."""
+        assert self.model is not None and self.spec is not None
         return f"{self.model.sha256}-{self.spec.sha256}"
 
     def local_settings(self) -> EvalSettings:
         """The settings with every file pointing into this node's cache."""
-        model = materialise(self.model, self.model_folder)
-        materialise(self.spec, self.model_folder)   # named <stem>.json: load_segmenter's spec
+        model = self.settings.model
+        if self.model is not None and self.spec is not None:
+            model = str(materialise(self.model, self.model_folder))
+            materialise(self.spec, self.model_folder)   # <stem>.json: load_segmenter's spec
         space = self.settings.space
         cars = {n: dataclasses.replace(c, file=materialise(self.cars[n]))
                 for n, c in space.user_cars.items()}
-        return dataclasses.replace(self.settings, model=str(model),
+        return dataclasses.replace(self.settings, model=model,
                                    space=dataclasses.replace(space, user_cars=cars))
 
     def driver_names(self, text: str) -> str:
         """`text` with this node's cached copies named by the driver's paths."""
         copies = {str(b.cached()): b.source for b in self.cars.values()}
         for b in (self.model, self.spec):
-            copies[str(b.cached(self.model_folder))] = b.source
+            if b is not None:
+                copies[str(b.cached(self.model_folder))] = b.source
         for copy in sorted(copies, key=len, reverse=True):
             text = text.replace(copy, copies[copy])
         return text

@@ -13,15 +13,16 @@ from falsify.results.replay import Replay
 from falsify.results.store import RunData, open_run
 
 
-def open_model(meta: dict, predict: bool, model: Segmenter | None = None
-               ) -> tuple[Segmenter | None, str]:
-    """The run's model (the one given, else loaded from the run's metadata) if `predict` and it
-    loads; else None and a note saying why."""
+def open_model(meta: dict, predict: bool, model: Segmenter | None = None,
+               device: str = "cpu") -> tuple[Segmenter | None, str]:
+    """The run's model (the one given, else loaded from the run's metadata onto `device`) if
+    `predict` and it loads; else None and a note saying why."""
     if not predict:
         return None, "Previews show labels only (--no-predict)."
     if model is None:
         try:
-            model = load_segmenter(meta.get("model_path"), backend=meta.get("backend") or "onnx")
+            model = load_segmenter(meta.get("model_path"), backend=meta.get("backend") or "onnx",
+                                   device=device)
         except Exception as exc:  # any failure: the report is still useful without predictions
             return None, f"Model not loaded ({exc}); previews show labels only."
     note = ""
@@ -43,13 +44,13 @@ def run_lod(meta: dict) -> int:
     return fid.lod if fid is not None else 2
 
 
-def replay_worst(data: RunData, worst: int, predict: bool, model: Segmenter | None = None
-                 ) -> tuple[dict[int, ReplayedScan], str]:
+def replay_worst(data: RunData, worst: int, predict: bool, model: Segmenter | None = None,
+                 device: str = "cpu") -> tuple[dict[int, ReplayedScan], str]:
     """Re-cast the worst rows (grouped by background to reuse BVHs) and predict them."""
     rows = data.worst(worst)
     if not len(rows):
         return {}, ""
-    seg, note = open_model(data.meta, predict, model)
+    seg, note = open_model(data.meta, predict, model, device)
     try:
         replay = Replay(data.space, lod=run_lod(data.meta))
     except Exception as exc:
@@ -77,21 +78,22 @@ def replay_worst(data: RunData, worst: int, predict: bool, model: Segmenter | No
 
 def render_report(run: Path, compare: Path | None = None, predict: bool = True,
                   worst: int = WORST, model: Segmenter | None = None,
-                  retrain: dict | None = None) -> str:
+                  retrain: dict | None = None, device: str = "cpu") -> str:
     """The report of `run` as one self-contained HTML string (deterministic for its inputs);
-    `retrain` (a `falsify retrain` summary, with `compare`) adds the experiment's section."""
+    `retrain` (a `falsify retrain` summary, with `compare`) adds the experiment's section;
+    `device` is where the run's model predicts the previews when it is loaded here."""
     data = open_run(run)
     before = open_run(compare) if compare is not None else None
-    scans, note = replay_worst(data, worst, predict, model)
+    scans, note = replay_worst(data, worst, predict, model, device)
     return render(ReportInput(data, before, scans, note, worst, retrain))
 
 
 def write_report(run: Path, out: Path | None = None, compare: Path | None = None,
                  predict: bool = True, model: Segmenter | None = None,
-                 retrain: dict | None = None) -> Path:
+                 retrain: dict | None = None, device: str = "cpu") -> Path:
     """Render and write the report atomically (default RUN/report.html); returns the path."""
     text = render_report(Path(run), compare=None if compare is None else Path(compare),
-                         predict=predict, model=model, retrain=retrain)
+                         predict=predict, model=model, retrain=retrain, device=device)
     path = Path(out) if out is not None else Path(run) / "report.html"
     if path.is_dir():
         raise FalsifyError(f"--out {path}: is a directory")

@@ -24,12 +24,20 @@ from falsify.executors.driver import Driver, Progress, ProgressListener
 from falsify.executors.evaluator import EvalSettings
 from falsify.fileio import write_bytes, write_json, write_npy
 from falsify.jobs.fidelity import preset
-from falsify.models.runner import Segmenter, load_segmenter
+from falsify.models.runner import Segmenter, backend_for, load_segmenter
 from falsify.paths import config_path
-from falsify.results.metrics import Status
+from falsify.results.metrics import Scoring, Status, column
 from falsify.results.miou_maps import CellMap, miou_map, snap
 from falsify.results.replay import Replay
-from falsify.results.store import STORE_NAME, RunData, Store, export, read_frame, read_meta
+from falsify.results.store import (
+    CAR_SCORING,
+    STORE_NAME,
+    RunData,
+    Store,
+    export,
+    read_frame,
+    read_meta,
+)
 from falsify.sampler import NLOPT_ALGORITHMS, make_sampler
 from falsify.sampler.base import BATCH, Sampler, SearchResult
 from falsify.sensor.lidar import load_sensor
@@ -53,8 +61,10 @@ class RunRequest:
     algorithm: str = "grid"
     budget: int | None = None
     seed: int | None = None
-    model: str | None = None
-    backend: str = "onnx"
+    model: str | None = None     # a model file, a bundled name, or a plug-in MODULE:FACTORY
+    backend: str = "onnx"        # "python" is set for a plug-in
+    device: str = "cpu"          # "cpu" or "cuda": where the network runs
+    objective: str = "car"       # a class the model predicts, or "miou": what the sampler minimises
     workers: int = 1
     resume: bool = False
     threshold: float | None = None
@@ -107,16 +117,18 @@ def prepare(req: RunRequest) -> Prepared:
         from falsify.sensor.look import check_looks
         camera_preset(req.camera)
         check_looks(space)
-    if req.backend == "torch" and req.fidelity != "exact":
+    backend = backend_for(req.model, req.backend)
+    if backend == "torch" and req.fidelity != "exact":
         raise FalsifyError(f"--fidelity {req.fidelity} runs an ONNX variant of the network; "
                            "use --backend onnx or --fidelity exact")
     model = fid.model(req.model)
     seed = space.seed if req.seed is None else req.seed
     threads = 2 if req.workers == 1 else 1
-    settings = EvalSettings(space=space, model=model, backend=req.backend, threads=threads,
-                            lod=fid.lod)
     # Open the model once here: a missing, corrupt or mismatched model fails before any sample.
-    seg = load_segmenter(model, backend=req.backend, threads=threads)
+    seg = load_segmenter(model, backend=backend, threads=threads, device=req.device)
+    scoring = Scoring.of(list(seg.spec.classes), req.objective)
+    settings = EvalSettings(space=space, model=model, backend=backend, threads=threads,
+                            lod=fid.lod, device=req.device, scoring=scoring)
     sensor = load_sensor(space.sensor)
     seg.spec.check_fits(sensor, req.model or "bundled")
     for car in space.user_cars.values():   # a missing or broken mesh fails before the run dir
@@ -126,20 +138,23 @@ def prepare(req: RunRequest) -> Prepared:
         "command": req.command, "config_path": str(req.config),
         "config_text": config_path(req.config).read_text(), "config_hash": space.config_hash,
         "space_name": space.name, "sensor": sensor.name, "model_path": model,
-        "model_name": seg.spec.name, "model_hash": seg.model_hash, "backend": req.backend,
+        "model_name": seg.spec.name, "model_hash": seg.model_hash, "backend": backend,
         "seed": seed, "algorithm": req.algorithm, "budget": req.budget,
         "threshold": req.threshold or space.threshold, "workers": req.workers,
         "fidelity": req.fidelity, "lod": fid.lod, "executor": req.executor,
     }
+    if scoring != CAR_SCORING:   # car-objective, four-class runs keep their bytes
+        meta.update(objective=scoring.objective, score_column=scoring.score_column,
+                    scored_classes=list(scoring.scored))
     if store_path.exists():
         if not req.resume:
             raise FalsifyError(f"{req.out} already holds a run; pass --resume to continue it "
                                "or choose another --out")
         old = read_meta(req.out)
-        for key in RESUME_KEYS:
-            if old.get(key) != meta[key]:
+        for key in RESUME_KEYS + ("score_column",):
+            if old.get(key) != meta.get(key):
                 raise FalsifyError(f"--resume: {key} differs from the run in {req.out} "
-                                   f"({old.get(key)!r} there, {meta[key]!r} now)")
+                                   f"({old.get(key)!r} there, {meta.get(key)!r} now)")
     elif req.resume:
         raise FalsifyError(f"--resume: {req.out} holds no run to resume ({STORE_NAME} missing)")
     elif req.out.exists() and any(req.out.iterdir()):
@@ -184,12 +199,15 @@ class RunSummary:
     report: str | None = None
     retraining_camera: str | None = None   # the camera preset whose images sit beside the scans
     executors: list[str] | None = None     # set when resumed on another executor: all, in order
+    objective: str | None = None           # set when not car: the class (or miou) minimised
+    mean_objective: float | None = None    # its mean over the valid samples
     search: SearchResult | None = field(default=None, repr=False)
 
     def to_json(self) -> dict:
         """Plain JSON data; `report`, `retraining_camera` and `executors` only when set."""
         out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "search"}
-        for optional in ("report", "retraining_camera", "executors"):
+        for optional in ("report", "retraining_camera", "executors", "objective",
+                         "mean_objective"):
             if out[optional] is None:
                 del out[optional]
         return out
@@ -203,7 +221,7 @@ def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> Run
         req.out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise FalsifyError(f"--out {req.out}: cannot be made ({exc.strerror})") from None
-    store = Store(req.out / STORE_NAME, p.space)
+    store = Store(req.out / STORE_NAME, p.space, p.settings.scoring)
     old = store.meta()
     now = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     started = time.perf_counter()
@@ -258,10 +276,13 @@ def remove_run(out: Path, made: list[Path]) -> None:
 
 
 def session(req: RunRequest, started: str) -> dict:
-    """One invocation that computed on a run: when, on which executor and how many workers."""
+    """One invocation that computed on a run: when, on which executor and how many workers;
+    the device only when not the CPU (runs on the CPU keep their bytes)."""
     out = {"started": started, "executor": req.executor, "workers": req.workers}
     if req.address is not None:
         out["address"] = req.address
+    if req.device != "cpu":
+        out["device"] = req.device
     return out
 
 
@@ -290,20 +311,25 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
     data = RunData(run, read_meta(run), read_frame(run), space)
     meta, frame = data.meta, data.frame
     thr = threshold if threshold is not None else float(meta.get("threshold", space.threshold))
-    cmap = miou_map(frame, space, "x", "y")
+    col = data.score_column
+    cmap = miou_map(frame, space, "x", "y", col)
     blind = cmap.blind_spots(thr)
     maps_dir = run / "maps"
     write_bytes(maps_dir / "miou_x_y.csv", cmap.to_frame().to_csv(index=False).encode())
     for a, b in extra_map_pairs(space):
         write_bytes(maps_dir / f"miou_{a}_{b}.csv",
-                    miou_map(frame, space, a, b).to_frame().to_csv(index=False).encode())
+                    miou_map(frame, space, a, b, col).to_frame().to_csv(index=False).encode())
+    for name in class_maps(meta):   # one (x, y) map per scored class beside the objective's
+        c = f"{column(name)}_iou"
+        write_bytes(maps_dir / f"iou_{column(name)}_x_y.csv",
+                    miou_map(frame, space, "x", "y", c).to_frame().to_csv(index=False).encode())
     export(frame, run / "results")
     retrain = write_retraining_set(data, cmap, thr, lod, camera)
     ok = data.ok
     lowest = None
     if len(ok):
-        row = ok.loc[ok["car_iou"].astype(float).idxmin()]
-        lowest = {"car_iou": round(float(row["car_iou"]), 4),
+        row = ok.loc[ok[col].astype(float).idxmin()]
+        lowest = {col: round(float(row[col]), 4),
                   "sample": {d: _plain(row[d]) for d in space.dims}}
     summary = RunSummary(
         run=str(run), command=meta.get("command"), algorithm=meta.get("algorithm"),
@@ -319,13 +345,25 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
         lowest=lowest, elapsed_s=meta.get("elapsed_s"), retraining_samples=retrain,
         retraining_camera=camera,
         executors=executors if len(executors := executors_of(meta)) > 1 else None,
-        mean_car_iou=None if not len(ok) else round(float(ok["car_iou"].mean()), 4),
+        mean_car_iou=None if not len(ok) or "car_iou" not in ok else round(
+            float(ok["car_iou"].astype(float).mean()), 4),
+        objective=None if col == "car_iou" else data.objective,
+        mean_objective=None if col == "car_iou" or not len(ok) else round(
+            float(ok[col].astype(float).mean()), 4),
         search=search)
     write_json(run / "summary.json", summary.to_json())
     if report:
         from falsify.jobs.report import write_report
         summary = dataclasses.replace(summary, report=str(write_report(run, model=model)))
     return summary
+
+
+def class_maps(meta: dict) -> list[str]:
+    """The classes whose own map a run draws: every scored class but unknown / unlabeled, for
+    runs scored on more than car (none for a four-class car run: it keeps its files)."""
+    if "scored_classes" not in meta:
+        return []
+    return [c for c in meta["scored_classes"] if c not in ("unknown", "unlabeled")]
 
 
 def extra_map_pairs(space: Space) -> list[tuple[str, str]]:
@@ -370,11 +408,11 @@ def write_retraining_set(data: RunData, cmap: CellMap, threshold: float, lod: in
         name = f"{int(row['eval_index']):06d}.npy"
         write_npy(out / name, scan.image)
         if renderer is not None:
-            for fname, data in camera_files(renderer.render_sample(sample), name[:-3]).items():
-                write_bytes(out / fname, data)
+            for fname, blob in camera_files(renderer.render_sample(sample), name[:-3]).items():
+                write_bytes(out / fname, blob)
         rows.append({"file": name, "eval_index": int(row["eval_index"]),
                      **{d: _plain(row[d]) for d in space.dims},
-                     "car_iou": float(row["car_iou"])})
+                     data.score_column: float(row[data.score_column])})
     write_bytes(out / "index.csv", pd.DataFrame(rows).to_csv(index=False).encode())
     return len(rows)
 

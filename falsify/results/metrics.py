@@ -8,13 +8,15 @@ is 0 is undefined: None with a note, never 0 or 1.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
 
 from falsify.classes import CAR, CLASSES
+from falsify.errors import ConfigError
+from falsify.semantic import TRAIN_CLASSES
 
 
 class Status(StrEnum):
@@ -66,14 +68,15 @@ class ClassScore:
     note: str
 
 
-def class_scores(counts: np.ndarray) -> list[ClassScore]:
-    """IoU, precision and recall per class from (n_classes, 3) TP, FP, FN counts."""
+def class_scores(counts: np.ndarray, names: tuple[str, ...] = CLASSES) -> list[ClassScore]:
+    """IoU, precision and recall per class from (n_classes, 3) TP, FP, FN counts; `names` are
+    the classes by id."""
     counts = np.asarray(counts)
     if counts.ndim != 2 or counts.shape[1] != 3:
         raise ValueError(f"counts must have shape (n_classes, 3), got {counts.shape}")
     out = []
     for i, (tp, fp, fn) in enumerate(counts.tolist()):
-        name = CLASSES[i] if i < len(CLASSES) else f"class {i}"
+        name = names[i] if i < len(names) else f"class {i}"
         notes = []
         if tp + fp + fn == 0:
             notes.append(f"no {name} in label or prediction")
@@ -106,3 +109,91 @@ def pooled(counts_list: Iterable[np.ndarray]) -> np.ndarray:
 
 def _ratio(num: int, den: int) -> float | None:
     return num / den if den else None
+
+
+# Our four classes' names for SemanticKITTI's, and back: one objective name works either way.
+_TO_KITTI4 = {"person": "pedestrian", "bicyclist": "cyclist"}
+_TO_TRAIN = {v: k for k, v in _TO_KITTI4.items()}
+
+
+def column(name: str) -> str:
+    """A class name as a column prefix (SQL-safe: 'traffic-sign' -> 'traffic_sign')."""
+    return name.replace("-", "_")
+
+
+@dataclass(frozen=True)
+class Scoring:
+    """What a run scores: the classes by id (id 0 is unknown / unlabeled), which of them get
+    columns, and the objective its samplers minimise (a class or "miou", the mean IoU over the
+    scored classes other than id 0 that a sample's label or prediction holds).
+
+    Four-class scoring (our SqueezeSeg networks) counts every pixel, empty ones as unknown, as
+    SqueezeSeg's own evaluation does. SemanticKITTI scoring ignores pixels labelled unlabeled
+    (id 0, empty pixels too), as SemanticKITTI's evaluation does.
+    """
+
+    classes: tuple[str, ...] = CLASSES
+    scored: tuple[str, ...] = CLASSES
+    objective: str = "car"
+
+    @classmethod
+    def of(cls, mapped: Sequence[str], objective: str = "car") -> Scoring:
+        """The scoring for a model whose spec maps `mapped` class names; ConfigError names an
+        objective the model cannot be scored on, with the allowed ones."""
+        if all(n in CLASSES for n in mapped):
+            classes, scored = CLASSES, CLASSES
+            objective = _TO_KITTI4.get(objective, objective)
+        else:
+            names = {_TO_TRAIN.get(n, n) for n in mapped}
+            classes = TRAIN_CLASSES
+            scored = tuple(n for n in TRAIN_CLASSES[1:] if n in names)
+            objective = _TO_TRAIN.get(objective, objective)
+        allowed = [n for n in scored if n not in ("unknown", "unlabeled")] + ["miou"]
+        if objective not in allowed:
+            raise ConfigError(f"--objective: {objective!r} is not a class this model "
+                              f"predicts; allowed: {', '.join(allowed)}")
+        return cls(classes, scored, objective)
+
+    @property
+    def semantic(self) -> bool:
+        return self.classes is TRAIN_CLASSES or self.classes == TRAIN_CLASSES
+
+    @property
+    def columns(self) -> list[str]:
+        """The per-sample metric columns: tp, fp, fn, iou, precision, recall per scored class,
+        then miou where the objective is miou or the classes are SemanticKITTI's."""
+        cols = [f"{column(c)}_{m}" for c in self.scored
+                for m in ("tp", "fp", "fn", "iou", "precision", "recall")]
+        return cols + (["miou"] if self.semantic or self.objective == "miou" else [])
+
+    @property
+    def score_column(self) -> str:
+        """The column the samplers minimise."""
+        return "miou" if self.objective == "miou" else f"{column(self.objective)}_iou"
+
+    def score(self, pred: np.ndarray, truth: np.ndarray
+              ) -> tuple[dict[str, float | int | None], str]:
+        """Per-sample metrics of class-id images `pred` and `truth` (ids into `classes`) and, when
+        the objective is undefined, why."""
+        pred = np.asarray(pred)
+        truth = np.asarray(truth)
+        if self.semantic:
+            keep = truth != 0
+            pred, truth = pred[keep], truth[keep]
+        counts = confusion(pred, truth, len(self.classes))
+        metrics: dict[str, float | int | None] = {}
+        notes: dict[str, str] = {}
+        ious: list[float] = []
+        for cs in class_scores(counts, self.classes):
+            if cs.name not in self.scored:
+                continue
+            for m in ("tp", "fp", "fn", "iou", "precision", "recall"):
+                metrics[f"{column(cs.name)}_{m}"] = getattr(cs, m)
+            notes[cs.name] = cs.note
+            if cs.iou is not None and cs.name not in ("unknown", "unlabeled"):
+                ious.append(cs.iou)
+        if "miou" in self.columns:
+            metrics["miou"] = float(np.mean(ious)) if ious else None
+        if self.objective == "miou":
+            return metrics, "" if ious else "no scored class in label or prediction"
+        return metrics, notes[self.objective]

@@ -1,7 +1,8 @@
 """mIoU maps over pairs of dims, blind-spot cells, and the paper's per-cell comparison.
 
-mIoU(i, j) is the mean car IoU of the valid samples in cell (i, j): over backgrounds in the
-paper's grid, and over every other dim where those vary too. Samples of a search land in the
+mIoU(i, j) is the mean car IoU (or the run's objective, or any class's IoU) of the valid samples
+in cell (i, j): over backgrounds in the paper's grid, and over every other dim where those vary
+too. Samples of a search land in the
 cell of the nearest grid value. Samples whose IoU is undefined (no car in label or prediction)
 or that are invalid are counted per cell but never averaged in.
 """
@@ -85,8 +86,10 @@ def snap(values: pd.Series, space: Space, dim: str) -> pd.Series:
     return pd.Series(grid[idx], index=values.index)
 
 
-def miou_map(frame: pd.DataFrame, space: Space, a: str = "x", b: str = "y") -> CellMap:
-    """The mIoU map of dims a × b over a run's rows (all other dims averaged)."""
+def miou_map(frame: pd.DataFrame, space: Space, a: str = "x", b: str = "y",
+             column: str = "car_iou") -> CellMap:
+    """The mIoU map of dims a × b over a run's rows (all other dims averaged) of one metric
+    column (the objective's, or any class's IoU); samples where it is undefined count as such."""
     a_vals, b_vals = axis_values(space, a), axis_values(space, b)
     shape = (len(b_vals), len(a_vals))
     miou = np.full(shape, np.nan)
@@ -101,12 +104,13 @@ def miou_map(frame: pd.DataFrame, space: Space, a: str = "x", b: str = "y") -> C
             i, j = ai.get(_match(av, a_vals)), bi.get(_match(bv, b_vals))
             if i is None or j is None:
                 continue
-            ok = grp[grp["status"] == Status.OK]
-            samples[j, i] = len(ok)
-            undefined[j, i] = int((grp["status"] == Status.UNDEFINED).sum())
-            invalid[j, i] = int((grp["status"] == Status.INVALID).sum())
-            if len(ok):
-                miou[j, i] = float(ok["car_iou"].astype(float).mean())
+            scored = grp[grp["status"] != Status.INVALID]
+            values = scored[column].astype(float).dropna()
+            samples[j, i] = len(values)
+            undefined[j, i] = len(scored) - len(values)
+            invalid[j, i] = len(grp) - len(scored)
+            if len(values):
+                miou[j, i] = float(values.mean())
     return CellMap(a, b, a_vals, b_vals, miou, samples, undefined, invalid)
 
 

@@ -21,13 +21,13 @@ from pathlib import Path
 import pandas as pd
 
 from falsify.errors import FalsifyError
-from falsify.results.metrics import CLASSES, Status
+from falsify.results.metrics import Scoring, Status
 from falsify.results.miou_maps import CellMap, miou_map
 from falsify.world.space import DEFAULT_THRESHOLD, Sample, Space, parse_space
 
 STORE_NAME = "results.sqlite"
-METRIC_COLUMNS = [f"{c}_{m}" for c in CLASSES for m in ("tp", "fp", "fn", "iou", "precision",
-                                                           "recall")]
+CAR_SCORING = Scoring()   # four classes, car IoU the objective: every run until told otherwise
+METRIC_COLUMNS = CAR_SCORING.columns
 FIXED_COLUMNS = ["eval_index", "sample_key", "status", "reason", "car_points", "label_points",
                  "t_scan", "t_infer", "t_total", "seed", "model_hash", "config_hash"]
 TIMING_COLUMNS = ("t_scan", "t_infer", "t_total")
@@ -47,11 +47,13 @@ class SampleResult:
     t_infer: float = 0.0
     t_total: float = 0.0
     seed: int = 0
+    score_column: str = "car_iou"   # the metric the samplers minimise (Scoring.score_column)
 
     @property
     def score(self) -> float | None:
-        """The car IoU the samplers minimise; None when invalid or undefined."""
-        v = self.metrics.get("car_iou")
+        """The objective (car IoU unless the run says otherwise) the samplers minimise; None
+        when invalid or undefined."""
+        v = self.metrics.get(self.score_column)
         return None if v is None else float(v)
 
 
@@ -65,11 +67,14 @@ def sample_seed(space: Space, sample: Sample) -> int:
 
 
 class Store:
-    """Append-only result table of one run."""
+    """Append-only result table of one run; `scoring` fixes its metric columns and the column
+    `score` reads."""
 
-    def __init__(self, path: str | Path, space: Space):
+    def __init__(self, path: str | Path, space: Space, scoring: Scoring = CAR_SCORING):
         self.path = Path(path)
         self.space = space
+        self.scoring = scoring
+        self.metric_columns = scoring.columns
         self.dim_names = list(space.dims)
         # One connection shared by the driver's threads; the lock serialises every use of it.
         self.db = sqlite3.connect(self.path, timeout=30.0, check_same_thread=False)
@@ -77,7 +82,7 @@ class Store:
         self.db.execute("PRAGMA journal_mode=WAL")
         self.db.execute("PRAGMA synchronous=NORMAL")
         dims = ", ".join(f'"{d}" {_sql_type(space, d)}' for d in self.dim_names)
-        metrics = ", ".join(f"{m} REAL" for m in METRIC_COLUMNS)
+        metrics = ", ".join(f"{m} REAL" for m in self.metric_columns)
         self.db.execute("CREATE TABLE IF NOT EXISTS run (key TEXT PRIMARY KEY, value TEXT)")
         self.db.execute(
             "CREATE TABLE IF NOT EXISTS samples (eval_index INTEGER, sample_key TEXT UNIQUE "
@@ -86,7 +91,8 @@ class Store:
             "INTEGER, model_hash TEXT, config_hash TEXT)")
         self.db.commit()
         self._cache: dict[str, float | None] = {
-            k: v for k, v in self.db.execute("SELECT sample_key, car_iou FROM samples")}
+            k: v for k, v in self.db.execute(
+                f"SELECT sample_key, {scoring.score_column} FROM samples")}
 
     def close(self) -> None:
         with self._lock:
@@ -128,14 +134,14 @@ class Store:
                     continue
                 self._cache[key] = r.score
                 values = [r.sample[d] for d in self.dim_names]
-                metrics = [r.metrics.get(m) for m in METRIC_COLUMNS]
+                metrics = [r.metrics.get(m) for m in self.metric_columns]
                 rows.append([len(self._cache) - 1, key, *values, str(r.status), r.reason,
                              *metrics, r.car_points, r.label_points, r.t_scan, r.t_infer,
                              r.t_total, r.seed, model_hash, config_hash])
             if not rows:
                 return 0
-            cols = FIXED_COLUMNS[:2] + self.dim_names + ["status", "reason"] + METRIC_COLUMNS + \
-                FIXED_COLUMNS[4:]
+            cols = (FIXED_COLUMNS[:2] + self.dim_names + ["status", "reason"]
+                    + self.metric_columns + FIXED_COLUMNS[4:])
             sql = (f"INSERT INTO samples ({', '.join(_q(c) for c in cols)}) VALUES "
                    f"({', '.join('?' * len(cols))})")
             with self.db:
@@ -241,14 +247,23 @@ class RunData:
     space: Space
 
     @property
+    def score_column(self) -> str:
+        """The column the run minimised: car_iou unless it was run with another objective."""
+        return str(self.meta.get("score_column") or "car_iou")
+
+    @property
+    def objective(self) -> str:
+        return str(self.meta.get("objective") or "car")
+
+    @property
     def ok(self) -> pd.DataFrame:
         """The valid rows (status ok)."""
         return self.frame[self.frame["status"] == Status.OK]
 
     def worst(self, n: int) -> pd.DataFrame:
-        """The n valid rows of lowest car IoU, ties by evaluation order."""
+        """The n valid rows of lowest objective, ties by evaluation order."""
         ok = self.ok
-        return ok.assign(_iou=ok["car_iou"].astype(float)).sort_values(
+        return ok.assign(_iou=ok[self.score_column].astype(float)).sort_values(
             ["_iou", "eval_index"], kind="stable").head(n)
 
     @property
@@ -257,9 +272,12 @@ class RunData:
         return float(t) if isinstance(t, int | float) and not isinstance(t, bool) else \
             DEFAULT_THRESHOLD
 
-    def cell_map(self, frame: pd.DataFrame | None = None) -> CellMap:
-        """The (x, y) mIoU map of the run (or of a subset of its rows)."""
-        return miou_map(self.frame if frame is None else frame, self.space, "x", "y")
+    def cell_map(self, frame: pd.DataFrame | None = None, column: str | None = None
+                 ) -> CellMap:
+        """The (x, y) mIoU map of the run's objective (or of `column`), over its rows or a
+        subset of them."""
+        return miou_map(self.frame if frame is None else frame, self.space, "x", "y",
+                        column or self.score_column)
 
 
 def open_run(run: str | Path) -> RunData:
@@ -286,7 +304,8 @@ def open_run(run: str | Path) -> RunData:
     source = str(meta.get("config_path") or "<stored config>")
     space = parse_space(raw, source=source, base_dir=Path(source).parent,
                         config_hash=str(meta.get("config_hash") or ""), builtin_cars=None)
-    missing = [c for c in ("x", "y", "status", "car_iou") if c not in frame.columns]
+    score = str(meta.get("score_column") or "car_iou")
+    missing = [c for c in ("x", "y", "status", score) if c not in frame.columns]
     if missing:
         raise FalsifyError(f"{path / STORE_NAME}: samples table lacks column {missing[0]!r}")
     return RunData(path, meta, frame, space)
