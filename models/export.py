@@ -36,8 +36,11 @@ INT8_OPS = ("Conv", "Relu", "MaxPool", "Concat", "Add", "Pad", "Reshape", "Trans
 
 
 def export_onnx(model: SqueezeSeg, path: str | Path, H: int = 64, W: int = 512,
-                name: str | None = None, **extra: Any) -> tuple[Path, ModelSpec]:
-    """Export ``model`` (eval mode, batch dynamic) to ``path`` and write ``<path>.json``.
+                name: str | None = None, classes: str | None = None,
+                **extra: Any) -> tuple[Path, ModelSpec]:
+    """Export ``model`` (eval mode, batch dynamic) to ``path`` and write ``<path>.json``;
+    ``classes="semantickitti"`` maps its outputs to SemanticKITTI's train classes (output i is
+    train id i), else to our four.
 
     The graph holds `models.inference.for_export`'s equivalent, faster layers. Uses the legacy
     TorchScript exporter (opset 17): same weights give the same bytes.
@@ -49,6 +52,12 @@ def export_onnx(model: SqueezeSeg, path: str | Path, H: int = 64, W: int = 512,
     path.parent.mkdir(parents=True, exist_ok=True)
     m = for_export(copy.deepcopy(model).float().to(memory_format=torch.contiguous_format))
     spec = default_spec(name or path.stem, m.channels, H, W, m.crf_iterations, **extra)
+    if classes == "semantickitti":
+        from dataclasses import replace
+
+        from falsify.semantic import TRAIN_CLASSES
+        spec = replace(spec, num_classes=len(TRAIN_CLASSES),
+                       classes={c: (i,) for i, c in enumerate(TRAIN_CLASSES) if i})
     c = len(spec.channels)
     args: tuple[torch.Tensor, ...] = (torch.zeros(1, c, H, W),)
     names = [spec.input_name]

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 import torch.nn.functional as F
-from falsify.models.crf import NUM_CLASSES, RecurrentCRF
+from falsify.models.crf import NUM_CLASSES, THETA_A, THETA_R, RecurrentCRF
 from falsify.models.spec import ALL_CHANNELS, DEFAULT_CHANNELS
 from torch import nn
 
@@ -143,7 +143,10 @@ class SqueezeSeg(nn.Module):
         self.fire_deconv13 = FireDeconv(64, 16, 32, 32)
         self.drop = nn.Dropout(dropout)
         self.conv14 = Conv(64, num_classes, 3, relu=False)
-        self.crf = RecurrentCRF(crf_iterations, num_classes)
+        # The published CRF kernels are per KITTI class; other class sets take car's for all.
+        thetas = {} if num_classes == NUM_CLASSES else {
+            "theta_a": [THETA_A[1]] * num_classes, "theta_r": [THETA_R[1]] * num_classes}
+        self.crf = RecurrentCRF(crf_iterations, num_classes, **thetas)
 
     def backbone(self, x: torch.Tensor) -> torch.Tensor:
         """Logits before the CRF."""

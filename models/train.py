@@ -1,7 +1,12 @@
-"""Train SqueezeSeg on a directory of ``*.npy`` scans (H, W, 6) on the CPU, resumable exactly.
+"""Train SqueezeSeg on a directory of ``*.npy`` scans (H, W, 6), resumable exactly.
 
     python -m falsify.models.train --data DIR --out DIR [--epochs N] [--batch B] [--resume]
         [--seed S] [--time-limit-min M] [--val-data DIR] [--precision auto|bf16|fp32]
+        [--classes kitti4|semantickitti] [--device cpu|cuda]
+
+``--classes kitti4`` (default) reads channel 5 as our four classes; ``semantickitti`` as
+SemanticKITTI's 19 train ids (falsify.semantic; 0 unlabeled is ignored by the loss), as written
+by ``falsify dataset --labels semantickitti``. bf16 autocast on a CUDA device where it has it.
 
 Writes into --out: ``checkpoint.pt`` (every epoch and at the time limit: model, optimiser, epoch,
 step, torch RNG), ``train_log.jsonl`` (one line per epoch), and at the end ``squeezeseg.pt``
@@ -25,6 +30,8 @@ from falsify.models.spec import ALL_CHANNELS, DEFAULT_CHANNELS, normalise
 from falsify.errors import FalsifyError
 
 CLASS_WEIGHTS = (1.0 / 15.0, 1.0, 10.0, 10.0)
+CLASS_SETS = ("kitti4", "semantickitti")
+WEIGHT_SCANS = 200   # scans whose label counts set the semantickitti class weights
 CHECKPOINT = "checkpoint.pt"
 LOG = "train_log.jsonl"
 
@@ -53,6 +60,8 @@ class TrainConfig:
     init: str | None = None  # start from these weights (checkpoint or state dict), new optimiser
     crf_only: bool = False  # train only the CRF's compatibility matrices (backbone frozen)
     export: bool = True
+    classes: str = "kitti4"   # kitti4 | semantickitti
+    device: str = "cpu"       # cpu | cuda
 
 
 def list_scans(folder: str | Path, what: str = "--data") -> list[Path]:
@@ -128,32 +137,65 @@ def masked_loss(logits, labels, mask, weights):
     return (ce * weights[labels] * m).sum() / m.sum().clamp(min=1.0)
 
 
+def semantic_weights(files: list[Path], shape) -> np.ndarray:
+    """SemanticKITTI class weights 1 / sqrt(frequency) over the first scans' labelled pixels,
+    scaled to mean 1 over the classes seen (SalsaNext's inverse square root; unseen classes and
+    unlabeled get 0, so the loss ignores them)."""
+    from falsify.semantic import TRAIN_CLASSES
+
+    n = len(TRAIN_CLASSES)
+    counts = np.zeros(n, np.float64)
+    for f in files[:WEIGHT_SCANS]:
+        scan = load_scan(f, shape)
+        lab = np.where(scan[..., 4] > 0, scan[..., 5], 0).astype(np.int64).ravel()
+        counts += np.bincount(lab, minlength=n)[:n]
+    counts[0] = 0.0
+    w = np.zeros(n)
+    seen = counts > 0
+    w[seen] = 1.0 / np.sqrt(counts[seen] / counts.sum())
+    return w / w[seen].mean() if seen.any() else w
+
+
 def validate(model, files: list[Path], cfg: TrainConfig, shape, autocast) -> dict:
     """Pooled TP/FP/FN IoU per class over a validation folder (invalid pixels = unknown)."""
     import torch
 
-    tp = np.zeros(4, np.int64)
-    fp = np.zeros(4, np.int64)
-    fn = np.zeros(4, np.int64)
+    n = num_classes(cfg)
+    tp = np.zeros(n, np.int64)
+    fp = np.zeros(n, np.int64)
+    fn = np.zeros(n, np.int64)
     model.eval()
     with torch.inference_mode():
         for i in range(0, len(files), cfg.batch):
             scans = np.stack([load_scan(f, shape) for f in files[i:i + cfg.batch]])
             x, xyz, mask, labels = batch_tensors(scans, cfg.channels)
+            dev = [t.to(cfg.device) for t in (x, xyz, mask)]
             with autocast():
-                out = model(x.contiguous(memory_format=torch.channels_last), xyz, mask)
-            pred = out.float().argmax(1).numpy()
+                out = model(dev[0].contiguous(memory_format=torch.channels_last), dev[1], dev[2])
+            pred = out.float().argmax(1).cpu().numpy()
             pred[scans[..., 4] <= 0] = 0
             lab = labels.numpy()
-            for c in range(4):
+            if cfg.classes == "semantickitti":   # SemanticKITTI's scoring ignores unlabeled
+                pred, lab = pred[lab != 0], lab[lab != 0]
+            for c in range(n):
                 p, t = pred == c, lab == c
                 tp[c] += int((p & t).sum())
                 fp[c] += int((p & ~t).sum())
                 fn[c] += int((~p & t).sum())
     model.train(not cfg.crf_only)
     denom = tp + fp + fn
-    iou = [float(tp[c] / denom[c]) if denom[c] else None for c in range(4)]
-    return {"val_car_iou": iou[1], "val_iou": iou, "val_scans": len(files)}
+    iou = [float(tp[c] / denom[c]) if denom[c] else None for c in range(n)]
+    out = {"val_car_iou": iou[1], "val_iou": iou, "val_scans": len(files)}
+    if cfg.classes == "semantickitti":
+        present = [v for v in iou[1:] if v is not None]
+        out["val_miou"] = float(np.mean(present)) if present else None
+    return out
+
+
+def num_classes(cfg: TrainConfig) -> int:
+    from falsify.semantic import TRAIN_CLASSES
+
+    return len(TRAIN_CLASSES) if cfg.classes == "semantickitti" else len(CLASS_WEIGHTS)
 
 
 def _save_atomic(obj, path: Path) -> None:
@@ -194,8 +236,17 @@ def train(cfg: TrainConfig) -> dict:
     if bad:
         raise FalsifyError(f"--channels: unknown {bad}; choose from {list(ALL_CHANNELS)}")
 
+    if cfg.classes not in CLASS_SETS:
+        raise FalsifyError(f"--classes: {cfg.classes!r}; allowed: {', '.join(CLASS_SETS)}")
+    if cfg.device not in ("cpu", "cuda"):
+        raise FalsifyError(f"--device: {cfg.device!r}; allowed: cpu, cuda")
+    if cfg.device == "cuda" and not torch.cuda.is_available():
+        raise FalsifyError("--device cuda: torch sees no CUDA device here (a CPU build of torch, "
+                           "or no GPU); use --device cpu")
     torch.set_num_threads(cfg.threads)
-    torch.use_deterministic_algorithms(True)
+    # cuDNN has no deterministic kernels for every op: a GPU run is repeatable to float
+    # tolerance, not bit for bit (a CPU run is exact).
+    torch.use_deterministic_algorithms(True, warn_only=cfg.device == "cuda")
     if cfg.crf_only and (cfg.loss_on != "crf" or cfg.crf_iterations == 0):
         raise FalsifyError("--crf-only trains the CRF: it needs --loss-on crf and CRF iterations")
     if cfg.loss_on not in ("backbone", "crf"):
@@ -206,21 +257,26 @@ def train(cfg: TrainConfig) -> dict:
         raise FalsifyError(f"--precision must be auto, bf16 or fp32, got {cfg.precision!r}")
     use_bf16 = cfg.precision == "bf16" or (cfg.precision == "auto" and bf16_supported())
 
+    if cfg.device == "cuda" and cfg.precision == "auto":
+        use_bf16 = torch.cuda.is_bf16_supported()
+
     def autocast():
         if use_bf16:
-            return torch.autocast("cpu", dtype=torch.bfloat16)
+            return torch.autocast(cfg.device, dtype=torch.bfloat16)
         return contextlib.nullcontext()
 
     torch.manual_seed(cfg.seed)
-    model = SqueezeSeg(cfg.channels, crf_iterations=cfg.crf_iterations)
-    model = model.to(memory_format=torch.channels_last)
+    model = SqueezeSeg(cfg.channels, crf_iterations=cfg.crf_iterations,
+                       num_classes=num_classes(cfg))
+    model = model.to(cfg.device, memory_format=torch.channels_last)
     if cfg.crf_only:
         for name, p in model.named_parameters():
             p.requires_grad_(name.startswith("crf."))
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=0.0 if cfg.crf_only
                             else cfg.weight_decay)
-    weights = torch.tensor(CLASS_WEIGHTS, dtype=torch.float32)
+    weights = torch.tensor(CLASS_WEIGHTS if cfg.classes == "kitti4"
+                           else semantic_weights(files, shape), dtype=torch.float32).to(cfg.device)
     epoch, step = 0, 0
     ckpt_path = out / CHECKPOINT
     if cfg.resume:
@@ -265,7 +321,9 @@ def train(cfg: TrainConfig) -> dict:
             idx = batches[step]
             scans = np.stack([flip(s) if flips[i] else s
                               for i, s in ((i, load_scan(files[i], shape)) for i in idx)])
-            x, xyz, mask, labels = batch_tensors(scans, cfg.channels)
+            x, xyz, mask, labels = (t.to(cfg.device) for t in batch_tensors(scans, cfg.channels))
+            if cfg.classes == "semantickitti":
+                mask = mask * (labels != 0)[:, None]   # unlabeled pixels are not scored
             with autocast():
                 xc = x.contiguous(memory_format=torch.channels_last)
                 # The CRF's energies live in [0, ~1.2] (softmax + small messages, as in the
@@ -307,13 +365,14 @@ def train(cfg: TrainConfig) -> dict:
 
     if stopped == "max_steps":
         return {"stopped": stopped, "epoch": epoch, "step": step}
-    final = model.to(memory_format=torch.contiguous_format).eval()
+    final = model.to("cpu", memory_format=torch.contiguous_format).eval()
     state = {k: v.contiguous() for k, v in final.state_dict().items()}
     torch.save(state, out / "squeezeseg.pt")
     summary = {"stopped": stopped, "epoch": epoch, "step": step, **{
         k: last.get(k) for k in ("loss", "val_car_iou")}}
     if cfg.export:
         export_onnx(final, out / "squeezeseg.onnx", H=shape[0], W=shape[1], name="squeezeseg",
+                    classes=None if cfg.classes == "kitti4" else "semantickitti",
                     trained_epochs=epoch, seed=cfg.seed, data=Path(cfg.data).name,
                     val_car_iou=last.get("val_car_iou"))
         # the .pt gets the same spec as the .onnx (same stem): load_segmenter(out/'x.pt', 'torch')
@@ -346,6 +405,9 @@ def parse_args(argv: Sequence[str] | None) -> TrainConfig:
     p.add_argument("--init", default=None, help="start from these weights (fresh optimiser)")
     p.add_argument("--crf-only", action="store_true",
                    help="train only the CRF compatibility matrices, the backbone frozen")
+    p.add_argument("--classes", default="kitti4", choices=CLASS_SETS,
+                   help="what channel 5 holds: our four classes or SemanticKITTI's train ids")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     a = p.parse_args(argv)
     return TrainConfig(
         data=a.data, out=a.out, epochs=a.epochs, batch=a.batch, seed=a.seed, lr=a.lr,
@@ -353,7 +415,8 @@ def parse_args(argv: Sequence[str] | None) -> TrainConfig:
         channels=tuple(c.strip() for c in a.channels.split(",") if c.strip()),
         precision=a.precision, threads=a.threads, time_limit_min=a.time_limit_min,
         val_data=a.val_data, resume=a.resume, max_steps=a.max_steps, export=not a.no_export,
-        loss_on=a.loss_on, init=a.init, crf_only=a.crf_only)
+        loss_on=a.loss_on, init=a.init, crf_only=a.crf_only, classes=a.classes,
+        device=a.device)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -16,8 +16,10 @@ from pathlib import Path
 import numpy as np
 
 from falsify.classes import CAR, CLASSES, UNKNOWN
+from falsify.data.velodyne import kitti_arrays
 from falsify.errors import ConfigError
-from falsify.fileio import write_json, write_npy
+from falsify.fileio import write_bytes, write_json, write_npy, write_text
+from falsify.semantic import RAW_NAMES, split_label, train_ids
 from falsify.sensor.lidar import Sensor, SensorPose
 from falsify.sensor.simulator import (
     EGO_X_BACKWARD,
@@ -39,6 +41,13 @@ SCANS_PER_BACKGROUND = 8
 HELD_OUT_BACKGROUND_FIRST = 9000
 CALIBRATION_SCANS = 64   # int8 calibration (models/export.py says what more scans gave)
 TRAFFIC_KINDS = ("scattered", "drive")  # drive: lane-following traffic (falsify.data.traffic)
+LABEL_SETS = ("kitti4", "semantickitti")   # what an npy scan's label channel holds
+DATASET_FORMATS = ("npy", "semantickitti")  # what write_dataset writes
+SEMANTICKITTI_SEQUENCE = "00"
+# KITTI's velodyne-to-camera axes (camera x right, y down, z forward; no offset): calib.txt's Tr,
+# through which SemanticKITTI's tools turn poses.txt into velodyne poses.
+VELO_TO_CAM = np.array([[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [1.0, 0.0, 0.0, 0.0],
+                        [0.0, 0.0, 0.0, 1.0]])
 
 
 @dataclass(frozen=True)
@@ -110,27 +119,53 @@ def scene_for(index: int, seed: int, sim: Simulator,
 def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
                   opts: TrafficOptions = TrafficOptions(), start: int = 0,
                   on_progress: Callable[[int, int], None] | None = None,
-                  weather: Space | None = None) -> dict:
-    """Write scans start..scans-1 as NNNNNN.npy (skipping ones already there) plus index.json.
+                  weather: Space | None = None, fmt: str = "npy",
+                  labels: str = "kitti4") -> dict:
+    """Write scans start..scans-1 (skipping ones already there) plus index.json: as NNNNNN.npy
+    range images, or with fmt "semantickitti" in SemanticKITTI's layout (`semantickitti_paths`).
+    npy scans hold our four classes in their label channel, or with labels "semantickitti"
+    SemanticKITTI's train ids (falsify.semantic), what a 20-class network trains on.
     With `weather`, each scan draws its weather and faults from that space's effect dims (a
     training set that sees what the falsification space tests); without, scans are clear."""
     if scans <= 0:
         raise ConfigError(f"--scans: {scans} must be > 0")
+    if fmt not in DATASET_FORMATS:
+        raise ConfigError(f"--format: {fmt!r} is not one of {list(DATASET_FORMATS)}")
+    if labels not in LABEL_SETS:
+        raise ConfigError(f"--labels: {labels!r} is not one of {list(LABEL_SETS)}")
+    semantickitti = fmt == "semantickitti"
     out.mkdir(parents=True, exist_ok=True)
     sim = Simulator(sensor, max_bvh=1, max_hits=8)
     drawn = [] if weather is None else [d for d in EFFECT_DIMS if d in weather.dims]
     counts = np.zeros(len(CLASSES), np.int64)
+    sem_counts = np.zeros(1 << 16, np.int64)
+    poses: list[np.ndarray] = []   # every scan's, for poses.txt
     written = 0
-    for i in range(start, scans):
-        path = out / f"{i:06d}.npy"
-        if path.exists():
+    for i in range(0 if semantickitti else start, scans):
+        paths = semantickitti_paths(out, i) if semantickitti else (out / f"{i:06d}.npy",)
+        done = i < start or all(p.exists() for p in paths)
+        if done and not semantickitti:
             continue
         bg_id, pose, placed = scene_for(i, seed, sim, opts)
+        if semantickitti:
+            poses.append(world_from_sensor(sensor, pose))
+        if done:
+            continue
         rng = np.random.default_rng([seed, i, 1])
         effects = (None if not drawn else
                    draw_effects(weather, np.random.default_rng([seed, i, 3])))
         scan = sim.render(bg_id, placed, pose, rng, effects=effects)
-        write_npy(path, scan.image)
+        if semantickitti:
+            points, values = kitti_arrays(scan)
+            write_bytes(paths[1], values.tobytes())
+            write_bytes(paths[0], points.tobytes())
+            sem_counts += np.bincount(split_label(values)[0], minlength=1 << 16)
+        elif labels == "semantickitti":
+            image = scan.image.copy()
+            image[..., 5] = np.where(scan.valid, train_ids(scan.semantic), 0)
+            write_npy(paths[0], image)
+        else:
+            write_npy(paths[0], scan.image)
         lab = scan.image[..., 5][scan.valid].astype(np.int64)
         counts += np.bincount(lab, minlength=len(CLASSES))[:len(CLASSES)]
         written += 1
@@ -144,9 +179,46 @@ def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
         index["traffic"] = opts.traffic
     if drawn:   # so do clear sets
         index["effects"] = {d: _drawn_from(weather.dims[d]) for d in drawn}
+    extra: dict = {}
+    if labels != "kitti4":
+        index["labels"] = labels
+    if semantickitti:   # npy sets keep their index byte for byte too
+        index["format"] = fmt
+        index["sequence"] = SEMANTICKITTI_SEQUENCE
+        _write_calib_and_poses(out / "sequences" / SEMANTICKITTI_SEQUENCE, poses)
+        extra["points_per_semantic"] = {RAW_NAMES.get(int(k), str(int(k))): int(sem_counts[k])
+                                        for k in np.flatnonzero(sem_counts)}
     write_json(out / "index.json", index)
     return {**index, "written": written, "points_per_class": dict(
-        zip(CLASSES, counts.tolist(), strict=True))}
+        zip(CLASSES, counts.tolist(), strict=True)), **extra}
+
+
+def semantickitti_paths(out: Path, index: int) -> tuple[Path, Path]:
+    """Scan `index`'s .bin and .label in SemanticKITTI's layout under `out`:
+    sequences/00/velodyne/NNNNNN.bin (float32 x, y, z, remission) and
+    sequences/00/labels/NNNNNN.label (uint32 instance << 16 | raw semantic id)."""
+    seq = out / "sequences" / SEMANTICKITTI_SEQUENCE
+    return seq / "velodyne" / f"{index:06d}.bin", seq / "labels" / f"{index:06d}.label"
+
+
+def world_from_sensor(sensor: Sensor, pose: SensorPose) -> np.ndarray:
+    """4x4 transform taking a scan's sensor-frame points into its street's world frame."""
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = pose.rotation(sensor), pose.origin(sensor)
+    return m
+
+
+def _write_calib_and_poses(seq: Path, poses: list[np.ndarray]) -> None:
+    """calib.txt (Tr: the velodyne-to-camera axes) and poses.txt (each scan's pose in the camera
+    frame, Tr P Tr^-1, 12 values a row): what SemanticKITTI's tools read to aggregate scans
+    (generate_sequential.py). Poses are in each scan's street frame: only scans of one
+    background (SCANS_PER_BACKGROUND in a row) share a frame."""
+    def row(m: np.ndarray) -> str:
+        return " ".join(f"{v:.12e}" for v in m[:3].ravel()) + "\n"
+
+    write_text(seq / "calib.txt", "Tr: " + row(VELO_TO_CAM))
+    inv = np.linalg.inv(VELO_TO_CAM)
+    write_text(seq / "poses.txt", "".join(row(VELO_TO_CAM @ p @ inv) for p in poses))
 
 
 def traffic_scans(sensor: Sensor, n: int, seed: int, opts: TrafficOptions,
@@ -179,3 +251,24 @@ def _drawn_from(dim) -> dict:
     if isinstance(dim, Categorical):
         return {"values": list(dim.values)}
     return {"min": dim.lo, "max": dim.hi}
+
+
+def write_dataset_parallel(workers: int, sensor: Sensor, out: Path, scans: int,
+                           **kwargs) -> dict:
+    """`write_dataset` split into `workers` spawned processes, each writing a contiguous range
+    of indices; every scan depends on (seed, index) alone, so the files equal a one-process
+    run's (npy sets: a SemanticKITTI set's poses.txt needs one process). Returns the summary
+    with the workers' counts added up."""
+    import concurrent.futures as cf
+    import multiprocessing as mp
+
+    bounds = np.linspace(0, scans, workers + 1).round().astype(int)
+    with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+        jobs = [pool.submit(write_dataset, sensor, out, int(hi), start=int(lo), **kwargs)
+                for lo, hi in zip(bounds[:-1], bounds[1:], strict=True) if hi > lo]
+        parts = [j.result() for j in jobs]
+    summary = dict(parts[-1])
+    summary["written"] = sum(p["written"] for p in parts)
+    summary["points_per_class"] = {c: sum(p["points_per_class"][c] for p in parts)
+                                   for c in CLASSES}
+    return summary
