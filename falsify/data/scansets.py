@@ -38,6 +38,8 @@ class ScanSet:
     ignore: np.ndarray          # (B, H, W) bool
     sources: tuple[str, ...]    # one per scan: the file (or object frame) it came from
     unlabelled: tuple[str, ...] = ()   # the sources whose labels were not found: never scored
+    semantic: np.ndarray | None = None   # (B, H, W) uint16 raw SemanticKITTI ids, where every
+    #                                      scan came from a .bin with a .label
 
     def __len__(self) -> int:
         return len(self.images)
@@ -51,21 +53,28 @@ class ScanSet:
 def read_set(name: str, paths: list[Path], sensor: Sensor) -> ScanSet:
     """One set from .npy range images and KITTI .bin scans; a .bin's labels are read from
     x.label beside it or ../labels/x.label, and a .bin with neither is listed as unlabelled."""
-    images, sources, unlabelled = [], [], []
+    images, sources, unlabelled, semantic = [], [], [], []
     for p in paths:
         if p.suffix == ".bin":
             label = label_file(p)
             if label is None:
                 unlabelled.append(str(p))
-            images.append(read_kitti(p, label, sensor).image)
+            scan = read_kitti(p, label, sensor)
+            images.append(scan.image)
+            semantic.append(scan.semantic if label is not None else None)
         elif p.suffix == ".npy":
             images.append(load_scan_npy(p))
+            semantic.append(None)
         else:
             raise FalsifyError(f"{p}: expected a .npy range image, a KITTI .bin scan or a "
                                "KITTI object directory (velodyne/, label_2/, calib/)")
         sources.append(str(p))
+    labelled = [m for m in semantic if m is not None]
+    both = bool(labelled) and len(labelled) == len(images) - len(unlabelled)
+    sem = ([m if m is not None else np.zeros(im.shape[:2], np.uint16)
+            for m, im in zip(semantic, images, strict=True)] if both else None)
     return _stack(name, images, [np.zeros(im.shape[:2], bool) for im in images], sources,
-                  unlabelled)
+                  unlabelled, sem)
 
 
 def read_object_set(root: Path, sensor: Sensor) -> ScanSet:
@@ -188,9 +197,10 @@ def real_sets(sensor: Sensor, root: Path = KITTI_DIR) -> list[ScanSet]:
 
 
 def _stack(name: str, images: list[np.ndarray], ignore: list[np.ndarray],
-           sources: list[str], unlabelled: list[str] | None = None) -> ScanSet:
+           sources: list[str], unlabelled: list[str] | None = None,
+           semantic: list[np.ndarray] | None = None) -> ScanSet:
     shapes = {im.shape for im in images}
     if len(shapes) > 1:
         raise FalsifyError(f"set {name}: scans have different shapes: {sorted(shapes)}")
     return ScanSet(name, np.stack(images), np.stack(ignore), tuple(sources),
-                   tuple(unlabelled or ()))
+                   tuple(unlabelled or ()), None if semantic is None else np.stack(semantic))

@@ -6,6 +6,10 @@ valid, not ignored pixels whose measured range falls in it; invalid pixels only 
 unknown, so the car counts of the bands add up to the pooled car counts. Scans whose labels were
 not found are predicted but never scored: read as all unknown, every car predicted on them would
 count as a false positive.
+
+A network with SemanticKITTI classes on sets whose scans carry SemanticKITTI labels (`.bin` with
+`.label`) is scored per train class as SemanticKITTI's evaluation scores points: pixels labelled
+unlabeled are left out, and mIoU is the mean over the classes present in the labels.
 """
 
 from __future__ import annotations
@@ -17,7 +21,8 @@ import numpy as np
 
 from falsify.data.scansets import ScanSet
 from falsify.models.runner import Segmenter
-from falsify.results.metrics import CLASSES, ClassScore, class_scores, confusion, pooled
+from falsify.results.metrics import CLASSES, ClassScore, Scoring, class_scores, confusion, pooled
+from falsify.semantic import TRAIN_CLASSES, train_ids
 
 # Range bands in metres: [lo, hi).
 BANDS: tuple[tuple[float, float], ...] = ((0.0, 15.0), (15.0, 30.0), (30.0, math.inf))
@@ -37,12 +42,25 @@ class Scores:
 
     @classmethod
     def of(cls, counts: np.ndarray) -> Scores:
-        return cls(np.asarray(counts, np.int64), tuple(class_scores(counts)))
+        counts = np.asarray(counts, np.int64)
+        names = TRAIN_CLASSES if len(counts) == len(TRAIN_CLASSES) else CLASSES
+        return cls(counts, tuple(class_scores(counts, names)))
+
+    @property
+    def miou(self) -> float | None:
+        """Mean IoU over the classes present in the labels (SemanticKITTI scoring only)."""
+        if len(self.classes) != len(TRAIN_CLASSES):
+            return None
+        ious = [c.iou for c in self.classes[1:] if c.tp + c.fn > 0 and c.iou is not None]
+        return float(np.mean(ious)) if ious else None
 
     def as_dict(self) -> dict:
-        return {s.name: {"iou": s.iou, "precision": s.precision, "recall": s.recall,
-                         "tp": s.tp, "fp": s.fp, "fn": s.fn, "note": s.note}
-                for s in self.classes}
+        out = {s.name: {"iou": s.iou, "precision": s.precision, "recall": s.recall,
+                        "tp": s.tp, "fp": s.fp, "fn": s.fn, "note": s.note}
+               for s in self.classes}
+        if self.miou is not None:
+            out["miou"] = self.miou
+        return out
 
     def car(self) -> ClassScore:
         return self.classes[1]
@@ -108,38 +126,54 @@ class Evaluation:
 
 
 def band_counts(pred: np.ndarray, label: np.ndarray, rng: np.ndarray, ignore: np.ndarray,
-                bands: tuple[tuple[float, float], ...] = BANDS) -> np.ndarray:
+                bands: tuple[tuple[float, float], ...] = BANDS,
+                n_classes: int = len(CLASSES)) -> np.ndarray:
     """(n_bands, n_classes, 3) TP/FP/FN of the valid, not ignored pixels in each range band."""
-    out = np.zeros((len(bands), len(CLASSES), 3), np.int64)
+    out = np.zeros((len(bands), n_classes, 3), np.int64)
     keep = (rng > 0) & ~ignore
     for i, (lo, hi) in enumerate(bands):
         m = keep & (rng >= lo) & (rng < hi)
-        out[i] = confusion(pred[m], label[m], len(CLASSES))
+        out[i] = confusion(pred[m], label[m], n_classes)
     return out
 
 
+def semantic_scoring(model: Segmenter, sets: list[ScanSet]) -> bool:
+    """Score per SemanticKITTI class: the model predicts SemanticKITTI's classes and every set's
+    scans carry SemanticKITTI labels (else the four-class view is scored)."""
+    return (Scoring.of(list(model.spec.classes)).semantic
+            and all(s.semantic is not None for s in sets))
+
+
 def evaluate_set(model: Segmenter, scans: ScanSet,
-                 bands: tuple[tuple[float, float], ...] = BANDS) -> SetEvaluation:
+                 bands: tuple[tuple[float, float], ...] = BANDS,
+                 semantic: bool = False) -> SetEvaluation:
     """Run `model` on every scan of one set and pool the labelled scans' counts overall and per
-    band."""
+    band (per SemanticKITTI train class with `semantic`, unlabeled pixels left out)."""
     preds = []
     for i in range(0, len(scans), CHUNK):
-        preds.append(model.predict(scans.images[i:i + CHUNK]).classes)
+        p = model.predict(scans.images[i:i + CHUNK])
+        preds.append(p.train_ids if semantic else p.classes)
     pred = np.concatenate(preds).astype(np.uint8)
     rng = scans.images[..., 4]
-    label = np.where(rng > 0, scans.images[..., 5], 0).astype(np.uint8)
+    if semantic:
+        label = np.where(rng > 0, train_ids(scans.semantic), 0).astype(np.uint8)
+        ignore = scans.ignore | (label == 0)
+    else:
+        label = np.where(rng > 0, scans.images[..., 5], 0).astype(np.uint8)
+        ignore = scans.ignore
+    n = len(TRAIN_CLASSES) if semantic else len(CLASSES)
     labelled = scans.labelled()
     totals, per_scan = [], []
-    band_sum = np.zeros((len(bands), len(CLASSES), 3), np.int64)
+    band_sum = np.zeros((len(bands), n, 3), np.int64)
     for k in range(len(scans)):
         if not labelled[k]:
             per_scan.append(None)
             continue
-        keep = ~scans.ignore[k]
-        c = confusion(pred[k][keep], label[k][keep], len(CLASSES))
+        keep = ~ignore[k]
+        c = confusion(pred[k][keep], label[k][keep], n)
         totals.append(c)
         per_scan.append(Scores.of(c).car().iou)
-        band_sum += band_counts(pred[k], label[k], rng[k], scans.ignore[k], bands)
+        band_sum += band_counts(pred[k], label[k], rng[k], ignore[k], bands, n)
     return SetEvaluation(
         scans.name, scans.sources, Scores.of(pooled(totals)), _band_scores(band_sum, bands),
         tuple(per_scan), int(scans.ignore[labelled].sum()), pred, scans.unlabelled)
@@ -148,9 +182,11 @@ def evaluate_set(model: Segmenter, scans: ScanSet,
 def evaluate(model: Segmenter, sets: list[ScanSet],
              bands: tuple[tuple[float, float], ...] = BANDS) -> Evaluation:
     """Evaluate `model` on each set (scores pooled per set, per band) and on all together."""
-    results = tuple(evaluate_set(model, s, bands) for s in sets)
+    semantic = semantic_scoring(model, sets)
+    results = tuple(evaluate_set(model, s, bands, semantic) for s in sets)
     total = pooled([r.pooled.counts for r in results])
-    band_sum = np.zeros((len(bands), len(CLASSES), 3), np.int64)
+    n = len(TRAIN_CLASSES) if semantic else len(CLASSES)
+    band_sum = np.zeros((len(bands), n, 3), np.int64)
     for r in results:
         band_sum += np.stack([sc.counts for _, sc in r.bands])
     return Evaluation(model.spec.name, model.model_hash, results, Scores.of(total),
