@@ -271,4 +271,7 @@ def write_dataset_parallel(workers: int, sensor: Sensor, out: Path, scans: int,
     summary["written"] = sum(p["written"] for p in parts)
     summary["points_per_class"] = {c: sum(p["points_per_class"][c] for p in parts)
                                    for c in CLASSES}
+    # each process wrote index.json with its own end; the last range's is the whole set's
+    write_json(out / "index.json", {k: v for k, v in parts[-1].items()
+                                    if k not in ("written", "points_per_class")})
     return summary
