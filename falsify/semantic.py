@@ -55,6 +55,12 @@ KITTI4_OF_RAW = np.zeros(260, np.uint8)
 for _raw, _cls in _KITTI4.items():
     KITTI4_OF_RAW[_raw] = _cls
 
+# train id -> the four SqueezeSeg classes, as KITTI4_OF_RAW maps the raw ids behind each
+_KITTI4_OF_TRAIN = {"car": CAR, "person": PEDESTRIAN, "bicyclist": CYCLIST, "motorcyclist": CYCLIST}
+KITTI4_OF_TRAIN = np.zeros(len(TRAIN_CLASSES), np.uint8)
+for _name, _cls in _KITTI4_OF_TRAIN.items():
+    KITTI4_OF_TRAIN[TRAIN_ID[_name]] = _cls
+
 # train id -> RGB for pictures: our own palette, one hue family per group of classes
 TRAIN_RGB = np.array([
     [0, 0, 0], [230, 60, 50], [250, 130, 200], [180, 60, 160], [150, 40, 40], [255, 120, 60],
@@ -89,3 +95,9 @@ def kitti4(raw: np.ndarray) -> np.ndarray:
     """Raw SemanticKITTI ids -> the four SqueezeSeg classes (0 unknown, 1 car, 2 pedestrian,
     3 cyclist)."""
     return _lookup(KITTI4_OF_RAW, raw)
+
+
+def kitti4_of_train(train: np.ndarray) -> np.ndarray:
+    """Train ids 0..19 -> the four SqueezeSeg classes (ids outside 0..19: 0, unknown)."""
+    t = np.asarray(train).astype(np.int64)
+    return KITTI4_OF_TRAIN[np.where((t >= 0) & (t < len(KITTI4_OF_TRAIN)), t, 0)]

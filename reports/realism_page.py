@@ -2,9 +2,10 @@
 
 Drawn from the realism JSON alone (so the page can be re-made from the JSON): a table of the
 distances (lower is closer), the same against each real scan alone, the sets' summary figures,
-and inline SVG charts of the per-row
-valid fraction and the range, height and intensity histograms. No script, no fetch (a
-Content-Security-Policy forbids any), every user string escaped, fixed number formats.
+per-class fractions over SemanticKITTI's classes where sets carry those labels, and inline SVG
+charts of the per-row valid fraction and the range, height and intensity histograms. No
+script, no fetch (a Content-Security-Policy forbids any), every user string escaped, fixed
+number formats.
 """
 
 from __future__ import annotations
@@ -219,6 +220,42 @@ def sets_table(doc: dict) -> str:
             f'</thead><tbody>{"".join(rows)}</tbody></table></section>')
 
 
+def semantic_table(doc: dict) -> str:
+    """A row per SemanticKITTI class, a column per set: its fraction of the set's labelled
+    points ("—" for a set without SemanticKITTI labels); then the unlabeled share and each
+    synthetic set's total variation to the pooled real scans. Empty when no set has them."""
+    series = _series(doc)
+    if not any("semantic_fraction" in s for _, s, _, _ in series):
+        return ""
+    classes = next(list(s["semantic_fraction"]) for _, s, _, _ in series
+                   if "semantic_fraction" in s)
+    head = "".join(f'<th><span class="swatch" style="background:{colour}"></span>'
+                   f'{esc(label)}</th>' for label, _, colour, _ in series)
+
+    def row(title: str, attr: str, values: list[object], digits: int = 4) -> str:
+        cells = "".join(f'<td class="num">{_fmt(v, digits)}</td>' for v in values)
+        return f'<tr><th scope="row" {attr}>{title}</th>{cells}</tr>'
+
+    rows = [row(esc(c), f'data-class="{esc(c)}"',
+                [s.get("semantic_fraction", {}).get(c) for _, s, _, _ in series])
+            for c in classes]
+    rows.append(row('unlabeled<br><span class="sub">fraction of all valid points</span>',
+                    'data-class="unlabeled"',
+                    [s.get("unlabeled_fraction") for _, s, _, _ in series]))
+    pooled = doc["real_pooled"]
+    tv = [doc["distances"].get(s["name"], {}).get(pooled, {}).get("semantic_classes")
+          if i < len(doc["synthetic"]) else None for i, (_, s, _, _) in enumerate(series)]
+    if any(v is not None for v in tv):
+        rows.append(row(f'total variation<br><span class="sub">against {esc(pooled)}; '
+                        'diagnostic, not compared</span>', 'data-tv="semantic_classes"', tv))
+    return (f'<section id="semantic"><h2>SemanticKITTI classes</h2><p class="note">Fraction '
+            f'of labelled points per class ({len(classes)} classes; unlabeled points are left '
+            f'out and their share of all valid points is given below). Synthetic sets written '
+            f'with <code>--labels semantickitti</code>, real scans with .label files.</p>'
+            f'<table><thead><tr><th>class</th>{head}</tr></thead>'
+            f'<tbody>{"".join(rows)}</tbody></table></section>')
+
+
 def charts(doc: dict) -> str:
     series = _series(doc)
     bins = doc["bins"]
@@ -276,5 +313,6 @@ def render_realism(doc: dict) -> str:
         head("falsify realism: synthetic against real scans", CSP, CSS) + '<body>'
         '<h1>Realism: synthetic against real LiDAR scans</h1>'
         f'<p class="meta">{meta}</p>'
-        f'{distance_table(doc)}{per_scan_table(doc)}{sets_table(doc)}{charts(doc)}'
+        f'{distance_table(doc)}{per_scan_table(doc)}{sets_table(doc)}{semantic_table(doc)}'
+        f'{charts(doc)}'
         '</body></html>\n')

@@ -281,6 +281,7 @@ def cmd_realism(args) -> int:
     if args.bootstrap < 0:
         raise UsageError(f"--bootstrap: {args.bootstrap} must be >= 0 (0: no resampling)")
     synthetic: dict[str, list[Path]] = {}
+    labels: dict[str, str] = {}
     for d in map(Path, args.synthetic):
         if not d.is_dir():
             raise UsageError(f"{d}: not a folder (expected a `falsify dataset` folder of .npy)")
@@ -289,10 +290,16 @@ def cmd_realism(args) -> int:
             raise UsageError(f"{d}: no .npy scans in this folder")
         name = d.name if d.name not in synthetic and d.name else str(d)
         synthetic[name] = files
+        # what the label channel holds, as index.json records it; our four classes without one
+        try:
+            index = json.loads((d / "index.json").read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            index = None
+        labels[name] = index.get("labels", "kitti4") if isinstance(index, dict) else "kitti4"
     sensor = load_sensor(args.sensor)
     real = load_sets(args.real, sensor) if args.real else real_sets(sensor)
     result = compare(synthetic, real, EncoderFeatures(args.model),
-                     bootstrap_draws=args.bootstrap)
+                     bootstrap_draws=args.bootstrap, labels=labels)
     doc = result.as_dict()
     page = render_realism(doc)
     out = Path(args.out)
@@ -322,6 +329,12 @@ def _realism_text(doc: dict, out: Path) -> str:
     for key in doc.get("reference_statistics", {}):
         lines.append(f"{key:12s}" + "".join(f"{doc['distances'][n][ref][key]:26.4f}"
                                             for n in names) + "  (reference, not compared)")
+    for key in doc.get("diagnostic_statistics", {}):
+        values = [doc["distances"][n][ref].get(key) for n in names]
+        if any(v is not None for v in values):
+            lines.append(f"{key:12s}" + "".join(
+                f"{'—':>26s}" if v is None else f"{v:26.4f}" for v in values)
+                + "  (SemanticKITTI's 19 classes: total variation; diagnostic, not compared)")
     boot = doc.get("bootstrap")
     if boot:
         lo, hi = boot["levels"]

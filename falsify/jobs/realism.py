@@ -41,6 +41,7 @@ import numpy as np
 from falsify.data.scansets import ScanSet
 from falsify.errors import FalsifyError
 from falsify.results.metrics import CLASSES
+from falsify.semantic import TRAIN_CLASSES, kitti4_of_train, train_ids
 
 RANGE_EDGES = np.linspace(0.0, 120.0, 61)       # m, 2 m bins
 HEIGHT_EDGES = np.linspace(-4.0, 6.0, 101)      # m (sensor frame z), 0.1 m bins
@@ -71,6 +72,12 @@ PER_SCAN_STATISTICS = tuple(k for k, _, _ in STATISTICS if k != "frechet")
 REFERENCE = (
     ("frechet_tiles", f"Fréchet distance of fire9 features mean-pooled over {TILE_ROWS}x"
      f"{TILE_COLS} tiles a scan (the first estimator)", "feature units²"),
+)
+# Reported only between sets that both carry SemanticKITTI labels, and never compared.
+DIAGNOSTIC = (
+    ("semantic_classes", f"per-class point fractions over SemanticKITTI's "
+     f"{len(TRAIN_CLASSES) - 1} classes (unlabeled points left out): total variation",
+     "fraction"),
 )
 
 
@@ -221,8 +228,10 @@ class EncoderFeatures:
 @dataclass
 class SetStats:
     """Statistics of one set of scans, kept per scan so any resample of them can be scored:
-    the valid fraction of each row, histogram counts (HISTOGRAMS) and class counts; `groups`
-    tells which real set each scan came from; `features` holds one ScanFeatures a batch."""
+    the valid fraction of each row, histogram counts (HISTOGRAMS), class counts and, for sets
+    labelled with SemanticKITTI's classes, counts per train id ("semantic", index 0 unlabeled);
+    `groups` tells which real set each scan came from; `features` holds one ScanFeatures a
+    batch."""
 
     name: str
     scans: int = 0
@@ -237,11 +246,18 @@ class SetStats:
     _tables: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
     def add(self, images: np.ndarray, features: ScanFeatures | None,
-            sources: list[str] | None = None) -> None:
-        """Add (B, H, W, 6) scans and their features (`sources`: the file of each scan)."""
+            sources: list[str] | None = None, semantic: np.ndarray | None = None) -> None:
+        """Add (B, H, W, 6) scans and their features (`sources`: the file of each scan;
+        `semantic`: their (B, H, W) SemanticKITTI train ids, for a set labelled with them)."""
         valid = images[..., 4] > 0
+        if (semantic is not None) != self.has_semantic and self.scans:
+            raise ValueError(f"set {self.name}: SemanticKITTI ids for some scans but not all")
         table: dict[str, list[np.ndarray]] = {key: [] for key, _, _ in HISTOGRAMS}
         table["classes"] = []
+        if semantic is not None:
+            ids = np.clip(np.asarray(semantic).astype(np.int64), 0, len(TRAIN_CLASSES) - 1)
+            table["semantic"] = [np.bincount(t[v], minlength=len(TRAIN_CLASSES))
+                                 for t, v in zip(ids, valid, strict=True)]
         for im, v in zip(images, valid, strict=True):
             pts = im[v].astype(np.float64)
             for key, channel, edges in HISTOGRAMS:
@@ -267,7 +283,9 @@ class SetStats:
         out.scans, out.points = self.scans + other.scans, self.points + other.points
         out.sums = self.sums + other.sums
         out.features = [*self.features, *other.features]
-        out.per_scan = {k: [*self.per_scan[k], *other.per_scan[k]] for k in self.per_scan}
+        # a table only one of the two has (SemanticKITTI counts) is left out of the union
+        out.per_scan = {k: [*self.per_scan[k], *other.per_scan[k]] for k in self.per_scan
+                        if k in other.per_scan}
         out.groups = np.concatenate([self.groups, other.groups + self.groups.max(initial=-1) + 1])
         out.sources = [*self.sources, *other.sources]
         return out
@@ -285,6 +303,11 @@ class SetStats:
         return self.scan_table(key).sum(axis=0)
 
     @property
+    def has_semantic(self) -> bool:
+        """Whether the set counts points per SemanticKITTI train class."""
+        return "semantic" in self.per_scan
+
+    @property
     def row_valid(self) -> np.ndarray:
         return self.scan_table("row_valid").mean(axis=0)
 
@@ -298,6 +321,12 @@ class SetStats:
     def as_dict(self) -> dict:
         feats = self.all_features
         _, cov, cells = pooled_moments(feats)
+        semantic = {}
+        if self.has_semantic:
+            counts = self.counts("semantic")
+            semantic = {"semantic_fraction": dict(zip(TRAIN_CLASSES[1:], _floats(_norm(counts[1:])),
+                                                      strict=True)),
+                        "unlabeled_fraction": round(float(_norm(counts)[0]), 6)}
         return {
             "name": self.name, "scans": self.scans, "points": self.points,
             "valid_fraction": float(self.row_valid.mean()),
@@ -315,6 +344,7 @@ class SetStats:
             "feature_trace": round(float(np.trace(cov)), 6),
             "tile_samples": len(feats.tiles),
             "frechet_floor": self.floor,
+            **semantic,
         }
 
 
@@ -376,6 +406,15 @@ def profile_distances(syn: SetStats, real: SetStats, i_syn: np.ndarray | None = 
     a, b = syn.scan_table("classes", i_syn).sum(0), real.scan_table("classes", i_real).sum(0)
     out["classes"] = float(0.5 * np.abs(_norm(a) - _norm(b)).sum())
     return out
+
+
+def semantic_distance(syn: SetStats, real: SetStats) -> float | None:
+    """Total variation between two sets' fractions of labelled points over SemanticKITTI's
+    19 classes (DIAGNOSTIC); None unless both sets carry SemanticKITTI labels."""
+    if not (syn.has_semantic and real.has_semantic):
+        return None
+    a, b = syn.counts("semantic")[1:], real.counts("semantic")[1:]
+    return float(0.5 * np.abs(_norm(a) - _norm(b)).sum())
 
 
 def per_real_scan(synthetic: tuple[SetStats, ...], real: SetStats) -> list[dict]:
@@ -493,6 +532,9 @@ class Realism:
             "reference_statistics": {k: {"what": w, "unit": u} for k, w, u in REFERENCE},
             "bins": {"range": _floats(RANGE_EDGES), "height": _floats(HEIGHT_EDGES),
                      "intensity": _floats(INTENSITY_EDGES)},
+            **({"diagnostic_statistics": {k: {"what": w, "unit": u} for k, w, u in DIAGNOSTIC}}
+               if any(k in d for rs in self.distances.values() for d in rs.values()
+                      for k, _, _ in DIAGNOSTIC) else {}),
             "synthetic": [s.as_dict() for s in self.synthetic],
             "real": [s.as_dict() for s in self.real],
             "real_pooled": self.pooled_real.name,
@@ -509,28 +551,48 @@ class Realism:
         }
 
 
-def set_stats(name: str, images_or_set, features: EncoderFeatures) -> SetStats:
-    """Statistics of a ScanSet or of a list of .npy paths (read CHUNK at a time)."""
+def set_stats(name: str, images_or_set, features: EncoderFeatures,
+              labels: str = "kitti4") -> SetStats:
+    """Statistics of a ScanSet or of a list of .npy paths (read CHUNK at a time). A ScanSet
+    with SemanticKITTI ids, or .npy scans whose label channel holds train ids (`labels`
+    "semantickitti", as `falsify dataset --labels semantickitti` writes), also gets the
+    per-class table; such .npy labels are turned into our four classes for everything else."""
     stats = SetStats(name)
     if isinstance(images_or_set, ScanSet):
         n, sources = len(images_or_set), [Path(src).name for src in images_or_set.sources]
-        chunks = (images_or_set.images[i:i + CHUNK] for i in range(0, n, CHUNK))
+        sem = images_or_set.semantic
+        chunks = ((images_or_set.images[i:i + CHUNK],
+                   None if sem is None else train_ids(sem[i:i + CHUNK]))
+                  for i in range(0, n, CHUNK))
     else:
         paths = list(images_or_set)
         n, sources = len(paths), [p.name for p in paths]
-        chunks = (np.stack([_checked(p, features) for p in paths[i:i + CHUNK]])
-                  for i in range(0, n, CHUNK))
-    for i, images in zip(range(0, n, CHUNK), chunks, strict=True):
-        stats.add(images, features(images), sources[i:i + len(images)])
+        chunks = (_split_labels(np.stack([_checked(p, features) for p in paths[i:i + CHUNK]]),
+                                labels) for i in range(0, n, CHUNK))
+    for i, (images, semantic) in zip(range(0, n, CHUNK), chunks, strict=True):
+        stats.add(images, features(images), sources[i:i + len(images)], semantic)
     return stats
+
+
+def _split_labels(images: np.ndarray, labels: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """Scans with our four classes in channel 5, and their train ids when the channel held
+    SemanticKITTI's (`labels` "semantickitti"; else None and the scans as they are)."""
+    if labels != "semantickitti":
+        return images, None
+    ids = images[..., 5].astype(np.int64)
+    images = images.copy()
+    images[..., 5] = kitti4_of_train(ids)
+    return images, ids
 
 
 def compare(synthetic: dict[str, list[Path]], real: list[ScanSet],
             features: EncoderFeatures, pooled_name: str = "pooled",
-            bootstrap_draws: int = 0) -> Realism:
-    """Statistics of each synthetic set (name -> .npy paths) and real set, and the distance of
-    each synthetic set to each real set and to all real sets pooled; with `bootstrap_draws`,
-    also how much of each distance sampling alone could move (`bootstrap`)."""
+            bootstrap_draws: int = 0, labels: dict[str, str] | None = None) -> Realism:
+    """Statistics of each synthetic set (name -> .npy paths; `labels`: name -> what their
+    label channel holds, "kitti4" when not named) and real set, and the distance of each
+    synthetic set to each real set and to all real sets pooled; with `bootstrap_draws`, also
+    how much of each distance sampling alone could move (`bootstrap`). Pairs that both carry
+    SemanticKITTI labels also get the DIAGNOSTIC distance."""
     if not real:
         raise FalsifyError("realism needs at least one real set")
     real_stats = [set_stats(s.name, s, features) for s in real]
@@ -540,10 +602,17 @@ def compare(synthetic: dict[str, list[Path]], real: list[ScanSet],
         for s in real_stats[1:]:
             pooled = pooled.merged(s, pooled_name)
         all_real = (*real_stats, pooled)
-    syn_stats = tuple(set_stats(name, paths, features) for name, paths in synthetic.items())
+    labels = labels or {}
+    syn_stats = tuple(set_stats(name, paths, features, labels.get(name, "kitti4"))
+                      for name, paths in synthetic.items())
     for s in syn_stats:
         s.floor = frechet_floor(s.all_features, all_real[-1].scans)
     dist = {s.name: {r.name: distances(s, r) for r in all_real} for s in syn_stats}
+    for s in syn_stats:
+        for r in all_real:
+            tv = semantic_distance(s, r)
+            if tv is not None:
+                dist[s.name][r.name]["semantic_classes"] = tv
     resampled = (bootstrap(syn_stats, all_real[-1], bootstrap_draws) if bootstrap_draws > 0
                  else None)
     return Realism(features.spec.name, features.model_hash, syn_stats, all_real, dist,
