@@ -96,6 +96,18 @@ def _cell_tip(x: float, y: float, miou: float | None, n: int, undefined: int, in
     return s
 
 
+def objective_name(data: RunData) -> str:
+    """What the run's map averages: car IoU, another class's IoU, or mIoU over its classes."""
+    o = data.objective
+    return "car IoU" if o == "car" else "mIoU over the scored classes" if o == "miou" else \
+        f"{esc(o)} IoU"
+
+
+def objective_title(data: RunData) -> str:
+    """The map's title suffix for a run with another objective than car ('' for car)."""
+    return "" if data.objective == "car" else f": objective {esc(data.objective)}"
+
+
 def heatmap_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     grid = Grid.sized(cmap.a_values, cmap.b_values, 480, 430, left=52, top=8)
     blind = np.nan_to_num(cmap.miou, nan=1.0) < threshold
@@ -120,12 +132,14 @@ def heatmap_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     svg = svg_element(body + axes_svg(grid) + selbox, grid.left + grid.width + 8,
                grid.top + grid.height + 60, "map", "heatmap", "mIoU heat map over x and y")
     multiples = multiples_section(data, threshold)
+    what = objective_name(data)
+    mean_what = f"Mean {what}"
     n_blind = int(blind.sum())
     scored = int((~np.isnan(cmap.miou)).sum())
     return f"""
 <section id="map-section">
-<h2>mIoU over position (car 1)</h2>
-<p class="note">Mean car IoU of the valid samples in each cell (over backgrounds and every
+<h2>mIoU over position (car 1){objective_title(data)}</h2>
+<p class="note">{mean_what} of the valid samples in each cell (over backgrounds and every
 other dimension), seen from above: the sensor at the bottom, forward (Y) up. {n_blind} of
 {scored} scored cells are blind spots (mIoU &lt; {threshold:.3f}, outlined). Hover a cell for
 its value; click it to list its samples.</p>
@@ -138,10 +152,31 @@ its value; click it to list its samples.</p>
 <h3 id="cell-title">Samples of a cell</h3>
 <p id="cell-hint" class="note">Click a cell of the map to list its samples here.</p>
 <div class="scroll"><table id="cell-table" hidden><thead><tr><th>eval</th><th>x</th><th>y</th>
-<th>yaw</th><th>car model</th><th>count</th><th>background</th><th>status</th><th>car IoU</th>
+<th>yaw</th><th>car model</th><th>count</th><th>background</th><th>status</th><th>{what}</th>
 <th>precision</th><th>recall</th><th>reason</th></tr></thead><tbody></tbody></table></div>
 </div>
 </section>"""
+
+
+def _small_map(cmap: CellMap, threshold: float, tip_prefix: str, title: str
+               ) -> tuple[str, str, int]:
+    """A small map in the main map's colours: its SVG, its mean over scored cells (text) and
+    its number of blind cells."""
+    grid = Grid.sized(cmap.a_values, cmap.b_values, 84, 96, lo=3, hi=42)
+    blind = np.nan_to_num(cmap.miou, nan=1.0) < threshold
+
+    def tip(i: int, j: int) -> str:
+        m = cmap.miou[j, i]
+        return f"{tip_prefix}\n" + _cell_tip(
+            cmap.a_values[i], cmap.b_values[j], None if np.isnan(m) else float(m),
+            int(cmap.samples[j, i]), int(cmap.undefined[j, i]), int(cmap.invalid[j, i]),
+            threshold)
+
+    body = cells_svg(grid, cmap.miou, viridis, tip, "mcell", blind)
+    valid = cmap.miou[~np.isnan(cmap.miou)]
+    mean = f3(float(valid.mean())) if valid.size else "—"
+    return (svg_element(body, grid.width, grid.height, "small", "", title), mean,
+            int(blind.sum()))
 
 
 def multiples_section(data: RunData, threshold: float) -> str:
@@ -152,23 +187,11 @@ def multiples_section(data: RunData, threshold: float) -> str:
     shown = bgs[:MAX_MULTIPLES]
     figs = []
     for bg in shown:
-        rows = data.frame[data.frame["background"] == bg]
-        cmap = data.cell_map(rows)
-        grid = Grid.sized(cmap.a_values, cmap.b_values, 84, 96, lo=3, hi=42)
-        blind = np.nan_to_num(cmap.miou, nan=1.0) < threshold
-
-        def tip(i: int, j: int, cmap: CellMap = cmap, bg: object = bg) -> str:
-            m = cmap.miou[j, i]
-            return f"background {bg}\n" + _cell_tip(
-                cmap.a_values[i], cmap.b_values[j], None if np.isnan(m) else float(m),
-                int(cmap.samples[j, i]), int(cmap.undefined[j, i]), int(cmap.invalid[j, i]),
-                threshold)
-
-        body = cells_svg(grid, cmap.miou, viridis, tip, "mcell", blind)
-        valid = cmap.miou[~np.isnan(cmap.miou)]
-        mean = f3(float(valid.mean())) if valid.size else "—"
-        figs.append(f'<figure class="multiple">{svg_element(body, grid.width, grid.height, "small", "", f"background {bg}")}'  # noqa: E501
-                    f"<figcaption>bg {esc(bg)} · {mean}<br>{int(blind.sum())} blind"
+        cmap = data.cell_map(data.frame[data.frame["background"] == bg])
+        svg, mean, n_blind = _small_map(cmap, threshold, f"background {bg}",
+                                        f"background {bg}")
+        figs.append(f'<figure class="multiple">{svg}'
+                    f"<figcaption>bg {esc(bg)} · {mean}<br>{n_blind} blind"
                     "</figcaption></figure>")
     more = (f'<p class="note">showing {len(shown)} of {len(bgs)} backgrounds</p>'
             if len(bgs) > len(shown) else "")
@@ -186,21 +209,7 @@ def class_maps_section(data: RunData, threshold: float) -> str:
         col = f"{column(name)}_iou"
         if col not in data.frame:
             continue
-        cmap = data.cell_map(column=col)
-        grid = Grid.sized(cmap.a_values, cmap.b_values, 84, 96, lo=3, hi=42)
-        blind = np.nan_to_num(cmap.miou, nan=1.0) < threshold
-
-        def tip(i: int, j: int, cmap: CellMap = cmap, name: str = name) -> str:
-            m = cmap.miou[j, i]
-            return f"{name}\n" + _cell_tip(
-                cmap.a_values[i], cmap.b_values[j], None if np.isnan(m) else float(m),
-                int(cmap.samples[j, i]), int(cmap.undefined[j, i]), int(cmap.invalid[j, i]),
-                threshold)
-
-        body = cells_svg(grid, cmap.miou, viridis, tip, "mcell", blind)
-        valid = cmap.miou[~np.isnan(cmap.miou)]
-        mean = f3(float(valid.mean())) if valid.size else "—"
-        svg = svg_element(body, grid.width, grid.height, "small", "", f"{name} IoU")
+        svg, mean, _ = _small_map(data.cell_map(column=col), threshold, name, f"{name} IoU")
         figs.append(f'<figure class="multiple">{svg}<figcaption>{esc(name)} · {mean}'
                     "</figcaption></figure>")
     if not figs:
@@ -219,7 +228,7 @@ def distance_section(data: RunData, threshold: float) -> str:
     """IoU of every valid sample against car 1's distance, with the mean per metre."""
     ok = data.ok
     d = np.hypot(ok["x"].astype(float), ok["y"].astype(float)).to_numpy()
-    iou = ok["car_iou"].astype(float).to_numpy()
+    iou = ok[data.score_column].astype(float).to_numpy()
     w, h, left, top, bottom = 560, 260, 46, 12, 40
     pw, ph = w - left - 12, h - top - bottom
     dmax = max(5.0, math.ceil((float(d.max()) if d.size else 5.0) / 5.0) * 5.0)
@@ -276,9 +285,10 @@ def _iou_frame(left: float, top: float, pw: float, ph: float,
 
 def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     """Lowest IoU so far against evaluations, and where the search went on the map's axes."""
+    what = objective_name(data)
     curve = data.meta.get("curve")
     if not isinstance(curve, list):
-        curve = [None if pd.isna(v) else float(v) for v in data.frame["car_iou"]]
+        curve = [None if pd.isna(v) else float(v) for v in data.frame[data.score_column]]
     vals = [None if not isinstance(v, int | float) or isinstance(v, bool) else float(v)
             for v in curve]
     n = len(vals)
@@ -317,7 +327,7 @@ def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     faded = cells_svg(grid, cmap.miou, viridis, lambda i, j: "", "pcell")
     frame = data.frame.sort_values("eval_index", kind="stable")
     xs, ys = frame["x"].astype(float).to_numpy(), frame["y"].astype(float).to_numpy()
-    ious = frame["car_iou"].astype(float).to_numpy()
+    ious = frame[data.score_column].astype(float).to_numpy()
     lo_x, hi_x = grid.left, grid.left + grid.width
     lo_y, hi_y = grid.top, grid.top + grid.height
     pts = [(min(max(grid.px(x), lo_x), hi_x), min(max(grid.py(y), lo_y), hi_y))
@@ -341,7 +351,7 @@ def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     return f"""
 <section id="search-section">
 <h2>Search</h2>
-<p class="note">{esc(data.meta.get("algorithm", "search"))}, {n} evaluations; lowest car IoU
+<p class="note">{esc(data.meta.get("algorithm", "search"))}, {n} evaluations; lowest {what}
 found {lowest}. Left: each evaluation's IoU (dots) and the lowest so far (line). Right: where
 each evaluation put car 1, in order (grey path), coloured by IoU on the map's axes; the ring
 marks the lowest.</p>
@@ -545,10 +555,12 @@ def _bracket(bev: np.ndarray, x: float, y: float, half: float = 3.0) -> None:
 def worst_section(data: RunData, scans: Mapping[int, ReplayedScan], note: str,
                   worst: int) -> str:
     rows = data.worst(worst)
+    col, what = data.score_column, objective_name(data)
+    prec, rec = col.replace("_iou", "_precision"), col.replace("_iou", "_recall")
     previews = {ev: _preview(s) for ev, s in scans.items()}
     with_pred = any(p.pred_range for p in previews.values())
     head = ("<tr><th>#</th><th>eval</th><th>x, y (m)</th><th>yaw</th><th>car model</th>"
-            "<th>bg</th><th>car IoU</th><th>precision /<br>recall</th>"
+            f"<th>bg</th><th>{what}</th><th>precision /<br>recall</th>"
             "<th>car points<br>label / pred.</th><th>scan: range image, bird's-eye view"
             + (" (label above, prediction below)" if with_pred else " (label)")
             + "</th></tr>")
@@ -568,8 +580,8 @@ def worst_section(data: RunData, scans: Mapping[int, ReplayedScan], note: str,
             f'<td class="num">{esc(_dimtext(r, "yaw"))}</td>'
             f"<td>{esc(_dimtext(r, 'car_model'))}</td>"
             f"<td>{esc(_dimtext(r, 'background'))}</td>"
-            f'<td class="num bad">{f3(r["car_iou"])}</td>'
-            f'<td class="num">{f3(r.get("car_precision"))} /<br>{f3(r.get("car_recall"))}</td>'
+            f'<td class="num bad">{f3(r[col])}</td>'
+            f'<td class="num">{f3(r.get(prec))} /<br>{f3(r.get(rec))}</td>'
             f'<td class="num">{_int(r.get("label_points"))} / {_int(r.get("car_points"))}</td>'
             f'<td class="pics">{pics}</td></tr>')
     legend = ('<span class="key" style="background:#e63c32"></span>car '
@@ -581,7 +593,7 @@ def worst_section(data: RunData, scans: Mapping[int, ReplayedScan], note: str,
     return f"""
 <section id="worst-section">
 <h2>The {len(rows)} worst samples</h2>
-<p class="note">Lowest car IoU first. Each scan is regenerated from its sample: the range image
+<p class="note">Lowest {what} first. Each scan is regenerated from its sample: the range image
 (rows = beams, columns = azimuth) over a bird's-eye view (sensor at the bottom, forward up).
 {legend}</p>
 {note_html}{empty}
@@ -619,9 +631,9 @@ def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     blind = cmap.blind_spots(threshold)
     scored = int((~np.isnan(cmap.miou)).sum())
     if len(ok):
-        low = ok.assign(_iou=ok["car_iou"].astype(float)).sort_values(
-            ["_iou", "eval_index"], kind="stable").iloc[0]
-        lowest = (f"{f3(low['car_iou'])} at x = {_dimtext(low, 'x')}, y = {_dimtext(low, 'y')}"
+        low = data.worst(1).iloc[0]
+        lowest = (f"{f3(low[data.score_column])} at x = {_dimtext(low, 'x')}, "
+                  f"y = {_dimtext(low, 'y')}"
                   f", background {_dimtext(low, 'background')} (eval {int(low['eval_index'])})")
     else:
         lowest = "—"
@@ -678,8 +690,9 @@ def samples_json(data: RunData) -> dict:
     cy = snap(f["y"], data.space, "y")
     cols = ["cell", "eval", "x", "y", "yaw", "car_model", "count", "background", "status",
             "iou", "precision", "recall", "reason"]
-    src = {"eval": "eval_index", "iou": "car_iou", "precision": "car_precision",
-           "recall": "car_recall"}
+    col = data.score_column
+    src = {"eval": "eval_index", "iou": col, "precision": col.replace("_iou", "_precision"),
+           "recall": col.replace("_iou", "_recall")}
     rows = []
     for k in range(len(f)):
         r = f.iloc[k]
@@ -862,7 +875,7 @@ def render(report: ReportInput) -> str:
 <main>
 <h1>falsify report: {esc(name)}</h1>
 <p class="sub">{esc(meta.get("command", "run"))} run in {esc(data.path)} ·
-car IoU of {esc(meta.get("model_name", "the model"))} per sample · threshold
+{objective_name(data)} of {esc(meta.get("model_name", "the model"))} per sample · threshold
 {threshold:.3f}</p>
 {"".join(sections)}
 <footer>falsify {esc(falsify.__version__)} · config hash

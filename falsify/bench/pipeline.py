@@ -50,9 +50,10 @@ class PipelineBench:
     store_rows_per_s: float   # the driver's SQLite writes, in chunks of `batch` rows
     driver_1_samples: int     # samples timed through the driver with 1 worker, 1 thread
     t_driver_1: float
-    inference: InferenceRates     # inference alone, 1 thread a process, 1 and `workers` at once
+    inference: InferenceRates | None   # inference alone, 1 thread a process, 1 and `workers`
+    #                                    at once (ONNX models; None for a plug-in)
     matmul: MatmulRate
-    flops: FlopCount
+    flops: FlopCount | None            # None for a plug-in: its graph is not ours to count
     memory: MemoryUse | None      # the `workers`-process driver run (None without /proc)
     driver_threads: int = 1       # inference threads of each worker in the `workers` run
     streets: int = 0              # backgrounds among the samples: built by each worker first
@@ -87,6 +88,9 @@ class PipelineBench:
 
     def ratios(self) -> dict:
         """What the goals are read from, every one computed from the fields beside it."""
+        if self.inference is None or self.flops is None:   # a plug-in: the pipeline's own
+            return {"workers": self.workers,
+                    "e2e_n_over_e2e_1": round(self.e2e_n / self.e2e_1, 3)}
         return {
             "workers": self.workers,
             "e2e_n_over_e2e_1": round(self.e2e_n / self.e2e_1, 3),
@@ -127,20 +131,22 @@ class PipelineBench:
             "rates": {
                 "workers": w, "threads_per_worker": 1,
                 "e2e_n_threads_per_worker": self.driver_threads,
-                "inference_only_1_worker": round(inf.rate_1, 2),
-                "inference_only_1_worker_ms_per_frame": round(1e3 / inf.rate_1, 2),
-                "inference_only_n_workers": round(inf.rate_n, 2),
+                **({} if inf is None else {
+                    "inference_only_1_worker": round(inf.rate_1, 2),
+                    "inference_only_1_worker_ms_per_frame": round(1e3 / inf.rate_1, 2),
+                    "inference_only_n_workers": round(inf.rate_n, 2),
+                    "frames_1": inf.frames_1, "frames_n": inf.frames_n}),
                 "e2e_1_worker": round(self.e2e_1, 2),
                 "e2e_n_workers": round(self.e2e_n, 2),
-                "frames_1": inf.frames_1, "frames_n": inf.frames_n,
                 "e2e_samples_1": self.driver_1_samples, "e2e_samples_n": self.driver_samples,
                 "units": "samples (frames) per second",
             },
             "matmul": self.matmul.to_json(),
-            "network": {**self.flops.to_json(),
-                        "achieved_gflops_1_thread": round(self.achieved_gflops, 2),
-                        "achieved_gflops_per_worker_n_at_once": round(
-                            self.achieved_gflops_per_worker_n, 2)},
+            "network": None if inf is None or self.flops is None else {
+                **self.flops.to_json(),
+                "achieved_gflops_1_thread": round(self.achieved_gflops, 2),
+                "achieved_gflops_per_worker_n_at_once": round(
+                    self.achieved_gflops_per_worker_n, 2)},
             "ratios": self.ratios(),
             "memory": None if self.memory is None else {
                 **self.memory.to_json(), "run": f"the {w}-worker driver run above",
@@ -161,7 +167,7 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
 
     from falsify.executors.evaluator import EvalSettings, Evaluator
     from falsify.models.flops import count_flops
-    from falsify.models.runner import resolve_model
+    from falsify.models.runner import backend_for, resolve_model
     from falsify.results.store import Store
 
     space = load_space(config)
@@ -174,6 +180,7 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
         raise FalsifyError(f"--samples: {samples} is more than the {len(grid)} samples of "
                            f"{config}; the driver would answer the repeats from its store")
     picked = grid[:samples]
+    backend = backend_for(model, "onnx")   # a plug-in runs as "python"
 
     with tempfile.TemporaryDirectory() as tmp:
         # 1. Through the driver, the store and `workers` processes, as `falsify grid` runs;
@@ -183,8 +190,8 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
         # measured on its own below), as a long run amortises it.
         streets = tuple(sorted({s.background for s in picked}))
         store = Store(Path(tmp) / "results.sqlite", space)
-        settings = EvalSettings(space=space, model=model, threads=1 if workers > 1 else 2,
-                                warm_backgrounds=streets)
+        settings = EvalSettings(space=space, model=model, backend=backend,
+                                threads=1 if workers > 1 else 2, warm_backgrounds=streets)
         rest = picked[workers * batch:]
         with RssSampler() as rss:
             t0, t1 = _driver_window(settings, store, workers, batch, picked, "process")
@@ -203,12 +210,13 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
 
         # 3. The same as 1 with one worker, one thread, in this process.
         store = Store(Path(tmp) / "one.sqlite", space)
-        one = EvalSettings(space=space, model=model, threads=1, warm_backgrounds=streets)
+        one = EvalSettings(space=space, model=model, backend=backend, threads=1,
+                           warm_backgrounds=streets)
         t_driver_1 = _driver_time(one, store, 1, batch, picked, "process")
         store.close()
 
         # 4. In one process with 2 inference threads: the pipeline against inference alone.
-        ev = Evaluator(EvalSettings(space=space, model=model, threads=2))
+        ev = Evaluator(EvalSettings(space=space, model=model, backend=backend, threads=2))
         warm(ev.sim, picked)
         ev.score_batch(picked[:batch])
         scored = []
@@ -224,7 +232,8 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
 
         # 5. The network alone on the same scans, 1 thread a process: 1 and `workers` at once;
         # then the machine's own matrix product the same way.
-        inference = inference_rates(model, np.stack(images), workers, batch, Path(tmp))
+        inference = (inference_rates(model, np.stack(images), workers, batch, Path(tmp))
+                     if backend == "onnx" else None)
         del images
         matmul = matmul_rate(workers)
 
@@ -243,7 +252,7 @@ def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
         t_infer=t_infer, workers=workers, driver_samples=len(rest), t_driver=t_driver,
         store_rows_per_s=rows_per_s, driver_1_samples=len(picked[batch:]),
         t_driver_1=t_driver_1, inference=inference, matmul=matmul,
-        flops=count_flops(resolve_model(model)), memory=memory,
+        flops=count_flops(resolve_model(model)) if backend == "onnx" else None, memory=memory,
         driver_threads=settings.threads, ray=ray, streets=len(streets), t_streets=t_streets)
 
 

@@ -585,7 +585,11 @@ def cmd_bench(args) -> int:
                 f"process {one['samples_per_s']} samples/s against "
                 f"{one['inference_only_samples_per_s']} for inference alone (overhead "
                 f"{pipe.overhead:.1%}); store {result['driver_store_rows_per_s']} rows/s")
-        text += "\n" + pipeline_figures_text(result)
+        if result["network"] is not None:   # a plug-in has no ONNX graph to rate
+            text += "\n" + pipeline_figures_text(result)
+        else:
+            text += (f"\nend to end {result['rates']['e2e_1_worker']} samples/s on 1 worker, "
+                     f"{result['rates']['e2e_n_workers']} on {pipe.workers}")
         if pipe.ray is not None:
             r = pipe.ray
             text += (f"\nray: {r['samples_per_s']} samples/s on {r['actors']} actors "
