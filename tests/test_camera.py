@@ -138,10 +138,11 @@ def test_scan_camera_files_and_image_dims_leave_scan_identical(tmp_path, look_co
         summary = json.loads(capsys.readouterr().out)
         assert summary["camera"]["fraction"] >= 0.98
         outs.append(out)
-    names = {"scan.npy", "scan.png", "image.png", "class.png", "class.npy", "instance.npy",
-             "depth.npy", "overlay.png"}
+    names = {"scan.npy", "scan.png", "scan.bin", "scan.label", "image.png", "class.png",
+             "class.npy", "instance.npy", "depth.npy", "overlay.png"}
     assert {p.name for p in outs[0].iterdir()} == names
-    for name in ("scan.npy", "scan.png", "class.npy", "instance.npy", "depth.npy"):
+    for name in ("scan.npy", "scan.png", "scan.bin", "scan.label", "class.npy", "instance.npy",
+                 "depth.npy"):
         assert len({(o / name).read_bytes() for o in outs}) == 1, name
     assert len({(o / "image.png").read_bytes() for o in outs}) == 3
     rgb = decode_png((outs[0] / "image.png").read_bytes())
@@ -149,7 +150,7 @@ def test_scan_camera_files_and_image_dims_leave_scan_identical(tmp_path, look_co
     # Without --camera, nothing of the camera is written.
     plain = tmp_path / "plain"
     assert main(["scan", str(look_config), "--out", str(plain), "--set", "x=2"]) == 0
-    assert {p.name for p in plain.iterdir()} == {"scan.npy", "scan.png"}
+    assert {p.name for p in plain.iterdir()} == {"scan.npy", "scan.png", "scan.bin", "scan.label"}
     assert (plain / "scan.npy").read_bytes() == (outs[0] / "scan.npy").read_bytes()
 
 

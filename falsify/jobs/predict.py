@@ -140,8 +140,10 @@ def band_counts(pred: np.ndarray, label: np.ndarray, rng: np.ndarray, ignore: np
 def semantic_scoring(model: Segmenter, sets: list[ScanSet]) -> bool:
     """Score per SemanticKITTI class: the model predicts SemanticKITTI's classes and every set's
     scans carry SemanticKITTI labels (else the four-class view is scored)."""
-    return (Scoring.of(list(model.spec.classes)).semantic
-            and all(s.semantic is not None for s in sets))
+    if not sets or any(s.semantic is None for s in sets):
+        return False
+    classes = getattr(model.spec, "classes", None)
+    return bool(classes) and Scoring.of(list(classes)).semantic
 
 
 def evaluate_set(model: Segmenter, scans: ScanSet,
