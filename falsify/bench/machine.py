@@ -273,6 +273,7 @@ class MemorySample(NamedTuple):
     pss: int | None         # bytes, PSS summed (shared pages split among their users); None
     # when not read this time
     root_rss: int           # bytes, RSS of the tree's root (the driver) alone
+    child_rss: int = 0      # bytes, RSS of the largest descendant (a worker) alone
 
 
 def _pss(pid: int) -> int | None:
@@ -291,7 +292,7 @@ def tree_memory(pid: int | None = None, pss: bool = True) -> MemorySample:
     process: an upper bound), PSS summed (each shared page split among its users; about 1 ms a
     500 MB process, so optional) and how many processes that is."""
     root = pid or os.getpid()
-    todo, rss, pss_sum, count, root_rss = [root], 0, 0, 0, 0
+    todo, rss, pss_sum, count, root_rss, child_rss = [root], 0, 0, 0, 0, 0
     for_all_pss = pss
     while todo:
         p = todo.pop()
@@ -301,13 +302,14 @@ def tree_memory(pid: int | None = None, pss: bool = True) -> MemorySample:
             continue   # gone meanwhile
         rss += r
         root_rss = r if p == root else root_rss
+        child_rss = max(child_rss, r) if p != root else child_rss
         q = _pss(p) if for_all_pss else None
         for_all_pss = for_all_pss and q is not None
         pss_sum += q or 0
         count += 1
         todo += _children(p)
     return MemorySample(time.perf_counter(), rss, count, pss_sum if for_all_pss else None,
-                        root_rss)
+                        root_rss, child_rss)
 
 
 def tree_rss(pid: int | None = None) -> tuple[int, int]:
@@ -333,6 +335,7 @@ class MemoryUse:
     peak_pss_bytes: int | None = None       # over the samples that read PSS
     pss_interval_s: float | None = None
     root_at_peak_bytes: int | None = None   # the driver's own RSS in the peak sample
+    worker_peak_bytes: int | None = None    # the largest single worker's RSS, over every sample
 
     def to_json(self) -> dict:
         def mb(b: float | None) -> float | None:
@@ -345,6 +348,7 @@ class MemoryUse:
                 else round(self.late_bytes / self.early_bytes, 3),
                 "peak_pss_mb": mb(self.peak_pss_bytes), "pss_interval_s": self.pss_interval_s,
                 "driver_rss_mb_at_peak": mb(self.root_at_peak_bytes),
+                "worker_peak_rss_mb": mb(self.worker_peak_bytes),
                 "samples": self.samples, "interval_s": self.interval_s,
                 "window_s": round(self.seconds, 2), "max_processes": self.max_processes,
                 "what": "sum of RSS of this process and all its descendants, sampled from "
@@ -404,7 +408,8 @@ class RssSampler:
             max_processes=max(s.processes for s in self.samples),
             peak_pss_bytes=max(pss, default=None),
             pss_interval_s=round(self.interval * self.pss_every, 3),
-            root_at_peak_bytes=peak.root_rss)
+            root_at_peak_bytes=peak.root_rss,
+            worker_peak_bytes=max((s.child_rss for s in self.samples), default=None) or None)
 
 
 def machine() -> dict:
