@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from falsify.results.store import STORE_NAME, SampleResult, Store, sample_key
+from falsify.results.samples import SampleResult, sample_key
+from falsify.results.store import STORE_NAME, Store
 from falsify.world.space import Sample, Space, parse_space
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -21,7 +21,7 @@ from falsify.cli import main
 from falsify.errors import FalsifyError
 from falsify.results.metrics import class_scores, confusion
 from falsify.results.replay import row_sample
-from falsify.results.store import sample_seed
+from falsify.results.samples import sample_seed
 from falsify.semantic import TRAIN_CLASSES
 from falsify.sensor.lidar import load_sensor
 from falsify.sensor.simulator import Simulator

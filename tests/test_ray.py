@@ -27,14 +27,8 @@ from falsify.executors.driver import Driver, Progress
 from falsify.executors.evaluator import EvalSettings, Evaluator
 from falsify.executors.ray import ActorCrash, EvalActor, RayExecutor, Shipment, import_ray
 from falsify.jobs.run import RunRequest, execute, executors_of
-from falsify.results.store import (
-    STORE_NAME,
-    TIMING_COLUMNS,
-    Store,
-    read_frame,
-    read_meta,
-    sample_key,
-)
+from falsify.results.samples import sample_key
+from falsify.results.store import STORE_NAME, TIMING_COLUMNS, Store, read_frame, read_meta
 from falsify.world.space import load_space
 
 from .test_bad_input import snapshot

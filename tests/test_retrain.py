@@ -25,7 +25,7 @@ from falsify.jobs.retrain import (
     subset_config,
 )
 from falsify.results.miou_maps import CellMap
-from falsify.results.store import sample_seed
+from falsify.results.samples import sample_seed
 from falsify.sensor.lidar import load_sensor
 from falsify.world.space import load_space
 from tests.conftest import CONFIGS, KITTI, assert_offline

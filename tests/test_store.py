@@ -6,7 +6,8 @@ import random
 import threading
 import tomllib
 
-from falsify.results.store import STORE_NAME, Store, read_frame, sample_key
+from falsify.results.samples import sample_key
+from falsify.results.store import STORE_NAME, Store, read_frame
 from falsify.world.space import parse_space
 
 from .runfixture import SMOKE, synthetic_result

@@ -13,7 +13,7 @@ import pytest
 from scipy import integrate, optimize
 
 from falsify.cli import main
-from falsify.results.store import sample_seed
+from falsify.results.samples import sample_seed
 from falsify.sensor import weather
 from falsify.sensor.lidar import load_sensor
 from falsify.sensor.simulator import Simulator

@@ -287,7 +287,7 @@ def bench_effects(config: str | Path, samples: int | None = None,
                   repeats: int = 3) -> EffectsBench:
     """Simulator.scan with the samples' weather and faults against their clear twins (and with
     every effect at once), in one warm simulator, each with its run's seed (as a worker)."""
-    from falsify.results.store import sample_seed
+    from falsify.results.samples import sample_seed
     from falsify.sensor.weather import Effects, effects_of
 
     space = load_space(config)

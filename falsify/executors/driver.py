@@ -20,7 +20,8 @@ from falsify.executors import make_executor
 from falsify.executors.evaluator import EvalSettings
 from falsify.models.runner import Segmenter, load_segmenter
 from falsify.results.metrics import Status
-from falsify.results.store import SampleResult, Store
+from falsify.results.samples import SampleResult
+from falsify.results.store import Store
 from falsify.world.space import Sample
 
 ProgressListener = Callable[["Progress", bool], None]

@@ -15,10 +15,10 @@ import numpy as np
 from falsify.errors import FalsifyError
 from falsify.models.runner import Segmenter, load_segmenter
 from falsify.results.metrics import Scoring, Status
-from falsify.results.store import CAR_SCORING, SampleResult, sample_seed
+from falsify.results.samples import CAR_SCORING, SampleResult, sample_seed
 from falsify.semantic import train_ids
 from falsify.sensor.lidar import load_sensor
-from falsify.sensor.simulator import InvalidSample, Scanner, Simulator
+from falsify.sensor.simulator import InvalidSample, Scanner, Simulator, release_free_heap
 from falsify.world.space import Sample, Space
 
 
@@ -94,6 +94,9 @@ class Evaluator:
                     label_points=int((label == 1).sum()),
                     t_scan=t_scans[k], t_infer=t_infer, t_total=t_scans[k] + t_infer,
                     seed=sample_seed(self.space, samples[i]), score_column=col)
+        # A batch's scans and tensors are freed by now; glibc would keep their pages (about
+        # 60 MB a worker) for the rest of the run. 3 ms, under 1 % of a batch.
+        release_free_heap()
         return [r for r in results if r is not None]
 
 

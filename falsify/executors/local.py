@@ -12,7 +12,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 from falsify.executors.evaluator import EvalSettings, Evaluator
 from falsify.models.runner import Segmenter
-from falsify.results.store import SampleResult
+from falsify.results.samples import SampleResult
 from falsify.world.space import Sample
 
 

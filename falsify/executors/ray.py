@@ -32,7 +32,7 @@ from falsify.executors.evaluator import EvalSettings, Evaluator
 from falsify.models.plugin import absolute_ref, is_plugin
 from falsify.models.runner import resolve_model
 from falsify.models.spec import spec_path_for
-from falsify.results.store import SampleResult
+from falsify.results.samples import SampleResult
 from falsify.world.space import Sample
 
 MAX_ATTEMPTS = 3   # a chunk whose actors die this many times stops the run (a crashing sample)

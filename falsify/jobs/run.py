@@ -29,15 +29,8 @@ from falsify.paths import config_path
 from falsify.results.metrics import Scoring, Status, column
 from falsify.results.miou_maps import CellMap, miou_map, snap
 from falsify.results.replay import Replay
-from falsify.results.store import (
-    CAR_SCORING,
-    STORE_NAME,
-    RunData,
-    Store,
-    export,
-    read_frame,
-    read_meta,
-)
+from falsify.results.samples import CAR_SCORING
+from falsify.results.store import STORE_NAME, RunData, Store, export, read_frame, read_meta
 from falsify.sampler import NLOPT_ALGORITHMS, make_sampler
 from falsify.sampler.base import BATCH, Sampler, SearchResult
 from falsify.sensor.lidar import load_sensor

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pandas as pd
 
-from falsify.results.store import sample_seed
+from falsify.results.samples import sample_seed
 from falsify.sensor.lidar import load_sensor
 from falsify.sensor.scan import Scan
 from falsify.sensor.simulator import Simulator

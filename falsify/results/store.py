@@ -12,10 +12,9 @@ import json
 import sqlite3
 import threading
 import tomllib
-import zlib
 from collections.abc import Iterable, Sequence
 from contextlib import closing
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
@@ -23,47 +22,14 @@ import pandas as pd
 from falsify.errors import FalsifyError
 from falsify.results.metrics import Scoring, Status
 from falsify.results.miou_maps import CellMap, miou_map
+from falsify.results.samples import CAR_SCORING, SampleResult, sample_key
 from falsify.world.space import DEFAULT_THRESHOLD, Sample, Space, parse_space
 
 STORE_NAME = "results.sqlite"
-CAR_SCORING = Scoring()   # four classes, car IoU the objective: every run until told otherwise
 METRIC_COLUMNS = CAR_SCORING.columns
 FIXED_COLUMNS = ["eval_index", "sample_key", "status", "reason", "car_points", "label_points",
                  "t_scan", "t_infer", "t_total", "seed", "model_hash", "config_hash"]
 TIMING_COLUMNS = ("t_scan", "t_infer", "t_total")
-
-
-@dataclass(frozen=True)
-class SampleResult:
-    """What one evaluated sample produced; metrics are None where undefined or invalid."""
-
-    sample: Sample
-    status: Status
-    reason: str = ""
-    metrics: dict[str, float | int | None] = field(default_factory=dict)
-    car_points: int = 0         # points predicted car
-    label_points: int = 0       # points labelled car
-    t_scan: float = 0.0
-    t_infer: float = 0.0
-    t_total: float = 0.0
-    seed: int = 0
-    score_column: str = "car_iou"   # the metric the samplers minimise (Scoring.score_column)
-
-    @property
-    def score(self) -> float | None:
-        """The objective (car IoU unless the run says otherwise) the samplers minimise; None
-        when invalid or undefined."""
-        v = self.metrics.get(self.score_column)
-        return None if v is None else float(v)
-
-
-def sample_key(sample: Sample) -> str:
-    return json.dumps(sample.values, separators=(",", ":"))
-
-
-def sample_seed(space: Space, sample: Sample) -> int:
-    """A per-sample seed for sensor effects: fixed by the space's seed and the sample alone."""
-    return (space.seed * 1_000_003 + zlib.crc32(sample_key(sample).encode())) % (2**31)
 
 
 class Store:
