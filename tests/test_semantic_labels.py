@@ -123,7 +123,7 @@ def test_other_vehicles_cast_as_their_kind(sim: Simulator) -> None:
         check_scan(scan)
         mine = scan.valid & (scan.instance == 1)
         assert mine.any() and (scan.semantic[mine] == OTHER_VEHICLE_SEMANTIC[kind]).all()
-    assert sim.car_semantic(PlacedCar("sedan", 0.0, 0.0, 0.0, 1, semantic=252)) == 252
+    assert sim.car_semantic(PlacedCar("sedan", 0.0, 0.0, 0.0, 1)) == RAW_ID["car"]
 
 
 @pytest.mark.parametrize("fx", [Effects(fog=30.0), Effects(rain=40.0), Effects(snow=5.0),

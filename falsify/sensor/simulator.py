@@ -15,7 +15,7 @@ import math
 import zlib
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
@@ -96,9 +96,6 @@ class PlacedCar:
     pitch_deg: float = 0.0
     roll_deg: float = 0.0
     paint: int | None = None  # material id replacing the model's paint; None keeps it
-    # Raw SemanticKITTI id (other-vehicle models: their kind's). Out of the repr, which scenes'
-    # fingerprints hash.
-    semantic: int = field(default=RAW_ID["car"], repr=False)
 
     def rotation(self) -> np.ndarray:
         r = rot_z(self.heading_deg)
@@ -226,10 +223,10 @@ class Simulator:
 
     def car_semantic(self, car: PlacedCar) -> int:
         """The raw SemanticKITTI id a placed car's points carry: its kind's for the other
-        vehicles' models (truck, bus, other-vehicle), as car_mesh picks their mesh; else its own."""
+        vehicles' models (truck, bus, other-vehicle), as car_mesh picks their mesh; else car."""
         if car.model not in self.user_cars and car.model in road_users.OTHER_VEHICLES:
             return road_users.OTHER_VEHICLE_SEMANTIC[car.model]
-        return car.semantic
+        return RAW_ID["car"]
 
     def car_caster(self, model: str) -> tuple[_Caster, np.ndarray]:
         """The car's BVH in its own frame and its bounding box corners (8×3)."""
