@@ -152,3 +152,13 @@ def test_trainer_learns_semantickitti_classes(tmp_path: Path, capsys) -> None:
     assert load_segmenter(out / "squeezeseg.onnx").spec.classes["road"] == (9,)
     assert train_main(["--data", str(data), "--out", str(tmp_path / "c"), "--device",
                        "cuda"]) == (0 if __import__("torch").cuda.is_available() else 2)
+
+
+def test_predict_scores_a_model_without_car_per_class() -> None:
+    from types import SimpleNamespace
+
+    from falsify.jobs.predict import semantic_scoring
+    road_only = SimpleNamespace(spec=SimpleNamespace(classes={"road": (0,), "sidewalk": (1,)}))
+    labelled = SimpleNamespace(semantic=np.zeros((1, 2, 2), np.uint16))
+    assert semantic_scoring(road_only, [labelled])
+    assert not semantic_scoring(road_only, [labelled, SimpleNamespace(semantic=None)])

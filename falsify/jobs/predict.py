@@ -143,7 +143,7 @@ def semantic_scoring(model: Segmenter, sets: list[ScanSet]) -> bool:
     if not sets or any(s.semantic is None for s in sets):
         return False
     classes = getattr(model.spec, "classes", None)
-    return bool(classes) and Scoring.of(list(classes)).semantic
+    return bool(classes) and Scoring.of(list(classes), "miou").semantic
 
 
 def evaluate_set(model: Segmenter, scans: ScanSet,
