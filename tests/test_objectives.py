@@ -133,6 +133,12 @@ def test_dataset_semantic_labels_and_workers(tmp_path: Path, capsys) -> None:
     assert main(["dataset", str(SMOKE), "--scans", "2", "--workers", "2", "--format",
                  "semantickitti", "--out", str(tmp_path / "x")]) == 2
     assert "only --format npy" in capsys.readouterr().err
+    for bad, said in ((["--workers", "0"], "--workers: 0 must be in 1..64"),
+                      (["--labels", "semantickitti", "--format", "semantickitti"],
+                       "--labels semantickitti: only --format npy")):
+        out = tmp_path / "bad"
+        assert main(["dataset", str(SMOKE), "--scans", "2", "--out", str(out), *bad]) == 2
+        assert said in capsys.readouterr().err and not out.exists()
 
 
 def test_trainer_learns_semantickitti_classes(tmp_path: Path, capsys) -> None:
