@@ -13,10 +13,11 @@ import pytest
 from falsify.models.runner import load_segmenter
 
 from falsify.cli import main
-from falsify.data.velodyne import label_file, read_kitti
+from falsify.data.velodyne import read_kitti
 from falsify.results.metrics import Scoring
 from falsify.semantic import TRAIN_CLASSES, train_ids
 from falsify.sensor.lidar import load_sensor
+from falsify.world.real_scans import label_file
 
 ROOT = Path(__file__).resolve().parent.parent
 SMOKE = ROOT / "configs" / "smoke.toml"

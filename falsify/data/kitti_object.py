@@ -164,11 +164,6 @@ def read_velodyne(path: str | Path) -> np.ndarray:
 _FILES = (("velodyne", "bin"), ("calib", "txt"), ("label_2", "txt"), ("image_2", "png"))
 
 
-def is_object_dir(path: Path) -> bool:
-    """A folder laid out as KITTI's objects (velodyne/ and label_2/ beside each other)."""
-    return (path / "velodyne").is_dir() and (path / "label_2").is_dir()
-
-
 def frames(directory: Path) -> list[str]:
     """Frame ids of a KITTI object directory (its velodyne/*.bin), sorted; FalsifyError naming
     the folder or file when one is missing: every frame needs all four files."""

@@ -11,18 +11,25 @@ counts it: the caller says so.
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from falsify.data.kitti_frames import read_object_frame
-from falsify.data.kitti_object import frames, is_object_dir
+from falsify.data.kitti_object import frames
 from falsify.data.range_npy import load_scan_npy
-from falsify.data.velodyne import label_file, read_kitti
+from falsify.data.velodyne import read_kitti
 from falsify.errors import FalsifyError
 from falsify.sensor.lidar import Sensor
+from falsify.world.real_scans import (
+    available_sequences,
+    is_object_dir,
+    is_sequence_dir,
+    label_file,
+    sequence_dirs,
+    sequence_files,
+)
 
 ROOT = Path(__file__).resolve().parents[2]   # the source checkout
 # The shared real KITTI data beside the repository (evaluation only; never copied in).
@@ -90,34 +97,6 @@ def npy_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.glob("*.npy") if not p.name.endswith(".pred.npy"))
 
 
-SEQUENCE_ID = re.compile(r"\d\d")   # SemanticKITTI's sequence folders: 00 .. 21
-
-
-def is_sequence_dir(path: Path) -> bool:
-    """A SemanticKITTI sequence folder (SS/ holding velodyne/; labels/ when labelled)."""
-    return (path / "velodyne").is_dir() and not is_object_dir(path)
-
-
-def sequence_dirs(path: Path) -> dict[str, Path] | None:
-    """id -> folder of the sequences under a SemanticKITTI root (holding sequences/) or a
-    sequences/ folder, sorted by id; None when `path` is neither."""
-    if not path.is_dir():
-        return None
-    folder = path / "sequences" if (path / "sequences").is_dir() else path
-    found = {d.name: d for d in sorted(folder.iterdir())
-             if d.is_dir() and SEQUENCE_ID.fullmatch(d.name) and is_sequence_dir(d)}
-    return found or None
-
-
-def available_sequences(paths: list[str]) -> list[str]:
-    """The sequence ids found under the SemanticKITTI roots and sequences/ folders named."""
-    ids: set[str] = set()
-    for p in map(Path, paths):
-        if not is_sequence_dir(p):
-            ids.update(sequence_dirs(p) or {})
-    return sorted(ids)
-
-
 def load_sets(paths: list[str], sensor: Sensor,
               sequences: list[str] | None = None) -> list[ScanSet]:
     """Named sets from command-line paths, in the order first named: one per object directory,
@@ -138,13 +117,13 @@ def load_sets(paths: list[str], sensor: Sensor,
                 groups.setdefault(p, [])
                 continue
             if is_sequence_dir(p):
-                groups.setdefault(p, []).extend(_sequence_files(p))
+                groups.setdefault(p, []).extend(sequence_files(p))
                 continue
             found = sequence_dirs(p)
             if found is not None:
                 for sid, d in found.items():
                     if sequences is None or sid in sequences:
-                        groups.setdefault(d, []).extend(_sequence_files(d))
+                        groups.setdefault(d, []).extend(sequence_files(d))
                 continue
             files = sorted([*npy_files(p), *p.glob("*.bin")])
             if not files:
@@ -168,14 +147,6 @@ def load_sets(paths: list[str], sensor: Sensor,
     if len(shapes) > 1:
         raise FalsifyError(f"scans have different shapes: {sorted(shapes)}")
     return sets
-
-
-def _sequence_files(folder: Path) -> list[Path]:
-    """A sequence's .bin scans, sorted; FalsifyError naming its velodyne/ when it holds none."""
-    files = sorted((folder / "velodyne").glob("*.bin"))
-    if not files:
-        raise FalsifyError(f"{folder / 'velodyne'}: no .bin scans in this sequence")
-    return files
 
 
 def _set_name(folder: Path) -> str:

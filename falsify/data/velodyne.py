@@ -60,16 +60,6 @@ def read_bin(path: str | Path) -> np.ndarray:
     return np.frombuffer(data, np.float32).reshape(-1, 4)
 
 
-def label_file(bin_path: str | Path) -> Path | None:
-    """The SemanticKITTI .label of a .bin scan: beside it (x.label) or in ../labels/ (the
-    dataset's own layout, SS/velodyne/x.bin with SS/labels/x.label); None when neither exists."""
-    p = Path(bin_path)
-    for candidate in (p.with_suffix(".label"), p.parent.parent / "labels" / f"{p.stem}.label"):
-        if candidate.is_file():
-            return candidate
-    return None
-
-
 KITTI_RINGS = 64
 MIN_RING_POINTS = 200  # a ring with fewer points means the file is not in KITTI's ring order
 
