@@ -12,13 +12,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from falsify.data.real_backgrounds import INSERTED_INSTANCE, scanner_for
 from falsify.errors import FalsifyError
 from falsify.models.runner import Segmenter, load_segmenter
 from falsify.results.metrics import Scoring, Status
 from falsify.results.samples import CAR_SCORING, SampleResult, sample_seed
 from falsify.semantic import train_ids
-from falsify.sensor.lidar import load_sensor
-from falsify.sensor.simulator import InvalidSample, Scanner, Simulator, release_free_heap
+from falsify.sensor.simulator import InvalidSample, Scanner, release_free_heap
 from falsify.world.space import Sample, Space
 
 
@@ -45,8 +45,7 @@ class Evaluator:
                  scanner: Scanner | None = None):
         self.settings = settings
         self.space = settings.space
-        self.sim = scanner or Simulator(load_sensor(self.space.sensor), self.space.user_cars,
-                                        lod=settings.lod)
+        self.sim = scanner or scanner_for(self.space, lod=settings.lod)
         self.model = model or load_segmenter(settings.model, backend=settings.backend,
                                              threads=settings.threads, device=settings.device)
         self.model.spec.check_fits(self.sim.sensor, settings.model or "bundled")
@@ -63,7 +62,7 @@ class Evaluator:
 
     def score_batch(self, samples: Sequence[Sample]) -> list[SampleResult]:
         results: list[SampleResult | None] = [None] * len(samples)
-        images, truths, where, t_scans = [], [], [], []
+        images, truths, where, t_scans, inserted = [], [], [], [], []
         scoring = self.settings.scoring
         for i, sample in enumerate(samples):
             t0 = time.perf_counter()
@@ -76,6 +75,7 @@ class Evaluator:
                 continue
             images.append(scan.image)
             truths.append(truth_ids(scan, scoring))
+            inserted.append(scan.instance >= INSERTED_INSTANCE if scoring.parts else None)
             where.append(i)
             t_scans.append(time.perf_counter() - t0)
         if images:
@@ -85,7 +85,7 @@ class Evaluator:
             ids = pred.train_ids if scoring.semantic else pred.classes
             for k, i in enumerate(where):
                 label = images[k][..., 5].astype(np.uint8)
-                metrics, note = scoring.score(ids[k], truths[k])
+                metrics, note = scoring.score(ids[k], truths[k], inserted[k])
                 col = scoring.score_column
                 status = Status.OK if metrics[col] is not None else Status.UNDEFINED
                 results[i] = SampleResult(

@@ -12,7 +12,7 @@ import datetime as dt
 import shutil
 import time
 from collections.abc import Collection
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -105,6 +105,9 @@ def prepare(req: RunRequest) -> Prepared:
     sizes = ({"batch_size": max(BATCH, 16 * req.workers)} if req.algorithm in BATCHED
              else {"concurrent": req.workers} if req.algorithm in NLOPT_ALGORITHMS else {})
     sampler = make_sampler(req.algorithm, **sizes)
+    if req.camera is not None and space.real_backgrounds:
+        raise FalsifyError("--camera renders our streets; a space of real backgrounds has no "
+                           "scene to render (drop --camera)")
     if req.camera is not None:
         from falsify.sensor.camera import camera_preset
         from falsify.sensor.look import check_looks
@@ -120,6 +123,8 @@ def prepare(req: RunRequest) -> Prepared:
     # Open the model once here: a missing, corrupt or mismatched model fails before any sample.
     seg = load_segmenter(model, backend=backend, threads=threads, device=req.device)
     scoring = Scoring.of(list(seg.spec.classes), req.objective)
+    if space.real_backgrounds:   # inserted and real objects scored apart as well
+        scoring = replace(scoring, parts=True)
     settings = EvalSettings(space=space, model=model, backend=backend, threads=threads,
                             lod=fid.lod, device=req.device, scoring=scoring)
     sensor = load_sensor(space.sensor)

@@ -111,6 +111,8 @@ def _ratio(num: int, den: int) -> float | None:
     return num / den if den else None
 
 
+PARTS = ("inserted_iou", "inserted_recall", "real_iou", "real_recall")
+
 # Our four classes' names for SemanticKITTI's, and back: one objective name works either way.
 _TO_KITTI4 = {"person": "pedestrian", "bicyclist": "cyclist"}
 _TO_TRAIN = {v: k for k, v in _TO_KITTI4.items()}
@@ -135,6 +137,9 @@ class Scoring:
     classes: tuple[str, ...] = CLASSES
     scored: tuple[str, ...] = CLASSES
     objective: str = "car"
+    # Real backgrounds: the objective class scored apart on the inserted objects (the real
+    # ones left out) and on the real ones (the inserted left out), as PARTS columns.
+    parts: bool = False
 
     @classmethod
     def of(cls, mapped: Sequence[str], objective: str = "car") -> Scoring:
@@ -164,19 +169,24 @@ class Scoring:
         then miou where the objective is miou or the classes are SemanticKITTI's."""
         cols = [f"{column(c)}_{m}" for c in self.scored
                 for m in ("tp", "fp", "fn", "iou", "precision", "recall")]
-        return cols + (["miou"] if self.semantic or self.objective == "miou" else [])
+        cols += ["miou"] if self.semantic or self.objective == "miou" else []
+        return cols + (list(PARTS) if self.parts and self.objective != "miou" else [])
 
     @property
     def score_column(self) -> str:
         """The column the samplers minimise."""
         return "miou" if self.objective == "miou" else f"{column(self.objective)}_iou"
 
-    def score(self, pred: np.ndarray, truth: np.ndarray
+    def score(self, pred: np.ndarray, truth: np.ndarray, inserted: np.ndarray | None = None
               ) -> tuple[dict[str, float | int | None], str]:
         """Per-sample metrics of class-id images `pred` and `truth` (ids into `classes`) and, when
-        the objective is undefined, why."""
+        the objective is undefined, why; `inserted` marks the pixels of inserted objects (the
+        PARTS columns need it)."""
         pred = np.asarray(pred)
         truth = np.asarray(truth)
+        parts = {}
+        if "inserted_iou" in self.columns:
+            parts = self.part_scores(pred, truth, inserted)
         if self.semantic:
             keep = truth != 0
             pred, truth = pred[keep], truth[keep]
@@ -194,6 +204,24 @@ class Scoring:
                 ious.append(cs.iou)
         if "miou" in self.columns:
             metrics["miou"] = float(np.mean(ious)) if ious else None
+        metrics.update(parts)
         if self.objective == "miou":
             return metrics, "" if ious else "no scored class in label or prediction"
         return metrics, notes[self.objective]
+
+    def part_scores(self, pred: np.ndarray, truth: np.ndarray, inserted: np.ndarray | None
+                    ) -> dict[str, float | None]:
+        """IoU and recall of the objective class on the inserted objects (the real pixels of
+        that class left out) and on the real ones (the inserted pixels left out); unlabeled
+        pixels are left out where the classes are SemanticKITTI's."""
+        c = self.classes.index(self.objective)
+        ins = np.zeros(truth.shape, bool) if inserted is None else np.asarray(inserted, bool)
+        labelled = truth != 0 if self.semantic else np.ones(truth.shape, bool)
+        out: dict[str, float | None] = {}
+        for part, keep in (("inserted", ~((truth == c) & ~ins)), ("real", ~ins)):
+            keep &= labelled
+            p, t = pred[keep] == c, truth[keep] == c
+            tp, fp, fn = int((p & t).sum()), int((p & ~t).sum()), int((~p & t).sum())
+            out[f"{part}_iou"] = _ratio(tp, tp + fp + fn)
+            out[f"{part}_recall"] = _ratio(tp, tp + fn)
+        return out

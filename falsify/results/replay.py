@@ -11,10 +11,10 @@ import math
 import numpy as np
 import pandas as pd
 
+from falsify.data.real_backgrounds import scanner_for
 from falsify.results.samples import sample_seed
-from falsify.sensor.lidar import load_sensor
 from falsify.sensor.scan import Scan
-from falsify.sensor.simulator import Simulator
+from falsify.sensor.simulator import Scanner
 from falsify.world.space import Categorical, Sample, Space
 
 
@@ -55,9 +55,9 @@ def row_seed(space: Space, sample: Sample, row: pd.Series) -> int:
 class Replay:
     """Re-casts stored rows with one warm simulator at the run's car level of detail."""
 
-    def __init__(self, space: Space, lod: int = 2, sim: Simulator | None = None):
+    def __init__(self, space: Space, lod: int = 2, sim: Scanner | None = None):
         self.space = space
-        self.sim = sim or Simulator(load_sensor(space.sensor), space.user_cars, lod=lod)
+        self.sim = sim or scanner_for(space, lod=lod)
 
     def scan(self, row: pd.Series) -> tuple[Sample, Scan]:
         """The row's sample and its scan, as the run cast it (InvalidSample if it was invalid)."""

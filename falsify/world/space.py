@@ -103,6 +103,17 @@ class UserCar:
 
 
 @dataclass(frozen=True)
+class RealScan:
+    """A real scan a background may be: its KITTI .bin and where its labels come from (a
+    SemanticKITTI .label, a KITTI object frame's label_2 boxes, or none)."""
+
+    name: str
+    bin: Path
+    label: Path | None = None
+    kind: str = "none"   # "semantickitti", "object" or "none" (unlabelled)
+
+
+@dataclass(frozen=True)
 class CarPose:
     """One car in a sample: model and pose in the space's coordinates (x right, y forward)."""
 
@@ -180,6 +191,14 @@ class Space:
     user_cars: dict[str, UserCar] = field(default_factory=dict)
     source: str = ""
     config_hash: str = ""
+    # Real scans as backgrounds (`[dims.background] real = [...]`): background k is the k-th.
+    real_backgrounds: tuple[RealScan, ...] = ()
+
+    def background_name(self, bg: int) -> str:
+        """How a report names a background: the real scan's name, else the street's id."""
+        if self.real_backgrounds:
+            return self.real_backgrounds[int(bg)].name
+        return f"street {int(bg)}"
 
     @property
     def max_count(self) -> int:
@@ -368,11 +387,23 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
             spec = dims_raw.get(base + sfx, dims_raw[base])
             dims[base + sfx] = _continuous_or_values(base + sfx, spec, where)
     dims["count"] = count
-    bg = _categorical("background", dims_raw["background"], where, int)
-    for v in bg.values:
-        if not 0 <= int(v) <= MAX_BACKGROUND_ID:
-            raise ConfigError(f"{where}dims.background: unknown background {v}; allowed: "
-                              f"integer ids 0..{MAX_BACKGROUND_ID}")
+    real: tuple[RealScan, ...] = ()
+    bg_raw = dims_raw["background"]
+    if isinstance(bg_raw, dict) and "real" in bg_raw:
+        real = _real_backgrounds(bg_raw, where, base_dir or Path("."))
+        bg = Categorical("background", tuple(range(len(real))))
+        effects = [e for e in EFFECT_DIMS if e in dims_raw]
+        if effects:
+            raise ConfigError(f"{where}dims.{effects[0]}: weather and sensor faults act on cast "
+                              "rays; a real background holds recorded points, so they cannot "
+                              "apply to it (drop the dim, or use street ids)")
+    else:
+        bg = _categorical("background", bg_raw, where, int)
+        for v in bg.values:
+            if not 0 <= int(v) <= MAX_BACKGROUND_ID:
+                raise ConfigError(f"{where}dims.background: unknown background {v}; allowed: "
+                                  f"integer ids 0..{MAX_BACKGROUND_ID}, or real = [KITTI .bin "
+                                  "scans, folders or SemanticKITTI sequences]")
     dims["background"] = bg
     for image_dim in IMAGE_ONLY:
         if image_dim in dims_raw:
@@ -380,8 +411,47 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
     for effect in EFFECT_DIMS:
         if effect in dims_raw:
             dims[effect] = _continuous_or_values(effect, dims_raw[effect], where)
+    if real and config_hash:   # the same config over changed scans is another space
+        digest = hashlib.sha256(config_hash.encode())
+        for r in real:
+            for f in (r.bin, r.label):
+                if f is not None:
+                    digest.update(read_bytes(f, "real background", ConfigError))
+        config_hash = digest.hexdigest()
     return Space(name=name, sensor=sensor, seed=seed, threshold=threshold, dims=dims,
-                 user_cars=user_cars, source=source, config_hash=config_hash)
+                 user_cars=user_cars, source=source, config_hash=config_hash,
+                 real_backgrounds=real)
+
+
+def _real_backgrounds(spec: dict, where: str, base_dir: Path) -> tuple[RealScan, ...]:
+    """`real = [...]` (KITTI .bin files, folders of them, SemanticKITTI roots or sequence
+    folders, KITTI object directories; relative to the config's folder) and optional
+    `sequences = ["08", ...]`: the scans in order, each with where its labels come from."""
+    key = "dims.background"
+    extra = sorted(set(spec) - {"real", "sequences"})
+    if extra:
+        raise ConfigError(f"{where}{key}: unknown key {extra[0]!r} beside real; allowed: real, "
+                          "sequences")
+    paths = spec["real"]
+    if (not isinstance(paths, list) or not paths
+            or not all(isinstance(p, str) and p for p in paths)):
+        raise ConfigError(f"{where}{key}.real: expected a non-empty list of paths (KITTI .bin "
+                          "scans, folders, SemanticKITTI roots or sequences)")
+    sequences = spec.get("sequences")
+    if sequences is not None and (not isinstance(sequences, list) or not sequences or not all(
+            isinstance(q, str) for q in sequences)):
+        raise ConfigError(f"{where}{key}.sequences: expected a non-empty list of sequence ids "
+                          "such as [\"00\", \"08\"]")
+    from falsify.errors import FalsifyError
+    from falsify.world.real_scans import real_scans
+    resolved = [p if Path(p).is_absolute() else str(base_dir / p) for p in paths]
+    try:
+        found = real_scans(resolved, sequences)
+    except FalsifyError as exc:
+        raise ConfigError(f"{where}{key}.real: {exc}") from None
+    if len(found) > MAX_VALUES:
+        raise ConfigError(f"{where}{key}.real: {len(found)} scans; at most {MAX_VALUES}")
+    return tuple(RealScan(*f) for f in found)
 
 
 def _typed(raw: dict, key: str, types, where: str, default):

@@ -1,0 +1,394 @@
+"""Synthetic cars inserted into real scans: the user's own streets as backgrounds.
+
+A real scan (KITTI .bin, with SemanticKITTI labels or KITTI object boxes where present) is read
+into the sensor's range image as `falsify predict` reads it. Every pixel of that image is a ray
+from the scan's origin: along its real point when it holds one, else along the pixel's own
+direction. A car stands on the scan's ground (a plane fitted to the ground points around it) and
+the rays of the columns it spans are cast at its mesh by Embree. A ray that meets the car before
+its real return takes the car's return (its label and the sensor's return model), which hides the
+real point behind it; a real point inside the car's body is removed; every other pixel keeps the
+real scan's bytes, so a car beyond the range or outside the field of view leaves the scan as it
+was. A car that would stand in a real object (a real car, a wall, a tree: at least
+COLLISION_POINTS points of it inside the car's body) makes the sample invalid, never merged.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from falsify.data.kitti_object import points_in_box, read_calib, read_labels
+from falsify.data.velodyne import kitti_rows, read_bin, read_kitti
+from falsify.errors import FalsifyError
+from falsify.semantic import RAW_ID, RAW_NAMES, kitti4, split_label
+from falsify.sensor.lidar import Sensor, SensorPose
+from falsify.sensor.raycast import cast_through
+from falsify.sensor.scan import Scan, image_from_points
+from falsify.sensor.simulator import (
+    FIRST_CAR_INSTANCE,
+    InvalidSample,
+    Obstacles,
+    PlacedCar,
+    Simulator,
+    check_placement,
+    place,
+)
+from falsify.sensor.weather import NOMINAL_INTENSITY
+from falsify.world.materials import GLASS
+from falsify.world.space import RealScan, Sample, Space, UserCar
+
+# SemanticKITTI ids a car may stand on: road, parking, sidewalk, other-ground, lane-marking,
+# terrain. Unlabeled (0) and outlier (1) are neither ground nor obstacle.
+GROUND_IDS = np.array([40, 44, 48, 49, 60, 72])
+IGNORED_IDS = np.array([0, 1])
+CLEARANCE_M = 0.25       # real points this far above the ground under a car are in its body
+COLLISION_POINTS = 5     # obstacle points in a car's body that make the sample invalid
+GROUND_MARGIN_M = 1.0    # the ground plane is fitted on points this far around the car
+MIN_GROUND_POINTS = 20   # fewer than this around the car: look twice as far (three times)
+MAX_SLOPE = 0.3          # a fitted plane steeper than this (17 degrees) is clamped to it
+LOWEST_CELL_M = 1.0      # unlabelled scans: ground = points near their 1 m cell's lowest point
+LOWEST_BAND_M = 0.15
+INSERTED_INSTANCE = 1 << 16   # instance ids of inserted cars: above SemanticKITTI's 16 bits
+# KITTI object types -> the SemanticKITTI id their box's points carry (others: unlabeled).
+OBJECT_TYPES = {"Car": RAW_ID["car"], "Van": RAW_ID["other-vehicle"], "Truck": RAW_ID["truck"],
+                "Tram": RAW_ID["other-vehicle"], "Pedestrian": RAW_ID["person"],
+                "Person_sitting": RAW_ID["person"], "Cyclist": RAW_ID["bicyclist"]}
+
+
+@dataclass(frozen=True)
+class RealBackground:
+    """A real scan ready for insertion: its range image as read, each pixel's ray, and the whole
+    cloud with its labels (for the ground and for collisions)."""
+
+    scan: Scan                 # the real scan in the sensor's image, as `predict` reads it
+    dist: np.ndarray           # (H, W) range of each pixel's point along its ray, inf if empty
+    origin: np.ndarray         # (H, W, 3) where each pixel's ray starts (sensor frame)
+    direction: np.ndarray      # (H, W, 3) unit direction of each pixel's ray
+    xyz: np.ndarray            # (N, 3) every finite point of the scan
+    semantic: np.ndarray | None   # (N,) raw SemanticKITTI ids of the points, where known
+    dense: bool                # every point labelled (SemanticKITTI), not only boxes' points
+    ground: np.ndarray         # (M, 3) the points a car may stand on
+
+
+def read_background(real: RealScan, sensor: Sensor) -> RealBackground:
+    """Read a real scan and its labels; FalsifyError names a file that cannot be read."""
+    pts = read_bin(real.bin)
+    finite = np.isfinite(pts).all(axis=1)
+    xyz = np.ascontiguousarray(pts[finite, :3])
+    if real.kind == "object":
+        sem, inst = _box_labels(real, xyz)
+        scan = image_from_points(sensor, xyz, kitti4(sem), inst, intensity=pts[finite, 3],
+                                 rows=kitti_rows(sensor, xyz), semantic=sem)
+    else:
+        scan = read_kitti(real.bin, real.label, sensor)
+        sem = None
+        if real.label is not None:
+            sem = split_label(np.fromfile(real.label, np.uint32))[0][finite].astype(np.uint16)
+    dense = real.kind == "semantickitti"
+    origin = np.zeros((*sensor.shape, 3))
+    if sensor.projection == "rings" and sensor.ray_origins is not None:
+        origin += sensor.ray_origins
+    valid = scan.valid
+    p = scan.image[..., 0:3].astype(np.float64) - origin
+    dist = np.where(valid, np.linalg.norm(p, axis=-1), np.inf)
+    direction = pixel_directions(sensor)
+    direction[valid] = p[valid] / dist[valid][:, None]
+    return RealBackground(scan, dist, origin, direction, xyz, sem, dense,
+                          _ground_points(xyz, sem if dense else None))
+
+
+def _box_labels(real: RealScan, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Raw ids and instances of a KITTI object frame's points from its label_2 boxes."""
+    calib = read_calib(real.bin.parent.parent / "calib" / f"{real.bin.stem}.txt")
+    sem = np.zeros(len(xyz), np.uint16)
+    inst = np.zeros(len(xyz), np.int32)
+    for k, obj in enumerate(read_labels(real.label)):
+        if obj.type in OBJECT_TYPES and obj.has_3d:
+            inside = points_in_box(xyz, obj, calib)
+            sem[inside] = OBJECT_TYPES[obj.type]
+            inst[inside] = k + 1
+    return sem, inst
+
+
+def pixel_directions(sensor: Sensor) -> np.ndarray:
+    """(H, W, 3) unit direction of each pixel of the sensor's image: its ray for the ring
+    layout; the centre of its bin for RangeNet++'s spherical projection (Milioto et al., IROS
+    2019: yaw = pi (1 - 2 (col + 0.5) / W) to the left, pitch = (1 - (row + 0.5) / H) fov +
+    fov_down)."""
+    if sensor.projection != "spherical":
+        return np.array(sensor.directions, dtype=np.float64)
+    h, w = sensor.shape
+    down = math.radians(sensor.fov_down_deg)
+    fov = abs(down) + abs(math.radians(sensor.fov_up_deg))
+    pitch = (1.0 - (np.arange(h) + 0.5) / h) * fov - abs(down)
+    az = np.pi * (1.0 - 2.0 * (np.arange(w) + 0.5) / w)
+    el, az = np.meshgrid(pitch, az, indexing="ij")
+    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1)
+
+
+def _ground_points(xyz: np.ndarray, semantic: np.ndarray | None) -> np.ndarray:
+    """The points a car may stand on: labelled ground where every point is labelled, else each
+    1 m cell's lowest points (within LOWEST_BAND_M of its lowest)."""
+    if semantic is not None:
+        return xyz[np.isin(semantic, GROUND_IDS)]
+    cell = np.floor(xyz[:, :2] / LOWEST_CELL_M).astype(np.int64)
+    key = (cell[:, 0] << 32) + (cell[:, 1] & 0xFFFFFFFF)
+    uniq, inv = np.unique(key, return_inverse=True)
+    low = np.full(len(uniq), np.inf)
+    np.minimum.at(low, inv, xyz[:, 2])
+    return xyz[xyz[:, 2] <= low[inv] + LOWEST_BAND_M]
+
+
+def fit_ground(ground: np.ndarray, x: float, y: float, reach: float,
+               default_z: float) -> tuple[float, float, float]:
+    """(z, dz/dx, dz/dy) of the ground plane at (x, y): least squares over the ground points
+    within reach + GROUND_MARGIN_M (twice and three times that when too few), refitted once
+    without points more than 0.15 m off; flat at `default_z` where none are near."""
+    d2 = (ground[:, 0] - x) ** 2 + (ground[:, 1] - y) ** 2
+    for grow in (1.0, 2.0, 3.0):
+        near = ground[d2 <= ((reach + GROUND_MARGIN_M) * grow) ** 2]
+        if len(near) >= MIN_GROUND_POINTS:
+            break
+    else:
+        return default_z, 0.0, 0.0
+    a = np.column_stack([np.ones(len(near)), near[:, 0] - x, near[:, 1] - y])
+    coef = np.linalg.lstsq(a, near[:, 2], rcond=None)[0]
+    keep = np.abs(a @ coef - near[:, 2]) <= 0.15
+    if keep.sum() >= MIN_GROUND_POINTS:
+        coef = np.linalg.lstsq(a[keep], near[keep, 2], rcond=None)[0]
+    gx, gy = (float(np.clip(v, -MAX_SLOPE, MAX_SLOPE)) for v in coef[1:])
+    return float(coef[0]), gx, gy
+
+
+class RealScanner:
+    """Scans of samples whose backgrounds are real scans: the Scanner a space with
+    `[dims.background] real = [...]` runs on. Car meshes and the return model come from a
+    Simulator of the same sensor; `max_backgrounds` read scans are kept."""
+
+    def __init__(self, sensor: Sensor, backgrounds: tuple[RealScan, ...],
+                 user_cars: dict[str, UserCar] | None = None, lod: int = 2,
+                 max_backgrounds: int = 16):
+        self.sensor = sensor
+        self.real = backgrounds
+        self.sim = Simulator(sensor, user_cars, lod=lod)
+        self._bg: OrderedDict[int, RealBackground] = OrderedDict()
+        self._max = max_backgrounds
+        self._columns = _column_azimuths(sensor)
+        self._keep = (self.sim.returns.keep_map(sensor.rows, sensor.azimuths_deg)
+                      if self.sim.returns is not None and sensor.projection == "rings" else None)
+
+    def background(self, bg_id: int) -> RealBackground:
+        """The real scan of background `bg_id`, read once and kept (least recently used go)."""
+        if bg_id in self._bg:
+            self._bg.move_to_end(bg_id)
+            return self._bg[bg_id]
+        if not 0 <= bg_id < len(self.real):
+            raise FalsifyError(f"background {bg_id}: the space has {len(self.real)} real scans")
+        bg = read_background(self.real[bg_id], self.sensor)
+        self._bg[bg_id] = bg
+        while len(self._bg) > self._max:
+            self._bg.popitem(last=False)
+        return bg
+
+    def ego_pose(self, bg_id: int, pose: SensorPose = SensorPose()) -> SensorPose:
+        """A real scan is seen from where it was recorded: the sensor frame is the world's."""
+        return SensorPose()
+
+    def background_hits(self, bg_id: int, pose: SensorPose = SensorPose()) -> RealBackground:
+        return self.background(bg_id)
+
+    # -- cars ------------------------------------------------------------------------------
+    def placed_cars(self, sample: Sample) -> list[PlacedCar]:
+        """The sample's cars standing on the real ground, or InvalidSample naming what a car
+        would intersect: the ego car, another car, or a real object of the scan."""
+        bg = self.background(sample.background)
+        placed = [place(c, FIRST_CAR_INSTANCE + i) for i, c in enumerate(sample.cars)]
+        check_placement(placed, [self.sim.footprint(c) for c in placed], Obstacles.of(()))
+        settled = [self.settle(bg, c) for c in placed]
+        for i, car in enumerate(settled):
+            self.check_collision(bg, car, i + 1)
+        return settled
+
+    def _box(self, car: PlacedCar) -> tuple[np.ndarray, np.ndarray]:
+        _, corners = self.sim.car_caster(car.model)
+        return corners.min(axis=0), corners.max(axis=0)
+
+    def settle(self, bg: RealBackground, car: PlacedCar) -> PlacedCar:
+        """The car on the scan's ground plane under it: height, pitch and roll (as
+        falsify.world.terrain.Terrain.pose_on: positive pitch tilts the nose down, positive
+        roll lifts the left side)."""
+        lo, hi = self._box(car)
+        reach = float(np.hypot(*np.maximum(np.abs(lo[:2]), np.abs(hi[:2]))))
+        z, gx, gy = fit_ground(bg.ground, car.x, car.y, reach, -self.sensor.mount_height)
+        h = math.radians(car.heading_deg)
+        fx, fy = math.cos(h), math.sin(h)
+        pitch = math.degrees(math.atan(-(gx * fx + gy * fy)))
+        roll = math.degrees(math.atan(-gx * fy + gy * fx))
+        return replace(car, z=z, pitch_deg=pitch, roll_deg=roll)
+
+    def body_points(self, xyz: np.ndarray, car: PlacedCar) -> np.ndarray:
+        """Bool per point: inside the car's bounding box and at least CLEARANCE_M above the
+        ground it stands on."""
+        lo, hi = self._box(car)
+        reach = float(np.abs(np.concatenate([lo, hi])).max())
+        near = ((np.abs(xyz[:, 0] - car.x) <= reach) & (np.abs(xyz[:, 1] - car.y) <= reach))
+        out = np.zeros(len(xyz), bool)
+        idx = np.flatnonzero(near)
+        local = (xyz[idx].astype(np.float64) - car.translation()) @ car.rotation()
+        out[idx] = ((local[:, 0] >= lo[0]) & (local[:, 0] <= hi[0]) & (local[:, 1] >= lo[1])
+                    & (local[:, 1] <= hi[1]) & (local[:, 2] >= CLEARANCE_M)
+                    & (local[:, 2] <= hi[2]))
+        return out
+
+    def check_collision(self, bg: RealBackground, car: PlacedCar, number: int) -> None:
+        """InvalidSample if COLLISION_POINTS or more obstacle points of the scan (any point but
+        ground, unlabeled and outliers where every point is labelled; any point otherwise) lie in
+        the car's body."""
+        inside = self.body_points(bg.xyz, car)
+        if bg.dense:
+            inside &= ~np.isin(bg.semantic, np.concatenate([GROUND_IDS, IGNORED_IDS]))
+        n = int(inside.sum())
+        if n < COLLISION_POINTS:
+            return
+        what = "points"
+        named = bg.semantic[inside] if bg.semantic is not None else np.empty(0, np.uint16)
+        named = named[named > 1]
+        if len(named):
+            ids, counts = np.unique(named, return_counts=True)
+            what = RAW_NAMES.get(int(ids[np.argmax(counts)]), "object")
+        raise InvalidSample(f"car {number} ({car.model}) intersects the real scan's {what} "
+                            f"({n} points in its body)")
+
+    # -- casting ---------------------------------------------------------------------------
+    def columns(self, car: PlacedCar) -> np.ndarray:
+        """The image columns whose rays can reach the car's bounding box (one column of margin
+        either side: a real point's azimuth strays within its column)."""
+        lo, hi = self._box(car)
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                            for z in (lo[2], hi[2])])
+        world = corners @ car.rotation().T + car.translation()
+        az = np.sort(np.degrees(np.arctan2(world[:, 1], world[:, 0])))
+        gaps = np.diff(np.concatenate([az, [az[0] + 360.0]]))
+        k = int(np.argmax(gaps))
+        if gaps[k] <= 180.0:   # the origin is inside the box's outline
+            return np.arange(self.sensor.columns)
+        start, span = az[(k + 1) % len(az)], 360.0 - gaps[k]
+        step = 360.0 / self.sensor.columns if self.sensor.projection == "spherical" else abs(
+            self.sensor.az_step_deg)
+        rel = (self._columns - start + step) % 360.0
+        return np.flatnonzero(rel <= span + 2 * step)
+
+    def scan(self, sample: Sample, pose: SensorPose = SensorPose(),
+             rng: np.random.Generator | None = None) -> Scan:
+        """The real scan with the sample's cars inserted; InvalidSample for impossible ones."""
+        bg = self.background(sample.background)
+        placed = self.placed_cars(sample)
+        return self.insert(bg, placed, rng)
+
+    def insert(self, bg: RealBackground, placed: list[PlacedCar],
+               rng: np.random.Generator | None = None) -> Scan:
+        """Cast each car at the rays of its columns; the nearest car hit per pixel replaces the
+        real return behind it; then the sensor's return model decides each car hit (glass
+        never returns) and real points left inside a car's body go."""
+        s = self.sensor
+        h, w = s.shape
+        dist = np.minimum(bg.dist, s.max_range)
+        hit_t = np.full((h, w), np.inf)
+        hit_car = np.full((h, w), -1, np.int64)
+        hit_mat = np.zeros((h, w), np.uint8)
+        hit_cos = np.zeros((h, w), np.float32)
+        for k, car in enumerate(placed):
+            cols = self.columns(car)
+            if len(cols) == 0:
+                continue
+            r_idx, c_idx = (a.ravel() for a in np.meshgrid(np.arange(h), cols, indexing="ij"))
+            caster, _ = self.sim.car_caster(car.model)
+            rot = car.rotation()
+            o = (bg.origin[r_idx, c_idx] - car.translation()) @ rot
+            d = bg.direction[r_idx, c_idx] @ rot
+            limit = np.minimum(dist[r_idx, c_idx], hit_t[r_idx, c_idx])
+            near = _meets_box(o, d, limit, *self._box(car))
+            if not near.any():
+                continue
+            r_idx, c_idx, o, d, limit = r_idx[near], c_idx[near], o[near], d[near], limit[near]
+            t, prim = cast_through(caster.bvh, o, d, limit, caster.face_pass,
+                                   r_idx * w + c_idx, 0)
+            ok = (prim >= 0) & (t < limit) & (t >= s.min_range)
+            rn, cn, pn = r_idx[ok], c_idx[ok], prim[ok]
+            hit_t[rn, cn] = t[ok]
+            hit_car[rn, cn] = k
+            hit_mat[rn, cn] = caster.material[pn]
+            hit_cos[rn, cn] = np.abs((caster.normals[pn] * d[ok]).sum(axis=1))
+        image = bg.scan.image.copy()
+        inst = bg.scan.instance.copy()
+        sem = None if bg.scan.semantic is None else bg.scan.semantic.copy()
+        empty = np.zeros((h, w), bool)
+        for car in placed:   # real points left in a car's body
+            rows, cols = np.nonzero(bg.scan.valid & (hit_car < 0))
+            inside = self.body_points(image[rows, cols, 0:3], car)
+            empty[rows[inside], cols[inside]] = True
+        rn, cn = np.nonzero(hit_car >= 0)
+        t = hit_t[rn, cn]
+        mat = hit_mat[rn, cn]
+        if rng is not None and s.range_noise > 0:
+            t = t + rng.normal(0.0, s.range_noise, t.shape)
+        returns = ~GLASS[mat] if self.sim.returns is not None else np.ones(len(t), bool)
+        intensity = np.full(len(t), NOMINAL_INTENSITY, np.float32)
+        if self.sim.returns is not None:
+            intensity = self.sim.returns.intensity(mat, hit_cos[rn, cn], t)
+            if rng is not None:
+                p = self.sim.returns.p_return(intensity)
+                if self._keep is not None:
+                    p = p * self._keep[rn, cn]
+                returns &= rng.random(len(t)) < p
+        empty[rn[~returns], cn[~returns]] = True
+        rn, cn, t, intensity = rn[returns], cn[returns], t[returns], intensity[returns]
+        image[empty] = 0.0
+        inst[empty] = 0
+        if sem is not None:
+            sem[empty] = 0
+        xyz = (bg.origin[rn, cn] + bg.direction[rn, cn] * t[:, None]).astype(np.float32)
+        cars = [placed[i] for i in hit_car[rn, cn]]
+        car_sem = np.array([self.sim.car_semantic(c) for c in cars], np.uint16)
+        image[rn, cn, 0:3] = xyz
+        image[rn, cn, 3] = intensity
+        image[rn, cn, 4] = np.linalg.norm(xyz.astype(np.float64), axis=1)
+        image[rn, cn, 5] = kitti4(car_sem)
+        inst[rn, cn] = INSERTED_INSTANCE + hit_car[rn, cn]
+        if sem is not None:
+            sem[rn, cn] = car_sem
+        return Scan(image, inst, sem)
+
+
+def _column_azimuths(sensor: Sensor) -> np.ndarray:
+    """Each image column's centre azimuth, degrees counter-clockwise from +x."""
+    if sensor.projection == "spherical":
+        return 180.0 - (np.arange(sensor.columns) + 0.5) * 360.0 / sensor.columns
+    return np.asarray(sensor.azimuths_deg)
+
+
+def _meets_box(o: np.ndarray, d: np.ndarray, limit: np.ndarray, lo: np.ndarray,
+               hi: np.ndarray) -> np.ndarray:
+    """Bool per ray (car frame): the segment from o along d for `limit` metres meets the box
+    [lo, hi] (the slab test; Kay and Kajiya, SIGGRAPH 1986)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t1, t2 = (lo - o) * inv, (hi - o) * inv
+    t1 = np.where(np.isnan(t1), -np.inf, t1)
+    t2 = np.where(np.isnan(t2), np.inf, t2)
+    enter = np.minimum(t1, t2).max(axis=1)
+    leave = np.maximum(t1, t2).min(axis=1)
+    return (leave >= np.maximum(enter, 0.0)) & (enter <= limit)
+
+
+def scanner_for(space: Space, sensor: Sensor | None = None, lod: int = 2):
+    """The scanner a space's samples are cast with: a RealScanner over its real backgrounds,
+    else a Simulator of its streets."""
+    from falsify.sensor.lidar import load_sensor
+    sensor = sensor or load_sensor(space.sensor)
+    if space.real_backgrounds:
+        return RealScanner(sensor, space.real_backgrounds, space.user_cars, lod=lod)
+    return Simulator(sensor, space.user_cars, lod=lod)

@@ -1,0 +1,302 @@
+"""Synthetic cars inserted into real scans: constructed scans whose geometry is known (a ground
+plane and a wall, cast analytically with a 360-degree HDL-64E's rays), and the real
+SemanticKITTI scans where ../shared/data holds them."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from falsify.data.real_backgrounds import (
+    COLLISION_POINTS,
+    INSERTED_INSTANCE,
+    RealScanner,
+    fit_ground,
+    pixel_directions,
+)
+from falsify.data.velodyne import read_kitti
+from falsify.errors import ConfigError
+from falsify.results.metrics import Scoring
+from falsify.semantic import RAW_ID
+from falsify.sensor.lidar import load_sensor
+from falsify.sensor.simulator import InvalidSample
+from falsify.world.space import RealScan, load_space, parse_space
+
+MOUNT = 1.73
+WALL_X = 25.0          # a wall across the road, 25 m ahead
+MINI = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti" / "semantickitti-mini"
+
+
+def street_cloud(slope: float = 0.0, extra: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 4) points and raw ids: a 360-degree HDL-64E's rays meeting the ground
+    z = -MOUNT + slope * x (road) or the wall x = WALL_X (building), whichever is nearer."""
+    d = load_sensor("kitti-hdl64e-360").directions.reshape(-1, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_ground = -MOUNT / (d[:, 2] - slope * d[:, 0])
+        t_wall = WALL_X / d[:, 0]
+    t_ground = np.where(t_ground > 0, t_ground, np.inf)
+    t_wall = np.where(t_wall > 0, t_wall, np.inf)
+    t = np.minimum(t_ground, t_wall)
+    keep = np.isfinite(t) & (t < 100.0)
+    xyz = d[keep] * t[keep, None]
+    sem = np.where(t_wall[keep] < t_ground[keep], RAW_ID["building"], RAW_ID["road"])
+    if extra is not None:
+        xyz = np.concatenate([xyz, extra[:, :3]])
+        sem = np.concatenate([sem, extra[:, 3]])
+    pts = np.column_stack([xyz, np.full(len(xyz), 0.25)]).astype(np.float32)
+    return pts, sem.astype(np.uint32)
+
+
+def write_scan(folder: Path, pts: np.ndarray, sem: np.ndarray | None, name: str = "000000"
+               ) -> RealScan:
+    """A SemanticKITTI-style .bin (+ .label when `sem` is given) in `folder`."""
+    folder.mkdir(parents=True, exist_ok=True)
+    pts.tofile(folder / f"{name}.bin")
+    label = None
+    if sem is not None:
+        label = folder / f"{name}.label"
+        sem.astype(np.uint32).tofile(label)
+    return RealScan(f"t/{name}", folder / f"{name}.bin", label,
+                    "semantickitti" if sem is not None else "none")
+
+
+def space_toml(path: Path, real: str, extra: str = "") -> Path:
+    path.write_text(f"""name = "inserted"
+[dims.car_model]
+values = ["sedan"]
+[dims.x]
+values = [0.0, 2.0]
+[dims.y]
+values = [8.0, 12.0]
+[dims.background]
+real = ["{real}"]
+{extra}""")
+    return path
+
+
+@pytest.fixture(scope="module")
+def street(tmp_path_factory) -> RealScan:
+    pts, sem = street_cloud()
+    return write_scan(tmp_path_factory.mktemp("street"), pts, sem)
+
+
+@pytest.fixture(scope="module")
+def scanner(street) -> RealScanner:
+    return RealScanner(load_sensor("kitti-hdl64e-front"), (street,))
+
+
+def sample(x: float, y: float, yaw: float = 0.0):
+    raw = {"dims": {"car_model": {"values": ["sedan"]}, "x": {"values": [x]},
+                    "y": {"values": [y]}, "yaw": {"values": [yaw]},
+                    "background": {"values": [0]}}}
+    return parse_space(raw).grid()[0]
+
+
+def same(a, b) -> bool:
+    return (a.image.tobytes() == b.image.tobytes() and a.instance.tobytes() == b.instance.tobytes()
+            and (a.semantic is None) == (b.semantic is None)
+            and (a.semantic is None or a.semantic.tobytes() == b.semantic.tobytes()))
+
+
+def test_a_car_beyond_the_range_or_out_of_view_leaves_the_real_scan_byte_for_byte(
+        scanner, street):
+    real = read_kitti(street.bin, street.label, scanner.sensor)
+    for x, y in ((0.0, 150.0), (0.0, -10.0), (12.0, 0.0), (-12.0, 2.0)):
+        scan = scanner.scan(sample(x, y), rng=np.random.default_rng(1))
+        assert same(scan, real), (x, y)
+
+
+def test_the_car_occludes_the_wall_behind_it_and_only_its_columns_change(scanner, street):
+    real = read_kitti(street.bin, street.label, scanner.sensor)
+    scan = scanner.scan(sample(0.0, 12.0), rng=np.random.default_rng(1))
+    car = scan.instance >= INSERTED_INSTANCE
+    assert car.sum() > 300
+    assert (scan.label[car] == 1).all()
+    assert (scan.semantic[car] == RAW_ID["car"]).all()
+    # Its points stand where the car is: 10-16 m ahead, on the ground, below its roof.
+    pts = scan.image[car]
+    assert pts[:, 0].min() > 9.0 and pts[:, 0].max() < 16.0
+    assert pts[:, 2].min() > -MOUNT - 0.05 and pts[:, 2].max() < -MOUNT + 1.7
+    # Wall pixels the car covers lost their wall point: the ray now ends at the car.
+    wall = real.semantic == RAW_ID["building"]
+    hidden = wall & car
+    assert hidden.sum() > 50
+    assert (scan.image[hidden, 4] < real.image[hidden, 4] - 5.0).all()
+    # Every pixel the car did not take (and did not empty) keeps the real bytes.
+    changed = (scan.image != real.image).any(axis=-1)
+    assert not (changed & ~car & scan.valid).any()
+    cols = np.flatnonzero(changed.any(axis=0))
+    assert set(cols) <= set(scanner.columns(scanner.placed_cars(sample(0.0, 12.0))[0]))
+
+
+def test_casting_only_the_cars_columns_equals_casting_every_column(scanner, monkeypatch):
+    s = sample(-2.0, 9.0, 30.0)
+    windowed = scanner.scan(s, rng=np.random.default_rng(3))
+    monkeypatch.setattr(scanner, "columns", lambda car: np.arange(scanner.sensor.columns))
+    assert same(scanner.scan(s, rng=np.random.default_rng(3)), windowed)
+
+
+def test_the_same_sample_and_seed_give_the_same_bytes(street):
+    a = RealScanner(load_sensor("kitti-hdl64e-front"), (street,))
+    b = RealScanner(load_sensor("kitti-hdl64e-front"), (street,))
+    s = sample(1.0, 10.0, 15.0)
+    assert same(a.scan(s, rng=np.random.default_rng(5)), b.scan(s, rng=np.random.default_rng(5)))
+    assert not same(a.scan(s, rng=np.random.default_rng(5)),
+                    a.scan(s, rng=np.random.default_rng(6)))
+
+
+def test_a_car_in_a_wall_is_invalid_and_named(scanner):
+    with pytest.raises(InvalidSample, match=r"intersects the real scan's building"):
+        scanner.scan(sample(0.0, WALL_X))
+
+
+def test_a_real_car_in_the_way_is_invalid_and_few_stray_points_are_removed(tmp_path):
+    sensor = load_sensor("kitti-hdl64e-front")
+    # A block of "car" points 10 m ahead, 0.5-1.2 m above the ground.
+    g = np.mgrid[9.0:11.0:0.1, -0.8:0.8:0.1, 0.5:1.2:0.1].reshape(3, -1).T
+    block = np.column_stack([g[:, 0], g[:, 1], g[:, 2] - MOUNT, np.full(len(g), 10)])
+    pts, sem = street_cloud(extra=block)
+    scanner = RealScanner(sensor, (write_scan(tmp_path / "car", pts, sem),))
+    with pytest.raises(InvalidSample, match=r"intersects the real scan's car \(\d+ points"):
+        scanner.scan(sample(0.0, 10.0))
+    # Fewer than COLLISION_POINTS: not a collision; the points in the car's body go.
+    few = block[:COLLISION_POINTS - 1]
+    pts, sem = street_cloud(extra=few)
+    scanner = RealScanner(sensor, (write_scan(tmp_path / "few", pts, sem),))
+    scan = scanner.scan(sample(0.0, 10.0), rng=np.random.default_rng(0))
+    left = scan.image[scan.valid & (scan.semantic == RAW_ID["car"])
+                      & (scan.instance < INSERTED_INSTANCE)]
+    assert len(left) == 0
+    # Unlabelled, any point above the clearance counts, and is named as points.
+    pts, _ = street_cloud(extra=block)
+    scanner = RealScanner(sensor, (write_scan(tmp_path / "unlabelled", pts, None),))
+    with pytest.raises(InvalidSample, match=r"intersects the real scan's points"):
+        scanner.scan(sample(0.0, 10.0))
+
+
+def test_the_car_stands_on_the_fitted_slope(tmp_path):
+    slope = 0.05
+    pts, sem = street_cloud(slope=slope)
+    scanner = RealScanner(load_sensor("kitti-hdl64e-front"),
+                          (write_scan(tmp_path / "slope", pts, sem),))
+    car = scanner.placed_cars(sample(0.0, 10.0))[0]
+    assert car.z == pytest.approx(-MOUNT + slope * 10.0, abs=0.02)
+    assert car.pitch_deg == pytest.approx(math.degrees(math.atan(-slope)), abs=0.2)
+    assert car.roll_deg == pytest.approx(0.0, abs=0.2)
+    # Turned 90 degrees, the slope is across the car: roll, not pitch.
+    car = scanner.placed_cars(sample(0.0, 10.0, 90.0))[0]
+    assert car.pitch_deg == pytest.approx(0.0, abs=0.2)
+    assert abs(car.roll_deg) == pytest.approx(math.degrees(math.atan(slope)), abs=0.2)
+
+
+def test_fit_ground_is_exact_on_a_plane_and_flat_where_nothing_is_near():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-5, 5, (400, 2))
+    plane = np.column_stack([xy, -1.7 + 0.02 * xy[:, 0] - 0.03 * xy[:, 1]])
+    z, gx, gy = fit_ground(plane, 1.0, 2.0, 2.5, -9.0)
+    assert (z, gx, gy) == pytest.approx((-1.7 + 0.02 - 0.06, 0.02, -0.03), abs=1e-9)
+    assert fit_ground(plane, 500.0, 0.0, 2.5, -9.0) == (-9.0, 0.0, 0.0)
+    assert fit_ground(np.empty((0, 3)), 0.0, 0.0, 2.5, -1.73) == (-1.73, 0.0, 0.0)
+
+
+def test_spherical_pixel_directions_land_in_their_own_pixels():
+    sensor = load_sensor("semantickitti-hdl64e")
+    d = pixel_directions(sensor)
+    rows, cols, inside = sensor.pixel_of(d.reshape(-1, 3) * 10.0)
+    h, w = sensor.shape
+    assert inside.all()
+    assert (rows == np.repeat(np.arange(h), w)).all()
+    assert (cols == np.tile(np.arange(w), h)).all()
+
+
+def test_parts_score_the_inserted_and_the_real_cars_apart():
+    scoring = Scoring(parts=True)
+    truth = np.array([1, 1, 1, 1, 0, 0])
+    inserted = np.array([True, True, False, False, False, False])
+    pred = np.array([1, 0, 1, 1, 1, 0])
+    m, _ = scoring.score(pred, truth, inserted)
+    # Inserted: real car pixels (2, 3) left out; TP 1, FN 1, FP 1 (pixel 4).
+    assert m["inserted_iou"] == pytest.approx(1 / 3)
+    assert m["inserted_recall"] == pytest.approx(1 / 2)
+    # Real: inserted pixels left out; TP 2, FP 1.
+    assert m["real_iou"] == pytest.approx(2 / 3)
+    assert m["real_recall"] == 1.0
+    assert m["car_iou"] == pytest.approx(3 / 5)
+    assert "inserted_iou" in scoring.columns and "inserted_iou" not in Scoring().columns
+
+
+def test_config_names_the_missing_scan_and_refuses_weather(tmp_path):
+    with pytest.raises(ConfigError, match=r"dims.background.real: .*nowhere.bin: no such file"):
+        load_space(space_toml(tmp_path / "a.toml", str(tmp_path / "nowhere.bin")))
+    (tmp_path / "x.bin").write_bytes(b"")
+    with pytest.raises(ConfigError, match=r"dims.fog: weather and sensor faults"):
+        load_space(space_toml(tmp_path / "b.toml", str(tmp_path / "x.bin"),
+                              "[dims.fog]\nvalues = [50.0]\n"))
+    ok = space_toml(tmp_path / "c.toml", str(tmp_path / "x.bin"))
+    (tmp_path / "d.toml").write_text(ok.read_text().replace("real = [", "values = [0]\nreal = ["))
+    with pytest.raises(ConfigError, match=r"unknown key 'values' beside real"):
+        load_space(tmp_path / "d.toml")
+
+
+def test_config_relative_paths_and_the_data_itself_are_part_of_the_space(tmp_path, street):
+    import shutil
+    shutil.copy(street.bin, tmp_path / "s.bin")
+    shutil.copy(street.label, tmp_path / "s.label")
+    space = load_space(space_toml(tmp_path / "a.toml", "s.bin"))
+    assert space.real_backgrounds[0].kind == "semantickitti"
+    assert space.background_name(0).endswith("/s")
+    before = space.config_hash
+    pts, sem = street_cloud(slope=0.01)
+    pts.tofile(tmp_path / "s.bin")
+    assert load_space(tmp_path / "a.toml").config_hash != before
+
+
+def test_grid_on_a_real_background_exits_2_on_a_bad_path_and_writes_nothing(tmp_path):
+    cfg = space_toml(tmp_path / "bad.toml", str(tmp_path / "missing.bin"))
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "falsify", "grid", str(cfg), "--out", str(out)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "missing.bin" in proc.stderr
+    assert not out.exists()
+
+
+def test_grid_and_gate_run_on_a_constructed_real_background(tmp_path, street):
+    cfg = space_toml(tmp_path / "ok.toml", str(street.bin))
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "falsify", "grid", str(cfg), "--out", str(out),
+                           "--json", "--no-report"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    import sqlite3
+    with sqlite3.connect(out / "results.sqlite") as con:
+        rows = con.execute("SELECT status, car_iou, inserted_iou, real_recall "
+                           "FROM samples").fetchall()
+    assert len(rows) == 4 and all(r[0] == "ok" for r in rows)
+    assert all(r[2] is not None for r in rows)   # the inserted car is scored apart
+    assert all(r[3] is None for r in rows)       # no real car here: its recall is undefined
+    gate = subprocess.run([sys.executable, "-m", "falsify", "gate", str(out),
+                           "--max-blind-spots", "4", "--json"], capture_output=True, text=True)
+    assert gate.returncode == 0, gate.stderr
+
+
+@pytest.mark.skipif(not MINI.is_dir(), reason=f"SemanticKITTI mini scans not found at {MINI} "
+                    "(see shared/data/README.md)")
+def test_real_semantickitti_scans_keep_their_bytes_out_of_the_cars_reach(tmp_path):
+    seq = MINI / "sequences" / "08"
+    space = load_space(space_toml(tmp_path / "r.toml", str(seq)))
+    assert [r.name for r in space.real_backgrounds] == ["08/000000", "08/000005", "08/000009"]
+    scanner = RealScanner(load_sensor(space.sensor), space.real_backgrounds)
+    for bg, real in enumerate(space.real_backgrounds):
+        behind = space.make({"x": 0.0, "y": 8.0, "background": bg})
+        car = scanner.placed_cars(behind)[0]
+        # Behind the sensor, out of the front view: the scan is the real one.
+        scan = scanner.insert(scanner.background(bg), [replace(car, x=-car.x)],
+                              np.random.default_rng(0))
+        assert same(scan, read_kitti(real.bin, real.label, scanner.sensor))
