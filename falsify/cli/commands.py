@@ -207,7 +207,7 @@ def _predict_sequences(value: str | None, scans: list[str]) -> list[str] | None:
     UsageError names the option and the allowed values."""
     if value is None:
         return None
-    from falsify.data.scansets import SEQUENCE_ID, available_sequences
+    from falsify.world.real_scans import SEQUENCE_ID, available_sequences
 
     allowed = available_sequences(scans)
     hint = (f"allowed: {', '.join(allowed)}" if allowed else "no SemanticKITTI root or "
