@@ -188,15 +188,58 @@ def multiples_section(data: RunData, threshold: float) -> str:
     figs = []
     for bg in shown:
         cmap = data.cell_map(data.frame[data.frame["background"] == bg])
-        svg, mean, n_blind = _small_map(cmap, threshold, f"background {bg}",
-                                        f"background {bg}")
+        label = (data.space.background_name(bg) if data.space.real_backgrounds
+                 else f"background {bg}")
+        svg, mean, n_blind = _small_map(cmap, threshold, label, label)
+        short = label if data.space.real_backgrounds else f"bg {bg}"
         figs.append(f'<figure class="multiple">{svg}'
-                    f"<figcaption>bg {esc(bg)} · {mean}<br>{n_blind} blind"
+                    f"<figcaption>{esc(short)} · {mean}<br>{n_blind} blind"
                     "</figcaption></figure>")
     more = (f'<p class="note">showing {len(shown)} of {len(bgs)} backgrounds</p>'
             if len(bgs) > len(shown) else "")
     return (f'<div class="multiples-wrap"><h3>Per background</h3><div class="multiples">'
             f'{"".join(figs)}</div>{more}</div>')
+
+
+def inserted_section(data: RunData, threshold: float) -> str:
+    """Runs on real backgrounds: the inserted car's own IoU and recall maps, and per real scan
+    the inserted and the real cars scored apart (each with the other left out)."""
+    if "inserted_iou" not in data.frame:
+        return ""
+    figs = []
+    for col, title in (("inserted_iou", "inserted car IoU"),
+                       ("inserted_recall", "inserted car recall")):
+        svg, mean, n_blind = _small_map(data.cell_map(column=col), threshold, title, title)
+        figs.append(f'<figure class="multiple">{svg}<figcaption>{esc(title)} · {mean}<br>'
+                    f"{n_blind} below {threshold:.2f}</figcaption></figure>")
+    frame = data.frame
+    rows = []
+    for bg in _bg_values(data):
+        mine = frame[frame["background"] == bg]
+        ok = mine[mine["status"] == Status.OK.value]
+
+        def mean(col: str, ok=ok) -> str:
+            v = ok[col].astype(float).mean() if col in ok and len(ok) else float("nan")
+            return "—" if math.isnan(v) else f3(v)
+        rows.append(
+            f"<tr><td>{esc(data.space.background_name(bg))}</td>"
+            f'<td class="num">{len(ok)}</td>'
+            f'<td class="num">{int((mine["status"] == Status.INVALID.value).sum())}</td>'
+            f'<td class="num">{mean(data.score_column)}</td>'
+            f'<td class="num">{mean("inserted_iou")} / {mean("inserted_recall")}</td>'
+            f'<td class="num">{mean("real_iou")} / {mean("real_recall")}</td></tr>')
+    return f"""
+<section id="inserted">
+<h2>Inserted and real cars</h2>
+<p class="note">Each sample is a real scan with the car inserted. The inserted car is scored
+with the scan's real cars left out, and the real cars with the inserted one left out, so a map
+of the inserted car shows where the network loses it. A position where the car would stand in a
+real car, wall or tree is invalid, counted and never merged.</p>
+<div class="multiples">{"".join(figs)}</div>
+<table class="small"><thead><tr><th>real scan</th><th>valid</th><th>invalid</th>
+<th>mean {esc(objective_name(data))}</th><th>inserted IoU / recall</th>
+<th>real IoU / recall</th></tr></thead><tbody>{"".join(rows)}</tbody></table>
+</section>"""
 
 
 def class_maps_section(data: RunData, threshold: float) -> str:
@@ -579,7 +622,7 @@ def worst_section(data: RunData, scans: Mapping[int, ReplayedScan], note: str,
             f'<td class="num">{esc(_dimtext(r, "x"))}, {esc(_dimtext(r, "y"))}</td>'
             f'<td class="num">{esc(_dimtext(r, "yaw"))}</td>'
             f"<td>{esc(_dimtext(r, 'car_model'))}</td>"
-            f"<td>{esc(_dimtext(r, 'background'))}</td>"
+            f"<td>{esc(_bg_text(data, r))}</td>"
             f'<td class="num bad">{f3(r[col])}</td>'
             f'<td class="num">{f3(r.get(prec))} /<br>{f3(r.get(rec))}</td>'
             f'<td class="num">{_int(r.get("label_points"))} / {_int(r.get("car_points"))}</td>'
@@ -605,6 +648,14 @@ def _pics_html(ranges: str, bev: str, what: str) -> str:
     return (f'<div class="pic"><img src="{ranges}" alt="range image, {what}" width="448">'
             f'<img src="{bev}" alt="bird\'s-eye view, {what}" width="112" '
             f'height="112"></div>')
+
+
+def _bg_text(data: RunData, row: pd.Series) -> str:
+    """A row's background: the real scan's name on real backgrounds, else the street's id."""
+    text = _dimtext(row, "background")
+    if data.space.real_backgrounds and text != "—":
+        return data.space.background_name(int(float(text)))
+    return text
 
 
 def _dimtext(row: pd.Series, name: str) -> str:
@@ -634,7 +685,7 @@ def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
         low = data.worst(1).iloc[0]
         lowest = (f"{f3(low[data.score_column])} at x = {_dimtext(low, 'x')}, "
                   f"y = {_dimtext(low, 'y')}"
-                  f", background {_dimtext(low, 'background')} (eval {int(low['eval_index'])})")
+                  f", background {esc(_bg_text(data, low))} (eval {int(low['eval_index'])})")
     else:
         lowest = "—"
     scored_cells = sorted((c for c in cmap.cells() if c.miou is not None),
@@ -856,7 +907,8 @@ def render(report: ReportInput) -> str:
     meta = data.meta
     name = meta.get("space_name") or data.space.name
     sections = [summary_section(data, cmap, threshold), heatmap_section(data, cmap, threshold)]
-    if meta.get("scored_classes"):
+    sections.append(inserted_section(data, threshold))
+    if meta.get("scored_classes") and "inserted_iou" not in data.frame:
         sections.append(class_maps_section(data, threshold))
     if meta.get("command") == "search":
         sections.append(search_section(data, cmap, threshold))

@@ -141,6 +141,9 @@ def prepare(req: RunRequest) -> Prepared:
         "threshold": req.threshold or space.threshold, "workers": req.workers,
         "fidelity": req.fidelity, "lod": fid.lod, "executor": req.executor,
     }
+    if space.real_backgrounds:   # which scans, so a report or gate need not look again
+        meta["real_backgrounds"] = [[r.name, str(r.bin), None if r.label is None else str(r.label),
+                                     r.kind] for r in space.real_backgrounds]
     if scoring != CAR_SCORING:   # car-objective, four-class runs keep their bytes
         meta.update(objective=scoring.objective, score_column=scoring.score_column,
                     scored_classes=list(scoring.scored))

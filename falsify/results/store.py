@@ -23,7 +23,7 @@ from falsify.errors import FalsifyError
 from falsify.results.metrics import Scoring, Status
 from falsify.results.miou_maps import CellMap, miou_map
 from falsify.results.samples import CAR_SCORING, SampleResult, sample_key
-from falsify.world.space import DEFAULT_THRESHOLD, Sample, Space, parse_space
+from falsify.world.space import DEFAULT_THRESHOLD, RealScan, Sample, Space, parse_space
 
 STORE_NAME = "results.sqlite"
 METRIC_COLUMNS = CAR_SCORING.columns
@@ -268,8 +268,12 @@ def open_run(run: str | Path) -> RunData:
         raise FalsifyError(f"{path / STORE_NAME}: stored config is not valid TOML ({exc})") \
             from None
     source = str(meta.get("config_path") or "<stored config>")
+    real = meta.get("real_backgrounds")
     space = parse_space(raw, source=source, base_dir=Path(source).parent,
-                        config_hash=str(meta.get("config_hash") or ""), builtin_cars=None)
+                        config_hash=str(meta.get("config_hash") or ""), builtin_cars=None,
+                        real_backgrounds=None if real is None else tuple(
+                            RealScan(n, Path(b), None if lab is None else Path(lab), k)
+                            for n, b, lab, k in real))
     score = str(meta.get("score_column") or "car_iou")
     missing = [c for c in ("x", "y", "status", score) if c not in frame.columns]
     if missing:

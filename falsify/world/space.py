@@ -15,7 +15,7 @@ import hashlib
 import itertools
 import math
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -318,13 +318,23 @@ def load_space(path: str | Path, builtin_cars: tuple[str, ...] | None = None) ->
         raw = tomllib.loads(text.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
-    return parse_space(raw, source=str(path), base_dir=path.parent,
-                       config_hash=hashlib.sha256(text).hexdigest(), builtin_cars=builtin_cars)
+    space = parse_space(raw, source=str(path), base_dir=path.parent,
+                        config_hash=hashlib.sha256(text).hexdigest(), builtin_cars=builtin_cars)
+    if not space.real_backgrounds:
+        return space
+    digest = hashlib.sha256(space.config_hash.encode())   # changed scans: another space
+    for r in space.real_backgrounds:
+        for f in (r.bin, r.label):
+            if f is not None:
+                digest.update(read_bytes(f, "real background", ConfigError))
+    return replace(space, config_hash=digest.hexdigest())
 
 
 def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | None = None,
-                config_hash: str = "", builtin_cars: tuple[str, ...] | None = None) -> Space:
-    """Validate a parsed config dict into a Space."""
+                config_hash: str = "", builtin_cars: tuple[str, ...] | None = None,
+                real_backgrounds: tuple[RealScan, ...] | None = None) -> Space:
+    """Validate a parsed config dict into a Space; `real_backgrounds`, when given, are the real
+    scans a run recorded, used instead of looking for them again (a run's data may move)."""
     if builtin_cars is None:
         from falsify.world.cars import BUILTIN_MODELS
         builtin_cars = BUILTIN_MODELS
@@ -390,7 +400,8 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
     real: tuple[RealScan, ...] = ()
     bg_raw = dims_raw["background"]
     if isinstance(bg_raw, dict) and "real" in bg_raw:
-        real = _real_backgrounds(bg_raw, where, base_dir or Path("."))
+        real = (real_backgrounds if real_backgrounds is not None
+                else _real_backgrounds(bg_raw, where, base_dir or Path(".")))
         bg = Categorical("background", tuple(range(len(real))))
         effects = [e for e in EFFECT_DIMS if e in dims_raw]
         if effects:
@@ -411,13 +422,6 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
     for effect in EFFECT_DIMS:
         if effect in dims_raw:
             dims[effect] = _continuous_or_values(effect, dims_raw[effect], where)
-    if real and config_hash:   # the same config over changed scans is another space
-        digest = hashlib.sha256(config_hash.encode())
-        for r in real:
-            for f in (r.bin, r.label):
-                if f is not None:
-                    digest.update(read_bytes(f, "real background", ConfigError))
-        config_hash = digest.hexdigest()
     return Space(name=name, sensor=sensor, seed=seed, threshold=threshold, dims=dims,
                  user_cars=user_cars, source=source, config_hash=config_hash,
                  real_backgrounds=real)
