@@ -16,7 +16,9 @@ import pytest
 from falsify.data.real_backgrounds import (
     COLLISION_POINTS,
     INSERTED_INSTANCE,
+    PointIndex,
     RealScanner,
+    _meets_box,
     fit_ground,
     pixel_directions,
 )
@@ -200,10 +202,39 @@ def test_fit_ground_is_exact_on_a_plane_and_flat_where_nothing_is_near():
     rng = np.random.default_rng(0)
     xy = rng.uniform(-5, 5, (400, 2))
     plane = np.column_stack([xy, -1.7 + 0.02 * xy[:, 0] - 0.03 * xy[:, 1]])
-    z, gx, gy = fit_ground(plane, 1.0, 2.0, 2.5, -9.0)
+    z, gx, gy = fit_ground(PointIndex.of(plane), 1.0, 2.0, 2.5, -9.0)
     assert (z, gx, gy) == pytest.approx((-1.7 + 0.02 - 0.06, 0.02, -0.03), abs=1e-9)
-    assert fit_ground(plane, 500.0, 0.0, 2.5, -9.0) == (-9.0, 0.0, 0.0)
-    assert fit_ground(np.empty((0, 3)), 0.0, 0.0, 2.5, -1.73) == (-1.73, 0.0, 0.0)
+    assert fit_ground(PointIndex.of(plane), 500.0, 0.0, 2.5, -9.0) == (-9.0, 0.0, 0.0)
+    assert fit_ground(PointIndex.of(np.empty((0, 3))), 0.0, 0.0, 2.5, -1.73) == (-1.73, 0.0,
+                                                                                 0.0)
+
+
+def test_the_point_index_finds_every_point_near_a_place():
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-60, 60, (20000, 3))
+    index = PointIndex.of(pts, np.arange(20000))
+    for x, y, r in ((0.0, 0.0, 3.0), (-59.0, 10.5, 2.0), (13.3, -7.9, 7.5), (200.0, 0.0, 1.0)):
+        found = set(index.semantic[index.near(x, y, r)].tolist())
+        inside = np.flatnonzero((np.abs(pts[:, 0] - x) <= r) & (np.abs(pts[:, 1] - y) <= r))
+        assert set(inside.tolist()) <= found
+    kept = index.subset(index.points[:, 2] > 0)
+    assert (kept.points[:, 2] > 0).all() and (np.diff(kept.keys) >= 0).all()
+
+
+def test_the_slab_test_never_misses_a_ray_that_meets_the_box():
+    rng = np.random.default_rng(2)
+    o = rng.normal(0, 6, (4000, 3))
+    d = rng.normal(size=(4000, 3))
+    d[:500, 1:] = 0.0     # axis-parallel rays: directions with exact zeros
+    d[500:900, 2] = 0.0
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    lo, hi = np.array([-2.0, -1.0, 0.0]), np.array([2.0, 1.0, 1.5])
+    hits = _meets_box(o, d, np.full(4000, 30.0), lo, hi)
+    t = np.linspace(0.0, 30.0, 6001)
+    walk = o[:, None, :] + d[:, None, :] * t[None, :, None]
+    met = ((walk >= lo) & (walk <= hi)).all(axis=-1).any(axis=1)
+    assert (hits >= met).all() and met.sum() > 50
+    assert (hits & ~met).sum() <= 0.01 * len(o)   # grazing rays the walk steps over
 
 
 def test_spherical_pixel_directions_land_in_their_own_pixels():

@@ -48,6 +48,7 @@ CLEARANCE_M = 0.25       # real points this far above the ground under a car are
 COLLISION_POINTS = 5     # obstacle points in a car's body that make the sample invalid
 GROUND_MARGIN_M = 1.0    # the ground plane is fitted on points this far around the car
 MIN_GROUND_POINTS = 20   # fewer than this around the car: look twice as far (three times)
+FIT_POINTS = 1000        # about this many ground points fit a car's plane
 MAX_SLOPE = 0.3          # a fitted plane steeper than this (17 degrees) is clamped to it
 LOWEST_CELL_M = 1.0      # unlabelled scans: ground = points near their 1 m cell's lowest point
 LOWEST_BAND_M = 0.15
@@ -59,18 +60,70 @@ OBJECT_TYPES = {"Car": RAW_ID["car"], "Van": RAW_ID["other-vehicle"], "Truck": R
 
 
 @dataclass(frozen=True)
+class PointIndex:
+    """Points bucketed in CELL_M squares of the ground plane and sorted by square, so the
+    points around a place are a few contiguous runs (a car's ground fit and collision test
+    read a thousand points, not the scan's hundred thousand)."""
+
+    points: np.ndarray             # (N, 3), sorted by square
+    semantic: np.ndarray | None    # (N,) raw SemanticKITTI ids of the points, where known
+    keys: np.ndarray               # (N,) each point's square, sorted
+
+    @classmethod
+    def of(cls, points: np.ndarray, semantic: np.ndarray | None = None) -> PointIndex:
+        keys = _square_keys(points[:, 0], points[:, 1])
+        order = np.argsort(keys, kind="stable")
+        return cls(np.ascontiguousarray(points[order]),
+                   None if semantic is None else semantic[order], keys[order])
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def near(self, x: float, y: float, reach: float) -> np.ndarray:
+        """Indices of the points in the squares that the square of half-side `reach` around
+        (x, y) touches (a superset of those within `reach`)."""
+        ix = np.arange(math.floor((x - reach) / CELL_M), math.floor((x + reach) / CELL_M) + 1)
+        lo = np.searchsorted(self.keys, _square_key(ix, math.floor((y - reach) / CELL_M)))
+        hi = np.searchsorted(self.keys, _square_key(ix, math.floor((y + reach) / CELL_M)),
+                             side="right")
+        runs = [np.arange(a, b) for a, b in zip(lo.tolist(), hi.tolist(), strict=True) if b > a]
+        return np.concatenate(runs) if runs else np.empty(0, np.int64)
+
+    def subset(self, keep: np.ndarray) -> PointIndex:
+        """The points where `keep` is true, still sorted by square."""
+        return PointIndex(self.points[keep], None if self.semantic is None
+                          else self.semantic[keep], self.keys[keep])
+
+
+CELL_M = 2.0   # side of PointIndex's squares
+_KEY_OFFSET = 1 << 24   # squares of 2 m: keys stay positive and distinct within 33,000 km
+
+
+def _square_key(ix, iy):
+    return (np.asarray(ix, np.int64) + _KEY_OFFSET) * (2 * _KEY_OFFSET) + (iy + _KEY_OFFSET)
+
+
+def _square_keys(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return _square_key(np.floor(x / CELL_M).astype(np.int64),
+                       np.floor(y / CELL_M).astype(np.int64))
+
+
+@dataclass(frozen=True)
 class RealBackground:
     """A real scan ready for insertion: its range image as read, each pixel's ray, and the whole
     cloud with its labels (for the ground and for collisions)."""
 
     scan: Scan                 # the real scan in the sensor's image, as `predict` reads it
-    dist: np.ndarray           # (H, W) range of each pixel's point along its ray, inf if empty
+    dist: np.ndarray           # (H, W) range of each pixel's point along its ray (at most the
+    #                            sensor's range: an empty pixel's ray may meet a car that far)
     origin: np.ndarray         # (H, W, 3) where each pixel's ray starts (sensor frame)
     direction: np.ndarray      # (H, W, 3) unit direction of each pixel's ray
-    xyz: np.ndarray            # (N, 3) every finite point of the scan
-    semantic: np.ndarray | None   # (N,) raw SemanticKITTI ids of the points, where known
+    cloud: PointIndex          # every finite point of the scan, with its label where known
     dense: bool                # every point labelled (SemanticKITTI), not only boxes' points
-    ground: np.ndarray         # (M, 3) the points a car may stand on
+    ground: PointIndex         # the points a car may stand on
+    row_elevation: np.ndarray  # (H, 2) lowest and highest elevation (rad) of each row's rays
+    valid: np.ndarray          # (H, W) the pixels holding a real point
+    origin_reach: float        # the farthest any ray starts from the sensor's origin
 
 
 def read_background(real: RealScan, sensor: Sensor) -> RealBackground:
@@ -96,8 +149,15 @@ def read_background(real: RealScan, sensor: Sensor) -> RealBackground:
     dist = np.where(valid, np.linalg.norm(p, axis=-1), np.inf)
     direction = pixel_directions(sensor)
     direction[valid] = p[valid] / dist[valid][:, None]
-    return RealBackground(scan, dist, origin, direction, xyz, sem, dense,
-                          _ground_points(xyz, sem if dense else None))
+    ground = _ground_points(xyz, sem if dense else None)
+    for a in (dist, origin, direction):
+        a.setflags(write=False)
+    el = np.arcsin(np.clip(direction[..., 2], -1.0, 1.0))
+    return RealBackground(scan, np.minimum(dist, sensor.max_range), origin, direction,
+                          PointIndex.of(xyz, sem), dense,
+                          PointIndex.of(ground.astype(np.float64)),
+                          np.stack([el.min(axis=1), el.max(axis=1)], axis=1), valid,
+                          float(np.abs(origin).max()))
 
 
 def _box_labels(real: RealScan, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -142,25 +202,37 @@ def _ground_points(xyz: np.ndarray, semantic: np.ndarray | None) -> np.ndarray:
     return xyz[xyz[:, 2] <= low[inv] + LOWEST_BAND_M]
 
 
-def fit_ground(ground: np.ndarray, x: float, y: float, reach: float,
-               default_z: float) -> tuple[float, float, float]:
+def fit_ground(ground: PointIndex, x: float, y: float, reach: float, default_z: float
+               ) -> tuple[float, float, float]:
     """(z, dz/dx, dz/dy) of the ground plane at (x, y): least squares over the ground points
-    within reach + GROUND_MARGIN_M (twice and three times that when too few), refitted once
-    without points more than 0.15 m off; flat at `default_z` where none are near."""
-    d2 = (ground[:, 0] - x) ** 2 + (ground[:, 1] - y) ** 2
+    within reach + GROUND_MARGIN_M (twice and three times that when too few; every k-th of
+    them where there are more than 2 FIT_POINTS, a plane needs no more), refitted once without
+    points more than 0.15 m off; flat at `default_z` where none are near."""
     for grow in (1.0, 2.0, 3.0):
-        near = ground[d2 <= ((reach + GROUND_MARGIN_M) * grow) ** 2]
+        r = (reach + GROUND_MARGIN_M) * grow
+        idx = ground.near(x, y, r)
+        cand = ground.points[idx[::max(1, len(idx) // FIT_POINTS)]]
+        near = cand[(cand[:, 0] - x) ** 2 + (cand[:, 1] - y) ** 2 <= r * r]
         if len(near) >= MIN_GROUND_POINTS:
             break
     else:
         return default_z, 0.0, 0.0
     a = np.column_stack([np.ones(len(near)), near[:, 0] - x, near[:, 1] - y])
-    coef = np.linalg.lstsq(a, near[:, 2], rcond=None)[0]
+    coef = _plane(a, near[:, 2])
     keep = np.abs(a @ coef - near[:, 2]) <= 0.15
     if keep.sum() >= MIN_GROUND_POINTS:
-        coef = np.linalg.lstsq(a[keep], near[keep, 2], rcond=None)[0]
+        coef = _plane(a[keep], near[keep, 2])
     gx, gy = (float(np.clip(v, -MAX_SLOPE, MAX_SLOPE)) for v in coef[1:])
     return float(coef[0]), gx, gy
+
+
+def _plane(a: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Least-squares coefficients of z ~ a (n x 3), by lstsq where the normal equations are
+    near singular (points on a line), else by solving them (several times faster)."""
+    ata = a.T @ a
+    if abs(np.linalg.det(ata)) <= 1e-12 * np.trace(ata) ** 3:
+        return np.linalg.lstsq(a, z, rcond=None)[0]
+    return np.linalg.solve(ata, a.T @ z)
 
 
 class RealScanner:
@@ -175,6 +247,7 @@ class RealScanner:
         self.real = backgrounds
         self.sim = Simulator(sensor, user_cars, lod=lod)
         self._bg: OrderedDict[int, RealBackground] = OrderedDict()
+        self._boxes: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, float]] = {}
         self._max = max_backgrounds
         self._columns = _column_azimuths(sensor)
         self._keep = (self.sim.returns.keep_map(sensor.rows, sensor.azimuths_deg)
@@ -212,15 +285,21 @@ class RealScanner:
             self.check_collision(bg, car, i + 1)
         return settled
 
-    def _box(self, car: PlacedCar) -> tuple[np.ndarray, np.ndarray]:
-        _, corners = self.sim.car_caster(car.model)
-        return corners.min(axis=0), corners.max(axis=0)
+    def _box(self, car: PlacedCar) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """The car model's bounding box in its own frame: lowest and highest corner, the eight
+        corners, and how far the farthest is from the car's origin."""
+        if car.model not in self._boxes:
+            _, corners = self.sim.car_caster(car.model)
+            lo, hi = corners.min(axis=0), corners.max(axis=0)
+            self._boxes[car.model] = (lo, hi, corners,
+                                      float(np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi)))))
+        return self._boxes[car.model]
 
     def settle(self, bg: RealBackground, car: PlacedCar) -> PlacedCar:
         """The car on the scan's ground plane under it: height, pitch and roll (as
         falsify.world.terrain.Terrain.pose_on: positive pitch tilts the nose down, positive
         roll lifts the left side)."""
-        lo, hi = self._box(car)
+        lo, hi, _, _ = self._box(car)
         reach = float(np.hypot(*np.maximum(np.abs(lo[:2]), np.abs(hi[:2]))))
         z, gx, gy = fit_ground(bg.ground, car.x, car.y, reach, -self.sensor.mount_height)
         h = math.radians(car.heading_deg)
@@ -229,11 +308,15 @@ class RealScanner:
         roll = math.degrees(math.atan(-gx * fy + gy * fx))
         return replace(car, z=z, pitch_deg=pitch, roll_deg=roll)
 
+    def reach(self, car: PlacedCar) -> float:
+        """How far from its origin any part of the car's bounding box is, at most."""
+        return self._box(car)[3]
+
     def body_points(self, xyz: np.ndarray, car: PlacedCar) -> np.ndarray:
         """Bool per point: inside the car's bounding box and at least CLEARANCE_M above the
         ground it stands on."""
-        lo, hi = self._box(car)
-        reach = float(np.abs(np.concatenate([lo, hi])).max())
+        lo, hi, _, _ = self._box(car)
+        reach = self.reach(car)
         near = ((np.abs(xyz[:, 0] - car.x) <= reach) & (np.abs(xyz[:, 1] - car.y) <= reach))
         out = np.zeros(len(xyz), bool)
         idx = np.flatnonzero(near)
@@ -247,14 +330,16 @@ class RealScanner:
         """InvalidSample if COLLISION_POINTS or more obstacle points of the scan (any point but
         ground, unlabeled and outliers where every point is labelled; any point otherwise) lie in
         the car's body."""
-        inside = self.body_points(bg.xyz, car)
+        rows = bg.cloud.near(car.x, car.y, self.reach(car))
+        inside = self.body_points(bg.cloud.points[rows], car)
+        sem = None if bg.cloud.semantic is None else bg.cloud.semantic[rows][inside]
         if bg.dense:
-            inside &= ~np.isin(bg.semantic, np.concatenate([GROUND_IDS, IGNORED_IDS]))
-        n = int(inside.sum())
+            sem = sem[~np.isin(sem, np.concatenate([GROUND_IDS, IGNORED_IDS]))]
+        n = int(inside.sum()) if sem is None else len(sem)
         if n < COLLISION_POINTS:
             return
         what = "points"
-        named = bg.semantic[inside] if bg.semantic is not None else np.empty(0, np.uint16)
+        named = sem if sem is not None else np.empty(0, np.uint16)
         named = named[named > 1]
         if len(named):
             ids, counts = np.unique(named, return_counts=True)
@@ -266,10 +351,7 @@ class RealScanner:
     def columns(self, car: PlacedCar) -> np.ndarray:
         """The image columns whose rays can reach the car's bounding box (one column of margin
         either side: a real point's azimuth strays within its column)."""
-        lo, hi = self._box(car)
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                            for z in (lo[2], hi[2])])
-        world = corners @ car.rotation().T + car.translation()
+        world = self._box(car)[2] @ car.rotation().T + car.translation()
         az = np.sort(np.degrees(np.arctan2(world[:, 1], world[:, 0])))
         gaps = np.diff(np.concatenate([az, [az[0] + 360.0]]))
         k = int(np.argmax(gaps))
@@ -280,6 +362,25 @@ class RealScanner:
             self.sensor.az_step_deg)
         rel = (self._columns - start + step) % 360.0
         return np.flatnonzero(rel <= span + 2 * step)
+
+    def rows(self, bg: RealBackground, car: PlacedCar) -> np.ndarray:
+        """The image rows holding a ray whose elevation can reach the car's bounding box, from
+        the box's nearest and farthest distance and its height (with every ray's origin)."""
+        lo, hi, corners, _ = self._box(car)
+        p = corners @ car.rotation().T + car.translation()
+        local = -car.translation() @ car.rotation()   # the sensor origin in the car's frame
+        start = bg.origin_reach
+        d_min = float(np.linalg.norm(local - np.clip(local, lo, hi))) - start
+        d_max = float(np.linalg.norm(p, axis=1).max()) + start
+        all_rows = np.arange(self.sensor.rows)
+        if d_min <= 1e-9:
+            return all_rows
+        z_lo, z_hi = p[:, 2].min() - start, p[:, 2].max() + start
+        el_hi = math.asin(min(1.0, z_hi / d_min)) if z_hi > 0 else math.asin(z_hi / d_max)
+        el_lo = math.asin(max(-1.0, z_lo / d_min)) if z_lo < 0 else math.asin(z_lo / d_max)
+        eps = 1e-9
+        return all_rows[(bg.row_elevation[:, 1] >= el_lo - eps)
+                        & (bg.row_elevation[:, 0] <= el_hi + eps)]
 
     def scan(self, sample: Sample, pose: SensorPose = SensorPose(),
              rng: np.random.Generator | None = None) -> Scan:
@@ -295,71 +396,79 @@ class RealScanner:
         never returns) and real points left inside a car's body go."""
         s = self.sensor
         h, w = s.shape
-        dist = np.minimum(bg.dist, s.max_range)
-        hit_t = np.full((h, w), np.inf)
-        hit_car = np.full((h, w), -1, np.int64)
-        hit_mat = np.zeros((h, w), np.uint8)
-        hit_cos = np.zeros((h, w), np.float32)
+        hit_t = np.full(h * w, np.inf)   # flat pixel index -> nearest car hit so far
+        hit_car = np.full(h * w, -1, np.int64)
+        hit_mat = np.zeros(h * w, np.uint8)
+        hit_cos = np.zeros(h * w, np.float32)
+        spans = [(self.rows(bg, car), self.columns(car)) for car in placed]
+        hit_px: list[np.ndarray] = []
         for k, car in enumerate(placed):
-            cols = self.columns(car)
-            if len(cols) == 0:
+            rows, cols = spans[k]
+            if len(cols) == 0 or len(rows) == 0:
                 continue
-            r_idx, c_idx = (a.ravel() for a in np.meshgrid(np.arange(h), cols, indexing="ij"))
+            px = (rows[:, None] * w + cols[None, :]).ravel()
             caster, _ = self.sim.car_caster(car.model)
             rot = car.rotation()
-            o = (bg.origin[r_idx, c_idx] - car.translation()) @ rot
-            d = bg.direction[r_idx, c_idx] @ rot
-            limit = np.minimum(dist[r_idx, c_idx], hit_t[r_idx, c_idx])
-            near = _meets_box(o, d, limit, *self._box(car))
+            start = bg.origin.reshape(-1, 3)[px] if bg.origin_reach else np.zeros((1, 3))
+            o = np.broadcast_to((start - car.translation()) @ rot, (len(px), 3))
+            d = bg.direction.reshape(-1, 3)[px] @ rot
+            limit = np.minimum(bg.dist.ravel()[px], hit_t[px])
+            near = _meets_box(o, d, limit, *self._box(car)[:2])
             if not near.any():
                 continue
-            r_idx, c_idx, o, d, limit = r_idx[near], c_idx[near], o[near], d[near], limit[near]
-            t, prim = cast_through(caster.bvh, o, d, limit, caster.face_pass,
-                                   r_idx * w + c_idx, 0)
+            px, o, d, limit = px[near], o[near], d[near], limit[near]
+            t, prim = cast_through(caster.bvh, o, d, limit, caster.face_pass, px, 0)
             ok = (prim >= 0) & (t < limit) & (t >= s.min_range)
-            rn, cn, pn = r_idx[ok], c_idx[ok], prim[ok]
-            hit_t[rn, cn] = t[ok]
-            hit_car[rn, cn] = k
-            hit_mat[rn, cn] = caster.material[pn]
-            hit_cos[rn, cn] = np.abs((caster.normals[pn] * d[ok]).sum(axis=1))
-        image = bg.scan.image.copy()
-        inst = bg.scan.instance.copy()
-        sem = None if bg.scan.semantic is None else bg.scan.semantic.copy()
-        empty = np.zeros((h, w), bool)
-        for car in placed:   # real points left in a car's body
-            rows, cols = np.nonzero(bg.scan.valid & (hit_car < 0))
-            inside = self.body_points(image[rows, cols, 0:3], car)
-            empty[rows[inside], cols[inside]] = True
-        rn, cn = np.nonzero(hit_car >= 0)
-        t = hit_t[rn, cn]
-        mat = hit_mat[rn, cn]
+            pn = prim[ok]
+            px = px[ok]
+            hit_t[px] = t[ok]
+            hit_car[px] = k
+            hit_mat[px] = caster.material[pn]
+            hit_cos[px] = np.abs((caster.normals[pn] * d[ok]).sum(axis=1))
+            hit_px.append(px)
+        # One car's pixels are in row-major order already; several cars' may overlap.
+        px = (hit_px[0] if len(hit_px) == 1 else np.unique(np.concatenate(hit_px)) if hit_px
+              else np.empty(0, np.int64))
+        emptied = []
+        for car, (rows, cols) in zip(placed, spans, strict=True):   # real points in its body
+            window = (rows[:, None] * w + cols[None, :]).ravel()
+            window = window[bg.valid.ravel()[window] & (hit_car[window] < 0)]
+            inside = self.body_points(bg.scan.image.reshape(-1, 6)[window, 0:3], car)
+            emptied.append(window[inside])
+        t = hit_t[px]
+        mat = hit_mat[px]
         if rng is not None and s.range_noise > 0:
             t = t + rng.normal(0.0, s.range_noise, t.shape)
         returns = ~GLASS[mat] if self.sim.returns is not None else np.ones(len(t), bool)
         intensity = np.full(len(t), NOMINAL_INTENSITY, np.float32)
         if self.sim.returns is not None:
-            intensity = self.sim.returns.intensity(mat, hit_cos[rn, cn], t)
+            intensity = self.sim.returns.intensity(mat, hit_cos[px], t)
             if rng is not None:
                 p = self.sim.returns.p_return(intensity)
                 if self._keep is not None:
-                    p = p * self._keep[rn, cn]
+                    p = p * self._keep.ravel()[px]
                 returns &= rng.random(len(t)) < p
-        empty[rn[~returns], cn[~returns]] = True
-        rn, cn, t, intensity = rn[returns], cn[returns], t[returns], intensity[returns]
-        image[empty] = 0.0
-        inst[empty] = 0
+        emptied.append(px[~returns])
+        px, t, intensity = px[returns], t[returns], intensity[returns]
+        image = bg.scan.image.copy()
+        inst = bg.scan.instance.copy()
+        sem = None if bg.scan.semantic is None else bg.scan.semantic.copy()
+        gone = np.concatenate(emptied)
+        image.reshape(-1, 6)[gone] = 0.0
+        inst.ravel()[gone] = 0
         if sem is not None:
-            sem[empty] = 0
-        xyz = (bg.origin[rn, cn] + bg.direction[rn, cn] * t[:, None]).astype(np.float32)
-        cars = [placed[i] for i in hit_car[rn, cn]]
-        car_sem = np.array([self.sim.car_semantic(c) for c in cars], np.uint16)
-        image[rn, cn, 0:3] = xyz
-        image[rn, cn, 3] = intensity
-        image[rn, cn, 4] = np.linalg.norm(xyz.astype(np.float64), axis=1)
-        image[rn, cn, 5] = kitti4(car_sem)
-        inst[rn, cn] = INSERTED_INSTANCE + hit_car[rn, cn]
+            sem.ravel()[gone] = 0
+        xyz = (bg.origin.reshape(-1, 3)[px] + bg.direction.reshape(-1, 3)[px] * t[:, None]
+               ).astype(np.float32)
+        car_sem = np.array([self.sim.car_semantic(c) for c in placed], np.uint16)[hit_car[px]]
+        flat = image.reshape(-1, 6)
+        flat[px, 0:3] = xyz
+        flat[px, 3] = intensity
+        flat[px, 4] = np.linalg.norm(xyz.astype(np.float64), axis=1)
+        flat[px, 5] = kitti4(car_sem)
+        inst.ravel()[px] = INSERTED_INSTANCE + hit_car[px]
         if sem is not None:
-            sem[rn, cn] = car_sem
+            sem.ravel()[px] = car_sem
         return Scan(image, inst, sem)
 
 
@@ -373,15 +482,19 @@ def _column_azimuths(sensor: Sensor) -> np.ndarray:
 def _meets_box(o: np.ndarray, d: np.ndarray, limit: np.ndarray, lo: np.ndarray,
                hi: np.ndarray) -> np.ndarray:
     """Bool per ray (car frame): the segment from o along d for `limit` metres meets the box
-    [lo, hi] (the slab test; Kay and Kajiya, SIGGRAPH 1986)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        t1, t2 = (lo - o) * inv, (hi - o) * inv
-    t1 = np.where(np.isnan(t1), -np.inf, t1)
-    t2 = np.where(np.isnan(t2), np.inf, t2)
-    enter = np.minimum(t1, t2).max(axis=1)
-    leave = np.maximum(t1, t2).min(axis=1)
-    return (leave >= np.maximum(enter, 0.0)) & (enter <= limit)
+    [lo, hi] (the slab test, Kay and Kajiya, SIGGRAPH 1986: the segment's parameter range
+    inside each pair of planes, intersected). A direction component of 0 is taken as 1e-12,
+    so a ray parallel to a slab is inside it or not, never NaN."""
+    enter = np.zeros(len(d))
+    leave = np.asarray(limit, dtype=np.float64).copy()
+    for k in range(3):   # one axis at a time: 1-D arrays, no strided reductions
+        dk = d[:, k]
+        dk = np.where(np.abs(dk) < 1e-12, 1e-12, dk)
+        t1 = (lo[k] - o[:, k]) / dk
+        t2 = (hi[k] - o[:, k]) / dk
+        np.maximum(enter, np.minimum(t1, t2), out=enter)
+        np.minimum(leave, np.maximum(t1, t2), out=leave)
+    return leave >= enter
 
 
 def scanner_for(space: Space, sensor: Sensor | None = None, lod: int = 2):
