@@ -1,5 +1,6 @@
 """`falsify bench scan`: scans per second of the composed fast path beside the naive path (a
 merged scene re-cast with trimesh), in one run; and what scene size and image-only dims cost.
+On a space of real backgrounds it times insertion, beside the same positions on our streets.
 `bench_effects` (also `python -m falsify.bench.scan CONFIG`) times the same samples with their
 weather and faults on and off in one process.
 """
@@ -16,13 +17,14 @@ import numpy as np
 
 from falsify.bench.machine import machine
 from falsify.checks import MAX_SAMPLES
+from falsify.data.real_backgrounds import RealScanner, scanner_for
 from falsify.errors import FalsifyError
 from falsify.sensor.lidar import load_sensor
-from falsify.sensor.simulator import Simulator
-from falsify.world.space import EFFECT_DIMS, Sample, Space, load_space
+from falsify.sensor.simulator import InvalidSample, Scanner, Simulator
+from falsify.world.space import EFFECT_DIMS, Categorical, Sample, Space, load_space
 
 
-def warm(sim: Simulator, samples: list[Sample]) -> None:
+def warm(sim: Scanner, samples: list[Sample]) -> None:
     """Build every background's hits and the car BVHs before the clock starts."""
     for bg in sorted({s.background for s in samples}):
         sim.background_hits(bg, sim.ego_pose(bg))
@@ -32,8 +34,13 @@ def warm(sim: Simulator, samples: list[Sample]) -> None:
 
 def _scan_rate(space: Space, samples: list[Sample], lod: int = 2) -> float:
     """Scans per second of the fast path in this process, caches warm."""
-    sim = Simulator(load_sensor(space.sensor), space.user_cars, lod=lod)
+    sim = scanner_for(space, lod=lod)
     warm(sim, samples)
+    return _timed(sim, samples)
+
+
+def _timed(sim: Scanner, samples: list[Sample]) -> float:
+    """Scans per second of a warm scanner over the samples."""
     t0 = time.perf_counter()
     for s in samples:
         sim.scan(s)
@@ -43,13 +50,65 @@ def _scan_rate(space: Space, samples: list[Sample], lod: int = 2) -> float:
 def _scan_worker(args) -> tuple[int, float, float]:
     config, start, stop, lod = args
     space = load_space(config)
-    samples = space.grid()[start:stop]
-    sim = Simulator(load_sensor(space.sensor), space.user_cars, lod=lod)
+    sim = scanner_for(space, lod=lod)
+    samples = possible(sim, space.grid())[start:stop]
     warm(sim, samples)
     t0 = time.perf_counter()
     for s in samples:
         sim.scan(s)
     return len(samples), t0, time.perf_counter()
+
+
+def possible(sim: Scanner, samples: list[Sample]) -> list[Sample]:
+    """The samples whose scenes can exist (a real background's collisions are invalid)."""
+    if not isinstance(sim, RealScanner):
+        return samples
+    out = []
+    for s in samples:
+        try:
+            sim.placed_cars(s)
+        except InvalidSample:
+            continue
+        out.append(s)
+    return out
+
+
+def naive_insert(space: Space, sample: Sample) -> np.ndarray:
+    """The naive path of insertion: read the real scan afresh, stand the car on it, and cast
+    every pixel's ray at the posed car mesh with trimesh's exact `intersects_location` (a new
+    BVH per sample), re-casting past glass with the fast path's hash-decided passes. Returns
+    each pixel's range, the car's where it is nearer than the real point (H x W)."""
+    import trimesh
+
+    from falsify.sensor.raycast import STEP, unit_hash
+    from falsify.world.materials import PASS_PROB
+
+    scanner = RealScanner(load_sensor(space.sensor), space.real_backgrounds, space.user_cars)
+    bg = scanner.background(sample.background)
+    meshes, mats = [], []
+    for pc in scanner.placed_cars(sample):
+        m = scanner.sim.car_mesh(pc.model).copy()
+        m.apply_transform(pc.matrix())
+        meshes.append(m)
+        mats.append(scanner.sim.car_materials(pc.model))
+    merged = trimesh.util.concatenate(meshes)
+    face_pass = PASS_PROB[np.concatenate(mats)]
+    o, d = bg.origin.reshape(-1, 3), bg.direction.reshape(-1, 3)
+    ranges = bg.dist.ravel().copy()
+    todo, start = np.arange(len(d)), np.zeros(len(d))
+    for _ in range(16):
+        loc, idx, tri = merged.ray.intersects_location(o[todo] + d[todo] * start[todo, None],
+                                                       d[todo], multiple_hits=False)
+        ray = todo[idx]
+        t = start[ray] + np.linalg.norm(loc - (o[ray] + d[ray] * start[ray, None]), axis=1)
+        passed = unit_hash(ray, tri, 0) < face_pass[tri]
+        stop = ~passed & (t < ranges[ray])
+        ranges[ray[stop]] = t[stop]
+        todo = ray[passed]
+        start[todo] = t[passed] + STEP
+        if len(todo) == 0:
+            break
+    return ranges.reshape(bg.dist.shape)
 
 
 def naive_scan(space: Space, sample: Sample):
@@ -110,6 +169,7 @@ class ScanBench:
     naive: float           # scans/s, the naive path
     naive_samples: int
     scene_size: dict
+    streets_1: float | None = None   # real backgrounds: the same positions on our streets
 
     def to_json(self) -> dict:
         w = self.workers
@@ -123,6 +183,10 @@ class ScanBench:
             "speedup_1_process": round(self.fast_1 / self.naive, 1),
             f"speedup_{w}_processes": round(self.fast_n / self.naive, 1),
             "scene_size": self.scene_size,
+            **({} if self.streets_1 is None else {
+                "background": "real scans (insertion)",
+                "streets_scans_per_s_1_process": round(self.streets_1, 1),
+                "real_to_streets_1_process": round(self.fast_1 / self.streets_1, 3)}),
         }
 
 
@@ -134,9 +198,23 @@ def bench_scan(config: str | Path, samples: int = 1000, naive_samples: int = 5,
         raise FalsifyError(f"--samples: {samples} must be at least the number of workers")
     space = load_space(config)
     space.check_size(MAX_SAMPLES, "the benchmark's limit")
-    grid = space.grid()
+    grid = possible(scanner_for(space), space.grid())
+    if not grid:
+        raise FalsifyError(f"{config}: no sample of the space can exist (every one collides)")
     picked = [grid[i % len(grid)] for i in range(samples)]
     single = _scan_rate(space, picked)
+    streets = None
+    if space.real_backgrounds:   # the same positions on our streets, alternating, best of 3
+        paved = dataclasses.replace(
+            space, real_backgrounds=(),
+            dims={**space.dims, "background": Categorical("background", tuple(range(15)))})
+        on_streets = [paved.make({**s.as_dict(), "background": s.background % 15})
+                      for s in picked]
+        real_sim, street_sim = scanner_for(space), scanner_for(paved)
+        warm(real_sim, picked)
+        warm(street_sim, on_streets)
+        rates = [(_timed(real_sim, picked), _timed(street_sim, on_streets)) for _ in range(3)]
+        single, streets = max(r[0] for r in rates), max(r[1] for r in rates)
 
     chunks = np.array_split(np.arange(samples), workers)
     ctx = mp.get_context("spawn")
@@ -147,15 +225,17 @@ def bench_scan(config: str | Path, samples: int = 1000, naive_samples: int = 5,
     stop = max(p[2] for p in parts)
     multi = sum(p[0] for p in parts) / (stop - start)
 
+    naive_path = naive_insert if space.real_backgrounds else naive_scan
     naive_times = []
     for s in picked[:naive_samples]:
         t0 = time.perf_counter()
-        naive_scan(space, s)
+        naive_path(space, s)
         naive_times.append(time.perf_counter() - t0)
     naive = 1.0 / float(np.mean(naive_times))
-
+    size = ({} if space.real_backgrounds
+            else scene_size_effect(space, picked[: min(900, samples)]))
     return ScanBench(str(config), space.sensor, samples, workers, machine(), single, multi,
-                     naive, naive_samples, scene_size_effect(space, picked[: min(900, samples)]))
+                     naive, naive_samples, size, streets)
 
 
 def scene_size_effect(space: Space, samples: list[Sample]) -> dict:
