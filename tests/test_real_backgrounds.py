@@ -4,6 +4,7 @@ SemanticKITTI scans where ../shared/data holds them."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import subprocess
 import sys
@@ -331,3 +332,30 @@ def test_real_semantickitti_scans_keep_their_bytes_out_of_the_cars_reach(tmp_pat
         scan = scanner.insert(scanner.background(bg), [replace(car, x=-car.x)],
                               np.random.default_rng(0))
         assert same(scan, read_kitti(real.bin, real.label, scanner.sensor))
+
+
+def test_retrain_runs_on_real_backgrounds_and_refuses_evaluation_scans(tmp_path):
+    from falsify.data.training import TrafficOptions, write_dataset
+    from falsify.jobs.retrain import RetrainJob, RetrainRequest
+    from falsify.models.runner import BUNDLED_ONNX
+
+    v = write_scan(tmp_path / "v", *street_cloud())
+    r = write_scan(tmp_path / "r", *street_cloud(slope=0.02))
+    cfg = tmp_path / "two.toml"
+    cfg.write_text("threshold = 0.99\n" + space_toml(tmp_path / "x.toml", str(v.bin)).read_text(
+    ).replace(f'real = ["{v.bin}"]', f'real = ["{v.bin}", "{r.bin}"]'))
+    write_dataset(load_sensor("kitti-hdl64e-front"), tmp_path / "train", 1, seed=1,
+                  opts=TrafficOptions(backgrounds=1, traffic="drive"))
+    req = RetrainRequest(config=cfg, model=BUNDLED_ONNX, train_data=tmp_path / "train",
+                         out=tmp_path / "exp", validation=(0,), retraining=(1,), epochs=1,
+                         batch=4, oversample=1, train_scans=1, held_out_scans=0, kitti=None,
+                         workers=1)
+    result = RetrainJob(req).run()
+    assert result.retraining_scans > 0 and result.model_after is not None
+    sub = load_space(tmp_path / "exp" / "config-retraining.toml")
+    assert [s.bin for s in sub.real_backgrounds] == [r.bin.resolve()]
+    if MINI.is_dir():   # a scan of the evaluation split may be tested on, never trained on
+        seq08 = MINI / "sequences" / "08" / "velodyne" / "000000.bin"
+        cfg.write_text(cfg.read_text().replace(str(r.bin), str(seq08)))
+        with pytest.raises(ConfigError, match="evaluation data"):
+            RetrainJob(dataclasses.replace(req, out=tmp_path / "exp2")).prepare()

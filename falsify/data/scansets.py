@@ -34,6 +34,18 @@ from falsify.world.real_scans import (
 ROOT = Path(__file__).resolve().parents[2]   # the source checkout
 # The shared real KITTI data beside the repository (evaluation only; never copied in).
 KITTI_DIR = ROOT.parent / "shared" / "data" / "kitti"
+# semantickitti-mini's evaluation split (its README): only ever reported on.
+EVALUATION_SEQUENCES = ("00", "03", "06", "08")
+
+
+def is_evaluation_scan(path: str | Path, root: Path = KITTI_DIR) -> bool:
+    """Whether a scan file is in the shared KITTI data's evaluation sets (SqueezeSeg's scans,
+    the three SemanticKITTI scans, semantickitti-mini's evaluation sequences), which nothing
+    may train on."""
+    p, root = Path(path).resolve(), root.resolve()
+    mini = root / "semantickitti-mini" / "sequences"
+    return any(p.is_relative_to(folder) for folder in (
+        root / "squeezeseg", root / "semantickitti", *(mini / q for q in EVALUATION_SEQUENCES)))
 
 
 @dataclass(frozen=True)

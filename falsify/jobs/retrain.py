@@ -38,6 +38,7 @@ from falsify.checks import check_out_dir, check_range, check_seed
 from falsify.errors import ConfigError
 from falsify.executors.driver import ProgressListener
 from falsify.results.store import open_run
+from falsify.world.space import RealScan
 
 SELECTIONS = ("blind", "control")
 STAGES = ("before", "rows", "selected", "finetune", "after", "checks", "report")
@@ -201,11 +202,15 @@ def toml_text(raw: dict, prefix: str = "") -> str:
     return out
 
 
-def subset_config(config: Path, backgrounds: Sequence[int], suffix: str) -> str:
-    """The config's text with its background dim replaced by `backgrounds` (paths absolute)."""
+def subset_config(config: Path, backgrounds: Sequence[int], suffix: str,
+                  real: Sequence[RealScan] = ()) -> str:
+    """The config's text with its background dim replaced by `backgrounds` (paths absolute);
+    for a space of real scans (`real`, its scans), the scans of those backgrounds."""
     raw = tomllib.loads(config.read_text(encoding="utf-8"))
     raw["name"] = f"{raw.get('name', config.stem)}-{suffix}"
-    raw["dims"]["background"] = {"values": list(backgrounds)}
+    raw["dims"]["background"] = (
+        {"real": [str(real[b].bin.resolve()) for b in backgrounds]} if real
+        else {"values": list(backgrounds)})
     for spec in raw.get("car_models", {}).values():
         if isinstance(spec, dict) and "file" in spec and not Path(spec["file"]).is_absolute():
             spec["file"] = str((config.parent / spec["file"]).resolve())
@@ -272,13 +277,22 @@ class RetrainJob:
         train_index = _read_index(req.train_data)
         held = set(range(HELD_OUT_FIRST_BACKGROUND,
                          HELD_OUT_FIRST_BACKGROUND + HELD_OUT_BACKGROUNDS))
+        if space.real_backgrounds:   # what R holds is trained on
+            from falsify.data.scansets import is_evaluation_scan
+            for b in req.retraining:
+                scan = space.real_backgrounds[b]
+                if is_evaluation_scan(scan.bin):
+                    raise ConfigError(
+                        f"--retraining-backgrounds: background {b} ({scan.bin}) is evaluation "
+                        "data (shared/data/README.md: only ever reported on); retrain on "
+                        "scans of the fit split")
         if train_index is not None and req.held_out_scans:
             first = int(train_index.get("first_background", -1))
             span = set(range(first, first + int(train_index.get("backgrounds", 0))))
             if span & held:
                 raise ConfigError(f"--train-data {req.train_data}: training backgrounds overlap "
                                   f"the held-out streets {min(held)}..{max(held)}")
-            if span & used:
+            if span & used and not space.real_backgrounds:
                 raise ConfigError(f"--train-data {req.train_data}: training backgrounds overlap "
                                   f"{req.config}'s test backgrounds")
         threshold = req.threshold if req.threshold is not None else space.threshold
@@ -318,7 +332,8 @@ class RetrainJob:
             state = {"request": ctx["key"], "done": {}}
             for name, ids in (("validation", req.validation), ("retraining", req.retraining)):
                 (req.out / f"config-{name}.toml").write_text(
-                    subset_config(req.config, ids, name), encoding="utf-8")
+                    subset_config(req.config, ids, name, ctx["space"].real_backgrounds),
+                    encoding="utf-8")
             _write_state(state_path, state)
         computed, reused = [], []
         for stage in STAGES:
