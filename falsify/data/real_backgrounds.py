@@ -248,6 +248,8 @@ class RealScanner:
         self.sim = Simulator(sensor, user_cars, lod=lod)
         self._bg: OrderedDict[int, RealBackground] = OrderedDict()
         self._boxes: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, float]] = {}
+        # (background, car) of the last placed_cars whose body holds no point of the cloud
+        self._empty_bodies: set[tuple[int, PlacedCar]] = set()
         self._max = max_backgrounds
         self._columns = _column_azimuths(sensor)
         self._keep = (self.sim.returns.keep_map(sensor.rows, sensor.azimuths_deg)
@@ -281,8 +283,10 @@ class RealScanner:
         placed = [place(c, FIRST_CAR_INSTANCE + i) for i, c in enumerate(sample.cars)]
         check_placement(placed, [self.sim.footprint(c) for c in placed], Obstacles.of(()))
         settled = [self.settle(bg, c) for c in placed]
+        self._empty_bodies = set()
         for i, car in enumerate(settled):
-            self.check_collision(bg, car, i + 1)
+            if self.check_collision(bg, car, i + 1) == 0:
+                self._empty_bodies.add((id(bg), car))
         return settled
 
     def _box(self, car: PlacedCar) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
@@ -326,18 +330,19 @@ class RealScanner:
                     & (local[:, 2] <= hi[2]))
         return out
 
-    def check_collision(self, bg: RealBackground, car: PlacedCar, number: int) -> None:
+    def check_collision(self, bg: RealBackground, car: PlacedCar, number: int) -> int:
         """InvalidSample if COLLISION_POINTS or more obstacle points of the scan (any point but
         ground, unlabeled and outliers where every point is labelled; any point otherwise) lie in
-        the car's body."""
+        the car's body; else how many points of any kind lie there."""
         rows = bg.cloud.near(car.x, car.y, self.reach(car))
         inside = self.body_points(bg.cloud.points[rows], car)
+        in_body = int(inside.sum())
         sem = None if bg.cloud.semantic is None else bg.cloud.semantic[rows][inside]
         if bg.dense:
             sem = sem[~np.isin(sem, np.concatenate([GROUND_IDS, IGNORED_IDS]))]
-        n = int(inside.sum()) if sem is None else len(sem)
+        n = in_body if sem is None else len(sem)
         if n < COLLISION_POINTS:
-            return
+            return in_body
         what = "points"
         named = sem if sem is not None else np.empty(0, np.uint16)
         named = named[named > 1]
@@ -431,6 +436,8 @@ class RealScanner:
               else np.empty(0, np.int64))
         emptied = []
         for car, (rows, cols) in zip(placed, spans, strict=True):   # real points in its body
+            if (id(bg), car) in self._empty_bodies:   # placed_cars found none in the cloud
+                continue
             window = (rows[:, None] * w + cols[None, :]).ravel()
             window = window[bg.valid.ravel()[window] & (hit_car[window] < 0)]
             inside = self.body_points(bg.scan.image.reshape(-1, 6)[window, 0:3], car)
