@@ -79,7 +79,7 @@ values = [0.0, 2.0]
 [dims.y]
 values = [8.0, 12.0]
 [dims.background]
-real = ["{real}"]
+real = ['{real}']
 {extra}""")
     return path
 
@@ -344,7 +344,7 @@ def test_retrain_runs_on_real_backgrounds_and_refuses_evaluation_scans(tmp_path)
     r = write_scan(tmp_path / "r", *street_cloud(slope=0.02))
     cfg = tmp_path / "two.toml"
     cfg.write_text("threshold = 0.99\n" + space_toml(tmp_path / "x.toml", str(v.bin)).read_text(
-    ).replace(f'real = ["{v.bin}"]', f'real = ["{v.bin}", "{r.bin}"]'))
+    ).replace(f"real = ['{v.bin}']", f"real = ['{v.bin}', '{r.bin}']"))
     write_dataset(load_sensor("kitti-hdl64e-front"), tmp_path / "train", 1, seed=1,
                   opts=TrafficOptions(backgrounds=1, traffic="drive"))
     req = RetrainRequest(config=cfg, model=BUNDLED_ONNX, train_data=tmp_path / "train",
@@ -360,3 +360,26 @@ def test_retrain_runs_on_real_backgrounds_and_refuses_evaluation_scans(tmp_path)
         cfg.write_text(cfg.read_text().replace(str(r.bin), str(seq08)))
         with pytest.raises(ConfigError, match="evaluation data"):
             RetrainJob(dataclasses.replace(req, out=tmp_path / "exp2")).prepare()
+
+
+def test_the_report_of_a_real_run_names_its_scans_escaped_in_chromium(tmp_path, browser):
+    from selenium.webdriver.common.by import By
+
+    from tests.conftest import assert_offline
+
+    odd = 'st<b>&"x'
+    scan = write_scan(tmp_path / odd, *street_cloud())
+    cfg = space_toml(tmp_path / "odd.toml", str(scan.bin))
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "falsify", "grid", str(cfg), "--out", str(out),
+                           "--quiet"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    html = (out / "report.html").read_text()
+    assert "st&lt;b&gt;&amp;&quot;x/000000" in html and odd not in html
+    browser.get((out / "report.html").as_uri())
+    section = browser.find_element(By.ID, "inserted")
+    assert section.is_displayed()
+    assert len(section.find_elements(By.CSS_SELECTOR, "figure svg")) == 2
+    rows = section.find_elements(By.CSS_SELECTOR, "tbody tr")
+    assert [r.find_elements(By.TAG_NAME, "td")[0].text for r in rows] == [f"{odd}/000000"]
+    assert_offline(browser)
