@@ -138,3 +138,13 @@ def test_bad_options_exit_2_naming_them(tmp_path, capsys, argv, names):
 def test_a_missing_run_is_named(tmp_path, capsys):
     assert main(["explain", str(tmp_path / "nowhere")]) == 2
     assert "nowhere" in capsys.readouterr().err
+
+
+def test_the_objective_column_is_explained_not_car_iou():
+    # car IoU fails at the far cells; the objective (person IoU here) fails on street 5 only
+    frame = table(lambda x, y, b: 0.3 if y >= 16 else 0.9)
+    frame["person_iou"] = [0.2 if b == 5 else 0.95 for b in frame["background"]]
+    e = explain(frame, paper_space(), threshold=0.65, score="person_iou")
+    assert e.score == "person_iou" and e.failing == int((frame["background"] == 5).sum())
+    assert e.rules[0].text() == "background == 5"
+    assert explain(frame, paper_space(), threshold=0.65).rules[0].text() != "background == 5"

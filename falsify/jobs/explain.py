@@ -11,7 +11,7 @@ from pathlib import Path
 
 from falsify.checks import check_seed
 from falsify.errors import FalsifyError
-from falsify.results.explain import Explanation, explain
+from falsify.results.explain import Explanation, explain, score_name
 from falsify.results.store import open_run
 
 MAX_DEPTH = 4
@@ -47,22 +47,26 @@ def explain_run(run: str | Path, threshold: float | None = None, depth: int = 2,
     t = data.threshold if threshold is None else threshold
     algorithm = str(data.meta.get("algorithm") or "grid")
     return ExplainResult(str(data.path), algorithm,
-                         explain(data.frame, data.space, t, depth, rules, clusters, seed))
+                         explain(data.frame, data.space, t, depth, rules, clusters, seed,
+                                 data.score_column))
 
 
 def format_text(result: ExplainResult) -> str:
     """Rules first (what a user acts on), then the dims by sensitivity, then clusters."""
     e = result.explanation
-    lines = [f"{result.run}: {e.failing} of {e.samples} samples below {e.threshold:g}"]
+    lines = [f"{result.run}: {e.failing} of {e.samples} samples with {score_name(e.score)} "
+             f"below {e.threshold:g}"]
     if e.rules:
-        lines.append("rules (support, precision, mean IoU of the samples each covers):")
+        lines.append(f"rules (support, precision, mean {score_name(e.score)} of the samples each "
+                     "covers):")
         for r in e.rules:
             lines.append(f"  {r.text()}: {r.failing} of {r.support} samples below "
                          f"{e.threshold:g}, mean {r.mean_iou:.3f}")
     elif e.failing:
         lines.append("no rule covers the failing samples better than the run as a whole")
     if e.sensitivity:
-        lines.append("share of IoU variance each dim explains alone (first-order index):")
+        lines.append(f"share of {score_name(e.score)} variance each dim explains alone "
+                     "(first-order index):")
         lines += [f"  {d:12s} {s:.3f}" for d, s in e.sensitivity.items()]
     if e.clusters and result.algorithm != "grid":
         lines.append("clusters of failing samples:")

@@ -103,12 +103,22 @@ class Explanation:
     rules: tuple[Rule, ...]
     sensitivity: dict[str, float]
     clusters: tuple[Cluster, ...]
+    score: str = "car_iou"   # the column explained: the run's objective
 
     def as_dict(self) -> dict:
-        return {"threshold": self.threshold, "samples": self.samples, "failing": self.failing,
+        return {"score": self.score, "threshold": self.threshold, "samples": self.samples,
+                "failing": self.failing,
                 "rules": [r.as_dict() for r in self.rules],
                 "sensitivity": {k: round(v, 4) for k, v in self.sensitivity.items()},
                 "clusters": [c.as_dict() for c in self.clusters]}
+
+
+def score_name(column: str) -> str:
+    """A score column in words: car_iou -> car IoU, traffic_sign_iou -> traffic sign IoU, miou
+    -> mIoU."""
+    if column == "miou":
+        return "mIoU"
+    return column.removesuffix("_iou").replace("_", " ") + " IoU"
 
 
 def _fmt(value: float | int | str) -> str:
@@ -151,12 +161,13 @@ def _thin(values: np.ndarray) -> np.ndarray:
 
 
 def find_rules(frame: pd.DataFrame, space: Space, threshold: float, depth: int = 2,
-               max_rules: int = 5) -> tuple[Rule, ...]:
-    """Up to `max_rules` rules, each best by WRAcc on the failures left by the ones before."""
-    fail = frame["car_iou"].astype(float).to_numpy() < threshold
+               max_rules: int = 5, score: str = "car_iou") -> tuple[Rule, ...]:
+    """Up to `max_rules` rules, each best by WRAcc on the failures left by the ones before;
+    a failure is a `score` below the threshold."""
+    fail = frame[score].astype(float).to_numpy() < threshold
     if not fail.any() or fail.all():
         return ()
-    iou = frame["car_iou"].astype(float).to_numpy()
+    iou = frame[score].astype(float).to_numpy()
     conds = candidates(space, frame, explained_dims(space, frame))
     masks = {c: c.mask(frame[c.dim]) for c in conds}
     left = fail.copy()
@@ -224,9 +235,11 @@ def _beam(conds: Sequence[Condition], masks: dict, left: np.ndarray, fail: np.nd
     return best[1], best[2] & eligible
 
 
-def sensitivity(frame: pd.DataFrame, space: Space, dims: Sequence[str]) -> dict[str, float]:
-    """First-order index of each dim: the share of IoU variance its value alone explains."""
-    y = frame["car_iou"].astype(float)
+def sensitivity(frame: pd.DataFrame, space: Space, dims: Sequence[str],
+                score: str = "car_iou") -> dict[str, float]:
+    """First-order index of each dim: the share of the score's variance its value alone
+    explains."""
+    y = frame[score].astype(float)
     var = float(y.var(ddof=0))
     out = {}
     for name in dims:
@@ -240,10 +253,10 @@ def sensitivity(frame: pd.DataFrame, space: Space, dims: Sequence[str]) -> dict[
 
 
 def clusters(frame: pd.DataFrame, space: Space, dims: Sequence[str], threshold: float,
-             k: int = 4, seed: int = 0) -> tuple[Cluster, ...]:
+             k: int = 4, seed: int = 0, score: str = "car_iou") -> tuple[Cluster, ...]:
     """k-means (k-means++ start, seeded) over the failing samples' continuous dims scaled to
     their ranges; categorical dims are reported as each cluster's most common value."""
-    fail = frame[frame["car_iou"].astype(float) < threshold]
+    fail = frame[frame[score].astype(float) < threshold]
     cont = [d for d in dims if isinstance(space.dims[d], Continuous)]
     if len(fail) == 0 or not cont:
         return ()
@@ -262,7 +275,7 @@ def clusters(frame: pd.DataFrame, space: Space, dims: Sequence[str], threshold: 
         for d in dims:
             if d not in cont:
                 centre[d] = _plain(part[d].mode().iloc[0])
-        out.append(Cluster(centre, len(part), float(part["car_iou"].astype(float).mean())))
+        out.append(Cluster(centre, len(part), float(part[score].astype(float).mean())))
     return tuple(sorted(out, key=lambda c: (-c.size, c.mean_iou)))
 
 
@@ -286,13 +299,15 @@ def _kmeans(pts: np.ndarray, k: int, rng: np.random.Generator, iters: int = 50) 
 
 
 def explain(frame: pd.DataFrame, space: Space, threshold: float, depth: int = 2,
-            max_rules: int = 5, k: int = 4, seed: int = 0) -> Explanation:
-    """Rules, sensitivity and clusters of a run's valid rows (status ok)."""
+            max_rules: int = 5, k: int = 4, seed: int = 0,
+            score: str = "car_iou") -> Explanation:
+    """Rules, sensitivity and clusters of a run's valid rows (status ok), failing where `score`
+    (the run's objective column) is below the threshold."""
     ok = frame[frame["status"] == Status.OK].reset_index(drop=True)
     dims = explained_dims(space, ok)
-    fail = int((ok["car_iou"].astype(float) < threshold).sum()) if len(ok) else 0
+    fail = int((ok[score].astype(float) < threshold).sum()) if len(ok) else 0
     return Explanation(
         threshold, len(ok), fail,
-        find_rules(ok, space, threshold, depth, max_rules) if len(ok) else (),
-        sensitivity(ok, space, dims) if len(ok) > 1 else {},
-        clusters(ok, space, dims, threshold, k, seed) if len(ok) else ())
+        find_rules(ok, space, threshold, depth, max_rules, score) if len(ok) else (),
+        sensitivity(ok, space, dims, score) if len(ok) > 1 else {},
+        clusters(ok, space, dims, threshold, k, seed, score) if len(ok) else (), score)
