@@ -31,9 +31,11 @@ from falsify.reports.charts import (
     tip_attr,
     viridis,
 )
+from falsify.reports.explain_page import explain_section
 from falsify.reports.page import esc, head
 
 import falsify
+from falsify.results.explain import Explanation
 from falsify.results.metrics import Status, column
 from falsify.results.miou_maps import CellMap, fmt_value
 from falsify.results.miou_maps import compare as compare_maps
@@ -547,6 +549,9 @@ class ReportInput:
     note: str = ""
     worst: int = WORST
     retrain: dict | None = None   # a `falsify retrain` summary: adds the experiment's section
+    # the run's explanation (`falsify explain`), or one line saying why there is none;
+    # None leaves the Explain section out
+    explanation: Explanation | str | None = None
 
 
 BEV_AHEAD, BEV_SIDE, BEV_SIZE = 32.0, 16.0, 128
@@ -805,6 +810,9 @@ td.num{text-align:right;font-variant-numeric:tabular-nums}
 .pic{display:flex;gap:6px;margin:0 0 4px}.pic img{display:block;image-rendering:auto}
 .key{display:inline-block;width:10px;height:10px;margin:0 3px 0 8px;border-radius:2px}
 code{font-size:12px}footer{margin-top:32px;color:var(--muted);font-size:12px}
+#explain .row{margin-top:6px}#explain .row>div{flex:1 1 340px;max-width:600px}
+td.sbar{width:160px}
+td.sbar span{display:block;height:10px;margin-top:4px;background:#2a4d8f;border-radius:2px}
 """.replace("$FONT", FONT).replace("$BLIND", BLIND_STROKE)
 
 JS = """
@@ -910,6 +918,8 @@ def render(report: ReportInput) -> str:
     sections.append(inserted_section(data, threshold))
     if meta.get("scored_classes") and "inserted_iou" not in data.frame:
         sections.append(class_maps_section(data, threshold))
+    if report.explanation is not None:
+        sections.append(explain_section(data, report.explanation))
     if meta.get("command") == "search":
         sections.append(search_section(data, cmap, threshold))
     if before is not None and retrain is not None:

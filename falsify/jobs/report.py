@@ -3,12 +3,15 @@ scans and predictions, and hand all of it to the HTML renderer, which only draws
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from falsify.errors import FalsifyError
 from falsify.fileio import write_text
+from falsify.jobs.explain import explain_run
 from falsify.models.runner import Segmenter, load_segmenter
 from falsify.reports.run_page import WORST, ReplayedScan, ReportInput, render
+from falsify.results.explain import MIN_SUPPORT, Explanation, score_name
 from falsify.results.replay import Replay
 from falsify.results.store import RunData, open_run
 
@@ -76,6 +79,23 @@ def replay_worst(data: RunData, worst: int, predict: bool, model: Segmenter | No
     return out, note
 
 
+def explain_report(data: RunData) -> Explanation | str:
+    """The run's explanation as `falsify explain RUN` computes it (its defaults, seed 0), with
+    clusters for non-grid runs only (as its text does); else one line saying why there is none."""
+    try:
+        result = explain_run(data.path, seed=0)
+    except FalsifyError as exc:   # the report is still useful without it
+        return f"The failing samples could not be explained ({exc})."
+    e = result.explanation
+    if e.samples < MIN_SUPPORT:
+        return (f"Too few valid samples to explain ({e.samples}; a rule needs at least "
+                f"{MIN_SUPPORT}).")
+    if not e.failing:
+        return (f"No valid sample has {score_name(e.score)} below the threshold "
+                f"{e.threshold:.3f}: nothing to explain.")
+    return e if result.algorithm != "grid" else dataclasses.replace(e, clusters=())
+
+
 def render_report(run: Path, compare: Path | None = None, predict: bool = True,
                   worst: int = WORST, model: Segmenter | None = None,
                   retrain: dict | None = None, device: str = "cpu") -> str:
@@ -85,7 +105,7 @@ def render_report(run: Path, compare: Path | None = None, predict: bool = True,
     data = open_run(run)
     before = open_run(compare) if compare is not None else None
     scans, note = replay_worst(data, worst, predict, model, device)
-    return render(ReportInput(data, before, scans, note, worst, retrain))
+    return render(ReportInput(data, before, scans, note, worst, retrain, explain_report(data)))
 
 
 def write_report(run: Path, out: Path | None = None, compare: Path | None = None,
