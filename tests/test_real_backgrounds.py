@@ -383,3 +383,20 @@ def test_the_report_of_a_real_run_names_its_scans_escaped_in_chromium(tmp_path, 
     rows = section.find_elements(By.CSS_SELECTOR, "tbody tr")
     assert [r.find_elements(By.TAG_NAME, "td")[0].text for r in rows] == [f"{odd}/000000"]
     assert_offline(browser)
+
+
+def test_the_fast_insertion_casts_what_the_naive_path_casts(tmp_path, street):
+    from falsify.bench.scan import naive_insert
+
+    space = load_space(space_toml(tmp_path / "n.toml", str(street.bin)))
+    scanner = RealScanner(load_sensor(space.sensor), space.real_backgrounds)
+    for s in space.grid():
+        fast = scanner.scan(s)   # no rng: no dropouts, no range noise
+        naive = naive_insert(space, s)
+        car = fast.instance >= INSERTED_INSTANCE
+        real = scanner.background(0).dist
+        hit = naive < real - 1e-6
+        assert car.sum() > 100 and not (car & ~hit).any()
+        assert np.allclose(fast.image[car, 4], naive[car], atol=2e-3)
+        # what the naive path hits and the fast scan does not show is glass (no return)
+        assert (hit & ~car).sum() < 0.25 * hit.sum()

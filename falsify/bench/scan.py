@@ -80,7 +80,6 @@ def naive_insert(space: Space, sample: Sample) -> np.ndarray:
     each pixel's range, the car's where it is nearer than the real point (H x W)."""
     import trimesh
 
-    from falsify.sensor.raycast import STEP, unit_hash
     from falsify.world.materials import PASS_PROB
 
     scanner = RealScanner(load_sensor(space.sensor), space.real_backgrounds, space.user_cars)
@@ -93,22 +92,31 @@ def naive_insert(space: Space, sample: Sample) -> np.ndarray:
         mats.append(scanner.sim.car_materials(pc.model))
     merged = trimesh.util.concatenate(meshes)
     face_pass = PASS_PROB[np.concatenate(mats)]
-    o, d = bg.origin.reshape(-1, 3), bg.direction.reshape(-1, 3)
-    ranges = bg.dist.ravel().copy()
+    hit = naive_cast(merged, bg.origin.reshape(-1, 3), bg.direction.reshape(-1, 3), face_pass, 0)
+    return np.minimum(bg.dist.ravel(), hit).reshape(bg.dist.shape)
+
+
+def naive_cast(mesh, o: np.ndarray, d: np.ndarray, face_pass: np.ndarray,
+               seed: int) -> np.ndarray:
+    """Each ray's first surface that does not let it pass (inf where none), with trimesh's
+    exact `intersects_location`, re-casting past porous and glass triangles with the fast
+    path's hash-decided passes."""
+    from falsify.sensor.raycast import STEP, unit_hash
+
+    ranges = np.full(len(d), np.inf)
     todo, start = np.arange(len(d)), np.zeros(len(d))
     for _ in range(16):
-        loc, idx, tri = merged.ray.intersects_location(o[todo] + d[todo] * start[todo, None],
-                                                       d[todo], multiple_hits=False)
+        loc, idx, tri = mesh.ray.intersects_location(o[todo] + d[todo] * start[todo, None],
+                                                     d[todo], multiple_hits=False)
         ray = todo[idx]
         t = start[ray] + np.linalg.norm(loc - (o[ray] + d[ray] * start[ray, None]), axis=1)
-        passed = unit_hash(ray, tri, 0) < face_pass[tri]
-        stop = ~passed & (t < ranges[ray])
-        ranges[ray[stop]] = t[stop]
+        passed = unit_hash(ray, tri, seed) < face_pass[tri]
+        ranges[ray[~passed]] = t[~passed]
         todo = ray[passed]
         start[todo] = t[passed] + STEP
         if len(todo) == 0:
             break
-    return ranges.reshape(bg.dist.shape)
+    return ranges
 
 
 def naive_scan(space: Space, sample: Sample):
@@ -117,7 +125,6 @@ def naive_scan(space: Space, sample: Sample):
     surfaces with the same hash-decided passes as the fast path."""
     import trimesh
 
-    from falsify.sensor.raycast import STEP, unit_hash
     from falsify.sensor.simulator import porosity_seed
     from falsify.world.materials import PASS_PROB
     from falsify.world.streets import build_background
@@ -138,19 +145,7 @@ def naive_scan(space: Space, sample: Sample):
     rot = pose.rotation(sensor)
     d = sensor.directions.reshape(-1, 3) @ rot.T
     o = np.broadcast_to(sim.ray_starts(pose, rot), d.shape).copy()
-    ranges = np.zeros(len(d))
-    todo, start = np.arange(len(d)), np.zeros(len(d))
-    for _ in range(16):
-        loc, idx, tri = merged.ray.intersects_location(o[todo] + d[todo] * start[todo, None],
-                                                       d[todo], multiple_hits=False)
-        ray = todo[idx]
-        t = start[ray] + np.linalg.norm(loc - (o[ray] + d[ray] * start[ray, None]), axis=1)
-        passed = unit_hash(ray, tri, porosity_seed(sample.background)) < face_pass[tri]
-        ranges[ray[~passed]] = t[~passed]
-        todo = ray[passed]
-        start[todo] = t[passed] + STEP
-        if len(todo) == 0:
-            break
+    ranges = naive_cast(merged, o, d, face_pass, porosity_seed(sample.background))
     ranges[ranges > sensor.max_range] = 0.0
     return ranges.reshape(sensor.shape)
 
