@@ -1,8 +1,6 @@
-"""Same config, seed and model give the same rows, maps, retraining set and report as the code
-did before the layout change (tests/data/regression.json was made by commit b73b953, and
-regenerated for the new world from the trial merge of world 7fabe58, whose runs equal, byte for
-byte in every compared field, those of the world branch in the old layout; regenerated again
-when the bundled network was retrained on the new world: same scans, new network).
+"""Same config, seed and model give the same rows, maps, retraining set and report as the pinned
+reference, tests/data/regression.json. Regenerate it (`python tests/test_regression.py DIR`) only
+for a change meant to alter one of them, and say in the commit which and why.
 
 Timings, timestamps and the run's own path are left out; everything else is compared exactly.
 """
