@@ -267,6 +267,9 @@ def test_parts_score_the_inserted_and_the_real_cars_apart():
 def test_config_names_the_missing_scan_and_refuses_weather(tmp_path):
     with pytest.raises(ConfigError, match=r"dims.background.real: .*nowhere.bin: no such file"):
         load_space(space_toml(tmp_path / "a.toml", str(tmp_path / "nowhere.bin")))
+    missing = space_toml(tmp_path / "m.toml", str(tmp_path / "no-root"), 'sequences = ["08"]\n')
+    with pytest.raises(ConfigError, match=r"no-root: no such file or folder"):
+        load_space(missing)
     (tmp_path / "x.bin").write_bytes(b"")
     with pytest.raises(ConfigError, match=r"dims.fog: weather and sensor faults"):
         load_space(space_toml(tmp_path / "b.toml", str(tmp_path / "x.bin"),

@@ -60,6 +60,9 @@ def real_scans(paths: list[str], sequences: list[str] | None = None
     of them, SemanticKITTI sequence folders and roots (only `sequences`' ids, when given) and KITTI
     object directories. kind is "semantickitti" (labels: its .label), "object" (labels: its
     label_2 boxes) or "none"; FalsifyError names a path that holds no scan."""
+    for p in map(Path, paths):
+        if not p.exists():
+            raise FalsifyError(f"{p}: no such file or folder")
     if sequences is not None:
         allowed = available_sequences(paths)
         unknown = [q for q in sequences if q not in allowed]
@@ -68,8 +71,6 @@ def real_scans(paths: list[str], sequences: list[str] | None = None
                                f"sequences named ({', '.join(allowed) or 'none'})")
     out: list[tuple[str, Path, Path | None, str]] = []
     for p in map(Path, paths):
-        if not p.exists():
-            raise FalsifyError(f"{p}: no such file or folder")
         if p.is_file():
             if p.suffix != ".bin":
                 raise FalsifyError(f"{p}: expected a KITTI .bin scan (N x 4 float32)")
