@@ -270,7 +270,14 @@ def test_config_names_the_missing_scan_and_refuses_weather(tmp_path):
     missing = space_toml(tmp_path / "m.toml", str(tmp_path / "no-root"), 'sequences = ["08"]\n')
     with pytest.raises(ConfigError, match=r"no-root: no such file or folder"):
         load_space(missing)
-    (tmp_path / "x.bin").write_bytes(b"")
+    (tmp_path / "x.bin").write_bytes(b"\0" * 17)
+    with pytest.raises(ConfigError, match=r"x.bin: 17 bytes is not a KITTI scan"):
+        load_space(space_toml(tmp_path / "b.toml", str(tmp_path / "x.bin")))
+    (tmp_path / "x.bin").write_bytes(b"\0" * 32)
+    (tmp_path / "x.label").write_bytes(b"\0" * 4)
+    with pytest.raises(ConfigError, match=r"x.label: 1 labels for 2 points in x.bin"):
+        load_space(space_toml(tmp_path / "b.toml", str(tmp_path / "x.bin")))
+    (tmp_path / "x.label").unlink()
     with pytest.raises(ConfigError, match=r"dims.fog: weather and sensor faults"):
         load_space(space_toml(tmp_path / "b.toml", str(tmp_path / "x.bin"),
                               "[dims.fog]\nvalues = [50.0]\n"))
@@ -290,6 +297,7 @@ def test_config_relative_paths_and_the_data_itself_are_part_of_the_space(tmp_pat
     before = space.config_hash
     pts, sem = street_cloud(slope=0.01)
     pts.tofile(tmp_path / "s.bin")
+    sem.tofile(tmp_path / "s.label")
     assert load_space(tmp_path / "a.toml").config_hash != before
 
 

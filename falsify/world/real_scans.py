@@ -59,7 +59,8 @@ def real_scans(paths: list[str], sequences: list[str] | None = None
     """(name, .bin, labels, kind) of every KITTI scan the paths name, in order: .bin files, folders
     of them, SemanticKITTI sequence folders and roots (only `sequences`' ids, when given) and KITTI
     object directories. kind is "semantickitti" (labels: its .label), "object" (labels: its
-    label_2 boxes) or "none"; FalsifyError names a path that holds no scan."""
+    label_2 boxes) or "none"; FalsifyError names a path that holds no scan, a file whose size is
+    not a KITTI scan's and a .label that does not hold one label a point."""
     for p in map(Path, paths):
         if not p.exists():
             raise FalsifyError(f"{p}: no such file or folder")
@@ -101,8 +102,15 @@ def _real_scan(path: Path) -> tuple[str, Path, Path | None, str]:
     it or in ../labels/, else the label_2 boxes of the object directory it sits in, else none."""
     folder = path.parent.parent if path.parent.name == "velodyne" else path.parent
     name = f"{folder.name}/{path.stem}" if folder.name else path.stem
+    size = path.stat().st_size
+    if size == 0 or size % 16:
+        raise FalsifyError(f"{path}: {size} bytes is not a KITTI scan (N x 4 float32: x, y, z, "
+                           "remission; N > 0)")
     label = label_file(path)
     if label is not None:
+        if label.stat().st_size != size // 4:
+            raise FalsifyError(f"{label}: {label.stat().st_size // 4} labels for {size // 16} "
+                               f"points in {path.name} (a .label holds one uint32 a point)")
         return name, path, label, "semantickitti"
     if path.parent.name == "velodyne" and is_object_dir(folder):
         for need in (folder / "label_2" / f"{path.stem}.txt",
