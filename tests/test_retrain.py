@@ -10,6 +10,7 @@ import tomllib
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 from falsify.models.runner import BUNDLED_ONNX
 
@@ -315,3 +316,26 @@ def test_compare_pairs_matches_the_published_runs(capsys):
     assert "seed 4: targeted ahead at 0 of 86 blind cells, mean lead -0.0420" in out
     assert "seed 5: targeted ahead at 47 of 86 blind cells, mean lead +0.0003" in out
     assert "over 6 pairs: targeted wins 2, control wins 2, mean lead -0.0098: not resolved" in out
+
+
+def test_rules_select_rs_samples_under_vs_rules_without_their_streets() -> None:
+    from falsify.jobs.retrain import covered, transferable
+    from falsify.results.explain import Condition, Rule
+
+    far = Rule((Condition("y", ">=", 16.0), Condition("background", "==", 5)), 10, 10, 1.0,
+               0.5, 0.3, 0.1)
+    street = Rule((Condition("background", "==", 2),), 10, 10, 1.0, 0.5, 0.3, 0.1)
+    assert transferable(far).text() == "y >= 16" and transferable(street).text() == ""
+    rows = pd.DataFrame({"x": [0.0, 1.0, 2.0, 3.0], "y": [5.0, 16.0, 19.0, 10.0],
+                         "background": [7, 7, 8, 8]})
+    assert covered([far, street], rows).tolist() == [False, True, True, False]
+    assert not covered([street], rows).any()
+
+
+def test_selection_rules_runs_the_experiment(inputs, tmp_path) -> None:
+    result = RetrainJob(request(inputs, tmp_path / "rules", selection="rules",
+                                held_out_scans=0)).run()
+    state = json.loads((tmp_path / "rules" / "stages.json").read_text())
+    assert state["done"]["selected"]["selection"] == "rules"
+    assert isinstance(state["done"]["selected"]["rules"], list)
+    assert result.selection == "rules"

@@ -10,7 +10,9 @@ was in; the grids and the fine-tuning resume inside their stage too):
             falsify.results.replay).
             With selection "control", as many cells drawn at random (seeded) from V's cells at
             or above the threshold: the same amount of extra data, not aimed at the blind
-            spots, so a run pair separates "the blind scans fixed it" from "more training did"
+            spots, so a run pair separates "the blind scans fixed it" from "more training did".
+            With selection "rules", R's samples under the rules `falsify explain` finds on V's
+            failing samples (their conditions on background dropped: V's streets are not R's)
   finetune  falsify.models.train from the model's weights on the training data plus the
             selected scans, each repeated `oversample` times so a few dozen scans weigh against
             thousands
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import json
 import math
 import shutil
@@ -33,14 +36,16 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from falsify.checks import check_out_dir, check_range, check_seed
 from falsify.errors import ConfigError
 from falsify.executors.driver import ProgressListener
+from falsify.results.explain import Rule, explain
 from falsify.results.store import open_run
 from falsify.world.space import RealScan
 
-SELECTIONS = ("blind", "control")
+SELECTIONS = ("blind", "control", "rules")
 STAGES = ("before", "rows", "selected", "finetune", "after", "checks", "report")
 STAGE_FILE = "stages.json"
 MAX_CAR_IOU_DROP = 0.01      # the issue's bound on a regression check (the paper: 60.8 -> 60.6)
@@ -78,7 +83,8 @@ class RetrainRequest:
     kitti: Path | None = None       # ../shared/data/kitti; checks are skipped where absent
     workers: int = 2
     resume: bool = False
-    selection: str = "blind"        # or "control": random non-blind cells, as many
+    selection: str = "blind"        # or "control": random non-blind cells, as many; or
+    #                                 "rules": R's samples under explain's rules on V
 
 
 @dataclass(frozen=True)
@@ -199,6 +205,23 @@ def toml_text(raw: dict, prefix: str = "") -> str:
             if any(not isinstance(x, dict) for x in v.values()) or not v:
                 out += f"\n[{name}]\n"
             out += inner
+    return out
+
+
+def transferable(rule: Rule) -> Rule:
+    """The rule without its conditions on `background`: V's streets are not R's, so a rule's
+    region carries over to R only in the other dims."""
+    return dataclasses.replace(rule, conditions=tuple(
+        c for c in rule.conditions if c.dim != "background"))
+
+
+def covered(rules: Sequence[Rule], rows: pd.DataFrame) -> np.ndarray:
+    """Bool per row: covered by at least one rule's transferable conditions (a rule about a
+    street of V alone covers nothing in R)."""
+    out = np.zeros(len(rows), bool)
+    for rule in map(transferable, rules):
+        if rule.conditions:
+            out |= np.logical_and.reduce([c.mask(rows[c.dim]) for c in rule.conditions])
     return out
 
 
@@ -377,15 +400,22 @@ class RetrainJob:
         cmap = v.cell_map()
         blind = cmap.blind_spots(ctx["threshold"])
         chosen = None    # the blind cells
+        rules: tuple[Rule, ...] = ()
+        select = None
         if self.req.selection == "control" and blind:
             chosen = control_cells(cmap, ctx["threshold"], len(blind), self.req.seed)
-        # R's rows at the chosen cells of V, exported into OUT/selected/retrain
+        if self.req.selection == "rules":
+            rules = explain(v.frame, v.space, ctx["threshold"], score=v.score_column).rules
+            select = functools.partial(covered, rules)
+        # R's rows at the chosen cells of V (or under V's rules), into OUT/selected/retrain
         n = write_retraining_set(dataclasses.replace(r, path=self.req.out / "selected"), cmap,
-                                 ctx["threshold"], cells=chosen)
+                                 ctx["threshold"], cells=chosen, select=select)
         return {"cells": [{"x": c.a, "y": c.b, "miou": round(c.miou, 4)} for c in blind],
                 "selection": self.req.selection,
                 "control_cells": None if chosen is None else [
                     {"x": _plain(a), "y": _plain(b)} for a, b in chosen],
+                "rules": [transferable(rule).text() or "(a street of V only)" for rule in rules]
+                if self.req.selection == "rules" else None,
                 "scans": n, "folder": str(self.req.out / "selected" / "retrain")}
 
     def _finetune(self, ctx: dict, done: dict) -> dict:
@@ -594,7 +624,8 @@ def _write_state(path: Path, state: dict) -> None:
 
 
 WHERE = {"blind": "at the blind cells",
-         "control": "control: at as many random cells that are not blind"}
+         "control": "control: at as many random cells that are not blind",
+         "rules": "under the rules explain finds on V's failing samples"}
 
 
 def result_text(r: RetrainResult) -> str:

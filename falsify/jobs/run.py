@@ -11,7 +11,7 @@ import dataclasses
 import datetime as dt
 import shutil
 import time
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
@@ -380,21 +380,23 @@ def extra_map_pairs(space: Space) -> list[tuple[str, str]]:
 
 def write_retraining_set(data: RunData, cmap: CellMap, threshold: float, lod: int = 2,
                          camera: str | None = None,
-                         cells: Collection[tuple] | None = None) -> int:
+                         cells: Collection[tuple] | None = None,
+                         select: Callable[[pd.DataFrame], np.ndarray] | None = None) -> int:
     """Scans of every valid sample in a blind-spot cell (or in `cells`, (a, b) pairs, when
-    given: a control set), in SqueezeSeg's layout, plus index.csv; with a camera preset, each
-    scan's camera files (NNNNNN.image.png, ...) beside it."""
+    given: a control set; or the rows `select` marks among the valid ones), in SqueezeSeg's
+    layout, plus index.csv; with a camera preset, each scan's camera files beside it."""
     space, frame = data.space, data.frame
     out = data.path / "retrain"
     if out.exists():
         shutil.rmtree(out)
     blind = (set(cells) if cells is not None
              else {(c.a, c.b) for c in cmap.blind_spots(threshold)})
-    if not blind or not len(frame):
+    if (not blind and select is None) or not len(frame):
         return 0
     ok = data.ok.copy()
     ok["_a"], ok["_b"] = snap(ok["x"], space, "x"), snap(ok["y"], space, "y")
-    chosen = ok[[(a, b) in blind for a, b in zip(ok["_a"], ok["_b"], strict=True)]]
+    chosen = (ok[select(ok)] if select is not None else
+              ok[[(a, b) in blind for a, b in zip(ok["_a"], ok["_b"], strict=True)]])
     if not len(chosen):
         return 0
     replay = Replay(space, lod=lod)
