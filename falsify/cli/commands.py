@@ -1017,10 +1017,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="real KITTI sets for the checks (default: ../shared/data/kitti beside "
                     "the checkout; skipped where absent)")
     rt.add_argument("--workers", type=int, default=2)
-    rt.add_argument("--selection", default="blind", choices=["blind", "control"],
+    rt.add_argument("--selection", default="blind", choices=["blind", "control", "rules"],
                     help="blind: R's scans at V's blind cells (the paper); control: at as many "
                     "random cells that are not blind, to tell the blind scans' effect from "
-                    "more training's")
+                    "more training's; rules: R's samples under the rules explain finds on V")
     rt.add_argument("--json", action="store_true")
     rt.set_defaults(func=cmd_retrain)
 
