@@ -16,6 +16,7 @@ from falsify.sampler.base import (
     SearchResult,
     lowest_so_far,
 )
+from falsify.sampler.bayes import BayesSampler
 from falsify.sampler.cross_entropy import CrossEntropySampler
 from falsify.sampler.grid import GridSampler
 from falsify.sampler.nlopt import NloptSampler
@@ -28,7 +29,8 @@ from falsify.errors import ConfigError
 def make_sampler(name: str, **options: object) -> Sampler:
     """Build a sampler by name; an unknown name or option raises ConfigError listing the allowed."""
     classes: dict[str, type] = {"grid": GridSampler, "random": RandomSampler,
-                                "sobol": SobolSampler, "cross-entropy": CrossEntropySampler}
+                                "sobol": SobolSampler, "cross-entropy": CrossEntropySampler,
+                                "bo": BayesSampler}
     if name in classes:
         cls = classes[name]
     elif name in NLOPT_ALGORITHMS:

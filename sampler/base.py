@@ -29,8 +29,10 @@ _NLOPT_CANDIDATES = (
 NLOPT_ALGORITHMS: tuple[str, ...] = tuple(n for n in _NLOPT_CANDIDATES if hasattr(nlopt, n))
 """NLopt algorithms offered by name (those this NLopt build provides)."""
 
-ALGORITHMS: tuple[str, ...] = ("grid", "random", "sobol", "cross-entropy", *NLOPT_ALGORITHMS)
-"""Every name `make_sampler` accepts."""
+ALGORITHMS: tuple[str, ...] = ("grid", "random", "sobol", "cross-entropy", *NLOPT_ALGORITHMS,
+                               "bo")
+"""Every name `make_sampler` accepts. `bo` is listed even without its optional Optuna, so that
+asking for it says how to install Optuna rather than that the name is unknown."""
 
 
 @dataclass(frozen=True)
