@@ -128,7 +128,7 @@ def test_bench_search_times_fresh_runs_and_not_resumed_ones(tmp_path):
     from falsify.results.store import read_meta
 
     out = tmp_path / "b"
-    r = bench_search(CONFIGS / "smoke.toml", out, algorithms=("random", "LN_BOBYQA"),
+    r = bench_search(CONFIGS / "smoke.toml", out, algorithms=("random", "LN_BOBYQA"), seeds=1,
                      fraction=1.0, workers=2)
     rows = {a["algorithm"]: a for a in r["algorithms"]}
     assert r["workers"] == 2 and read_meta(out / "LN_BOBYQA")["workers"] == 2
@@ -140,7 +140,7 @@ def test_bench_search_times_fresh_runs_and_not_resumed_ones(tmp_path):
     assert nl["s_per_evaluation_vs_random"] == pytest.approx(
         nl["s_per_evaluation"] / rows["random"]["s_per_evaluation"], rel=1e-2)
     assert isinstance(nl["within_goal"], bool) and "within_goal" not in rows["random"]
-    again = bench_search(CONFIGS / "smoke.toml", out, algorithms=("random", "LN_BOBYQA"),
+    again = bench_search(CONFIGS / "smoke.toml", out, algorithms=("random", "LN_BOBYQA"), seeds=1,
                          fraction=1.0, workers=2)
     for a in again["algorithms"]:
         assert not a["timed"] and a["wall_s"] is None and a["s_per_evaluation"] is None

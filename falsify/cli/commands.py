@@ -592,7 +592,7 @@ def cmd_bench(args) -> int:
     from falsify.bench.memory import bench_memory
     from falsify.bench.pipeline import bench_pipeline
     from falsify.bench.scan import bench_scan
-    from falsify.bench.search import bench_search
+    from falsify.bench.search import bench_search, over_seeds_text
 
     check_range(args.samples, "--samples", 1, MAX_SAMPLES)
     check_range(args.workers, "--workers", 1, 64)
@@ -663,12 +663,13 @@ def cmd_bench(args) -> int:
         if not args.out:
             raise UsageError("bench search needs --out DIR (its runs are resumable there)")
         result = bench_search(args.config, args.out, workers=args.workers,
-                                    model=args.model, fraction=args.fraction)
+                                    model=args.model, fraction=args.fraction, seeds=args.seeds)
         text = "\n".join(
             f"{r['algorithm']:12s} lowest {r['lowest']} after {r['evaluations']} evaluations; "
             f"within 0.02 of the grid's {result['grid_lowest']} after "
             f"{r['evaluations_to_target']}; {_search_timing(r)}" for r in result["algorithms"])
         text += f"\n{result['per_evaluation_goal']}; on {args.workers} workers"
+        text += "\n" + over_seeds_text(result)
     elif args.what == "scan":
         sb = bench_scan(args.config, workers=args.workers,
                               **given_options(args, "samples", "naive_samples"))
@@ -891,9 +892,10 @@ def build_parser() -> argparse.ArgumentParser:
     se = sub.add_parser("search", help="search a space for low car IoU within a budget")
     _run_options(se)
     se.add_argument("--algorithm", required=True, choices=[a for a in ALGORITHMS if a != "grid"],
-                    metavar="NAME", help="random, sobol, cross-entropy, or an NLopt algorithm: "
-                    + ", ".join(a for a in ALGORITHMS
-                                if a not in ("grid", "random", "sobol", "cross-entropy")))
+                    metavar="NAME", help="random, sobol, cross-entropy, bo (Bayesian "
+                    "optimisation, Optuna's TPE: pip install \"falsify[bo]\"), or an NLopt "
+                    "algorithm: " + ", ".join(a for a in ALGORITHMS if a not in (
+                        "grid", "random", "sobol", "cross-entropy", "bo")))
     se.add_argument("--budget", type=int, default=None, help="number of evaluations")
     se.set_defaults(func=cmd_search)
 
@@ -923,6 +925,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", default=None, help="bench search: where its runs go")
     b.add_argument("--fraction", type=float, default=0.2,
                    help="bench search: budget as a fraction of the dense grid")
+    b.add_argument("--seeds", type=int, default=3,
+                   help="bench search: runs of each algorithm, from the config's seed on")
     b.add_argument("--camera-preset", default="kitti-centre",
                    help="bench camera: the camera preset")
     b.add_argument("--json", action="store_true")
