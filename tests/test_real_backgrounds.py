@@ -411,3 +411,20 @@ def test_the_fast_insertion_casts_what_the_naive_path_casts(tmp_path, street):
         assert np.allclose(fast.image[car, 4], naive[car], atol=2e-3)
         # what the naive path hits and the fast scan does not show is glass (no return)
         assert (hit & ~car).sum() < 0.25 * hit.sum()
+
+
+def test_scan_inserts_into_a_real_background_and_refuses_what_needs_our_streets(tmp_path,
+                                                                                 street):
+    cfg = space_toml(tmp_path / "s.toml", str(street.bin))
+    run = [sys.executable, "-m", "falsify"]
+    proc = subprocess.run([*run, "scan", str(cfg), "--out", str(tmp_path / "scan"), "--set",
+                           "x=0", "--set", "y=12", "--json"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    labels = np.fromfile(tmp_path / "scan" / "scan.label", np.uint32)
+    assert ((labels & 0xFFFF) == RAW_ID["car"]).sum() > 300       # the inserted car
+    assert ((labels & 0xFFFF) == RAW_ID["building"]).sum() > 100  # the real wall behind it
+    for args in (["scan", str(cfg), "--out", str(tmp_path / "cam"), "--camera"],
+                 ["tradeoff", str(cfg), "--out", str(tmp_path / "t")]):
+        bad = subprocess.run([*run, *args], capture_output=True, text=True)
+        assert bad.returncode == 2 and "backgrounds are real scans" in bad.stderr, bad.stderr
+        assert not (tmp_path / args[3]).exists()

@@ -95,6 +95,7 @@ def bench_camera(config: str | Path, camera: str = "kitti-centre", samples: int 
         raise FalsifyError(f"--samples {samples} and --naive-samples {naive_samples} must be "
                            ">= 1")
     space = load_space(config)
+    space.require_streets("bench camera")
     cam = camera_preset(camera)
     grid = space.grid()
     picked = [grid[i * len(grid) // samples + i] for i in range(min(samples, len(grid) // 2))]

@@ -29,7 +29,10 @@ def warm(sim: Scanner, samples: list[Sample]) -> None:
     for bg in sorted({s.background for s in samples}):
         sim.background_hits(bg, sim.ego_pose(bg))
     for s in samples[:4]:
-        sim.scan(s)
+        try:
+            sim.scan(s)
+        except InvalidSample:   # a real background's collisions: nothing to warm
+            continue
 
 
 def _scan_rate(space: Space, samples: list[Sample], lod: int = 2) -> float:

@@ -441,6 +441,7 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
         raise FalsifyError(f"--model {onnx}: not an existing .onnx file (with its .json spec "
                            "beside it); train one with `python -m falsify.models.train`")
     space = load_space(config)
+    space.require_streets("tradeoff")
     for d in ("x", "y"):
         if not isinstance(space.dims[d], Continuous):
             raise FalsifyError(f"{config}: dims.{d} must be a range (min, max, step) for the "

@@ -61,21 +61,23 @@ def emit(args, summary: dict, text: str) -> None:
 
 # -- scan -----------------------------------------------------------------------------------
 def cmd_scan(args) -> int:
+    from falsify.data.real_backgrounds import scanner_for
     from falsify.data.velodyne import kitti_arrays
     from falsify.fileio import write_bytes, write_npy
     from falsify.images.png import encode_png
     from falsify.images.scan_pictures import scan_picture
     from falsify.sensor.lidar import load_sensor
-    from falsify.sensor.simulator import InvalidSample, Simulator
+    from falsify.sensor.simulator import InvalidSample
     from falsify.world.space import load_space
 
     check_out_dir(args.out)
     space = load_space(args.config)
     sample = space.make(_set_pairs(args.set or []))
     sensor = load_sensor(space.sensor)
-    sim = Simulator(sensor, space.user_cars)
+    sim = scanner_for(space, sensor)
     camera = None
     if args.camera is not None:
+        space.require_streets("--camera")
         from falsify.sensor.camera import camera_preset
         from falsify.sensor.look import look_of
         camera = camera_preset(args.camera)

@@ -166,6 +166,7 @@ def scene_agreement(config: str | Path, samples: int = 100, camera: str = "kitti
     if samples < 1:
         raise FalsifyError(f"--samples: {samples} must be >= 1")
     space = load_space(config)
+    space.require_streets("calib on our scenes")
     cam = camera_preset(camera)
     sim = Simulator(load_sensor(space.sensor), space.user_cars)
     renderer = CameraRenderer(sim, cam)

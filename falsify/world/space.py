@@ -194,6 +194,13 @@ class Space:
     # Real scans as backgrounds (`[dims.background] real = [...]`): background k is the k-th.
     real_backgrounds: tuple[RealScan, ...] = ()
 
+    def require_streets(self, what: str) -> None:
+        """ConfigError unless the backgrounds are our streets: `what` renders or rebuilds the
+        scene, which a real scan does not have."""
+        if self.real_backgrounds:
+            raise ConfigError(f"{self.source}: {what} works on our streets; this space's "
+                              "backgrounds are real scans")
+
     def background_name(self, bg: int) -> str:
         """How a report names a background: the real scan's name, else the street's id."""
         if self.real_backgrounds:
