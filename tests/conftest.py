@@ -61,3 +61,14 @@ def assert_offline(browser) -> None:
     assert not [u for u in requested if u.startswith(("http:", "https:", "ws:", "wss:"))]
     errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
     assert not errors, errors
+
+
+def scored(fn):
+    """An evaluate callback scoring each sample with `fn`, and the batch sizes it was called
+    with (what a sampler test reads)."""
+    calls: list[int] = []
+
+    def evaluate(batch):
+        calls.append(len(batch))
+        return [fn(s) for s in batch]
+    return evaluate, calls

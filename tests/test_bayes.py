@@ -19,6 +19,7 @@ from falsify.sampler import ALGORITHMS, make_sampler
 
 from falsify.errors import ConfigError, FalsifyError
 from falsify.world.space import Categorical, Continuous, Space, parse_space
+from tests.conftest import scored
 
 needs_optuna = pytest.mark.skipif(importlib.util.find_spec("optuna") is None,
                                   reason='Optuna not installed (pip install "falsify[bo]")')
@@ -41,14 +42,6 @@ def pit(s) -> float:
     return (0.95 - 0.4 * math.exp(-d2 / 2) - (0.1 if s["background"] == 4 else 0.0)
             - (0.03 if s["car_model"] == "suv" else 0.0))
 
-
-def scored(fn):
-    calls: list[int] = []
-
-    def evaluate(batch):
-        calls.append(len(batch))
-        return [fn(s) for s in batch]
-    return evaluate, calls
 
 
 @needs_optuna

@@ -10,6 +10,7 @@ from falsify.sampler import make_sampler
 
 from falsify.errors import ConfigError
 from falsify.world.space import parse_space
+from tests.conftest import scored
 
 DIMS = {"car_model": {"values": ["sedan", "suv"]}, "x": {"min": -5, "max": 4, "step": 1},
         "y": {"min": 5, "max": 19, "step": 1}, "background": {"values": [0, 1, 2, 3, 4, 5]}}
@@ -25,14 +26,6 @@ def corner(s) -> float:
     street = 0.12 if s["background"] == 4 else 0.0
     return 0.95 - 0.012 * (s["y"] - 5) - 0.012 * (s["x"] + 5) - street
 
-
-def scored(fn):
-    calls: list[int] = []
-
-    def evaluate(batch):
-        calls.append(len(batch))
-        return [fn(s) for s in batch]
-    return evaluate, calls
 
 
 def test_keeps_budget_space_and_replays():
