@@ -332,10 +332,53 @@ def test_rules_select_rs_samples_under_vs_rules_without_their_streets() -> None:
     assert not covered([street], rows).any()
 
 
-def test_selection_rules_runs_the_experiment(inputs, tmp_path) -> None:
-    result = RetrainJob(request(inputs, tmp_path / "rules", selection="rules",
-                                held_out_scans=0)).run()
-    state = json.loads((tmp_path / "rules" / "stages.json").read_text())
-    assert state["done"]["selected"]["selection"] == "rules"
-    assert isinstance(state["done"]["selected"]["rules"], list)
-    assert result.selection == "rules"
+def test_selection_rules_and_its_random_control_run_the_experiment(inputs, tmp_path) -> None:
+    results = {sel: RetrainJob(request(inputs, tmp_path / sel, selection=sel,
+                                       held_out_scans=0)).run() for sel in ("rules", "random")}
+    for sel, result in results.items():
+        state = json.loads((tmp_path / sel / "stages.json").read_text())
+        assert state["done"]["selected"]["selection"] == sel == result.selection
+        assert isinstance(state["done"]["selected"]["rules"], list)
+        assert result.region is not None and "mean_before" in result.region
+    # the control takes as many scans as the rules did, and reports the same region
+    assert results["random"].retraining_scans == results["rules"].retraining_scans
+    assert results["random"].region["samples"] == results["rules"].region["samples"]
+    assert results["random"].region["mean_before"] == results["rules"].region["mean_before"]
+
+
+def test_random_rows_draw_as_many_seeded_samples_from_anywhere() -> None:
+    from falsify.jobs.retrain import random_rows
+
+    pool = pd.Series(np.arange(100)[::-1])
+    rows = pd.DataFrame({"eval_index": np.arange(120)})
+    a = random_rows(10, pool, 3, rows)
+    assert a.sum() == 10 and not a[100:].any()          # only the pool's rows
+    assert (random_rows(10, pool, 3, rows) == a).all()  # seeded
+    assert (random_rows(10, pool.sample(frac=1, random_state=1), 3, rows) == a).all()
+    assert not (random_rows(10, pool, 4, rows) == a).all()
+    assert random_rows(500, pool, 3, rows).sum() == 100  # never more than the pool
+
+
+def test_region_figures_read_the_region_of_a_run() -> None:
+    from types import SimpleNamespace
+
+    from falsify.jobs.retrain import region_figures
+
+    run = SimpleNamespace(score_column="car_iou", ok=pd.DataFrame(
+        {"eval_index": [0, 1, 2, 3], "car_iou": [0.2, 0.6, 0.9, 0.1]}))
+    assert region_figures(run, [0, 1, 2], 0.65) == {"mean": 0.5667, "below": 2}
+    assert region_figures(run, [], 0.65) == {"mean": None, "below": 0}
+
+
+def test_evaluation_split_check_or_a_named_skip(tmp_path) -> None:
+    from falsify.jobs.retrain import evaluation_split
+
+    sensor = load_sensor("kitti-hdl64e-front")
+    name, scans, note = evaluation_split(tmp_path, sensor)
+    assert scans is None and str(tmp_path / "semantickitti-mini") in note
+    assert evaluation_split(None, sensor)[1] is None
+    if not (KITTI / "semantickitti-mini").is_dir():
+        pytest.skip(f"{KITTI / 'semantickitti-mini'} not found")
+    name, scans, note = evaluation_split(KITTI, sensor)
+    assert "00, 03, 06, 08" in name and len(scans.sources) == 12
+    assert {Path(src).parts[-3] for src in scans.sources} == {"00", "03", "06", "08"}

@@ -1023,10 +1023,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="real KITTI sets for the checks (default: ../shared/data/kitti beside "
                     "the checkout; skipped where absent)")
     rt.add_argument("--workers", type=int, default=2)
-    rt.add_argument("--selection", default="blind", choices=["blind", "control", "rules"],
+    rt.add_argument("--selection", default="blind",
+                    choices=["blind", "control", "rules", "random"],
                     help="blind: R's scans at V's blind cells (the paper); control: at as many "
                     "random cells that are not blind, to tell the blind scans' effect from "
-                    "more training's; rules: R's samples under the rules explain finds on V")
+                    "more training's; rules: R's samples under the rules explain finds on V; "
+                    "random: as many of R's samples as rules takes, from anywhere (its control)")
     rt.add_argument("--json", action="store_true")
     rt.set_defaults(func=cmd_retrain)
 

@@ -12,13 +12,17 @@ was in; the grids and the fine-tuning resume inside their stage too):
             or above the threshold: the same amount of extra data, not aimed at the blind
             spots, so a run pair separates "the blind scans fixed it" from "more training did".
             With selection "rules", R's samples under the rules `falsify explain` finds on V's
-            failing samples (their conditions on background dropped: V's streets are not R's)
+            failing samples (their conditions on background dropped: V's streets are not R's);
+            with "random", as many of R's valid samples drawn at random (seeded) from the whole
+            space: the control of "rules". Both record V's samples under the rules (the region)
+            so a pair compares the region's mean before and after
   finetune  falsify.models.train from the model's weights on the training data plus the
             selected scans, each repeated `oversample` times so a few dozen scans weigh against
             thousands
   after     grid over V with the fine-tuned model
   checks    pooled car IoU before and after (falsify.jobs.predict.evaluate) on held-out
-            drive-style synthetic scans and on the real KITTI sets (evaluation only)
+            drive-style synthetic scans, the real KITTI sets and semantickitti-mini's
+            evaluation split (evaluation only)
   report    maps as CSV, summary.json and the comparison page
 """
 
@@ -45,7 +49,7 @@ from falsify.results.explain import Rule, explain
 from falsify.results.store import open_run
 from falsify.world.space import RealScan
 
-SELECTIONS = ("blind", "control", "rules")
+SELECTIONS = ("blind", "control", "rules", "random")
 STAGES = ("before", "rows", "selected", "finetune", "after", "checks", "report")
 STAGE_FILE = "stages.json"
 MAX_CAR_IOU_DROP = 0.01      # the issue's bound on a regression check (the paper: 60.8 -> 60.6)
@@ -84,7 +88,8 @@ class RetrainRequest:
     workers: int = 2
     resume: bool = False
     selection: str = "blind"        # or "control": random non-blind cells, as many; or
-    #                                 "rules": R's samples under explain's rules on V
+    #                                 "rules": R's samples under explain's rules on V; or
+    #                                 "random": as many of R's samples as "rules" takes
 
 
 @dataclass(frozen=True)
@@ -129,7 +134,7 @@ class RetrainResult:
 
     out: str
     threshold: float
-    selection: str                    # "blind" (the paper's) or "control"
+    selection: str                    # one of SELECTIONS
     computed: tuple[str, ...]         # stages run this time
     reused: tuple[str, ...]           # stages read back from stages.json
     cells: int
@@ -146,6 +151,7 @@ class RetrainResult:
     report: str | None
     summary: str | None
     files: dict = field(default_factory=dict)
+    region: dict | None = None        # rules/random: V's samples under the rules, before/after
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -404,9 +410,15 @@ class RetrainJob:
         select = None
         if self.req.selection == "control" and blind:
             chosen = control_cells(cmap, ctx["threshold"], len(blind), self.req.seed)
-        if self.req.selection == "rules":
+        by_rules = self.req.selection in ("rules", "random")
+        region = None
+        if by_rules:
             rules = explain(v.frame, v.space, ctx["threshold"], score=v.score_column).rules
             select = functools.partial(covered, rules)
+            region = sorted(int(i) for i in v.ok["eval_index"][covered(rules, v.ok)])
+        if self.req.selection == "random":
+            select = functools.partial(random_rows, int(covered(rules, r.ok).sum()),
+                                       r.ok["eval_index"], self.req.seed)
         # R's rows at the chosen cells of V (or under V's rules), into OUT/selected/retrain
         n = write_retraining_set(dataclasses.replace(r, path=self.req.out / "selected"), cmap,
                                  ctx["threshold"], cells=chosen, select=select)
@@ -415,7 +427,8 @@ class RetrainJob:
                 "control_cells": None if chosen is None else [
                     {"x": _plain(a), "y": _plain(b)} for a, b in chosen],
                 "rules": [transferable(rule).text() or "(a street of V only)" for rule in rules]
-                if self.req.selection == "rules" else None,
+                if by_rules else None,
+                "region": region,
                 "scans": n, "folder": str(self.req.out / "selected" / "retrain")}
 
     def _finetune(self, ctx: dict, done: dict) -> dict:
@@ -479,6 +492,7 @@ class RetrainJob:
                      read_set("semantickitti", bins, sensor) if bins else None,
                      "kitti/semantickitti/*.bin projected with the config's sensor" if bins
                      else f"skipped: no scans in {kitti}/semantickitti"))
+        sets.append(evaluation_split(kitti, sensor))
         present = [s for _, s, _ in sets if s is not None]
         scores = {}
         for when, model in (("before", req.model), ("after", Path(done["finetune"]["model"]))):
@@ -568,6 +582,12 @@ class RetrainJob:
              if any(c.passed is not None for c in checks) else None),
         }
         files = done.get("report", {}).get("files", {})
+        region = None
+        if sel.get("region") is not None:
+            region = {"rules": sel.get("rules"), "samples": len(sel["region"]),
+                      **{f"{k}_{when}": v for when in ("before", "after") if when in done
+                         for k, v in region_figures(open_run(out / when), sel["region"],
+                                                    thr).items()}}
         return RetrainResult(
             out=str(out), threshold=thr, selection=self.req.selection, computed=computed,
             reused=reused,
@@ -576,7 +596,42 @@ class RetrainJob:
             fixed=fixed, retraining_scans=int(sel.get("scans", 0)),
             mean_before=_r(mean_b), mean_after=_r(mean_a), training=done.get("finetune", {}),
             checks=checks, criteria=criteria, model_after=done.get("finetune", {}).get("model"),
-            report=files.get("report"), summary=files.get("summary"), files=files)
+            report=files.get("report"), summary=files.get("summary"), files=files,
+            region=region)
+
+
+def random_rows(n: int, eval_index: pd.Series, seed: int, rows: pd.DataFrame) -> np.ndarray:
+    """Bool per row of `rows`: among `n` of the `eval_index` values drawn without replacement
+    (seeded), so a control takes as many samples as its targeted twin, from anywhere."""
+    pool = np.sort(eval_index.to_numpy())
+    pick = np.random.default_rng(seed).choice(len(pool), size=min(n, len(pool)), replace=False)
+    return rows["eval_index"].isin(pool[pick]).to_numpy()
+
+
+def region_figures(run, region: Sequence[int], threshold: float) -> dict:
+    """Mean score and samples below the threshold of a run's valid samples in `region`
+    (eval indices): the region's state before or after fine-tuning."""
+    ok = run.ok
+    score = ok[run.score_column][ok["eval_index"].isin(region)]
+    return {"mean": _r(float(score.mean())) if len(score) else None,
+            "below": int((score < threshold).sum())}
+
+
+def evaluation_split(kitti: Path | None, sensor) -> tuple:
+    """semantickitti-mini's evaluation sequences as one held-out check (only reported on), or
+    the note saying why it was skipped."""
+    from falsify.data.scansets import EVALUATION_SEQUENCES, read_set
+    from falsify.world.real_scans import sequence_dirs, sequence_files
+
+    name = "real evaluation split (semantickitti-mini " + ", ".join(EVALUATION_SEQUENCES) + ")"
+    root = kitti / "semantickitti-mini" if kitti else None
+    found = sequence_dirs(root) if root is not None and root.is_dir() else None
+    if not found or any(q not in found for q in EVALUATION_SEQUENCES):
+        return (name, None, f"skipped: sequences {', '.join(EVALUATION_SEQUENCES)} not found "
+                            f"in {root}")
+    files = [f for q in EVALUATION_SEQUENCES for f in sequence_files(found[q])]
+    return (name, read_set("evaluation split", files, sensor),
+            "front 90 degrees, projected with the config's sensor; labels from labels/")
 
 
 def control_cells(cmap, threshold: float, n: int, seed: int) -> list[tuple]:
@@ -625,7 +680,8 @@ def _write_state(path: Path, state: dict) -> None:
 
 WHERE = {"blind": "at the blind cells",
          "control": "control: at as many random cells that are not blind",
-         "rules": "under the rules explain finds on V's failing samples"}
+         "rules": "under the rules explain finds on V's failing samples",
+         "random": "control: as many of R's samples as the rules take, drawn at random"}
 
 
 def result_text(r: RetrainResult) -> str:
@@ -638,6 +694,11 @@ def result_text(r: RetrainResult) -> str:
         lines.append(f"after: {r.fixed} of {len(r.blind_before)} at or above the threshold, "
                      f"{r.blind_after} blind cells; mean cell mIoU {r.mean_before} -> "
                      f"{r.mean_after}")
+    if r.region is not None:
+        lines.append(f"region under the rules ({'; '.join(r.region['rules'] or []) or 'none'}):"
+                     f" {r.region['samples']} of V's samples, mean {r.region.get('mean_before')}"
+                     f" -> {r.region.get('mean_after')}, below the threshold "
+                     f"{r.region.get('below_before')} -> {r.region.get('below_after')}")
     for c in r.checks:
         if c.before is None:
             lines.append(f"check {c.name}: {c.note}")
