@@ -9,6 +9,7 @@ fails before any sample runs. Predictions are in our class ids: 0 unknown, 1 car
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -333,13 +334,20 @@ class OnnxSegmenter:
 
 
 class TorchSegmenter:
-    """PyTorch eager fp32 channels_last on the CPU or a CUDA GPU from a state dict (weights_only
-    load)."""
+    """PyTorch eager channels_last on the CPU or a CUDA GPU from a state dict (weights_only
+    load): fp32, or with precision "bf16" under torch's autocast (oneDNN's bf16 kernels on CPUs
+    with bf16 units; the model hash then says bf16, since the logits differ)."""
 
     def __init__(self, path: str | Path, threads: int | None = None,
                  spec_path: str | Path | None = None, batch: int = BATCH,
-                 device: str = "cpu") -> None:
+                 device: str = "cpu", precision: str = "fp32") -> None:
         self.path, spec_path, self.spec, self.model_hash = _open(path, spec_path)
+        if precision not in ("fp32", "bf16"):
+            raise FalsifyError(f"torch precision {precision!r}; allowed: fp32, bf16")
+        self.precision = precision
+        if precision != "fp32":
+            self.model_hash = hashlib.sha256(
+                f"{self.model_hash}:{precision}".encode()).hexdigest()
         self.batch = max(1, int(batch))
         if self.spec.input_kind != "range":
             raise FalsifyError(f"torch backend builds SqueezeSeg (range images) only; {spec_path} "
@@ -378,7 +386,9 @@ class TorchSegmenter:
         # fp32 convolutions on the GPU too: cuDNN's default TF32 moved the bundled network's
         # logits by up to 0.02 from the CPU's on an H100 (3 % of them by more than 1e-3)
         with self.torch.inference_mode(), self.torch.backends.cudnn.flags(
-                enabled=True, allow_tf32=False):
+                enabled=True, allow_tf32=False), self.torch.autocast(
+                self.device, dtype=self.torch.bfloat16,
+                enabled=self.precision == "bf16"):
             for i in range(0, len(a), self.batch):
                 f = _feeds(self.spec, a[i:i + self.batch])
                 t = {k: self.torch.from_numpy(v).to(self.device) for k, v in f.items()}

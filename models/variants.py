@@ -20,28 +20,39 @@ def car_iou(pred: np.ndarray, truth: np.ndarray) -> float:
     return float((p & t).sum() / union) if union else float("nan")
 
 
-def _time(run, scans: np.ndarray, repeats: int) -> tuple[float, Prediction]:
-    pred = run(scans[:1])  # warm-up
+def _time(run, scans: np.ndarray, repeats: int, timed: int) -> tuple[float, Prediction]:
+    """Best seconds per frame over `repeats` runs of the first `timed` frames, and the
+    predictions of every frame (one pass): the time needs a few frames, the agreement all."""
+    run(scans[:1])  # warm-up
     best = float("inf")
     for _ in range(max(1, repeats)):
         t0 = time.perf_counter()
-        pred = run(scans)
+        run(scans[:timed])
         best = min(best, time.perf_counter() - t0)
-    return best / len(scans), pred
+    return best / len(scans[:timed]), run(scans)
 
 
-VARIANTS = ("torch-fp32", "onnx-fp32", "onnx-fp32-batch8", "onnx-int8", "onnx-fp16")
+VARIANTS = ("torch-fp32", "torch-bf16", "onnx-fp32", "onnx-fp32-batch8", "onnx-int8",
+            "onnx-fp16")
+# Frames each variant is timed on (best of the repeats); agreement is measured on every frame.
+TIMED_FRAMES = 32
+# What each variant computes in, for its share of the machine's matrix rate of that precision.
+PRECISION = {"torch-fp32": "fp32", "torch-bf16": "bf16", "onnx-fp32": "fp32",
+             "onnx-fp32-batch8": "fp32", "onnx-int8": "int8", "onnx-fp16": "fp16"}
 
 
 def bench_models(scans: np.ndarray, onnx_path: str | Path, pt_path: str | Path | None = None,
                  repeats: int = 3, threads: int = 2, variants: tuple[str, ...] = VARIANTS,
-                 calibration: np.ndarray | None = None) -> list[dict]:
+                 calibration: np.ndarray | None = None, timed: int = TIMED_FRAMES,
+                 on_progress=None) -> list[dict]:
     """One dict per variant: ms/frame, fps, car IoU vs labels, and agreement with ONNX fp32.
 
     ``car_iou_diff`` is the variant's car IoU minus ONNX fp32's (against the labels in channel 5);
     ``car_agreement_iou`` is the car IoU of the variant's predictions against ONNX fp32's.
     ``onnx-fp32-batch8`` feeds the network 8 frames a run instead of one, the batching the
     runners do not use; int8 is calibrated on ``calibration`` (never the scans measured).
+    Times are the best of ``repeats`` runs over the first ``timed`` frames; ``on_progress(line)``
+    hears each step, since a slow variant on one thread takes minutes.
     """
     from falsify.models.export import convert_fp16, quantize_int8
 
@@ -59,6 +70,9 @@ def bench_models(scans: np.ndarray, onnx_path: str | Path, pt_path: str | Path |
             "torch-fp32": lambda: TorchSegmenter(
                 pt_path if pt_path else onnx_path.with_suffix(".pt"), threads,
                 spec_path=spec_path_for(onnx_path)),
+            "torch-bf16": lambda: TorchSegmenter(
+                pt_path if pt_path else onnx_path.with_suffix(".pt"), threads,
+                spec_path=spec_path_for(onnx_path), precision="bf16"),
             "onnx-int8": lambda: OnnxSegmenter(
                 quantize_int8(onnx_path, Path(tmp) / "int8.onnx", scans=calibration), threads),
             "onnx-fp16": lambda: OnnxSegmenter(
@@ -68,10 +82,12 @@ def bench_models(scans: np.ndarray, onnx_path: str | Path, pt_path: str | Path |
         for name in order:
             if name not in makers:
                 raise FalsifyError(f"unknown bench variant {name!r}; choose from {list(makers)}")
-            row: dict = {"variant": name}
+            row: dict = {"variant": name, "precision": PRECISION[name]}
+            if on_progress is not None:
+                on_progress(f"bench model: {name} ({len(scans)} frames, {threads} thread(s))")
             try:
                 seg = makers[name]()
-                sec, pred = _time(seg.predict, scans, repeats)
+                sec, pred = _time(seg.predict, scans, repeats, timed)
             except FalsifyError:
                 raise
             except Exception as e:  # a variant that does not run here is reported, not fatal
@@ -83,6 +99,7 @@ def bench_models(scans: np.ndarray, onnx_path: str | Path, pt_path: str | Path |
             iou = car_iou(pred.classes, labels)
             row.update(
                 ms_per_frame=round(sec * 1e3, 2), fps=round(1.0 / sec, 2), frames=len(scans),
+                timed_frames=len(scans[:timed]),
                 threads=threads, batch=seg.batch, car_iou=iou,
                 car_iou_diff=iou - car_iou(ref.classes, labels),
                 car_agreement_iou=car_iou(pred.classes, ref.classes),

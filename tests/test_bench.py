@@ -87,13 +87,43 @@ def test_bench_model_compares_variants_on_the_same_frames(capsys):
     r = _json(capsys, ["bench", "model", "--samples", "2", "--repeats", "1",
                        "--calibration-scans", "2", "--json"])
     rows = {v["variant"]: v for v in r["variants"]}
-    assert set(rows) == {"onnx-fp32", "onnx-fp32-batch8", "torch-fp32", "onnx-int8",
-                         "onnx-fp16"}, rows
+    assert set(rows) == {"onnx-fp32", "onnx-fp32-batch8", "torch-fp32", "torch-bf16",
+                         "onnx-int8", "onnx-fp16"}, rows
     assert rows["onnx-fp32"]["batch"] == 1 and rows["onnx-fp32-batch8"]["batch"] == 8
     # batching changes speed, never the answer; torch agrees with ONNX Runtime
     for name in ("onnx-fp32-batch8", "torch-fp32"):
         assert rows[name]["pixel_agreement"] > 0.9999, rows[name]
+    assert rows["torch-bf16"]["pixel_agreement"] > 0.99, rows["torch-bf16"]
     assert all(v["ms_per_frame"] > 0 and v["frames"] == 2 for v in rows.values())
+    # the machine's own rates, and each variant as a share of its precision's rate
+    rates = r["matrix_rates"]
+    assert rates["fp32"]["gflops_1_core"] > 0 and rates["int8"]["gops_1_core"] > 0
+    if rates["cpu_units"]["bf16"]:
+        assert rates["bf16"]["gflops_1_core"] > 0
+    else:
+        assert rates["bf16"]["gflops_1_core"] is None and "no bf16 units" in rates["bf16"]["note"]
+    for name, v in rows.items():
+        assert v["achieved_gops_per_thread"] > 0
+        if v["precision"] in ("fp32", "int8"):
+            assert 0 < v["share_of_matrix_rate"] < 5, (name, v)
+    assert rows["onnx-fp16"]["share_of_matrix_rate"] is None
+
+
+def test_int8_matrix_rate_multiplies_integers_exactly():
+    """The int8 product timed is a real u8 x s8 -> s32 product (checked against numpy), so its
+    rate is of the integer path, not of a graph ONNX Runtime folded away."""
+    import numpy as np
+    from falsify.models.runner import cpu_session
+
+    from falsify.bench.machine import matmul_graph
+
+    model, a, b = matmul_graph(16, 32, 8, kind="int8")
+    y = cpu_session(model, threads=1).run(None, {"A": a})[0]
+    assert y.dtype == np.int32 and y.shape == (16, 8)
+    assert (y == (a.astype(np.int32) - 128) @ b.astype(np.int32)).all()
+    model, a, b = matmul_graph(16, 32, 8)
+    y = cpu_session(model, threads=1).run(None, {"A": a})[0]
+    np.testing.assert_allclose(y, a @ b, rtol=1e-5, atol=1e-4)
 
 
 @pytest.mark.parametrize("args, message", [

@@ -85,22 +85,42 @@ def in_processes(target: Callable, n: int, args: tuple = (), timeout: float = 18
 
 # -- the machine's matrix product ---------------------------------------------------------------
 
-def _matmul_session(m: int, k: int, n: int):
-    """A one-node MatMul graph (B a constant, as a network's weights are) on one ORT thread, and
-    an input A."""
-    from onnx import TensorProto, helper, numpy_helper
-
+def _matmul_session(m: int, k: int, n: int, kind: str = "fp32"):
+    """The product graph on one ORT thread, and its input A."""
     from falsify.models.runner import cpu_session
 
+    model, a, _ = matmul_graph(m, k, n, kind)
+    return cpu_session(model, threads=1), a
+
+
+def matmul_graph(m: int, k: int, n: int, kind: str = "fp32"
+                 ) -> tuple[bytes, np.ndarray, np.ndarray]:
+    """A one-node product graph with B a constant (as a network's weights are), an input A, and
+    B: fp32 MatMul, or for "int8" MatMulInteger of uint8 A (zero point 128) by int8 B into
+    int32, MLAS's integer GEMM (the u8 x s8 path VNNI and AMX speed up, as the int8 network's
+    convs use)."""
+    from onnx import TensorProto, helper, numpy_helper
+
     rng = np.random.default_rng(0)
-    b = numpy_helper.from_array(rng.standard_normal((k, n), dtype=np.float32), "B")
+    if kind == "int8":
+        bb = rng.integers(-127, 128, (k, n), dtype=np.int8)
+        b = numpy_helper.from_array(bb, "B")
+        zero = [numpy_helper.from_array(np.array(128, np.uint8), "za"),
+                numpy_helper.from_array(np.array(0, np.int8), "zb")]
+        node = helper.make_node("MatMulInteger", ["A", "B", "za", "zb"], ["Y"])
+        types, a = (TensorProto.UINT8, TensorProto.INT32), rng.integers(0, 256, (m, k),
+                                                                          dtype=np.uint8)
+    else:
+        bb = rng.standard_normal((k, n), dtype=np.float32)
+        b, zero = numpy_helper.from_array(bb, "B"), []
+        node = helper.make_node("MatMul", ["A", "B"], ["Y"])
+        types, a = (TensorProto.FLOAT, TensorProto.FLOAT), rng.standard_normal(
+            (m, k), dtype=np.float32)
     graph = helper.make_graph(
-        [helper.make_node("MatMul", ["A", "B"], ["Y"])], "matmul",
-        [helper.make_tensor_value_info("A", TensorProto.FLOAT, [m, k])],
-        [helper.make_tensor_value_info("Y", TensorProto.FLOAT, [m, n])], [b])
+        [node], "matmul", [helper.make_tensor_value_info("A", types[0], [m, k])],
+        [helper.make_tensor_value_info("Y", types[1], [m, n])], [b, *zero])
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
-    return cpu_session(model.SerializeToString(), threads=1), \
-        rng.standard_normal((m, k), dtype=np.float32)
+    return model.SerializeToString(), a, bb
 
 
 def _best_run(session, a: np.ndarray, repeats: int, barrier=None) -> float:
@@ -115,10 +135,10 @@ def _best_run(session, a: np.ndarray, repeats: int, barrier=None) -> float:
     return best
 
 
-def _matmul_worker(rank: int, n: int, barrier, shapes, repeats: int
+def _matmul_worker(rank: int, n: int, barrier, shapes, repeats: int, kind: str = "fp32"
                    ) -> tuple[list[float], list[float]]:
     """Rank 0 alone first (the others wait), then all `n` together, repeat by repeat."""
-    runs = [_matmul_session(*s) for s in shapes]
+    runs = [_matmul_session(*s, kind=kind) for s in shapes]
     for session, a in runs:
         session.run(None, {"A": a})
     barrier.wait(_WAIT)
@@ -130,8 +150,9 @@ def _matmul_worker(rank: int, n: int, barrier, shapes, repeats: int
 
 @dataclass(frozen=True)
 class MatmulRate:
-    """GFLOP/s of ONNX Runtime's fp32 MatMul on one thread: one process alone, and each of
-    `processes` processes when all run at once (best of `repeats`; products start together)."""
+    """Giga-ops/s (2 per multiply-add) of ONNX Runtime's matrix product on one thread, fp32 or
+    int8: one process alone, and each of `processes` processes when all run at once (best of
+    `repeats`; products start together)."""
 
     shapes: tuple[tuple[int, int, int], ...]      # (M, K, N)
     alone_s: tuple[float, ...]                    # best s per product, one process alone
@@ -139,6 +160,7 @@ class MatmulRate:
     processes: int
     repeats: int
     library: str
+    kind: str = "fp32"
 
     def gflops_1_core(self, k: int = 0) -> float:
         m, kk, n = self.shapes[k]
@@ -151,28 +173,83 @@ class MatmulRate:
 
     def to_json(self) -> dict:
         names = [f"{m}x{k}x{n}" for m, k, n in self.shapes]
+        unit = "gflops" if self.kind == "fp32" else "gops"   # integer ops are no FLOPs
         return {
-            "library": self.library, "threads_per_process": 1, "repeats": self.repeats,
-            "shape": names[0],
-            "gflops_1_core": round(self.gflops_1_core(), 2),
-            "gflops_per_core_all_at_once": round(self.gflops_per_core(), 2),
+            "library": self.library, "kind": self.kind, "threads_per_process": 1,
+            "repeats": self.repeats, "shape": names[0],
+            f"{unit}_1_core": round(self.gflops_1_core(), 2),
+            f"{unit}_per_core_all_at_once": round(self.gflops_per_core(), 2),
             "processes": self.processes, "processes_from": "--workers",
             "cpus": os.cpu_count(),
-            "shapes": {name: {"gflops_1_core": round(self.gflops_1_core(k), 2),
-                              "gflops_per_core_all_at_once": round(self.gflops_per_core(k), 2)}
+            "shapes": {name: {f"{unit}_1_core": round(self.gflops_1_core(k), 2),
+                              f"{unit}_per_core_all_at_once": round(self.gflops_per_core(k), 2)}
                        for k, name in enumerate(names)},
         }
 
 
-def matmul_rate(processes: int, shapes=MATMUL_SHAPES, repeats: int = MATMUL_REPEATS
-                ) -> MatmulRate:
-    """The machine's fp32 matrix product through ONNX Runtime's own kernels (the library the
-    network runs on), one core alone and `processes` cores at once."""
+def matmul_rate(processes: int, shapes=MATMUL_SHAPES, repeats: int = MATMUL_REPEATS,
+                kind: str = "fp32") -> MatmulRate:
+    """The machine's fp32 (or int8) matrix product through ONNX Runtime's own kernels (the
+    library the network runs on), one core alone and `processes` cores at once."""
     import onnxruntime
 
-    out = in_processes(_matmul_worker, processes, (tuple(shapes), repeats))
+    out = in_processes(_matmul_worker, processes, (tuple(shapes), repeats, kind))
     return MatmulRate(tuple(shapes), tuple(out[0][0]), tuple(tuple(t) for _, t in out),
-                      processes, repeats, f"onnxruntime {onnxruntime.__version__} (MLAS)")
+                      processes, repeats, f"onnxruntime {onnxruntime.__version__} (MLAS)", kind)
+
+
+def cpu_flags() -> set[str]:
+    """The CPU's feature flags from /proc/cpuinfo (empty where there is none)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return set()
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() == "flags":
+            return set(value.split())
+    return set()
+
+
+# The flags that give a CPU integer dot products (int8) and bf16 products in hardware.
+INT8_UNITS = ("avx512_vnni", "avx_vnni", "amx_int8")
+BF16_UNITS = ("avx512_bf16", "amx_bf16")
+
+
+def _bf16_worker(rank: int, n: int, barrier, shape, repeats: int) -> float:
+    import torch
+    torch.set_num_threads(1)
+    m, k, nn = shape
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(m, k, generator=g).to(torch.bfloat16)
+    b = torch.randn(k, nn, generator=g).to(torch.bfloat16)
+    torch.matmul(a, b)
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        torch.matmul(a, b)
+        best = min(best, time.perf_counter() - t0)
+    return 2 * m * k * nn / best / 1e9
+
+
+def bf16_matmul_rate(shape: tuple[int, int, int] = MATMUL_SHAPES[0],
+                     repeats: int = MATMUL_REPEATS) -> dict:
+    """GFLOP/s of a bf16 product on one thread through torch (oneDNN: AVX512-BF16 or AMX where
+    the CPU has them), in a process of its own; where the CPU has no bf16 units or torch is not
+    installed, says so instead of a figure (bf16 emulated in fp32 units is no peak)."""
+    units = sorted(cpu_flags() & set(BF16_UNITS))
+    m, k, n = shape
+    out: dict = {"kind": "bf16", "shape": f"{m}x{k}x{n}", "threads_per_process": 1,
+                 "cpu_units": units, "gflops_1_core": None}
+    if not units:
+        return {**out, "note": "no bf16 units in this CPU's flags (" + ", ".join(BF16_UNITS)
+                + ")"}
+    try:
+        import torch
+    except ImportError:
+        return {**out, "note": "torch is not installed (pip install \"falsify[torch]\")"}
+    rate = in_processes(_bf16_worker, 1, (shape, repeats))[0]
+    return {**out, "gflops_1_core": round(rate, 2), "library": f"torch {torch.__version__}"}
 
 
 # -- the network's inference alone --------------------------------------------------------------

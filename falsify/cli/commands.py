@@ -536,8 +536,9 @@ def _camera_option(p: argparse.ArgumentParser, help_text: str) -> None:
 
 
 # -- bench ----------------------------------------------------------------------------------
-# Held-out frames `bench model` measures unless --samples says otherwise.
-MODEL_BENCH_FRAMES = 1000
+# Held-out frames `bench model` compares the variants on unless --samples says otherwise (each
+# variant is timed on the first TIMED_FRAMES of them).
+MODEL_BENCH_FRAMES = 300
 
 
 def given_options(args, *names: str) -> dict:
@@ -580,6 +581,15 @@ def _memory_text(m: dict | None) -> str:
             f"{m['late_rss_mb']} MB")
 
 
+def model_rates_text(rates: dict) -> str:
+    bf16 = rates["bf16"]
+    return (f"machine, 1 thread: fp32 {rates['fp32']['gflops_1_core']} GFLOP/s, int8 "
+            f"{rates['int8']['gops_1_core']} GOP/s (units: "
+            f"{', '.join(rates['cpu_units']['int8']) or 'none'}), bf16 "
+            + (f"{bf16['gflops_1_core']} GFLOP/s" if bf16["gflops_1_core"] is not None
+               else bf16["note"]))
+
+
 def _search_timing(r: dict) -> str:
     """A `bench search` row's time: wall seconds, per evaluation, against random's."""
     if r["s_per_evaluation"] is None:
@@ -609,12 +619,19 @@ def cmd_bench(args) -> int:
     if args.what == "model":
         import numpy as np
 
+        from falsify.bench.model import add_shares, model_bench_rates
         from falsify.data.scansets import npy_files, read_set
         from falsify.data.training import calibration_scans, held_out_scans
+        from falsify.models.flops import count_flops
         from falsify.models.runner import BUNDLED_ONNX
         from falsify.models.variants import bench_models
         from falsify.sensor.lidar import load_sensor
         sensor = load_sensor("kitti-hdl64e-front")
+
+        def progress(line: str) -> None:
+            if not args.json:
+                print(line, file=sys.stderr, flush=True)
+
         frames = MODEL_BENCH_FRAMES if args.samples is None else args.samples
         files = npy_files(Path(args.scans))[:frames] if args.scans else []
         if args.scans and not files:
@@ -622,14 +639,21 @@ def cmd_bench(args) -> int:
         scans = (read_set(args.scans, files, sensor).images if files
                  else held_out_scans(sensor, frames))
         onnx = Path(args.model) if args.model else BUNDLED_ONNX
+        rates = model_bench_rates(progress)
         rows = bench_models(np.asarray(scans), onnx, repeats=args.repeats,
                             threads=args.threads,
-                            calibration=calibration_scans(sensor, args.calibration_scans))
+                            calibration=calibration_scans(sensor, args.calibration_scans),
+                            on_progress=progress)
+        add_shares(rows, count_flops(onnx).total, rates)
         result = {"benchmark": "model", "model": str(onnx), "frames": len(scans),
-                  "machine": machine(), "variants": rows}
-        text = "\n".join(f"{r['variant']:16s} {r['ms_per_frame']:8.1f} ms/frame "
-                         f"{r['fps']:6.1f} fps  car IoU diff {r['car_iou_diff']:+.4f}"
-                         for r in rows)
+                  "machine": machine(), "matrix_rates": rates, "variants": rows}
+        text = "\n".join([model_rates_text(rates), *(
+            f"{r['variant']:16s} {r['ms_per_frame']:8.1f} ms/frame {r['fps']:6.1f} fps  car "
+            f"IoU diff {r['car_iou_diff']:+.4f}" + ("" if r.get("share_of_matrix_rate") is None
+                                                   else f"  {r['share_of_matrix_rate']:.0%} of "
+                                                   f"the {r['precision']} matrix rate")
+            if "error" not in r else f"{r['variant']:16s} did not run: {r['error']}"
+            for r in rows)])
     elif args.what == "pipeline":
         if args.executor == "ray":
             from falsify.executors.ray import import_ray
