@@ -206,19 +206,34 @@ class Simulator:
 
     # -- meshes ---------------------------------------------------------------------------
     def car_mesh(self, model: str):
+        """A model as a trimesh mesh, for the naive paths and users (imports trimesh)."""
         if model in self.user_cars:
             u = self.user_cars[model]
             return cars.load_user_car(u.file, u.scale, u.forward, u.up)
         if model in road_users.OTHER_VEHICLES:
-            return road_users.vehicle_model(model)[0]
+            import trimesh
+
+            v, f, _ = road_users.vehicle_model(model)
+            return trimesh.Trimesh(v, f, process=False)
         return cars.car_mesh(model, lod=self.lod)
+
+    def car_arrays(self, model: str) -> tuple[np.ndarray, np.ndarray]:
+        """A model's vertices and faces in its own frame; built-in models without trimesh,
+        so that a worker that casts only them never imports it."""
+        if model in self.user_cars:
+            mesh = self.car_mesh(model)
+            return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        if model in road_users.OTHER_VEHICLES:
+            return road_users.vehicle_model(model)[:2]
+        v, f, _ = cars.car_parts(model, self.lod)
+        return v, f
 
     def car_materials(self, model: str) -> np.ndarray:
         """Per-face materials of a model (user meshes: mid paint everywhere)."""
         if model in self.user_cars:
-            return np.full(len(self.car_mesh(model).faces), mid("paint mid"), np.uint8)
+            return np.full(len(self.car_arrays(model)[1]), mid("paint mid"), np.uint8)
         if model in road_users.OTHER_VEHICLES:
-            return road_users.vehicle_model(model)[1]
+            return road_users.vehicle_model(model)[2]
         return cars.car_parts(model, self.lod)[2]
 
     def car_semantic(self, car: PlacedCar) -> int:
@@ -231,11 +246,12 @@ class Simulator:
     def car_caster(self, model: str) -> tuple[_Caster, np.ndarray]:
         """The car's BVH in its own frame and its bounding box corners (8×3)."""
         if model not in self._cars:
-            mesh = self.car_mesh(model)
-            lo, hi = np.asarray(mesh.bounds[0]), np.asarray(mesh.bounds[1])
+            v, f = self.car_arrays(model)
+            used = v[np.unique(f)]     # trimesh's bounds: of the vertices faces reference
+            lo, hi = used.min(axis=0), used.max(axis=0)
             corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                                 for z in (lo[2], hi[2])])
-            self._cars[model] = (_Caster.of(mesh.vertices, mesh.faces, self.car_materials(model),
+            self._cars[model] = (_Caster.of(v, f, self.car_materials(model),
                                             anchor=np.zeros(3)), corners)
         return self._cars[model]
 

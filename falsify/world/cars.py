@@ -12,13 +12,16 @@ import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 
 from falsify.errors import ConfigError
 from falsify.world import shapes
 from falsify.world.materials import mid
+
+if TYPE_CHECKING:
+    import trimesh
 
 LOD_LEVELS: tuple[int, ...] = (0, 1, 2)
 
@@ -232,15 +235,15 @@ def _bed(spec: CarSpec) -> list[shapes.Mesh]:
 
 @functools.lru_cache(maxsize=64)
 def car_mesh(name: str, lod: int = 2) -> trimesh.Trimesh:
-    """Built-in car ``name`` at level of detail ``lod`` (2 full, 0 coarse hull), in the car frame.
+    """Built-in car ``name`` at level of detail ``lod`` (2 full, 0 coarse hull), in the car frame,
+    as a trimesh mesh (for users and the naive paths; the simulator takes `car_parts`' arrays
+    and never imports trimesh, which with scipy costs a worker some 65 MB).
 
     Cached: every call with the same arguments returns the SAME object; do not mutate it
     (copy it, or transform copies of its vertices).
     """
-    if name not in _SPECS:
-        raise ConfigError(f"car_model: unknown model {name!r}; allowed: {', '.join(_SPECS)}")
-    if isinstance(lod, bool) or lod not in LOD_LEVELS:
-        raise ConfigError(f"lod: {lod!r} is not a level of detail; allowed: {LOD_LEVELS}")
+    import trimesh
+
     v, f, _ = car_parts(name, lod)
     return trimesh.Trimesh(vertices=v, faces=f.astype(np.int64), process=False)
 
@@ -342,6 +345,8 @@ def load_user_car(path: str | Path, scale: float = 1.0, forward: str = "+x",
     if not path.is_file():
         raise ConfigError(f"car model file {path}: not found")
     try:
+        import trimesh
+
         loaded = trimesh.load(str(path), force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise ConfigError(f"car model file {path}: cannot be loaded as a mesh ({exc})") from exc

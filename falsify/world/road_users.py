@@ -13,7 +13,6 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-import trimesh
 
 from falsify.semantic import RAW_ID
 from falsify.world import shapes
@@ -152,12 +151,14 @@ def vehicle_parts(kind: str, rng: np.random.Generator) -> list[Part]:
 
 
 @functools.lru_cache(maxsize=16)
-def vehicle_model(kind: str) -> tuple[trimesh.Trimesh, np.ndarray]:
-    """The fixed instance of `kind` used as dataset traffic: mesh and per-face material."""
+def vehicle_model(kind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The fixed instance of `kind` used as dataset traffic: vertices, faces and per-face
+    material (read-only: cached)."""
     rng = np.random.default_rng([OTHER_VEHICLES.index(kind), 77])
     v, f, mat = merge_parts(vehicle_parts(kind, rng))
-    mat.setflags(write=False)
-    return trimesh.Trimesh(v, f, process=False), mat
+    for a in (v, f, mat):
+        a.setflags(write=False)
+    return v, f, mat
 
 
 def bicycle_parts(rng: np.random.Generator) -> list[Part]:

@@ -7,6 +7,8 @@ construction; ``merge`` drops them, so call it (or ``drop_degenerate``) before u
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 Mesh = tuple[np.ndarray, np.ndarray]
@@ -164,16 +166,20 @@ def icosphere(center, radii, subdivisions: int = 1) -> Mesh:
 
 
 _ICO_CACHE: dict[int, Mesh] = {}
+# trimesh.creation.icosphere(subdivisions=s) for s = 0..3, stored so that building a street never
+# imports trimesh (with scipy, some 65 MB in every worker); tests/test_shapes.py holds them to
+# trimesh's own.
+ICOSPHERES = Path(__file__).with_name("icospheres.npz")
 
 
 def _unit_icosphere(subdivisions: int) -> Mesh:
     """Unit icosphere (cached; callers get copies via arithmetic, never the cached arrays)."""
     if subdivisions not in _ICO_CACHE:
-        import trimesh
-
-        sphere = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
-        _ICO_CACHE[subdivisions] = (np.asarray(sphere.vertices, dtype=np.float64),
-                                    np.asarray(sphere.faces, dtype=np.int64))
+        with np.load(ICOSPHERES) as stored:
+            if f"faces{subdivisions}" not in stored:
+                raise ValueError(f"icosphere subdivisions {subdivisions}: stored are 0-3")
+            _ICO_CACHE[subdivisions] = (stored[f"vertices{subdivisions}"],
+                                        stored[f"faces{subdivisions}"])
     return _ICO_CACHE[subdivisions]
 
 
