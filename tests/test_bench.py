@@ -7,6 +7,7 @@ README with the commands that measured them.
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 
@@ -184,3 +185,26 @@ def test_bench_camera_runs_the_samples_given(capsys):
                        "--samples", "2", "--naive-samples", "1", "--json"])
     assert r["samples"] == 2 and r["naive_samples"] == 1
     assert r["ms_per_image_cold"] > 0 and r["naive_ms_per_image"] > 0
+
+
+def test_bench_nodes_reads_each_cluster_against_one_node():
+    from falsify.bench.nodes import NodeRate, NodesBench
+
+    r = NodesBench("c.toml", 8, {"cpus": 2}, (NodeRate(1, 100, 10.0, 5.0),
+                                              NodeRate(2, 90, 4.5, 6.0),
+                                              NodeRate(3, 80, 4.0, 7.0))).to_json()
+    got = [(n["nodes"], n["samples_per_s"], n["over_1_node"]) for n in r["nodes"]]
+    assert got == [(1, 10.0, 1.0), (2, 20.0, 2.0), (3, 20.0, 2.0)]
+    cores = os.cpu_count() or 1
+    assert [n["ideal_on_this_machine"] for n in r["nodes"]] == [min(k, cores) for k in (1, 2, 3)]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--nodes", "0"], "--nodes"),
+    (["--nodes", "3", "--samples", "24"], "--samples: 24 must be more than"),
+    (["--samples", "100000"], "--samples"),
+])
+def test_bad_bench_nodes_options_exit_2_before_a_cluster_starts(capsys, args, message):
+    with pytest.raises(SystemExit) as exc:
+        raise SystemExit(main(["bench", "nodes", "--config", str(CONFIGS / "ci.toml"), *args]))
+    assert exc.value.code == 2 and message in capsys.readouterr().err

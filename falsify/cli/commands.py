@@ -581,6 +581,10 @@ def _memory_text(m: dict | None) -> str:
             f"{m['late_rss_mb']} MB")
 
 
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
 def model_rates_text(rates: dict) -> str:
     bf16 = rates["bf16"]
     return (f"machine, 1 thread: fp32 {rates['fp32']['gflops_1_core']} GFLOP/s, int8 "
@@ -627,10 +631,7 @@ def cmd_bench(args) -> int:
         from falsify.models.variants import bench_models
         from falsify.sensor.lidar import load_sensor
         sensor = load_sensor("kitti-hdl64e-front")
-
-        def progress(line: str) -> None:
-            if not args.json:
-                print(line, file=sys.stderr, flush=True)
+        progress = (lambda line: None) if args.json else _stderr
 
         frames = MODEL_BENCH_FRAMES if args.samples is None else args.samples
         files = npy_files(Path(args.scans))[:frames] if args.scans else []
@@ -685,6 +686,15 @@ def cmd_bench(args) -> int:
         m = result["memory"]
         text = (f"{result['command']}: {result['samples']} samples in {result['seconds']} s; "
                 + f"all processes together: {_memory_text(m)}")
+    elif args.what == "nodes":
+        from falsify.bench.nodes import bench_nodes
+
+        result = bench_nodes(args.config, nodes=args.nodes, model=args.model,
+                             on_progress=None if args.json else _stderr,
+                             **given_options(args, "samples")).to_json()
+        text = "\n".join(f"{r['nodes']} node(s): {r['samples_per_s']} samples/s, "
+                         f"{r['over_1_node']}x one node (ideal here {r['ideal_on_this_machine']})"
+                         for r in result["nodes"]) + "\n" + result["note"]
     elif args.what == "search":
         if not args.out:
             raise UsageError("bench search needs --out DIR (its runs are resumable there)")
@@ -927,9 +937,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     from falsify.bench.tradeoff import KNOBS
     b = sub.add_parser("bench", help="measure a fast path beside its naive path")
-    b.add_argument("what", choices=["scan", "model", "pipeline", "search", "camera", "memory"],
+    b.add_argument("what", choices=["scan", "model", "pipeline", "search", "camera", "memory",
+                                     "nodes"],
                    help="memory: peak memory of a whole `falsify grid --config ... --workers N` "
-                   "run, all processes together")
+                   "run, all processes together; nodes: Ray on local clusters of 1..--nodes "
+                   "one-CPU nodes")
     b.add_argument("--config", default=str(DEFAULT_CONFIG))
     b.add_argument("--samples", type=int, default=None,
                    help="how many samples (default: each benchmark's own)")
@@ -953,6 +965,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bench search: budget as a fraction of the dense grid")
     b.add_argument("--seeds", type=int, default=3,
                    help="bench search: runs of each algorithm, from the config's seed on")
+    b.add_argument("--nodes", type=int, default=3, choices=range(1, 17), metavar="N",
+                   help="bench nodes: the largest local cluster, in one-CPU worker nodes")
     b.add_argument("--camera-preset", default="kitti-centre",
                    help="bench camera: the camera preset")
     b.add_argument("--json", action="store_true")
