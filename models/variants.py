@@ -44,13 +44,14 @@ PRECISION = {"torch-fp32": "fp32", "torch-bf16": "bf16", "onnx-fp32": "fp32",
 def bench_models(scans: np.ndarray, onnx_path: str | Path, pt_path: str | Path | None = None,
                  repeats: int = 3, threads: int = 2, variants: tuple[str, ...] = VARIANTS,
                  calibration: np.ndarray | None = None, timed: int = TIMED_FRAMES,
-                 on_progress=None) -> list[dict]:
+                 on_progress=None, int8_path: str | Path | None = None) -> list[dict]:
     """One dict per variant: ms/frame, fps, car IoU vs labels, and agreement with ONNX fp32.
 
     ``car_iou_diff`` is the variant's car IoU minus ONNX fp32's (against the labels in channel 5);
     ``car_agreement_iou`` is the car IoU of the variant's predictions against ONNX fp32's.
     ``onnx-fp32-batch8`` feeds the network 8 frames a run instead of one, the batching the
-    runners do not use; int8 is calibrated on ``calibration`` (never the scans measured).
+    runners do not use; int8 is ``int8_path`` where given (the shipped int8 copy of the bundled
+    network), else calibrated on ``calibration`` (never the scans measured: two minutes).
     Times are the best of ``repeats`` runs over the first ``timed`` frames; ``on_progress(line)``
     hears each step, since a slow variant on one thread takes minutes.
     """
@@ -74,7 +75,8 @@ def bench_models(scans: np.ndarray, onnx_path: str | Path, pt_path: str | Path |
                 pt_path if pt_path else onnx_path.with_suffix(".pt"), threads,
                 spec_path=spec_path_for(onnx_path), precision="bf16"),
             "onnx-int8": lambda: OnnxSegmenter(
-                quantize_int8(onnx_path, Path(tmp) / "int8.onnx", scans=calibration), threads),
+                int8_path or quantize_int8(onnx_path, Path(tmp) / "int8.onnx", scans=calibration),
+                threads),
             "onnx-fp16": lambda: OnnxSegmenter(
                 convert_fp16(onnx_path, Path(tmp) / "fp16.onnx"), threads),
         }

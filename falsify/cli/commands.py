@@ -537,8 +537,9 @@ def _camera_option(p: argparse.ArgumentParser, help_text: str) -> None:
 
 # -- bench ----------------------------------------------------------------------------------
 # Held-out frames `bench model` compares the variants on unless --samples says otherwise (each
-# variant is timed on the first TIMED_FRAMES of them).
-MODEL_BENCH_FRAMES = 300
+# variant is timed on the first TIMED_FRAMES of them). Each is on a street of its own, built
+# first (about 0.7 s a street): 1,000 frames spent some 12 minutes there alone.
+MODEL_BENCH_FRAMES = 64
 
 
 def given_options(args, *names: str) -> dict:
@@ -627,7 +628,7 @@ def cmd_bench(args) -> int:
         from falsify.data.scansets import npy_files, read_set
         from falsify.data.training import calibration_scans, held_out_scans
         from falsify.models.flops import count_flops
-        from falsify.models.runner import BUNDLED_ONNX
+        from falsify.models.runner import BUNDLED_ONNX, WEIGHTS_DIR
         from falsify.models.variants import bench_models
         from falsify.sensor.lidar import load_sensor
         sensor = load_sensor("kitti-hdl64e-front")
@@ -641,10 +642,14 @@ def cmd_bench(args) -> int:
                  else held_out_scans(sensor, frames))
         onnx = Path(args.model) if args.model else BUNDLED_ONNX
         rates = model_bench_rates(progress)
+        # the bundled network's int8 is its shipped copy (calibrating one anew takes minutes)
+        shipped = (onnx.resolve() == BUNDLED_ONNX.resolve()
+                   and args.calibration_scans is None)
         rows = bench_models(np.asarray(scans), onnx, repeats=args.repeats,
-                            threads=args.threads,
-                            calibration=calibration_scans(sensor, args.calibration_scans),
-                            on_progress=progress)
+                            threads=args.threads, on_progress=progress,
+                            calibration=None if shipped else calibration_scans(
+                                sensor, args.calibration_scans),
+                            int8_path=WEIGHTS_DIR / "squeezeseg-int8.onnx" if shipped else None)
         add_shares(rows, count_flops(onnx).total, rates)
         result = {"benchmark": "model", "model": str(onnx), "frames": len(scans),
                   "machine": machine(), "matrix_rates": rates, "variants": rows}
@@ -957,7 +962,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--repeats", type=int, default=3)
     b.add_argument("--calibration-scans", type=int, default=None, choices=range(1, 1025),
                    metavar="N", help="bench model: synthetic scenes to calibrate int8 on "
-                   "(default: the export's 64)")
+                   "(default: the export's 64; the bundled network's shipped int8 copy is "
+                   "measured unless this is given)")
     b.add_argument("--threads", type=int, default=2, choices=range(1, 65), metavar="N",
                    help="bench model: inference threads (a grid worker uses 1)")
     b.add_argument("--out", default=None, help="bench search: where its runs go")
