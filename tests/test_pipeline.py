@@ -233,7 +233,7 @@ def test_grid_report_and_gate_run_without_torch(tmp_path):
     assert (run / "report.html").exists()
 
 
-@pytest.mark.parametrize("fidelity", ["fast", "balanced"])
+@pytest.mark.parametrize("fidelity", ["fastest", "fast", "balanced"])
 def test_fidelity_presets_run_their_model_variant(tmp_path, capsys, fidelity):
     out = tmp_path / fidelity
     assert main(["grid", str(CONFIGS / "smoke.toml"), "--out", str(out), "--quiet",

@@ -89,7 +89,7 @@ def _names() -> dict[str, list[str]]:
         "step": [f"{s:g} m" for s in STEPS],
         "budget": ["grid 100%"] + [f"{n} {f:.0%}" for n in BUDGET_SAMPLERS
                                    for f in BUDGET_FRACTIONS],
-        "preset": ["exact", "balanced", "fast"],
+        "preset": ["exact", "balanced", "fast", "fastest"],
     }
 
 

@@ -519,7 +519,8 @@ def _run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true", help="continue a killed run")
     p.add_argument("--threshold", type=float, default=None,
                    help="mIoU below which a cell is a blind spot (default: config, 0.65)")
-    p.add_argument("--fidelity", default="exact", choices=["fast", "balanced", "exact"])
+    p.add_argument("--fidelity", default="exact",
+                   choices=["fastest", "fast", "balanced", "exact"])
     p.add_argument("--no-report", action="store_true")
     p.add_argument("--max-samples", type=int, default=MAX_SAMPLES,
                    help=f"refuse a grid or budget larger than this (default {MAX_SAMPLES:,})")

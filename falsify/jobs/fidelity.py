@@ -37,6 +37,8 @@ PRESETS = {
     "balanced": Fidelity("balanced", bundled_model="squeezeseg-int8.onnx"),
     # int8 network, 1 CRF iteration
     "fast": Fidelity("fast", bundled_model="squeezeseg-int8-crf1.onnx"),
+    # int8 network without the CRF (a logit-adjusted network needs it least)
+    "fastest": Fidelity("fastest", bundled_model="squeezeseg-int8-crf0.onnx"),
 }
 
 
