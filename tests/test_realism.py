@@ -333,18 +333,30 @@ def test_realism_json_fields_and_determinism(sets, tmp_path: Path, capsys) -> No
 
 
 @pytest.mark.skipif(not BUNDLED.exists(), reason="bundled model not trained yet")
-def test_realism_default_real_sets(sets, tmp_path: Path, capsys, kitti_dir) -> None:
-    code, doc, err = run(["realism", str(sets["old"]), "--out", str(tmp_path), "--json"], capsys)
+def test_realism_default_real_sets_are_the_fit_split(sets, tmp_path: Path, capsys,
+                                                     kitti_dir) -> None:
+    """The reference is semantickitti-mini's fit split, pooled; --evaluation adds the evaluation
+    sequences beside it, reported only: never pooled, never compared."""
+    if not (kitti_dir / "semantickitti-mini" / "sequences" / "08").is_dir():
+        pytest.skip(f"{kitti_dir / 'semantickitti-mini'}: not present")
+    code, doc, err = run(["realism", str(sets["old"]), str(sets["new"]), "--evaluation",
+                          "--out", str(tmp_path), "--json"], capsys)
     assert code == 0, err
-    assert [r["name"] for r in doc["real"]] == ["squeezeseg", "semantickitti", "pooled"]
-    assert [r["scans"] for r in doc["real"]] == [4, 3, 7]
-    assert doc["comparison"] is None
+    fit = ["01", "02", "04", "05", "07", "09", "10"]
+    assert [r["name"] for r in doc["real"]] == [*fit, "pooled"]
+    assert [r["scans"] for r in doc["real"]] == [3] * 7 + [21]
+    assert [r["name"] for r in doc["reported"]] == ["00", "03", "06", "08"]
     per = doc["per_real_scan"]
-    assert per["real_sets"] == ["squeezeseg", "semantickitti"]
-    assert [r["real_set"] for r in per["scans"]] == [0, 0, 0, 0, 1, 1, 1]
-    assert all(r["source"].endswith((".npy", ".bin")) for r in per["scans"])
+    assert per["real_sets"] == fit and len(per["scans"]) == 21
+    for name in ("old", EVIL):
+        assert set(doc["distances"][name]) == {*fit, "pooled", "00", "03", "06", "08"}
+    # the comparison and the per-scan rows use the fit split alone
+    assert doc["comparison"]["real"] == "pooled"
+    assert all(r["source"].endswith(".bin") and r["real_set"] < 7 for r in per["scans"])
     # real KITTI is about 85 % valid in the front view, our streets more
-    assert 0.75 < doc["real"][2]["valid_fraction"] < 0.92
+    assert 0.75 < doc["real"][-1]["valid_fraction"] < 0.92
+    page = (tmp_path / "realism.html").read_text()
+    assert "Evaluation split (reported only)" in page and "&lt;" in page
 
 
 def test_realism_bad_inputs_exit_2(sets, tmp_path: Path, capsys) -> None:

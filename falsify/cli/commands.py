@@ -138,8 +138,16 @@ def cmd_dataset(args) -> int:
                          f"overlap the config's test backgrounds {sorted(used & span)[:5]}; "
                          "choose ids disjoint from the falsification space")
     sensor = load_sensor(space.sensor, ray_drop=args.ray_drop, range_noise=args.range_noise)
+    world = None
+    if args.world is not None:
+        from falsify.world.profile import load_profile
+        if args.traffic != "scattered":
+            raise UsageError(f"--world with --traffic {args.traffic}: a profile draws scattered "
+                             "scenes only (--traffic scattered)")
+        world = load_profile(args.world)
     opts = TrafficOptions(max_cars=args.max_cars, backgrounds=args.backgrounds,
-                          first_background=args.first_background, traffic=args.traffic)
+                          first_background=args.first_background, traffic=args.traffic,
+                          world=world)
     if args.format == "kitti-object":
         from falsify.cli.camera import dataset_kitti_object
         summary, text = dataset_kitti_object(sensor, args.camera, Path(args.out), args.scans,
@@ -166,6 +174,55 @@ def cmd_dataset(args) -> int:
     emit(args, summary, f"wrote {summary['written']} scans to {args.out} "
          f"({summary['scans']} in the set); points per class {summary['points_per_class']}")
     return 0
+
+
+# -- fit-world ------------------------------------------------------------------------------
+def cmd_fit_world(args) -> int:
+    from falsify.fileio import write_json
+    from falsify.jobs.fit_world import describe, distances, fit_world, summarise
+    from falsify.sensor.lidar import load_sensor
+    from falsify.world.space import load_space
+
+    out = check_out_file(args.out)
+    sequences = _predict_sequences(args.sequences, args.scans)
+    compare = {}
+    for path in args.compare or []:
+        if not Path(path).exists():
+            raise UsageError(f"--compare {path}: no such file or folder")
+    sensor = load_sensor(load_space(args.config).sensor)
+    if not 1 <= args.base_scans <= 10_000:
+        raise UsageError(f"--base-scans: {args.base_scans} must be in 1..10000")
+    fit = fit_world(args.scans, sequences, sensor, name=args.name, base_scans=args.base_scans)
+    for path in args.compare or []:
+        # A SemanticKITTI root is described per sequence, as predict reports it.
+        from falsify.world.real_scans import available_sequences
+        seqs = available_sequences([path]) or [None]
+        for q in seqs:
+            stats = describe([path], None if q is None else [q])
+            key = path if q is None else f"{path}:{q}"
+            compare[key] = {**summarise(stats), "distance_to_fit": distances(stats, fit.fit)}
+    doc = {**fit.as_dict(), "compare": compare, "out": str(out)}
+    write_json(out, fit.profile.to_json())
+    emit(args, doc, _fit_world_text(doc))
+    return 0
+
+
+def _fit_world_text(doc: dict) -> str:
+    """Median (5-95 %) per statistic for the fit scans, the world and each compared set."""
+    from falsify.jobs.fit_world import STAT_KEYS
+
+    cols = [("fit", doc["fit"], None), ("world", doc["world"], doc["distance_world_to_fit"])]
+    cols += [(k, v, v["distance_to_fit"]) for k, v in doc["compare"].items()]
+    lines = [f"wrote {doc['out']}: world profile {doc['profile']['name']!r} from "
+             f"{doc['fit']['scans']} fit scans (world base: {doc['world']['scans']} of its "
+             "training scenes); median [5-95 %], and W1 to the fit scans"]
+    for name, summ, dist in cols:
+        lines.append(f"{name} ({summ['scans']} scans)")
+        for k in STAT_KEYS:
+            s = summ[k]
+            d = "" if dist is None else f"   W1 {dist[k]:.4f}"
+            lines.append(f"  {k:12s} {s['p50']:8.3f} [{s['p5']:7.3f} .. {s['p95']:7.3f}]{d}")
+    return "\n".join(lines)
 
 
 # -- predict and train ----------------------------------------------------------------------
@@ -327,7 +384,13 @@ def cmd_train(args) -> int:
 
 # -- realism --------------------------------------------------------------------------------
 def cmd_realism(args) -> int:
-    from falsify.data.scansets import load_sets, npy_files, real_sets
+    from falsify.data.scansets import (
+        EVALUATION_SEQUENCES,
+        FIT_SEQUENCES,
+        load_sets,
+        mini_split,
+        npy_files,
+    )
     from falsify.fileio import write_json, write_text
     from falsify.jobs.realism import EncoderFeatures, compare
     from falsify.reports.realism_page import render_realism
@@ -354,9 +417,10 @@ def cmd_realism(args) -> int:
             index = None
         labels[name] = index.get("labels", "kitti4") if isinstance(index, dict) else "kitti4"
     sensor = load_sensor(args.sensor)
-    real = load_sets(args.real, sensor) if args.real else real_sets(sensor)
+    real = load_sets(args.real, sensor) if args.real else mini_split(sensor, FIT_SEQUENCES)
+    reported = mini_split(sensor, EVALUATION_SEQUENCES) if args.evaluation else []
     result = compare(synthetic, real, EncoderFeatures(args.model),
-                     bootstrap_draws=args.bootstrap, labels=labels)
+                     bootstrap_draws=args.bootstrap, labels=labels, reported=reported)
     doc = result.as_dict()
     page = render_realism(doc)
     out = Path(args.out)
@@ -392,6 +456,12 @@ def _realism_text(doc: dict, out: Path) -> str:
             lines.append(f"{key:12s}" + "".join(
                 f"{'—':>26s}" if v is None else f"{v:26.4f}" for v in values)
                 + "  (SemanticKITTI's 19 classes: total variation; diagnostic, not compared)")
+    for r in doc.get("reported", []):
+        lines.append(f"{'reported':12s}" + "".join(
+            f"{r['name'][-24:]:>26s}" for _ in names) + "  (evaluation data: never compared)")
+        for key in doc["statistics"]:
+            lines.append(f"{key:12s}" + "".join(f"{doc['distances'][n][r['name']][key]:26.4f}"
+                                                for n in names))
     boot = doc.get("bootstrap")
     if boot:
         lo, hi = boot["levels"]
@@ -854,6 +924,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--traffic", choices=TRAFFIC_KINDS, default="scattered",
                    help="scattered: cars anywhere on the road; drive: lane-following traffic "
                    "like a driving log")
+    d.add_argument("--world", default=None, metavar="PROFILE",
+                   help="draw each scene's sensor pitch, height and car count from a world "
+                   "profile (`falsify fit-world`); scattered traffic only")
     d.add_argument("--labels", choices=["kitti4", "semantickitti"], default="kitti4",
                    help="npy label channel: our four classes or SemanticKITTI's train ids")
     d.add_argument("--workers", type=int, default=1, help="processes writing scans (npy)")
@@ -864,6 +937,25 @@ def build_parser() -> argparse.ArgumentParser:
                    help="kitti-object: the camera preset (kitti-centre or kitti-rig)")
     d.add_argument("--json", action="store_true")
     d.set_defaults(func=cmd_dataset)
+
+    fw = sub.add_parser("fit-world", help="fit a world profile (the sensor's pitch and height "
+                        "over the road, cars in view) on labelled real fit scans")
+    fw.add_argument("scans", nargs="+", help="SemanticKITTI roots, sequence folders or .bin "
+                    "scans with their .label (fit data only: evaluation scans are refused)")
+    fw.add_argument("--sequences", default=None, metavar="SS,SS",
+                    help="only these sequences of a SemanticKITTI root")
+    fw.add_argument("--out", required=True, help="the profile's JSON file")
+    fw.add_argument("--name", default="semantickitti-fit", help="the profile's name")
+    fw.add_argument("--config", default=str(DEFAULT_CONFIG),
+                    help="a space config whose sensor renders the world's own scenes")
+    from falsify.jobs.fit_world import BASE_SCANS
+    fw.add_argument("--base-scans", type=int, default=BASE_SCANS,
+                    help="training scenes of the world rendered to measure its own pose")
+    fw.add_argument("--compare", action="append", metavar="PATH",
+                    help="also describe this labelled set (a `dataset --format semantickitti` "
+                    "folder, or real scans, per sequence) against the fit scans: reported only")
+    fw.add_argument("--json", action="store_true")
+    fw.set_defaults(func=cmd_fit_world)
 
     pr = sub.add_parser("predict", help="run the network on scans; IoU, precision, recall per set "
                         "and range band where labelled")
@@ -905,8 +997,12 @@ def build_parser() -> argparse.ArgumentParser:
                      "the others are compared with)")
     re_.add_argument("--out", required=True, help="folder for realism.json and realism.html")
     re_.add_argument("--real", nargs="+", default=None,
-                     help="real scans as for predict (default: the SqueezeSeg-layout and "
-                     "SemanticKITTI sets in ../shared/data/kitti)")
+                     help="real scans as for predict (default: semantickitti-mini's fit split, "
+                     "sequences 01, 02, 04, 05, 07, 09, 10, in ../shared/data/kitti)")
+    re_.add_argument("--evaluation", action="store_true",
+                     help="also give each synthetic set's distances to semantickitti-mini's "
+                     "evaluation sequences 00, 03, 06, 08: reported only, never pooled or "
+                     "compared")
     re_.add_argument("--scans", type=int, default=None,
                      help="use the first N scans of each synthetic folder")
     re_.add_argument("--model", default=None,

@@ -36,6 +36,8 @@ ROOT = Path(__file__).resolve().parents[2]   # the source checkout
 KITTI_DIR = ROOT.parent / "shared" / "data" / "kitti"
 # semantickitti-mini's evaluation split (its README): only ever reported on.
 EVALUATION_SEQUENCES = ("00", "03", "06", "08")
+# ... and its fit split: may be fitted to, trained on and choose.
+FIT_SEQUENCES = ("01", "02", "04", "05", "07", "09", "10")
 
 
 def is_evaluation_scan(path: str | Path, root: Path = KITTI_DIR) -> bool:
@@ -168,15 +170,16 @@ def _set_name(folder: Path) -> str:
     return folder.name or str(folder)
 
 
-def real_sets(sensor: Sensor, root: Path = KITTI_DIR) -> list[ScanSet]:
-    """The two real evaluation sets: SqueezeSeg's four KITTI scans and three SemanticKITTI
-    scans projected with `sensor`; FalsifyError naming the folder when it is absent."""
-    squeeze = sorted((root / "squeezeseg").glob("*.npy"))
-    semantic = sorted((root / "semantickitti").glob("*.bin"))
-    if not squeeze or not semantic:
-        raise FalsifyError(f"{root}: real KITTI scans not found (expected squeezeseg/*.npy and "
-                           "semantickitti/*.bin; see shared/data/README.md)")
-    return [read_set("squeezeseg", squeeze, sensor), read_set("semantickitti", semantic, sensor)]
+def mini_split(sensor: Sensor, sequences: tuple[str, ...],
+               root: Path = KITTI_DIR) -> list[ScanSet]:
+    """semantickitti-mini's sequences `sequences`, one set each, projected with `sensor`;
+    FalsifyError naming the folder when a sequence is absent."""
+    mini = root / "semantickitti-mini"
+    missing = [q for q in sequences if not (mini / "sequences" / q / "velodyne").is_dir()]
+    if missing:
+        raise FalsifyError(f"{mini}: sequences {', '.join(missing)} not found (see "
+                           "shared/data/README.md)")
+    return load_sets([str(mini)], sensor, sequences=list(sequences))
 
 
 def _stack(name: str, images: list[np.ndarray], ignore: list[np.ndarray],

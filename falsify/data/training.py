@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +33,7 @@ from falsify.sensor.simulator import (
 from falsify.sensor.weather import draw_effects
 from falsify.world.cars import BUILTIN_MODELS
 from falsify.world.materials import PAINTS
+from falsify.world.profile import WorldProfile
 from falsify.world.road_users import OTHER_VEHICLES
 from falsify.world.space import EFFECT_DIMS, Categorical, Space
 
@@ -59,6 +60,7 @@ class TrafficOptions:
     backgrounds: int = 1000                       # distinct backgrounds to draw from
     first_background: int = TRAIN_BACKGROUND_FIRST
     traffic: str = "scattered"                    # one of TRAFFIC_KINDS
+    world: WorldProfile | None = None             # fitted poses and car counts (scattered only)
 
 
 def scene_for(index: int, seed: int, sim: Simulator,
@@ -67,6 +69,9 @@ def scene_for(index: int, seed: int, sim: Simulator,
     bg_id = opts.first_background + (index // SCANS_PER_BACKGROUND) % opts.backgrounds
     if opts.traffic == "drive":
         from falsify.data.traffic import drive_scene
+
+        if opts.world is not None:
+            raise ConfigError("--world: only with --traffic scattered")
 
         return (bg_id, *drive_scene(index, seed, sim, bg_id, opts.max_cars))
     if opts.traffic != "scattered":
@@ -82,12 +87,21 @@ def scene_for(index: int, seed: int, sim: Simulator,
         return SensorPose(ego_x, lane, heading)
 
     pose, ego = free_ego(sim, bg_id, draw, f"scan {index}")
+    if opts.world is not None:
+        # Its own stream: the pose and count draws leave the other draws of the scene alone.
+        world_rng = np.random.default_rng([seed, index, 13])
+        dpitch, dheight = opts.world.draw_pose(world_rng)
+        pose = replace(pose, pitch_deg=pose.pitch_deg + dpitch, z=pose.z + dheight)
+        wanted = opts.world.draw_cars(world_rng, opts.max_cars)
+    else:
+        wanted = None
     ego_x, heading = pose.x, pose.heading_deg
     obstacles = sim.obstacles(bg_id)
     forward = np.array([math.cos(math.radians(heading)), math.sin(math.radians(heading))])
     placed: list[PlacedCar] = []
     outlines: list[np.ndarray] = []
-    wanted = int(rng.integers(0, opts.max_cars + 1))
+    if wanted is None:
+        wanted = int(rng.integers(0, opts.max_cars + 1))
     for _ in range(wanted * 4):
         if len(placed) == wanted:
             break
@@ -177,6 +191,8 @@ def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
              "range_noise": sensor.range_noise}
     if opts.traffic != "scattered":  # scattered sets keep their index byte for byte
         index["traffic"] = opts.traffic
+    if opts.world is not None:   # so do sets without a profile
+        index["world"] = opts.world.name
     if drawn:   # so do clear sets
         index["effects"] = {d: _drawn_from(weather.dims[d]) for d in drawn}
     extra: dict = {}

@@ -482,6 +482,8 @@ class Realism:
     distances: dict[str, dict[str, dict[str, float]]]   # synthetic name -> real name -> stat
     resampled: dict | None = None       # `bootstrap` against the pooled real scans, if asked
     per_scan: list[dict] = field(default_factory=list)   # `per_real_scan`, pooled real scans
+    reported: tuple[SetStats, ...] = ()  # real sets only reported on (the evaluation split):
+    #                                      their distances are given, never pooled or compared
 
     @property
     def pooled_real(self) -> SetStats:
@@ -538,6 +540,7 @@ class Realism:
             "synthetic": [s.as_dict() for s in self.synthetic],
             "real": [s.as_dict() for s in self.real],
             "real_pooled": self.pooled_real.name,
+            "reported": [s.as_dict() for s in self.reported],
             # 6 decimals: bytes that do not move with the BLAS's last-bit rounding
             "distances": {s: {r: {k: round(v, 6) for k, v in d.items()} for r, d in rs.items()}
                           for s, rs in self.distances.items()},
@@ -587,12 +590,14 @@ def _split_labels(images: np.ndarray, labels: str) -> tuple[np.ndarray, np.ndarr
 
 def compare(synthetic: dict[str, list[Path]], real: list[ScanSet],
             features: EncoderFeatures, pooled_name: str = "pooled",
-            bootstrap_draws: int = 0, labels: dict[str, str] | None = None) -> Realism:
+            bootstrap_draws: int = 0, labels: dict[str, str] | None = None,
+            reported: list[ScanSet] = ()) -> Realism:
     """Statistics of each synthetic set (name -> .npy paths; `labels`: name -> what their
     label channel holds, "kitti4" when not named) and real set, and the distance of each
     synthetic set to each real set and to all real sets pooled; with `bootstrap_draws`, also
     how much of each distance sampling alone could move (`bootstrap`). Pairs that both carry
-    SemanticKITTI labels also get the DIAGNOSTIC distance."""
+    SemanticKITTI labels also get the DIAGNOSTIC distance. `reported` real sets (evaluation
+    data) get their distances too, but are neither pooled nor compared with."""
     if not real:
         raise FalsifyError("realism needs at least one real set")
     real_stats = [set_stats(s.name, s, features) for s in real]
@@ -607,16 +612,17 @@ def compare(synthetic: dict[str, list[Path]], real: list[ScanSet],
                       for name, paths in synthetic.items())
     for s in syn_stats:
         s.floor = frechet_floor(s.all_features, all_real[-1].scans)
-    dist = {s.name: {r.name: distances(s, r) for r in all_real} for s in syn_stats}
+    shown = tuple(set_stats(s.name, s, features) for s in reported)
+    dist = {s.name: {r.name: distances(s, r) for r in (*all_real, *shown)} for s in syn_stats}
     for s in syn_stats:
-        for r in all_real:
+        for r in (*all_real, *shown):
             tv = semantic_distance(s, r)
             if tv is not None:
                 dist[s.name][r.name]["semantic_classes"] = tv
     resampled = (bootstrap(syn_stats, all_real[-1], bootstrap_draws) if bootstrap_draws > 0
                  else None)
     return Realism(features.spec.name, features.model_hash, syn_stats, all_real, dist,
-                   resampled, per_real_scan(syn_stats, all_real[-1]))
+                   resampled, per_real_scan(syn_stats, all_real[-1]), shown)
 
 
 def _checked(path: Path, features: EncoderFeatures) -> np.ndarray:

@@ -1,0 +1,217 @@
+"""Fit a world profile on labelled real scans (`falsify fit-world`), and describe any labelled
+scan set the same way, so a world and the real places it is fitted on are compared statistic by
+statistic.
+
+Per scan, from SemanticKITTI labels in the front 90 degrees (what the range-image networks see):
+- the road plane z = a x + b y + c, least squares on road and parking points within FIT_RANGE,
+  refitted once on the points within INLIER_M of the first fit; pitch = atan(a), roll = atan(b),
+  the sensor's height above it = |c| / sqrt(1 + a^2 + b^2) (point-to-plane distance), and its
+  roughness, the inliers' residual standard deviation;
+- cars: SemanticKITTI car and moving-car instances with at least MIN_CAR_POINTS points within
+  CAR_RANGE;
+- the share of points on vegetation, trunks and terrain, and on cars.
+
+The fit reads only fit data: an evaluation scan (falsify.data.scansets.is_evaluation_scan) or a
+scan without SemanticKITTI labels is refused by name. `describe` reads any labelled set, for
+reporting.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from falsify.data.scansets import KITTI_DIR, is_evaluation_scan
+from falsify.data.velodyne import read_bin
+from falsify.errors import FalsifyError
+from falsify.semantic import RAW_ID, split_label
+from falsify.world.profile import WorldProfile
+from falsify.world.real_scans import real_scans
+
+FIT_RANGE = 30.0        # m: road points nearer than this fix the plane
+CAR_RANGE = 60.0        # m: cars counted within this range
+MIN_CAR_POINTS = 20     # an instance with fewer points is not counted as a car
+MIN_ROAD_POINTS = 50    # fewer road points in front and the plane is not fitted
+INLIER_M = 0.15         # m: points this close to the first plane are refitted
+ROAD_IDS = (RAW_ID["road"], RAW_ID["parking"])
+CAR_IDS = (RAW_ID["car"], RAW_ID["moving-car"])
+GREEN_IDS = (RAW_ID["vegetation"], RAW_ID["trunk"], RAW_ID["terrain"])
+QUANTILES = (5, 25, 50, 75, 95)
+STAT_KEYS = ("pitch_deg", "roll_deg", "height_m", "roughness_m", "cars_front",
+             "green_share", "car_share")
+BASE_SCANS = 48          # training scenes of the world itself the base is measured on
+BASE_SEED = 11
+
+
+@dataclass(frozen=True)
+class SceneStats:
+    """What one scan shows of its place (see the module docstring)."""
+
+    name: str
+    pitch_deg: float
+    roll_deg: float
+    height_m: float
+    roughness_m: float
+    cars_front: int
+    green_share: float
+    car_share: float
+
+
+def ground_plane(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[float, float, float,
+                                                                        float]:
+    """(a, b, c, residual std) of z = a x + b y + c: least squares, then once more on the points
+    within INLIER_M of the first fit (kerb tops and cars' wheels left out)."""
+    a_mat = np.stack([x, y, np.ones_like(x)], axis=1).astype(np.float64)
+    zz = z.astype(np.float64)
+    coef = np.linalg.lstsq(a_mat, zz, rcond=None)[0]
+    keep = np.abs(a_mat @ coef - zz) < INLIER_M
+    if keep.sum() >= 3:
+        coef = np.linalg.lstsq(a_mat[keep], zz[keep], rcond=None)[0]
+    res = a_mat[keep] @ coef - zz[keep] if keep.sum() >= 3 else a_mat @ coef - zz
+    return float(coef[0]), float(coef[1]), float(coef[2]), float(res.std())
+
+
+def scene_stats(name: str, points: np.ndarray, labels: np.ndarray) -> SceneStats:
+    """The statistics of one scan from its points (N, >=3: x, y, z) and .label values (N,);
+    FalsifyError naming the scan when it shows too few road points to fit the plane."""
+    sem, inst = split_label(labels)
+    x, y, z = (points[:, k].astype(np.float64) for k in range(3))
+    ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+    front = ok & (x > 0) & (np.abs(y) <= x)
+    dist = np.hypot(x, y)
+    road = front & np.isin(sem, ROAD_IDS) & (dist < FIT_RANGE)
+    if road.sum() < MIN_ROAD_POINTS:
+        raise FalsifyError(f"{name}: {int(road.sum())} road points within {FIT_RANGE:g} m in "
+                           f"front (need {MIN_ROAD_POINTS}): the road plane cannot be fitted")
+    a, b, c, rough = ground_plane(x[road], y[road], z[road])
+    car = front & np.isin(sem, CAR_IDS) & (dist < CAR_RANGE)
+    ids, counts = np.unique(inst[car], return_counts=True)
+    n_front = max(int(front.sum()), 1)
+    return SceneStats(
+        name=name,
+        pitch_deg=math.degrees(math.atan(a)),
+        roll_deg=math.degrees(math.atan(b)),
+        height_m=abs(c) / math.sqrt(1.0 + a * a + b * b),
+        roughness_m=rough,
+        cars_front=int((counts >= MIN_CAR_POINTS).sum()),
+        green_share=float(np.isin(sem[front], GREEN_IDS).sum() / n_front),
+        car_share=float(car.sum() / n_front),
+    )
+
+
+def silverman_bandwidth(values: np.ndarray) -> float:
+    """Silverman's rule-of-thumb bandwidth of a Gaussian kernel density estimate,
+    0.9 min(sigma, IQR / 1.34) n^(-1/5) (Silverman, Density Estimation, 1986, eq. 3.31)."""
+    v = np.asarray(values, np.float64)
+    sigma = v.std(ddof=1) if len(v) > 1 else 0.0
+    iqr = np.subtract(*np.percentile(v, [75, 25]))
+    spread = min(sigma, iqr / 1.34) if iqr > 0 else sigma
+    return float(0.9 * spread * len(v) ** -0.2)
+
+
+def summarise(stats: list[SceneStats]) -> dict:
+    """Per statistic: mean and the QUANTILES over the scans."""
+    out: dict = {"scans": len(stats)}
+    for key in STAT_KEYS:
+        v = np.array([getattr(s, key) for s in stats], np.float64)
+        out[key] = {"mean": float(v.mean()),
+                    **{f"p{q}": float(np.percentile(v, q)) for q in QUANTILES}}
+    return out
+
+
+def wasserstein_1d(a: np.ndarray, b: np.ndarray) -> float:
+    """The 1-Wasserstein distance between two empirical distributions (the area between their
+    CDFs), in the values' own unit."""
+    a, b = np.sort(np.asarray(a, np.float64)), np.sort(np.asarray(b, np.float64))
+    grid = np.sort(np.concatenate([a, b]))
+    fa = np.searchsorted(a, grid[:-1], side="right") / len(a)
+    fb = np.searchsorted(b, grid[:-1], side="right") / len(b)
+    return float(np.sum(np.abs(fa - fb) * np.diff(grid)))
+
+
+def distances(stats: list[SceneStats], reference: list[SceneStats]) -> dict[str, float]:
+    """Per statistic, the 1-Wasserstein distance of `stats`' per-scan values from
+    `reference`'s: a diagnostic of what differs, lower is closer."""
+    return {k: wasserstein_1d(np.array([getattr(s, k) for s in stats], np.float64),
+                              np.array([getattr(s, k) for s in reference], np.float64))
+            for k in STAT_KEYS}
+
+
+def describe(paths: list[str], sequences: list[str] | None = None) -> list[SceneStats]:
+    """The statistics of every labelled scan the paths name (real or a `falsify dataset
+    --format semantickitti` set); FalsifyError naming a scan without SemanticKITTI labels."""
+    out = []
+    for name, path, label, kind in real_scans(paths, sequences):
+        if kind != "semantickitti" or label is None:
+            raise FalsifyError(f"{path}: no SemanticKITTI .label beside it or in ../labels/ "
+                               "(its road and cars cannot be measured)")
+        labels = np.fromfile(label, np.uint32)
+        out.append(scene_stats(name, read_bin(path), labels))
+    return out
+
+
+def check_fit_data(paths: list[str], sequences: list[str] | None,
+                   kitti: Path = KITTI_DIR) -> None:
+    """FalsifyError naming the first scan that is evaluation data (never fitted to)."""
+    for _, path, _, _ in real_scans(paths, sequences):
+        if is_evaluation_scan(path, kitti):
+            raise FalsifyError(f"{path}: evaluation data (semantickitti-mini sequences 00, 03, "
+                               "06, 08, squeezeseg/ and semantickitti/) is only reported on, "
+                               "never fitted to; fit on the fit sequences 01, 02, 04, 05, 07, "
+                               "09, 10")
+
+
+def world_base(sensor, scans: int = BASE_SCANS, seed: int = BASE_SEED) -> list[SceneStats]:
+    """The statistics of `scans` training scenes of the world itself (no profile), so a
+    profile adds what the real places show beyond them."""
+    from falsify.data.training import TRAIN_BACKGROUND_FIRST, TrafficOptions, scene_for
+    from falsify.data.velodyne import kitti_arrays
+    from falsify.sensor.simulator import Simulator
+
+    sim = Simulator(sensor, max_bvh=1, max_hits=8)
+    opts = TrafficOptions(first_background=TRAIN_BACKGROUND_FIRST, backgrounds=625)
+    out = []
+    for i in range(scans):
+        bg_id, pose, placed = scene_for(i, seed, sim, opts)
+        scan = sim.render(bg_id, placed, pose, np.random.default_rng([seed, i, 1]))
+        points, labels = kitti_arrays(scan)
+        out.append(scene_stats(f"world/{i:06d}", points, labels))
+    return out
+
+
+@dataclass(frozen=True)
+class WorldFit:
+    """`fit-world`'s result: the profile, the fit scans' and the world's statistics."""
+
+    profile: WorldProfile
+    fit: list[SceneStats]
+    base: list[SceneStats]
+
+    def as_dict(self) -> dict:
+        return {"profile": self.profile.to_json(),
+                "fit": summarise(self.fit), "world": summarise(self.base),
+                "distance_world_to_fit": distances(self.base, self.fit),
+                "fit_scans": [asdict(s) for s in self.fit]}
+
+
+def fit_world(paths: list[str], sequences: list[str] | None, sensor, name: str,
+              kitti: Path = KITTI_DIR, base_scans: int = BASE_SCANS) -> WorldFit:
+    """Fit a profile on the fit scans the paths name: each scan's road pitch, sensor height and
+    car count, with the world's own median pitch and height as the base the draws add to, and
+    Silverman's bandwidth as the draws' jitter (a kernel density estimate of the fit scans)."""
+    check_fit_data(paths, sequences, kitti)
+    fit = describe(paths, sequences)
+    base = world_base(sensor, base_scans)
+    profile = WorldProfile(
+        name=name, scans=tuple(s.name for s in fit),
+        pitch_deg=tuple(round(s.pitch_deg, 4) for s in fit),
+        height_m=tuple(round(s.height_m, 4) for s in fit),
+        cars_front=tuple(s.cars_front for s in fit),
+        base_pitch_deg=round(float(np.median([s.pitch_deg for s in base])), 4),
+        base_height_m=round(float(np.median([s.height_m for s in base])), 4),
+        pitch_jitter_deg=round(silverman_bandwidth([s.pitch_deg for s in fit]), 4),
+        height_jitter_m=round(silverman_bandwidth([s.height_m for s in fit]), 4))
+    return WorldFit(profile, fit, base)

@@ -1,0 +1,113 @@
+"""A world profile: what training scenes draw from real places, fitted on labelled real scans by
+`falsify fit-world` (falsify.jobs.fit_world) and used by `falsify dataset --world PROFILE`.
+
+A profile holds, per fit scan, what the sensor saw of its own pose (the road plane's pitch and
+the sensor's height above it, in the sensor frame) and how many cars stood in its front 90
+degrees. A scene draws one fit scan's pose and adds the difference to the world's own plus
+Gaussian jitter (a kernel density estimate of the fit scans, bandwidth by Silverman's rule), and
+draws its car count from the fit scans' counts.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from falsify.errors import ConfigError
+
+PROFILE_VERSION = 1
+POSE_KEYS = ("pitch_deg", "height_m", "cars_front")
+
+
+@dataclass(frozen=True)
+class WorldProfile:
+    """Per-scan measurements of real places, drawn from by training scenes.
+
+    ``pitch_deg``: the road plane's slope along the sensor's x axis seen from the sensor,
+    atan(dz/dx) (positive: the road rises ahead); ``height_m``: the sensor's height above that
+    plane at its foot; ``cars_front``: cars (SemanticKITTI car or moving-car instances) in the
+    front 90 degrees within the fit's range. ``base_*``: the same measured on the world itself,
+    so a draw adds ``real - base``.
+    """
+
+    name: str
+    scans: tuple[str, ...]
+    pitch_deg: tuple[float, ...]
+    height_m: tuple[float, ...]
+    cars_front: tuple[int, ...]
+    base_pitch_deg: float = 0.0
+    base_height_m: float = 1.73
+    pitch_jitter_deg: float = 0.25
+    height_jitter_m: float = 0.03
+
+    def __post_init__(self) -> None:
+        n = len(self.scans)
+        for key in POSE_KEYS:
+            if len(getattr(self, key)) != n:
+                raise ConfigError(f"world profile {self.name!r}: {key} has "
+                                  f"{len(getattr(self, key))} values for {n} scans")
+        if n == 0:
+            raise ConfigError(f"world profile {self.name!r}: no scans")
+        values = [*self.pitch_deg, *self.height_m, self.base_pitch_deg, self.base_height_m,
+                  self.pitch_jitter_deg, self.height_jitter_m]
+        if not all(math.isfinite(v) for v in values):
+            raise ConfigError(f"world profile {self.name!r}: pitch and height values must be "
+                              "finite numbers")
+        if any(abs(p) > 15.0 for p in self.pitch_deg):
+            raise ConfigError(f"world profile {self.name!r}: pitch_deg must be within ±15 degrees")
+        if any(not 0.5 <= h <= 4.0 for h in self.height_m):
+            raise ConfigError(f"world profile {self.name!r}: height_m must be in 0.5..4.0 m")
+        if any(c < 0 or c > 40 for c in self.cars_front):
+            raise ConfigError(f"world profile {self.name!r}: cars_front must be in 0..40")
+        if self.pitch_jitter_deg < 0 or self.height_jitter_m < 0:
+            raise ConfigError(f"world profile {self.name!r}: jitters must be >= 0")
+
+    def draw_pose(self, rng: np.random.Generator) -> tuple[float, float]:
+        """(pitch offset in degrees, height offset in metres) for one scene: one fit scan's
+        measurement less the world's own, plus jitter."""
+        k = int(rng.integers(len(self.scans)))
+        dp = self.pitch_deg[k] - self.base_pitch_deg + rng.normal(0.0, self.pitch_jitter_deg)
+        dh = self.height_m[k] - self.base_height_m + rng.normal(0.0, self.height_jitter_m)
+        return float(dp), float(dh)
+
+    def draw_cars(self, rng: np.random.Generator, most: int) -> int:
+        """A car count for one scene: a fit scan's, at most `most`."""
+        return min(int(self.cars_front[int(rng.integers(len(self.scans)))]), most)
+
+    def to_json(self) -> dict:
+        return {"version": PROFILE_VERSION, **asdict(self)}
+
+
+def load_profile(path: str | Path) -> WorldProfile:
+    """Read a profile written by `falsify fit-world`; ConfigError names the file and the key."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"--world {p}: no such file (write one with `falsify fit-world`)")
+    try:
+        raw = json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"--world {p}: not JSON ({exc})") from exc
+    if not isinstance(raw, dict) or raw.get("version") != PROFILE_VERSION:
+        raise ConfigError(f"--world {p}: not a world profile of version {PROFILE_VERSION}")
+    fields = set(WorldProfile.__dataclass_fields__)
+    unknown = sorted(set(raw) - fields - {"version", "fit"})
+    if unknown:
+        raise ConfigError(f"--world {p}: unknown key {unknown[0]!r} (allowed: "
+                          f"{', '.join(sorted(fields))})")
+    missing = sorted(k for k in ("name", "scans", *POSE_KEYS) if k not in raw)
+    if missing:
+        raise ConfigError(f"--world {p}: missing key {missing[0]!r}")
+    try:
+        kw = {k: v for k, v in raw.items() if k in fields}
+        for k in ("scans", "pitch_deg", "height_m", "cars_front"):
+            kw[k] = tuple(kw[k])
+        kw["cars_front"] = tuple(int(c) for c in kw["cars_front"])
+        kw["pitch_deg"] = tuple(float(v) for v in kw["pitch_deg"])
+        kw["height_m"] = tuple(float(v) for v in kw["height_m"])
+        return WorldProfile(**kw)
+    except (TypeError, ValueError, ConfigError) as exc:
+        raise ConfigError(f"--world {p}: {exc}") from exc
