@@ -91,10 +91,14 @@ def load_scan(path: Path, shape: tuple[int, int] | None = None) -> np.ndarray:
 
 
 def bf16_supported() -> bool:
-    """True if this CPU runs bf16 autocast convolutions (AVX512-BF16 / AMX via oneDNN)."""
+    """True if this CPU runs bf16 autocast convolutions in hardware (AVX512-BF16 / AMX via
+    oneDNN). oneDNN also emulates bf16 on plain AVX-512, slower than fp32, so a CPU whose flags
+    show no bf16 units trains in fp32."""
     import torch
 
-    if not torch.backends.mkldnn.is_available():
+    from falsify.cpu import has_bf16_units
+
+    if has_bf16_units() is False or not torch.backends.mkldnn.is_available():
         return False
     check = getattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", None)
     try:

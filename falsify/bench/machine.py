@@ -22,6 +22,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from falsify.cpu import BF16_UNITS, cpu_flags
 from falsify.errors import FalsifyError
 
 # The product the ratio goals use, then a 3x3 convolution's as ONNX Runtime runs it (fire4's
@@ -198,22 +199,6 @@ def matmul_rate(processes: int, shapes=MATMUL_SHAPES, repeats: int = MATMUL_REPE
                       processes, repeats, f"onnxruntime {onnxruntime.__version__} (MLAS)", kind)
 
 
-def cpu_flags() -> set[str]:
-    """The CPU's feature flags from /proc/cpuinfo (empty where there is none)."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return set()
-    for line in text.splitlines():
-        key, _, value = line.partition(":")
-        if key.strip() == "flags":
-            return set(value.split())
-    return set()
-
-
-# The flags that give a CPU integer dot products (int8) and bf16 products in hardware.
-INT8_UNITS = ("avx512_vnni", "avx_vnni", "amx_int8")
-BF16_UNITS = ("avx512_bf16", "amx_bf16")
 
 
 def _bf16_worker(rank: int, n: int, barrier, shape, repeats: int) -> float:

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from falsify.bench.machine import BF16_UNITS, INT8_UNITS, bf16_matmul_rate, cpu_flags, matmul_rate
+from falsify.bench.machine import bf16_matmul_rate, matmul_rate
+from falsify.cpu import BF16_UNITS, INT8_UNITS, cpu_flags
 
 
 def model_bench_rates(progress: Callable[[str], None]) -> dict:
