@@ -123,7 +123,7 @@ def test_cli_on_a_real_run(tmp_path, capsys, monkeypatch):
     for r in doc["rules"]:
         assert r["failing"] <= r["support"] and 0 < r["precision"] <= 1
     assert main(["explain", str(run), "--threshold", "0.95"]) == 0
-    assert "samples below 0.95" in capsys.readouterr().out
+    assert "samples with car IoU below 0.95" in capsys.readouterr().out
     assert (run / "results.sqlite").read_bytes() == before
 
 
