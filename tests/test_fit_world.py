@@ -255,3 +255,15 @@ def test_silverman_bandwidth_follows_its_formula():
     expected = 0.9 * min(v.std(ddof=1), iqr / 1.34) * 500 ** -0.2
     assert silverman_bandwidth(v) == pytest.approx(expected, rel=1e-12)
     assert silverman_bandwidth(np.full(5, 1.7)) == 0.0   # no spread: no jitter
+
+
+def test_fit_world_options_are_checked_before_anything_runs(tmp_path, capsys):
+    out = tmp_path / "sub" / "profile.json"
+    _write_sequence(tmp_path / "root", "05", [_plane_scan(1.0, 0.0, 1.73)])
+    root = str(tmp_path / "root")
+    for argv, needle in ((["--base-scans", "0"], "--base-scans: 0 must be in 1..10000"),
+                         (["--compare", str(tmp_path / "nope")], "nope: no such file"),
+                         (["--sequences", "99"], "--sequences 99")):
+        assert main(["fit-world", root, "--out", str(out), *argv]) == 2
+        assert needle in capsys.readouterr().err
+        assert not out.parent.exists()
