@@ -3,6 +3,13 @@ step whose output exists is skipped, so a killed run continues where it stopped.
 
     python docs/experiments/fitted_world.py data/fitted-world \
         --out docs/experiments/fitted-world/results.json
+    python docs/experiments/fitted_world.py data/fitted-world-parked \
+        --profile configs/worlds/semantickitti-fit-parked.json --train-seed 31 --val-seed 32 \
+        --init models/weights/squeezeseg.pt --baseline squeezeseg \
+        --out docs/experiments/fitted-world-parked/results.json
+
+(the first run fine-tuned the network bundled then, now `squeezeseg-v1`; its defaults are
+these options').
 
 Steps: the profiled training and validation sets; a fine-tune of the bundled network, one epoch
 at a time (each epoch's checkpoint kept); per epoch, the logit adjustment chosen on synthetic
@@ -23,7 +30,8 @@ ROOT = Path(__file__).resolve().parents[2]
 KITTI = ROOT.parent / "shared" / "data" / "kitti"
 MINI = KITTI / "semantickitti-mini"
 PROFILE = ROOT / "configs" / "worlds" / "semantickitti-fit.json"
-BUNDLED = ROOT / "models" / "weights" / "squeezeseg.pt"
+INIT = ROOT / "models" / "weights" / "squeezeseg-v1.pt"
+BASELINE = "squeezeseg-v1"
 FIT = "01,02,04,05,07,09,10"
 EVALUATION = "00,03,06,08"
 EPOCHS = 1
@@ -41,12 +49,13 @@ def run(cmd: list[str], log: Path | None = None) -> str:
     return res.stdout
 
 
-def dataset(out: Path, scans: int, seed: int, first: int, backgrounds: int) -> None:
+def dataset(out: Path, scans: int, seed: int, first: int, backgrounds: int,
+            profile: Path) -> None:
     if (out / "index.json").exists() and len(list(out.glob("*.npy"))) >= scans:
         return
     run(["falsify", "dataset", "configs/paper.toml", "--scans", str(scans), "--seed", str(seed),
          "--first-background", str(first), "--backgrounds", str(backgrounds), "--world",
-         str(PROFILE), "--out", str(out), "--workers", "2", "--json"])
+         str(profile), "--out", str(out), "--workers", "2", "--json"])
 
 
 def car(pred: dict) -> dict:
@@ -69,21 +78,28 @@ def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("work", type=Path)
     p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--profile", type=Path, default=PROFILE)
+    p.add_argument("--train-seed", type=int, default=21)
+    p.add_argument("--val-seed", type=int, default=22)
+    p.add_argument("--init", type=Path, default=INIT, help="the weights fine-tuned")
+    p.add_argument("--baseline", default=BASELINE, help="the network to beat on the fit split")
     a = p.parse_args()
     work = a.work.resolve()
     work.mkdir(parents=True, exist_ok=True)
     train, val = work / "train", work / "val"
-    dataset(train, 4000, 21, 1000, 625)
-    dataset(val, 400, 22, 5000, 50)
+    profile = a.profile.resolve()
+    dataset(train, 4000, a.train_seed, 1000, 625, profile)
+    dataset(val, 400, a.val_seed, 5000, 50, profile)
 
-    result: dict = {"profile": str(PROFILE.relative_to(ROOT)), "epochs": {}}
-    result["bundled_fit"] = predict("squeezeseg", FIT, work / "bundled-fit")
+    result: dict = {"profile": str(profile.relative_to(ROOT)), "init": a.init.name,
+                    "baseline": a.baseline, "epochs": {}}
+    result["bundled_fit"] = predict(a.baseline, FIT, work / "bundled-fit")
     model_dir = work / "model"
     for e in range(1, EPOCHS + 1):
         kept = work / f"epoch{e}-checkpoint.pt"
         if not kept.exists():
             resume = ["--resume"] if (model_dir / "checkpoint.pt").exists() else ["--init",
-                                                                                   str(BUNDLED)]
+                                                                                   str(a.init.resolve())]
             run([sys.executable, "-m", "falsify.models.train", "--data", str(train), "--out",
                  str(model_dir), "--epochs", str(e), "--val-data", str(val), "--no-export",
                  *RECIPE, *resume], log=work / f"train-epoch{e}.log")
@@ -106,7 +122,7 @@ def main() -> None:
     # Only now, and only to report: the evaluation split, for the chosen epoch and the bundled.
     onnx = work / f"epoch{best}" / "squeezeseg.onnx"
     result["chosen_evaluation"] = predict(onnx, EVALUATION, work / "chosen-eval")
-    result["bundled_evaluation"] = predict("squeezeseg", EVALUATION, work / "bundled-eval")
+    result["bundled_evaluation"] = predict(a.baseline, EVALUATION, work / "bundled-eval")
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(result, indent=2, sort_keys=True) + "\n")
     print(json.dumps({k: result[k] for k in ("chosen_epoch", "ships")}))

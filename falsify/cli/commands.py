@@ -192,7 +192,15 @@ def cmd_fit_world(args) -> int:
     sensor = load_sensor(load_space(args.config).sensor)
     if not 1 <= args.base_scans <= 10_000:
         raise UsageError(f"--base-scans: {args.base_scans} must be in 1..10000")
-    fit = fit_world(args.scans, sequences, sensor, name=args.name, base_scans=args.base_scans)
+    try:
+        keeps = tuple(float(v) for v in args.parked_keep.split(","))
+    except ValueError:
+        keeps = ()
+    if not keeps or not all(0.0 <= k <= 1.0 for k in keeps):
+        raise UsageError(f"--parked-keep: {args.parked_keep!r} is not a comma list of shares "
+                         "in 0..1")
+    fit = fit_world(args.scans, sequences, sensor, name=args.name, base_scans=args.base_scans,
+                    keep_grid=keeps)
     for path in args.compare or []:
         # A SemanticKITTI root is described per sequence, as predict reports it.
         from falsify.world.real_scans import available_sequences
@@ -211,11 +219,15 @@ def _fit_world_text(doc: dict) -> str:
     """Median (5-95 %) per statistic for the fit scans, the world and each compared set."""
     from falsify.jobs.fit_world import STAT_KEYS
 
-    cols = [("fit", doc["fit"], None), ("world", doc["world"], doc["distance_world_to_fit"])]
+    cols = [("fit", doc["fit"], None), ("world", doc["world"], doc["distance_world_to_fit"]),
+            ("profiled world", doc["profiled_world"], doc["distance_profiled_to_fit"])]
     cols += [(k, v, v["distance_to_fit"]) for k, v in doc["compare"].items()]
     lines = [f"wrote {doc['out']}: world profile {doc['profile']['name']!r} from "
              f"{doc['fit']['scans']} fit scans (world base: {doc['world']['scans']} of its "
-             "training scenes); median [5-95 %], and W1 to the fit scans"]
+             "training scenes); median [5-95 %], and W1 to the fit scans",
+             "parked cars kept: " + ", ".join(
+                 f"{t['keep']:g} ({t['score']:.3f})" for t in doc["parked_keep_tries"])
+             + f" -> {doc['profile']['parked_keep']:g}"]
     for name, summ, dist in cols:
         lines.append(f"{name} ({summ['scans']} scans)")
         for k in STAT_KEYS:
@@ -939,7 +951,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(func=cmd_dataset)
 
     fw = sub.add_parser("fit-world", help="fit a world profile (the sensor's pitch and height "
-                        "over the road, cars in view) on labelled real fit scans")
+                        "over the road, cars in view, parked cars kept) on labelled real fit "
+                        "scans")
     fw.add_argument("scans", nargs="+", help="SemanticKITTI roots, sequence folders or .bin "
                     "scans with their .label (fit data only: evaluation scans are refused)")
     fw.add_argument("--sequences", default=None, metavar="SS,SS",
@@ -951,6 +964,10 @@ def build_parser() -> argparse.ArgumentParser:
     from falsify.jobs.fit_world import BASE_SCANS
     fw.add_argument("--base-scans", type=int, default=BASE_SCANS,
                     help="training scenes of the world rendered to measure its own pose")
+    from falsify.world.profile import PARKED_KEEP_GRID
+    fw.add_argument("--parked-keep", default=",".join(f"{k:g}" for k in PARKED_KEEP_GRID),
+                    metavar="K,K", help="shares of the streets' parked cars to try; the one "
+                    "whose cars in view and car share come nearest the fit scans' is kept")
     fw.add_argument("--compare", action="append", metavar="PATH",
                     help="also describe this labelled set (a `dataset --format semantickitti` "
                     "folder, or real scans, per sequence) against the fit scans: reported only")

@@ -149,7 +149,8 @@ def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
         raise ConfigError(f"--labels: {labels!r} is not one of {list(LABEL_SETS)}")
     semantickitti = fmt == "semantickitti"
     out.mkdir(parents=True, exist_ok=True)
-    sim = Simulator(sensor, max_bvh=1, max_hits=8)
+    sim = Simulator(sensor, max_bvh=1, max_hits=8, background_source=(
+        None if opts.world is None else opts.world.background_source()))
     drawn = [] if weather is None else [d for d in EFFECT_DIMS if d in weather.dims]
     counts = np.zeros(len(CLASSES), np.int64)
     sem_counts = np.zeros(1 << 16, np.int64)
@@ -241,7 +242,8 @@ def traffic_scans(sensor: Sensor, n: int, seed: int, opts: TrafficOptions,
                   stride: int) -> np.ndarray:
     """Range images (n, H, W, 6) of training-style scenes `0, stride, 2 * stride, ...`, without
     sensor noise: the synthetic scans used for calibration and held-out checks."""
-    sim = Simulator(sensor, max_bvh=1, max_hits=1)
+    sim = Simulator(sensor, max_bvh=1, max_hits=1, background_source=(
+        None if opts.world is None else opts.world.background_source()))
     images = []
     for i in range(n):
         bg, pose, cars = scene_for(i * stride, seed, sim, opts)

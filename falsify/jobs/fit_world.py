@@ -19,7 +19,7 @@ reporting.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +28,7 @@ from falsify.data.scansets import KITTI_DIR, is_evaluation_scan
 from falsify.data.velodyne import read_bin
 from falsify.errors import FalsifyError
 from falsify.semantic import RAW_ID, split_label
-from falsify.world.profile import WorldProfile
+from falsify.world.profile import PARKED_KEEP_GRID, WorldProfile
 from falsify.world.real_scans import real_scans
 
 FIT_RANGE = 30.0        # m: road points nearer than this fix the plane
@@ -164,47 +164,81 @@ def check_fit_data(paths: list[str], sequences: list[str] | None,
                                "09, 10")
 
 
-def world_base(sensor, scans: int = BASE_SCANS, seed: int = BASE_SEED) -> list[SceneStats]:
-    """The statistics of `scans` training scenes of the world itself (no profile), so a
-    profile adds what the real places show beyond them."""
-    from falsify.data.training import TRAIN_BACKGROUND_FIRST, TrafficOptions, scene_for
+def world_scenes(sensor, scans: int = BASE_SCANS, seed: int = BASE_SEED,
+                 profiles: tuple[WorldProfile | None, ...] = (None,)) -> list[list[SceneStats]]:
+    """The statistics of `scans` training scenes of the world, one list per profile (None: the
+    world as built); the scenes stand on as many streets (every SCANS_PER_BACKGROUND-th scene),
+    so the world is measured across streets, not on a few."""
+    from falsify.data.training import (
+        SCANS_PER_BACKGROUND,
+        TRAIN_BACKGROUND_FIRST,
+        TrafficOptions,
+        scene_for,
+    )
     from falsify.data.velodyne import kitti_arrays
     from falsify.sensor.simulator import Simulator
 
-    sim = Simulator(sensor, max_bvh=1, max_hits=8)
-    opts = TrafficOptions(first_background=TRAIN_BACKGROUND_FIRST, backgrounds=625)
-    out = []
+    sims = [Simulator(sensor, max_bvh=1, max_hits=8, background_source=(
+        None if p is None else p.background_source())) for p in profiles]
+    opts = [TrafficOptions(first_background=TRAIN_BACKGROUND_FIRST, backgrounds=625, world=p)
+            for p in profiles]
+    out: list[list[SceneStats]] = [[] for _ in profiles]
     for i in range(scans):
-        bg_id, pose, placed = scene_for(i, seed, sim, opts)
-        scan = sim.render(bg_id, placed, pose, np.random.default_rng([seed, i, 1]))
-        points, labels = kitti_arrays(scan)
-        out.append(scene_stats(f"world/{i:06d}", points, labels))
+        index = i * SCANS_PER_BACKGROUND
+        for k, (sim, o) in enumerate(zip(sims, opts, strict=True)):
+            bg_id, pose, placed = scene_for(index, seed, sim, o)
+            scan = sim.render(bg_id, placed, pose, np.random.default_rng([seed, index, 1]))
+            points, labels = kitti_arrays(scan)
+            out[k].append(scene_stats(f"world/{index:06d}", points, labels))
     return out
+
+
+def _spread(values: list[float]) -> float:
+    """The sample standard deviation a W1 distance is divided by (1 where the values agree)."""
+    sd = float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
+    return sd if sd > 0 else 1.0
+
+
+def parked_score(world: list[SceneStats], fit: list[SceneStats]) -> float:
+    """How far a world's cars are from the fit scans': the 1-Wasserstein distances of cars in
+    view and of the car share, each over the fit scans' standard deviation, summed."""
+    d = distances(world, fit)
+    return (d["cars_front"] / _spread([s.cars_front for s in fit])
+            + d["car_share"] / _spread([s.car_share for s in fit]))
 
 
 @dataclass(frozen=True)
 class WorldFit:
-    """`fit-world`'s result: the profile, the fit scans' and the world's statistics."""
+    """`fit-world`'s result: the profile, the fit scans', the world's and the profiled world's
+    statistics, and the parked-car share tried at each PARKED_KEEP_GRID value."""
 
     profile: WorldProfile
     fit: list[SceneStats]
     base: list[SceneStats]
+    profiled: list[SceneStats]
+    parked_tries: list[dict]
 
     def as_dict(self) -> dict:
         return {"profile": self.profile.to_json(),
                 "fit": summarise(self.fit), "world": summarise(self.base),
+                "profiled_world": summarise(self.profiled),
                 "distance_world_to_fit": distances(self.base, self.fit),
+                "distance_profiled_to_fit": distances(self.profiled, self.fit),
+                "parked_keep_tries": self.parked_tries,
                 "fit_scans": [asdict(s) for s in self.fit]}
 
 
 def fit_world(paths: list[str], sequences: list[str] | None, sensor, name: str,
-              kitti: Path = KITTI_DIR, base_scans: int = BASE_SCANS) -> WorldFit:
+              kitti: Path = KITTI_DIR, base_scans: int = BASE_SCANS,
+              keep_grid: tuple[float, ...] = PARKED_KEEP_GRID) -> WorldFit:
     """Fit a profile on the fit scans the paths name: each scan's road pitch, sensor height and
     car count, with the world's own median pitch and height as the base the draws add to, and
-    Silverman's bandwidth as the draws' jitter (a kernel density estimate of the fit scans)."""
+    Silverman's bandwidth as the draws' jitter (a kernel density estimate of the fit scans);
+    then the share of parked cars kept, the `keep_grid` value whose profiled world's cars come
+    nearest the fit scans' (parked_score; a tie keeps more)."""
     check_fit_data(paths, sequences, kitti)
     fit = describe(paths, sequences)
-    base = world_base(sensor, base_scans)
+    base = world_scenes(sensor, base_scans)[0]
     profile = WorldProfile(
         name=name, scans=tuple(s.name for s in fit),
         pitch_deg=tuple(round(s.pitch_deg, 4) for s in fit),
@@ -214,4 +248,14 @@ def fit_world(paths: list[str], sequences: list[str] | None, sensor, name: str,
         base_height_m=round(float(np.median([s.height_m for s in base])), 4),
         pitch_jitter_deg=round(silverman_bandwidth([s.pitch_deg for s in fit]), 4),
         height_jitter_m=round(silverman_bandwidth([s.height_m for s in fit]), 4))
-    return WorldFit(profile, fit, base)
+    keeps = tuple(sorted(set(keep_grid), reverse=True))
+    worlds = world_scenes(sensor, base_scans,
+                          profiles=tuple(replace(profile, parked_keep=k) for k in keeps))
+    tries = [{"keep": k, "score": round(parked_score(w, fit), 6),
+              **{f"w1_{key}": round(d, 6) for key, d in distances(w, fit).items()
+                 if key in ("cars_front", "car_share")},
+              "cars_front_mean": float(np.mean([s.cars_front for s in w])),
+              "car_share_mean": float(np.mean([s.car_share for s in w]))}
+             for k, w in zip(keeps, worlds, strict=True)]
+    best = min(range(len(keeps)), key=lambda j: (tries[j]["score"], j))
+    return WorldFit(replace(profile, parked_keep=keeps[best]), fit, base, worlds[best], tries)

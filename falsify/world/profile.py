@@ -5,22 +5,28 @@ A profile holds, per fit scan, what the sensor saw of its own pose (the road pla
 the sensor's height above it, in the sensor frame) and how many cars stood in its front 90
 degrees. A scene draws one fit scan's pose and adds the difference to the world's own plus
 Gaussian jitter (a kernel density estimate of the fit scans, bandwidth by Silverman's rule), and
-draws its car count from the fit scans' counts.
+draws its car count from the fit scans' counts. Its streets keep each parked car with
+probability ``parked_keep``, the share that brings the world's cars in view nearest the fit
+scans' (fitted by `fit-world` over PARKED_KEEP_GRID).
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from falsify.errors import ConfigError
+from falsify.world.streets import Background, build_background, thin_parked_cars
 
 PROFILE_VERSION = 1
 POSE_KEYS = ("pitch_deg", "height_m", "cars_front")
+PARKED_KEEP_GRID = (1.0, 0.75, 0.5, 0.35, 0.25, 0.15, 0.1, 0.05, 0.0)
 
 
 @dataclass(frozen=True)
@@ -31,7 +37,8 @@ class WorldProfile:
     atan(dz/dx) (positive: the road rises ahead); ``height_m``: the sensor's height above that
     plane at its foot; ``cars_front``: cars (SemanticKITTI car or moving-car instances) in the
     front 90 degrees within the fit's range. ``base_*``: the same measured on the world itself,
-    so a draw adds ``real - base``.
+    so a draw adds ``real - base``. ``parked_keep``: the probability each of a street's parked
+    cars stays (1: the streets as built).
     """
 
     name: str
@@ -43,6 +50,7 @@ class WorldProfile:
     base_height_m: float = 1.73
     pitch_jitter_deg: float = 0.25
     height_jitter_m: float = 0.03
+    parked_keep: float = 1.0
 
     def __post_init__(self) -> None:
         n = len(self.scans)
@@ -65,6 +73,9 @@ class WorldProfile:
             raise ConfigError(f"world profile {self.name!r}: cars_front must be in 0..40")
         if self.pitch_jitter_deg < 0 or self.height_jitter_m < 0:
             raise ConfigError(f"world profile {self.name!r}: jitters must be >= 0")
+        if not (isinstance(self.parked_keep, int | float) and 0.0 <= self.parked_keep <= 1.0):
+            raise ConfigError(f"world profile {self.name!r}: parked_keep must be a number in "
+                              f"0..1, not {self.parked_keep!r}")
 
     def draw_pose(self, rng: np.random.Generator) -> tuple[float, float]:
         """(pitch offset in degrees, height offset in metres) for one scene: one fit scan's
@@ -78,8 +89,21 @@ class WorldProfile:
         """A car count for one scene: a fit scan's, at most `most`."""
         return min(int(self.cars_front[int(rng.integers(len(self.scans)))]), most)
 
+    def background_source(self) -> Callable[[int], Background] | None:
+        """What a Simulator builds this world's streets with: the streets with their parked
+        cars thinned, or None (the streets as built) where the profile keeps them all."""
+        if self.parked_keep >= 1.0:
+            return None
+        return functools.partial(thinned_street, keep=self.parked_keep)
+
     def to_json(self) -> dict:
         return {"version": PROFILE_VERSION, **asdict(self)}
+
+
+def thinned_street(bg_id: int, keep: float) -> Background:
+    """Street `bg_id` with its parked cars thinned to `keep` (a module-level function, so a
+    profile's background source pickles into workers)."""
+    return thin_parked_cars(build_background(bg_id), keep)
 
 
 def load_profile(path: str | Path) -> WorldProfile:

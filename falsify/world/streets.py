@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -63,6 +63,7 @@ class Footprint:
 
     label: str
     polygon: np.ndarray  # (K, 2) float64
+    instance: int = 0    # the object's face_instance; 0 for stuff (kerbs)
 
 
 @dataclass(frozen=True)
@@ -154,8 +155,8 @@ class _Street:
                 return False
         return True
 
-    def occupy(self, label: str, poly: np.ndarray) -> None:
-        self.obstacles.append(Footprint(label, poly))
+    def occupy(self, label: str, poly: np.ndarray, instance: int = 0) -> None:
+        self.obstacles.append(Footprint(label, poly, instance))
         lo, hi = poly.min(axis=0), poly.max(axis=0)
         self.boxes.append(np.array([lo[0], hi[0], lo[1], hi[1]]))
 
@@ -439,7 +440,7 @@ def _place(st: _Street, t: Terrain, v: np.ndarray, f: np.ndarray, mat: np.ndarra
     v = v @ rot.T + [x, y, z]
     iid = st.new_instance()
     st.add((v, f), cls, iid, mat, sem)
-    st.occupy(label, _footprint(v))
+    st.occupy(label, _footprint(v), iid)
 
 
 def _footprint(v: np.ndarray) -> np.ndarray:
@@ -610,6 +611,36 @@ def build_background(bg_id: int) -> Background:
         raise ConfigError(f"background: id {bg_id} is out of range; "
                           f"allowed: 0..{MAX_BACKGROUND_ID}")
     return _build(int(bg_id))
+
+
+PARKED_STREAM = 17  # the random stream of a street's parked-car thinning
+
+
+def thin_parked_cars(bg: Background, keep: float) -> Background:
+    """The street with each of its parked cars (class-car instances) kept with probability
+    `keep`, the others' faces and footprints dropped (their kerb space freed). The draws are
+    fixed per street and nested: a street always loses the same cars, and a lower `keep` loses
+    those and more. `keep` 1 gives `bg` itself."""
+    if not 0.0 <= keep <= 1.0:
+        raise ConfigError(f"parked_keep: {keep} is not in 0..1")
+    if keep >= 1.0:
+        return bg
+    cars = np.unique(bg.face_instance[bg.face_class == CAR])
+    u = np.random.default_rng([PARKED_STREAM, bg.bg_id]).random(len(cars))
+    dropped = cars[u >= keep]
+    if len(dropped) == 0:
+        return bg
+    faces = ~np.isin(bg.face_instance, dropped)
+    arrays = {"faces": bg.faces[faces], "face_class": bg.face_class[faces],
+              "face_instance": bg.face_instance[faces],
+              "face_material": None if bg.face_material is None else bg.face_material[faces],
+              "face_semantic": None if bg.face_semantic is None else bg.face_semantic[faces]}
+    for a in arrays.values():
+        if a is not None:
+            a.setflags(write=False)
+    gone = set(int(i) for i in dropped)
+    return replace(bg, obstacles=tuple(o for o in bg.obstacles if o.instance not in gone),
+                   **arrays)
 
 
 # Streets kept built per process. A Simulator keeps the streets it casts at itself (with their
