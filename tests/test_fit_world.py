@@ -153,12 +153,12 @@ def test_cli_refuses_the_real_evaluation_split_and_writes_nothing(tmp_path, caps
 def test_the_fit_split_shows_pitch_our_world_lacks(tmp_path, capsys):
     out = tmp_path / "profile.json"
     rc = main(["fit-world", str(MINI), "--sequences", FIT_SEQUENCES, "--out", str(out),
-               "--base-scans", "6", "--json"])
+               "--base-scans", "3", "--parked-keep", "1", "--json"])
     assert rc == 0
     doc = json.loads(capsys.readouterr().out)
     profile = load_profile(out)
     assert len(profile.scans) == 21 and profile.scans[0] == "01/000000"
-    assert doc["fit"]["scans"] == 21 and doc["world"]["scans"] == 6
+    assert doc["fit"]["scans"] == 21 and doc["world"]["scans"] == 3
     # the real places' road pitch spreads over degrees; the world's own over tenths
     fit, world = doc["fit"]["pitch_deg"], doc["world"]["pitch_deg"]
     assert fit["p95"] - fit["p5"] > 2.0 > 0.5 > world["p95"] - world["p5"]
@@ -212,6 +212,8 @@ def test_a_profiled_dataset_is_deterministic_and_a_plain_one_unchanged(tmp_path)
     ({"colour": "red"}, "unknown key 'colour'"),
     ({"version": 7}, "not a world profile of version 1"),
     ({"cars_front": [-1]}, "cars_front must be in 0..40"),
+    ({"parked_keep": 1.5}, "parked_keep must be a number in 0..1"),
+    ({"parked_keep": "most"}, "parked_keep must be a number in 0..1"),
 ])
 def test_bad_profiles_exit_2_naming_the_file_and_key(tmp_path, capsys, over, needle):
     prof = _profile(tmp_path, **over)
@@ -263,7 +265,77 @@ def test_fit_world_options_are_checked_before_anything_runs(tmp_path, capsys):
     root = str(tmp_path / "root")
     for argv, needle in ((["--base-scans", "0"], "--base-scans: 0 must be in 1..10000"),
                          (["--compare", str(tmp_path / "nope")], "nope: no such file"),
-                         (["--sequences", "99"], "--sequences 99")):
+                         (["--sequences", "99"], "--sequences 99"),
+                         (["--parked-keep", "1,1.5"], "--parked-keep: '1,1.5'"),
+                         (["--parked-keep", "half"], "--parked-keep: 'half'")):
         assert main(["fit-world", root, "--out", str(out), *argv]) == 2
         assert needle in capsys.readouterr().err
         assert not out.parent.exists()
+
+
+def test_thinning_drops_whole_parked_cars_nested_and_fixed_per_street():
+    from falsify.classes import CAR
+    from falsify.world.streets import build_background, thin_parked_cars
+
+    bg = build_background(1003)
+    assert thin_parked_cars(bg, 1.0) is bg
+    cars = set(np.unique(bg.face_instance[bg.face_class == CAR]).tolist())
+    assert len(cars) >= 10
+    kept = {}
+    for keep in (0.0, 0.25, 0.5):
+        b = thin_parked_cars(bg, keep)
+        left = set(np.unique(b.face_instance[b.face_class == CAR]).tolist())
+        kept[keep] = left
+        gone = cars - left
+        # a dropped car loses every face and its footprint; a kept one keeps all of its faces
+        assert not np.isin(b.face_instance, list(gone)).any()
+        for i in left:
+            assert (b.face_instance == i).sum() == (bg.face_instance == i).sum()
+        assert {o.instance for o in b.obstacles} & gone == set()
+        assert len(b.obstacles) == len(bg.obstacles) - len(gone)
+        # everything that is not a parked car stays, face for face
+        other = bg.face_class != CAR
+        assert (b.face_class != CAR).sum() == other.sum()
+        assert np.array_equal(b.faces[b.face_class != CAR], bg.faces[other])
+        assert thin_parked_cars(bg, keep).faces.tobytes() == b.faces.tobytes()
+    assert kept[0.0] == set() and kept[0.25] <= kept[0.5] < cars
+    with pytest.raises(ConfigError, match="parked_keep: 1.2 is not in 0..1"):
+        thin_parked_cars(bg, 1.2)
+
+
+def test_a_profile_without_parked_cars_shows_only_its_placed_ones(tmp_path):
+    base = ["dataset", "configs/paper.toml", "--scans", "3", "--seed", "5",
+            "--first-background", "1000", "--backgrounds", "625", "--format", "semantickitti"]
+    for keep, name in ((0.0, "none"), (1.0, "all")):
+        (tmp_path / name).mkdir()
+        prof = _profile(tmp_path / name, cars_front=[0], parked_keep=keep)
+        assert main([*base, "--world", str(prof), "--out", str(tmp_path / name / "set"),
+                     "--json"]) == 0
+    bare = describe([str(tmp_path / "none" / "set")])
+    full = describe([str(tmp_path / "all" / "set")])
+    # no car placed and no parked car kept: not one car point; the streets as built show some
+    assert all(s.car_share == 0.0 for s in bare)
+    assert sum(s.cars_front for s in full) > 0
+    (tmp_path / "default").mkdir()
+    assert load_profile(_profile(tmp_path / "default")).parked_keep == 1.0
+
+
+def test_fit_world_keeps_the_parked_share_nearest_the_fit_scans(tmp_path, capsys):
+    from falsify.jobs.fit_world import parked_score
+
+    # fit scans with no car at all: the fit must drop every parked car it may
+    _write_sequence(tmp_path / "root", "05", [_plane_scan(0.5, 0.0, 1.73, rng_seed=k)
+                                              for k in range(3)])
+    out = tmp_path / "profile.json"
+    rc = main(["fit-world", str(tmp_path / "root"), "--out", str(out), "--base-scans", "2",
+               "--parked-keep", "1,0", "--json"])
+    assert rc == 0
+    doc = json.loads(capsys.readouterr().out)
+    tries = {t["keep"]: t for t in doc["parked_keep_tries"]}
+    assert set(tries) == {0.0, 1.0}
+    assert tries[0.0]["score"] < tries[1.0]["score"]
+    assert tries[0.0]["cars_front_mean"] < tries[1.0]["cars_front_mean"]
+    assert load_profile(out).parked_keep == 0.0
+    assert doc["profiled_world"]["scans"] == 2
+    none = [scene_stats("a", *_plane_scan(0.0, 0.0, 1.7))]
+    assert parked_score(none, none) == 0.0
