@@ -34,7 +34,7 @@ from falsify.world.space import load_space
 from .test_bad_input import snapshot
 
 ROOT = Path(__file__).resolve().parent.parent
-CI = ROOT / "configs" / "ci.toml"
+CI = ROOT / "tests" / "data" / "small-grid.toml"  # 24 samples on 2 streets
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +48,7 @@ def ray():
 
 @pytest.fixture(scope="module")
 def process_run(tmp_path_factory) -> Path:
-    """configs/ci.toml on two local worker processes: the reference run."""
+    """The small grid on two local worker processes: the reference run."""
     out = tmp_path_factory.mktemp("process") / "run"
     execute(RunRequest(config=CI, out=out, command="grid", workers=2, report=False))
     return out
@@ -78,7 +78,7 @@ def test_ray_rows_equal_process_rows(ray, process_rows, tmp_path):
     assert main(["grid", str(CI), "--out", str(out), "--executor", "ray", "--workers", "2",
                  "--no-report", "--quiet", "--json"]) == 0
     got = rows(out / STORE_NAME)
-    assert len(got) == 75
+    assert len(got) == 24
     assert got.equals(process_rows)
 
 
@@ -108,7 +108,7 @@ def test_map_serves_concurrent_callers_in_their_own_order(ray, process_rows):
     """Two threads map chunks at once on two actors: each gets its own results in its order."""
     space = load_space(CI)
     grid = space.grid()
-    asks = [[grid[i:i + 2] for i in range(k, 40, 8)] for k in (0, 4)]
+    asks = [[grid[i:i + 2] for i in range(k, 24, 8)] for k in (0, 4)]
     got: dict[int, list] = {}
     with RayExecutor(EvalSettings(space=space), 2) as ex:
         threads = [threading.Thread(target=lambda k=k: got.__setitem__(k, list(ex.map(asks[k]))))
@@ -128,7 +128,7 @@ def test_map_serves_concurrent_callers_in_their_own_order(ray, process_rows):
 
 
 def test_concurrent_search_on_ray_gives_the_rows_of_one_process(ray, tmp_path):
-    """NLopt runs the three backgrounds two at a time on two actors: the rows and the curve of
+    """NLopt runs the two backgrounds at once on two actors: the rows and the curve of
     the sequential loop on one local process."""
     runs = {}
     for name, executor, workers in (("one", "process", 1), ("ray", "ray", 2)):
@@ -276,17 +276,17 @@ def test_actor_start_failure_exits_2_and_leaves_no_run(tmp_path):
 
 def test_resume_on_another_executor_is_allowed_and_recorded(ray, process_run, process_rows,
                                                             tmp_path, capsys):
-    """A run killed after 60 of 75 samples on two processes, resumed on one Ray actor: the rows
+    """A run killed after 18 of 24 samples on two processes, resumed on one Ray actor: the rows
     equal the uninterrupted run's (they do not depend on the executor or --workers), the meta
     keeps both sessions and the summary names both executors."""
     run = tmp_path / "run"
     shutil.copytree(process_run, run)
     with sqlite3.connect(run / STORE_NAME) as db:
-        db.execute("DELETE FROM samples WHERE eval_index >= 60")
+        db.execute("DELETE FROM samples WHERE eval_index >= 18")
     assert main(["grid", str(CI), "--out", str(run), "--resume", "--executor", "ray",
                  "--workers", "1", "--no-report", "--quiet"]) == 0
     out = capsys.readouterr().out
-    assert "15 computed now" in out and "computed on executors process, then ray" in out
+    assert "6 computed now" in out and "computed on executors process, then ray" in out
     assert rows(run / STORE_NAME).equals(process_rows)
     sessions = read_meta(run)["sessions"]
     assert [(s["executor"], s["workers"]) for s in sessions] == [("process", 2), ("ray", 1)]

@@ -18,7 +18,7 @@ from falsify.results.store import STORE_NAME, TIMING_COLUMNS, Store, read_frame
 from falsify.world.space import load_space
 
 ROOT = Path(__file__).resolve().parent.parent
-CI = ROOT / "configs" / "ci.toml"
+CI = ROOT / "tests" / "data" / "small-grid.toml"  # 24 samples on 2 streets
 
 
 def rows(path: Path):
