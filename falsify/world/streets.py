@@ -648,17 +648,22 @@ def thin_parked_cars(bg: Background, keep: float) -> Background:
 STREETS_KEPT = 2
 
 
-@functools.lru_cache(maxsize=STREETS_KEPT)
-def _build(bg_id: int) -> Background:
+# What a street is made of, in the order it is placed: dynamic objects first (they are
+# guaranteed their slots), then street furniture.
+STEPS = (_parked_vehicles, _people, _guard_rails, _poles, _plants, _boundaries, _buildings)
+
+
+def placed(bg_id: int, steps=STEPS) -> tuple[_Street, _Layout]:
+    """The ground of street `bg_id` and what `steps` (a leading part of STEPS) place on it."""
     lay = _layout(bg_id)
     st = _Street()
     _ground(st, lay)
-    # Dynamic objects first (they are guaranteed their slots), then street furniture.
-    _parked_vehicles(st, lay, bg_id)
-    _people(st, lay, bg_id)
-    _guard_rails(st, lay, bg_id)
-    _poles(st, lay, bg_id)
-    _plants(st, lay, bg_id)
-    _boundaries(st, lay, bg_id)
-    _buildings(st, lay, bg_id)
+    for step in steps:
+        step(st, lay, bg_id)
+    return st, lay
+
+
+@functools.lru_cache(maxsize=STREETS_KEPT)
+def _build(bg_id: int) -> Background:
+    st, lay = placed(bg_id)
     return _assemble(bg_id, st, lay)
