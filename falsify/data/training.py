@@ -63,6 +63,13 @@ class TrafficOptions:
     world: WorldProfile | None = None             # fitted poses and car counts (scattered only)
 
 
+def training_simulator(sensor: Sensor, opts: TrafficOptions, max_hits: int) -> Simulator:
+    """A Simulator for training scenes, one street held at a time, its streets built as
+    `opts.world` says (parked cars thinned) or as they are."""
+    source = None if opts.world is None else opts.world.background_source()
+    return Simulator(sensor, max_bvh=1, max_hits=max_hits, background_source=source)
+
+
 def scene_for(index: int, seed: int, sim: Simulator,
               opts: TrafficOptions) -> tuple[int, SensorPose, list[PlacedCar]]:
     """The background, ego pose and traffic of training scan `index` (deterministic)."""
@@ -149,8 +156,7 @@ def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
         raise ConfigError(f"--labels: {labels!r} is not one of {list(LABEL_SETS)}")
     semantickitti = fmt == "semantickitti"
     out.mkdir(parents=True, exist_ok=True)
-    sim = Simulator(sensor, max_bvh=1, max_hits=8, background_source=(
-        None if opts.world is None else opts.world.background_source()))
+    sim = training_simulator(sensor, opts, max_hits=8)
     drawn = [] if weather is None else [d for d in EFFECT_DIMS if d in weather.dims]
     counts = np.zeros(len(CLASSES), np.int64)
     sem_counts = np.zeros(1 << 16, np.int64)
@@ -242,8 +248,7 @@ def traffic_scans(sensor: Sensor, n: int, seed: int, opts: TrafficOptions,
                   stride: int) -> np.ndarray:
     """Range images (n, H, W, 6) of training-style scenes `0, stride, 2 * stride, ...`, without
     sensor noise: the synthetic scans used for calibration and held-out checks."""
-    sim = Simulator(sensor, max_bvh=1, max_hits=1, background_source=(
-        None if opts.world is None else opts.world.background_source()))
+    sim = training_simulator(sensor, opts, max_hits=1)
     images = []
     for i in range(n):
         bg, pose, cars = scene_for(i * stride, seed, sim, opts)

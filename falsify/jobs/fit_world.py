@@ -174,14 +174,13 @@ def world_scenes(sensor, scans: int = BASE_SCANS, seed: int = BASE_SEED,
         TRAIN_BACKGROUND_FIRST,
         TrafficOptions,
         scene_for,
+        training_simulator,
     )
     from falsify.data.velodyne import kitti_arrays
-    from falsify.sensor.simulator import Simulator
 
-    sims = [Simulator(sensor, max_bvh=1, max_hits=8, background_source=(
-        None if p is None else p.background_source())) for p in profiles]
     opts = [TrafficOptions(first_background=TRAIN_BACKGROUND_FIRST, backgrounds=625, world=p)
             for p in profiles]
+    sims = [training_simulator(sensor, o, max_hits=8) for o in opts]
     out: list[list[SceneStats]] = [[] for _ in profiles]
     for i in range(scans):
         index = i * SCANS_PER_BACKGROUND

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -653,7 +654,8 @@ STREETS_KEPT = 2
 STEPS = (_parked_vehicles, _people, _guard_rails, _poles, _plants, _boundaries, _buildings)
 
 
-def placed(bg_id: int, steps=STEPS) -> tuple[_Street, _Layout]:
+def placed(bg_id: int, steps: tuple[Callable[[_Street, _Layout, int], None], ...] = STEPS
+           ) -> tuple[_Street, _Layout]:
     """The ground of street `bg_id` and what `steps` (a leading part of STEPS) place on it."""
     lay = _layout(bg_id)
     st = _Street()
