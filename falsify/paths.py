@@ -1,4 +1,5 @@
-"""Where the files read at run time live: the bundled configs, sensor presets and return models.
+"""Where the files read at run time live: the bundled configs, sensor presets and return models,
+and the user's own data, named in configs as `${VARIABLE}` paths read from the environment.
 
 Installed, they are package data in falsify/configs; in a source checkout, the configs/ folder
 beside falsify/. The bundled weights live with the network (falsify.models.runner.WEIGHTS_DIR).
@@ -6,7 +7,11 @@ beside falsify/. The bundled weights live with the network (falsify.models.runne
 
 from __future__ import annotations
 
+import os
+import re
 from pathlib import Path
+
+from falsify.errors import FalsifyError
 
 _HERE = Path(__file__).resolve().parent
 CONFIGS = _HERE / "configs" if (_HERE / "configs").is_dir() else _HERE.parent / "configs"
@@ -23,3 +28,32 @@ def config_path(path: str | Path) -> Path:
     parts = path.parts[1:] if path.parts[:1] == ("configs",) else path.parts
     bundled = CONFIGS.joinpath(*parts) if parts else CONFIGS
     return bundled if bundled.is_file() else path
+
+
+# The data sets shipped configs name, by the variable that says where a user keeps each.
+DATA_VARIABLES = {
+    "SEMANTICKITTI": (
+        "a SemanticKITTI root (the folder holding sequences/SS/velodyne/*.bin and "
+        "sequences/SS/labels/*.label): download KITTI odometry's Velodyne scans and "
+        "SemanticKITTI's labels (semantic-kitti.org), unpack both into one folder DIR, then "
+        "`export SEMANTICKITTI=DIR`"),
+    "KITTI_OBJECT": (
+        "a KITTI 3D object folder (velodyne/, label_2/, calib/, image_2/ of KITTI's object "
+        "benchmark, cvlibs.net/datasets/kitti): unpack it into DIR, then "
+        "`export KITTI_OBJECT=DIR`"),
+}
+_VARIABLE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
+
+
+def expand_data_path(text: str, where: str) -> str:
+    """A data path with each `${NAME}` replaced by that environment variable; FalsifyError
+    naming `where` and saying how to get the data when a variable is unset or empty."""
+    def value(match: re.Match) -> str:
+        name = match.group(1)
+        found = os.environ.get(name, "")
+        if not found:
+            how = DATA_VARIABLES.get(name, f"the folder it names: `export {name}=DIR`")
+            raise FalsifyError(f"{where}: ${{{name}}} is not set; it must name {how} "
+                               "(or write the path into the config)")
+        return found
+    return _VARIABLE.sub(value, text)

@@ -31,6 +31,7 @@ from falsify.classes import CLASSES
 from falsify.errors import FalsifyError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+CARDS_DIR = Path(__file__).resolve().parent / "cards"   # one model card per network, shipped
 BUNDLED_ONNX = WEIGHTS_DIR / "squeezeseg.onnx"
 BUNDLED_PT = WEIGHTS_DIR / "squeezeseg.pt"
 # Frames per forward pass. Both backends run SqueezeSeg fastest one frame at a time on the 2-core
@@ -483,9 +484,15 @@ def resolve_model(path: str | Path | None, backend: str = "onnx") -> Path:
     """The file `load_segmenter` opens: the bundled model for None, a bundled model by name
     (e.g. "squeezeseg-drive": models/weights/squeezeseg-drive.onnx) where no such file exists,
     else the path, with .onnx and .pt mapped to the backend's file of the same stem."""
-    if (path is not None and not Path(path).suffix and not Path(path).exists()
-            and (WEIGHTS_DIR / f"{path}.onnx").is_file()):
-        path = WEIGHTS_DIR / f"{path}.onnx"
+    if path is not None and not Path(path).suffix and not Path(path).exists():
+        if (WEIGHTS_DIR / f"{path}.onnx").is_file():
+            path = WEIGHTS_DIR / f"{path}.onnx"
+        elif (CARDS_DIR / f"{path}.md").is_file():   # a network the wheel leaves out
+            raise FalsifyError(
+                f"--model {path}: not installed (the package ships the default network, "
+                f"squeezeseg, and its int8 variants); its card {CARDS_DIR / f'{path}.md'} says "
+                f"how to make it, or take {path}.onnx and {path}.json from the source "
+                f"repository's models/weights/ and pass --model PATH/{path}.onnx")
     if backend == "torch":
         p = BUNDLED_PT if path is None else Path(path)
         return p.with_suffix(".pt") if p.suffix == ".onnx" else p

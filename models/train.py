@@ -62,6 +62,7 @@ class TrainConfig:
     export: bool = True
     classes: str = "kitti4"   # kitti4 | semantickitti
     device: str = "cpu"       # cpu | cuda
+    holdout: tuple[str, ...] = ()   # split manifests: their held-out scans are refused
 
 
 def list_scans(folder: str | Path, what: str = "--data") -> list[Path]:
@@ -236,6 +237,9 @@ def train(cfg: TrainConfig) -> dict:
     first = load_scan(files[0])
     shape = first.shape[:2]
     val_files = list_scans(cfg.val_data, "--val-data") if cfg.val_data else []
+    from falsify.data.holdout import check_not_held_out
+    check_not_held_out(files, cfg.holdout, "--data (trained on)")
+    check_not_held_out(val_files, cfg.holdout, "--val-data (chooses the checkpoint)")
     bad = [c for c in cfg.channels if c not in ALL_CHANNELS]
     if bad:
         raise FalsifyError(f"--channels: unknown {bad}; choose from {list(ALL_CHANNELS)}")
@@ -412,6 +416,9 @@ def parse_args(argv: Sequence[str] | None) -> TrainConfig:
     p.add_argument("--classes", default="kitti4", choices=CLASS_SETS,
                    help="what channel 5 holds: our four classes or SemanticKITTI's train ids")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--holdout", action="append", default=[], metavar="SPLITS_TOML",
+                   help="a split manifest whose held-out scans --data and --val-data may not "
+                   "hold (also $FALSIFY_HOLDOUT and a splits.toml beside the data)")
     a = p.parse_args(argv)
     return TrainConfig(
         data=a.data, out=a.out, epochs=a.epochs, batch=a.batch, seed=a.seed, lr=a.lr,
@@ -420,7 +427,7 @@ def parse_args(argv: Sequence[str] | None) -> TrainConfig:
         precision=a.precision, threads=a.threads, time_limit_min=a.time_limit_min,
         val_data=a.val_data, resume=a.resume, max_steps=a.max_steps, export=not a.no_export,
         loss_on=a.loss_on, init=a.init, crf_only=a.crf_only, classes=a.classes,
-        device=a.device)
+        device=a.device, holdout=tuple(a.holdout))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -116,13 +116,3 @@ def test_predict_bad_object_dir_exits_2(tmp_path: Path, capsys) -> None:
     assert main(["predict", str(root), "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "calib" in err and "000000.txt" in err and not out.exists()
-
-
-def test_the_default_real_data_folder_is_beside_the_checkout():
-    """The package's default KITTI folder is computed from its own file: after a move inside the
-    package it must still name the checkout's sibling shared/data/kitti, or every real-data test
-    would skip instead of run."""
-    from falsify.data import scansets
-
-    assert (scansets.ROOT / "pyproject.toml").is_file()
-    assert scansets.KITTI_DIR == scansets.ROOT.parent / "shared" / "data" / "kitti"

@@ -14,7 +14,6 @@ from falsify.classes import CAR
 from falsify.cli.commands import main
 from falsify.data.kitti_object import points_in_box, read_calib, read_labels
 from falsify.data.real_backgrounds import COLLISION_POINTS, INSERTED_INSTANCE, RealScanner
-from falsify.data.scansets import KITTI_DIR
 from falsify.jobs.faithfulness import (
     box_pose,
     insert_in_place,
@@ -24,6 +23,8 @@ from falsify.jobs.faithfulness import (
 )
 from falsify.semantic import RAW_ID
 from falsify.sensor.lidar import load_sensor
+
+from .conftest import KITTI_DIR
 
 DIRS = [KITTI_DIR / "object", KITTI_DIR / "object-extra"]
 

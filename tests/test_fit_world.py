@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from falsify.cli.commands import main
-from falsify.data.scansets import KITTI_DIR
 from falsify.errors import ConfigError, FalsifyError
 from falsify.jobs.fit_world import (
     check_fit_data,
@@ -23,6 +23,8 @@ from falsify.jobs.fit_world import (
 )
 from falsify.semantic import RAW_ID, join_label
 from falsify.world.profile import WorldProfile, load_profile
+
+from .conftest import HOLDOUT, KITTI_DIR
 
 MINI = KITTI_DIR / "semantickitti-mini"
 FIT_SEQUENCES = "01,02,04,05,07,09,10"
@@ -121,31 +123,68 @@ def _write_sequence(root: Path, seq: str, scans: list[tuple[np.ndarray, np.ndarr
     return folder
 
 
-def test_evaluation_sequences_are_refused_by_name(tmp_path):
-    kitti = tmp_path / "kitti"
-    scan = _plane_scan(1.0, 0.0, 1.73)
-    _write_sequence(kitti / "semantickitti-mini", "08", [scan])
-    _write_sequence(kitti / "semantickitti-mini", "05", [scan])
-    check_fit_data([str(kitti / "semantickitti-mini")], ["05"], kitti)   # fit data: fine
-    with pytest.raises(FalsifyError, match=r"08/velodyne/000000\.bin: evaluation data"):
-        check_fit_data([str(kitti / "semantickitti-mini")], None, kitti)
+def test_a_semantickitti_roots_official_split_is_held_out_unless_its_manifest_says(tmp_path):
+    """Without a manifest a SemanticKITTI root holds out 08 (and 11-21); a splits.toml beside the
+    data replaces that rule with its own."""
+    root = tmp_path / "sk"
+    _write_sequence(root, "08", [_plane_scan(1.0, 0.0, 1.73)])
+    _write_sequence(root, "05", [_plane_scan(2.0, 0.0, 1.73)])
+    check_fit_data([str(root)], ["05"])   # a training sequence: fine
+    with pytest.raises(FalsifyError, match=r"08/velodyne/000000\.bin: a held-out scan "
+                                           r"\(SemanticKITTI's official split"):
+        check_fit_data([str(root)], None)
+    (root / "splits.toml").write_text('[holdout]\nsequences = ["05"]\n')
+    check_fit_data([str(root)], ["08"])   # the manifest's own split: 08 is fit data here
+    with pytest.raises(FalsifyError, match=r"05/velodyne/000000\.bin: a held-out scan \("
+                                           + str(root / "splits.toml")):
+        check_fit_data([str(root)], ["05"])
 
 
-def test_a_scan_without_labels_is_named(tmp_path):
-    _write_sequence(tmp_path, "05", [_plane_scan(1.0, 0.0, 1.73)], labelled=False)
-    with pytest.raises(FalsifyError, match=r"000000\.bin: no SemanticKITTI \.label"):
-        describe([str(tmp_path)])
+def _copy_sequence(src: Path, dst: Path, link: bool = False) -> None:
+    """A sequence's first scan and its labels under dst (a copy, or symlinks)."""
+    for sub, name in (("velodyne", "000000.bin"), ("labels", "000000.label")):
+        (dst / sub).mkdir(parents=True, exist_ok=True)
+        if link:
+            (dst / sub / name).symlink_to(src / sub / name)
+        else:
+            shutil.copyfile(src / sub / name, dst / sub / name)
+
+
+@pytest.mark.skipif(not (MINI / "sequences" / "00").is_dir(),
+                    reason=f"{MINI}: SemanticKITTI mini set not present")
+@pytest.mark.parametrize("link", [False, True], ids=["copy", "symlink"])
+def test_cli_refuses_a_held_out_scan_through_a_copy_or_a_symlink(tmp_path, capsys, link,
+                                                                 monkeypatch):
+    """The project's manifest holds out sequence 00 by content: its scan copied (or linked) into
+    another root as sequence 05 is refused by name, with the manifest and the original named,
+    and nothing is written (also without FALSIFY_HOLDOUT: --holdout alone)."""
+    monkeypatch.delenv("FALSIFY_HOLDOUT", raising=False)
+    _copy_sequence(MINI / "sequences" / "00", tmp_path / "elsewhere" / "sequences" / "05", link)
+    out = tmp_path / "sub" / "profile.json"
+    rc = main(["fit-world", str(tmp_path / "elsewhere"), "--holdout", str(HOLDOUT),
+               "--out", str(out)])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "05/velodyne/000000.bin: a held-out scan" in err and str(HOLDOUT) in err
+    assert "the same bytes as semantickitti" in err   # the original, as the manifest names it
+    assert not out.exists() and not out.parent.exists()
 
 
 @pytest.mark.skipif(not (MINI / "sequences" / "08").is_dir(),
                     reason=f"{MINI}: SemanticKITTI mini set not present")
 def test_cli_refuses_the_real_evaluation_split_and_writes_nothing(tmp_path, capsys):
     out = tmp_path / "sub" / "profile.json"
-    rc = main(["fit-world", str(MINI), "--sequences", "05,08", "--out", str(out)])
+    rc = main(["fit-world", str(MINI), "--sequences", "05,03", "--out", str(out)])
     assert rc == 2
     err = capsys.readouterr().err
-    assert "08/velodyne/000000.bin: evaluation data" in err
+    assert "03/velodyne/000000.bin: a held-out scan" in err
     assert not out.exists() and not out.parent.exists()
+
+
+def test_a_scan_without_labels_is_named(tmp_path):
+    _write_sequence(tmp_path, "05", [_plane_scan(1.0, 0.0, 1.73)], labelled=False)
+    with pytest.raises(FalsifyError, match=r"000000\.bin: no SemanticKITTI \.label"):
+        describe([str(tmp_path)])
 
 
 @pytest.mark.skipif(not (MINI / "sequences" / "05").is_dir(),

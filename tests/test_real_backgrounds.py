@@ -24,7 +24,7 @@ from falsify.data.real_backgrounds import (
     pixel_directions,
 )
 from falsify.data.velodyne import read_kitti
-from falsify.errors import ConfigError
+from falsify.errors import ConfigError, FalsifyError
 from falsify.results.metrics import Scoring
 from falsify.semantic import RAW_ID
 from falsify.sensor.lidar import load_sensor
@@ -369,7 +369,7 @@ def test_retrain_runs_on_real_backgrounds_and_refuses_evaluation_scans(tmp_path)
     if MINI.is_dir():   # a scan of the evaluation split may be tested on, never trained on
         seq08 = MINI / "sequences" / "08" / "velodyne" / "000000.bin"
         cfg.write_text(cfg.read_text().replace(str(r.bin), str(seq08)))
-        with pytest.raises(ConfigError, match="evaluation data"):
+        with pytest.raises(FalsifyError, match="held-out scan"):
             RetrainJob(dataclasses.replace(req, out=tmp_path / "exp2")).prepare()
 
 

@@ -33,7 +33,7 @@ from falsify.jobs.realism import (
 from falsify.sensor.lidar import load_sensor
 from falsify.sensor.simulator import PlacedCar, Simulator
 
-from .conftest import ROOT, assert_offline
+from .conftest import EVALUATION_SEQUENCES, FIT_SEQUENCES, ROOT, assert_offline
 
 BUNDLED = ROOT / "models" / "weights" / "squeezeseg.onnx"
 EVIL = '<b>&"x'
@@ -333,13 +333,16 @@ def test_realism_json_fields_and_determinism(sets, tmp_path: Path, capsys) -> No
 
 
 @pytest.mark.skipif(not BUNDLED.exists(), reason="bundled model not trained yet")
-def test_realism_default_real_sets_are_the_fit_split(sets, tmp_path: Path, capsys,
-                                                     kitti_dir) -> None:
-    """The reference is semantickitti-mini's fit split, pooled; --evaluation adds the evaluation
-    sequences beside it, reported only: never pooled, never compared."""
-    if not (kitti_dir / "semantickitti-mini" / "sequences" / "08").is_dir():
-        pytest.skip(f"{kitti_dir / 'semantickitti-mini'}: not present")
-    code, doc, err = run(["realism", str(sets["old"]), str(sets["new"]), "--evaluation",
+def test_realism_reference_and_evaluation_sets_are_the_users(sets, tmp_path: Path, capsys,
+                                                             kitti_dir) -> None:
+    """The reference is the --real sequences, pooled; --evaluation adds held-out sequences beside
+    it, reported only: never pooled, never compared."""
+    mini = kitti_dir / "semantickitti-mini"
+    if not (mini / "sequences" / "08").is_dir():
+        pytest.skip(f"{mini}: not present")
+    code, doc, err = run(["realism", str(sets["old"]), str(sets["new"]), "--real", str(mini),
+                          "--sequences", ",".join(FIT_SEQUENCES), "--evaluation", str(mini),
+                          "--evaluation-sequences", ",".join(EVALUATION_SEQUENCES),
                           "--out", str(tmp_path), "--json"], capsys)
     assert code == 0, err
     fit = ["01", "02", "04", "05", "07", "09", "10"]

@@ -14,12 +14,12 @@ from falsify.reports.realism_page import render_realism
 
 from falsify.cli import main
 from falsify.cli.commands import _realism_text
-from falsify.data.scansets import KITTI_DIR, load_sets
+from falsify.data.scansets import load_sets
 from falsify.jobs.realism import SetStats
 from falsify.semantic import TRAIN_CLASSES, kitti4, kitti4_of_train, train_ids
 from falsify.sensor.lidar import load_sensor
 
-from .conftest import CONFIGS, ROOT
+from .conftest import CONFIGS, KITTI_DIR, ROOT
 
 BUNDLED = ROOT / "models" / "weights" / "squeezeseg.onnx"
 SEQUENCE = KITTI_DIR / "semantickitti-mini" / "sequences" / "01"   # a fit sequence

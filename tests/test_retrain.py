@@ -29,7 +29,7 @@ from falsify.results.miou_maps import CellMap
 from falsify.results.samples import sample_seed
 from falsify.sensor.lidar import load_sensor
 from falsify.world.space import load_space
-from tests.conftest import CONFIGS, KITTI, assert_offline
+from tests.conftest import CONFIGS, HOLDOUT, KITTI, assert_offline
 
 MODEL = BUNDLED_ONNX
 TINY = """name = "tiny"
@@ -379,6 +379,6 @@ def test_evaluation_split_check_or_a_named_skip(tmp_path) -> None:
     assert evaluation_split(None, sensor)[1] is None
     if not (KITTI / "semantickitti-mini").is_dir():
         pytest.skip(f"{KITTI / 'semantickitti-mini'} not found")
-    name, scans, note = evaluation_split(KITTI, sensor)
-    assert "00, 03, 06, 08" in name and len(scans.sources) == 12
+    name, scans, note = evaluation_split(KITTI, sensor, (HOLDOUT,))
+    assert "held-out" in name and len(scans.sources) == 12 and "12 scans" in note
     assert {Path(src).parts[-3] for src in scans.sources} == {"00", "03", "06", "08"}

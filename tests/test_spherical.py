@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from falsify.data.scansets import KITTI_DIR
 from falsify.data.velodyne import read_bin, read_kitti
 from falsify.errors import ConfigError
 from falsify.semantic import RAW_NAMES, kitti4
@@ -20,7 +19,7 @@ from falsify.sensor.scan import image_from_points, project_scan
 from falsify.sensor.simulator import Simulator
 from falsify.world.space import load_space
 
-from .conftest import CONFIGS
+from .conftest import CONFIGS, KITTI_DIR
 
 H, W, FOV_UP, FOV_DOWN = 64, 2048, 3.0, -25.0
 SEQ08 = KITTI_DIR / "semantickitti-mini" / "sequences" / "08"

@@ -1,11 +1,13 @@
 """A clean install: the wheel puts sampler, models, reports and configs under falsify/ (no
-generic top-level package), ships the weights, sensor presets and bundled configs, and works
-from a directory outside the checkout."""
+generic top-level package), ships the default network, sensor presets, world profiles and
+bundled configs and no other network, and works from a directory outside the checkout.
+Slow: it builds a wheel and a venv."""
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import sysconfig
@@ -17,11 +19,19 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 GENERIC = ("models", "reports", "sampler", "configs")
+# The wheel ships the default network and its int8 variants, not the other networks.
+LEFT_OUT = ("squeezeseg-v1", "squeezeseg-v2", "squeezeseg-drive", "squeezeseg-drive-retrained",
+            "squeezeseg20", "pointnet20")
+MAX_WHEEL_MB = 16
+
+pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("dist")
+    # setuptools' build/ keeps files of earlier builds (weights since left out): start clean
+    shutil.rmtree(ROOT / "build", ignore_errors=True)
     r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
                         "-q", "-w", str(out), str(ROOT)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
@@ -39,8 +49,15 @@ def test_wheel_holds_only_the_falsify_package_and_its_data(wheel):
                  weights + "squeezeseg-int8.onnx", weights + "squeezeseg.pt",
                  "falsify/configs/sensors/kitti-hdl64e-front.toml", "falsify/configs/ci.toml",
                  "falsify/configs/paper.toml", "falsify/configs/ci-baseline.json",
-                 "falsify/sampler/nlopt.py", "falsify/reports/run_page.py"):
+                 "falsify/sampler/nlopt.py", "falsify/reports/run_page.py",
+                 "falsify/configs/worlds/semantickitti-fit-parked.json",
+                 "falsify/configs/worlds/semantickitti-fit.json",
+                 "falsify/models/cards/squeezeseg-drive.md"):
         assert need in names, need
+    weights = {n.rsplit("/", 1)[1].split(".")[0] for n in names if n.startswith(weights)}
+    assert weights == {"squeezeseg", "squeezeseg-int8", "squeezeseg-int8-crf0",
+                       "squeezeseg-int8-crf1"}, sorted(weights)
+    assert wheel.stat().st_size < MAX_WHEEL_MB * 2**20, wheel.stat().st_size
     # Every source module is in the wheel: a subpackage missing from pyproject's list fails here.
     sources = [f.relative_to(ROOT).as_posix() for f in (ROOT / "falsify").rglob("*.py")]
     for top in ("models", "reports", "sampler"):
@@ -94,3 +111,16 @@ def test_installed_wheel_runs_outside_the_checkout(wheel, tmp_path):
     assert summary["samples"] == 75 and summary["ok"] == 75, summary
     assert (work / "run" / "report.html").stat().st_size > 10_000
     assert (work / "run" / "maps" / "miou_x_y.csv").exists()
+    # the world profiles ship: by their path in the checkout, and by name
+    for world in ("configs/worlds/semantickitti-fit-parked.json", "semantickitti-fit"):
+        data = subprocess.run([falsify_cmd, "dataset", "configs/smoke.toml", "--scans", "2",
+                               "--world", world, "--out", f"data-{Path(world).stem}", "--json"],
+                              cwd=work, env=env, capture_output=True, text=True, timeout=600)
+        assert data.returncode == 0, data.stderr
+        assert len(list((work / f"data-{Path(world).stem}").glob("*.npy"))) == 2
+    # a network left out of the wheel is named, with where to get it
+    left = subprocess.run([falsify_cmd, "grid", "configs/smoke.toml", "--out", "r2", "--model",
+                           "squeezeseg-drive"], cwd=work, env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert left.returncode == 2 and "--model squeezeseg-drive: not installed" in left.stderr
+    assert "squeezeseg-drive.md" in left.stderr and not (work / "r2").exists()

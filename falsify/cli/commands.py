@@ -200,7 +200,7 @@ def cmd_fit_world(args) -> int:
         raise UsageError(f"--parked-keep: {args.parked_keep!r} is not a comma list of shares "
                          "in 0..1")
     fit = fit_world(args.scans, sequences, sensor, name=args.name, base_scans=args.base_scans,
-                    keep_grid=keeps)
+                    keep_grid=keeps, holdout=args.holdout or ())
     for path in args.compare or []:
         # A SemanticKITTI root is described per sequence, as predict reports it.
         from falsify.world.real_scans import available_sequences
@@ -334,17 +334,35 @@ def _predict_text(result, backend: str, out: Path, labelled: bool) -> str:
     return "\n".join(lines)
 
 
+def cmd_holdout(args) -> int:
+    from falsify.data.holdout import load_manifest, manifest_text, scans_under
+    from falsify.fileio import write_text
+
+    out = check_out_file(args.out)
+    sequences = _predict_sequences(args.sequences, args.scans)
+    scans = scans_under(args.scans, sequences)
+    if not scans:
+        raise UsageError(f"{', '.join(args.scans)}: no .bin or .npy scans there")
+    write_text(out, manifest_text(scans, args.note or ""))
+    held = load_manifest(out)
+    summary = {"manifest": str(out), "scans": len(held.scans),
+               "bytes": sum(s.size for s in held.scans)}
+    emit(args, summary, f"{out}: {len(held.scans)} held-out scans, matched by content; pass it "
+         "as --holdout to fit-world, train and retrain, or name it in $FALSIFY_HOLDOUT")
+    return 0
+
+
 def cmd_faithfulness(args) -> int:
-    from falsify.data.scansets import KITTI_DIR
     from falsify.fileio import write_json
     from falsify.jobs.faithfulness import run_faithfulness
     from falsify.models.runner import load_segmenter
+    from falsify.paths import expand_data_path
     from falsify.sensor.lidar import load_sensor
 
     if args.out:
         check_out_file(args.out)
-    paths = [Path(p) for p in args.dirs] if args.dirs else [KITTI_DIR / "object",
-                                                            KITTI_DIR / "object-extra"]
+    paths = [Path(p) for p in args.dirs] if args.dirs else [
+        Path(expand_data_path("${KITTI_OBJECT}", "faithfulness (no DIR given)"))]
     sensor = load_sensor(args.sensor)
     result = run_faithfulness(paths, sensor, load_segmenter(args.model))
     summary = result.as_dict()
@@ -396,13 +414,7 @@ def cmd_train(args) -> int:
 
 # -- realism --------------------------------------------------------------------------------
 def cmd_realism(args) -> int:
-    from falsify.data.scansets import (
-        EVALUATION_SEQUENCES,
-        FIT_SEQUENCES,
-        load_sets,
-        mini_split,
-        npy_files,
-    )
+    from falsify.data.scansets import load_sets, npy_files
     from falsify.fileio import write_json, write_text
     from falsify.jobs.realism import EncoderFeatures, compare
     from falsify.reports.realism_page import render_realism
@@ -429,8 +441,10 @@ def cmd_realism(args) -> int:
             index = None
         labels[name] = index.get("labels", "kitti4") if isinstance(index, dict) else "kitti4"
     sensor = load_sensor(args.sensor)
-    real = load_sets(args.real, sensor) if args.real else mini_split(sensor, FIT_SEQUENCES)
-    reported = mini_split(sensor, EVALUATION_SEQUENCES) if args.evaluation else []
+    real = load_sets(args.real, sensor, _predict_sequences(args.sequences, args.real))
+    reported = (load_sets(args.evaluation, sensor,
+                          _predict_sequences(args.evaluation_sequences, args.evaluation))
+                if args.evaluation else [])
     result = compare(synthetic, real, EncoderFeatures(args.model),
                      bootstrap_draws=args.bootstrap, labels=labels, reported=reported)
     doc = result.as_dict()
@@ -609,6 +623,13 @@ def _run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _camera_option(p, "also store the camera images of the retraining set beside its scans")
     p.add_argument("--json", action="store_true")
+
+
+def _holdout_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--holdout", action="append", metavar="SPLITS_TOML",
+                   help="a split manifest whose held-out scans this command refuses (matched by "
+                   "content); also read: $FALSIFY_HOLDOUT, a splits.toml beside the data, and "
+                   "a SemanticKITTI root's official split (08, 11-21)")
 
 
 def _camera_option(p: argparse.ArgumentParser, help_text: str) -> None:
@@ -813,7 +834,6 @@ def cmd_bench(args) -> int:
 
 # -- retrain --------------------------------------------------------------------------------
 def cmd_retrain(args) -> int:
-    from falsify.data.scansets import KITTI_DIR
     from falsify.jobs.retrain import RetrainJob, RetrainRequest, parse_ids, result_text
     from falsify.models.runner import resolve_model
 
@@ -827,7 +847,8 @@ def cmd_retrain(args) -> int:
         precision=args.precision, batch=args.batch, lr=args.lr, seed=args.seed,
         oversample=args.oversample, train_scans=args.train_scans,
         held_out_scans=args.held_out_scans,
-        kitti=KITTI_DIR if args.kitti is None else Path(args.kitti) if args.kitti else None,
+        kitti=Path(args.kitti) if args.kitti else None,
+        holdout=tuple(Path(h) for h in args.holdout or ()),
         workers=args.workers, resume=args.resume, selection=args.selection)
     result = RetrainJob(req, on_progress=None if args.json else ProgressBar()).run()
     emit(args, result.to_json(), result_text(result))
@@ -954,7 +975,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "over the road, cars in view, parked cars kept) on labelled real fit "
                         "scans")
     fw.add_argument("scans", nargs="+", help="SemanticKITTI roots, sequence folders or .bin "
-                    "scans with their .label (fit data only: evaluation scans are refused)")
+                    "scans with their .label (fit data only: held-out scans are refused)")
+    _holdout_option(fw)
     fw.add_argument("--sequences", default=None, metavar="SS,SS",
                     help="only these sequences of a SemanticKITTI root")
     fw.add_argument("--out", required=True, help="the profile's JSON file")
@@ -973,6 +995,17 @@ def build_parser() -> argparse.ArgumentParser:
                     "folder, or real scans, per sequence) against the fit scans: reported only")
     fw.add_argument("--json", action="store_true")
     fw.set_defaults(func=cmd_fit_world)
+
+    ho = sub.add_parser("holdout", help="write a split manifest: scans that fit-world, train "
+                        "and retrain refuse (matched by content, wherever they are)")
+    ho.add_argument("scans", nargs="+", help=".bin or .npy scans, folders of them, SemanticKITTI "
+                    "roots or sequence folders")
+    ho.add_argument("--sequences", default=None, metavar="SS,SS",
+                    help="only these sequences of a SemanticKITTI root")
+    ho.add_argument("--out", required=True, help="the manifest (TOML), e.g. DATA/splits.toml")
+    ho.add_argument("--note", default=None, help="a comment line for the manifest's head")
+    ho.add_argument("--json", action="store_true")
+    ho.set_defaults(func=cmd_holdout)
 
     pr = sub.add_parser("predict", help="run the network on scans; IoU, precision, recall per set "
                         "and range band where labelled")
@@ -999,7 +1032,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "synthetic car inserted in its place (the real car's points removed)")
     fa.add_argument("dirs", nargs="*", metavar="DIR",
                     help="KITTI object directories (velodyne/, label_2/, calib/); every Car box "
-                    "with a 3D extent is scored (default: the shared object and object-extra)")
+                    "with a 3D extent is scored (default: $KITTI_OBJECT)")
     fa.add_argument("--model", default=None, help=MODEL_HELP)
     fa.add_argument("--sensor", default="kitti-hdl64e-front",
                     help="preset the frames are projected and the cars cast with")
@@ -1013,13 +1046,16 @@ def build_parser() -> argparse.ArgumentParser:
                      help="`falsify dataset` folders of .npy scans (the first is the baseline "
                      "the others are compared with)")
     re_.add_argument("--out", required=True, help="folder for realism.json and realism.html")
-    re_.add_argument("--real", nargs="+", default=None,
-                     help="real scans as for predict (default: semantickitti-mini's fit split, "
-                     "sequences 01, 02, 04, 05, 07, 09, 10, in ../shared/data/kitti)")
-    re_.add_argument("--evaluation", action="store_true",
-                     help="also give each synthetic set's distances to semantickitti-mini's "
-                     "evaluation sequences 00, 03, 06, 08: reported only, never pooled or "
-                     "compared")
+    re_.add_argument("--real", nargs="+", required=True, metavar="PATH",
+                     help="the real reference: scans as for predict (a SemanticKITTI root, "
+                     "sequence folders, .bin or .npy scans), pooled")
+    re_.add_argument("--sequences", default=None, metavar="SS,SS",
+                     help="only these sequences of --real's SemanticKITTI roots")
+    re_.add_argument("--evaluation", nargs="+", default=None, metavar="PATH",
+                     help="held-out real scans: each synthetic set's distances to them, per "
+                     "set, reported only, never pooled or compared")
+    re_.add_argument("--evaluation-sequences", default=None, metavar="SS,SS",
+                     help="only these sequences of --evaluation's SemanticKITTI roots")
     re_.add_argument("--scans", type=int, default=None,
                      help="use the first N scans of each synthetic folder")
     re_.add_argument("--model", default=None,
@@ -1177,9 +1213,11 @@ def build_parser() -> argparse.ArgumentParser:
     rt.add_argument("--train-scans", type=int, default=None,
                     help="use only the first N training scans")
     rt.add_argument("--held-out-scans", type=int, default=200)
-    rt.add_argument("--kitti", default=None,
-                    help="real KITTI sets for the checks (default: ../shared/data/kitti beside "
-                    "the checkout; skipped where absent)")
+    rt.add_argument("--kitti", default=None, metavar="DIR",
+                    help="a folder of real KITTI sets to check on before and after (squeezeseg/"
+                    " .npy scans, semantickitti/ .bin scans, the held-out scans of "
+                    "semantickitti-mini/); the checks are skipped without it")
+    _holdout_option(rt)
     rt.add_argument("--workers", type=int, default=2)
     rt.add_argument("--selection", default="blind",
                     choices=["blind", "control", "rules", "random"],

@@ -31,24 +31,6 @@ from falsify.world.real_scans import (
     sequence_files,
 )
 
-ROOT = Path(__file__).resolve().parents[2]   # the source checkout
-# The shared real KITTI data beside the repository (evaluation only; never copied in).
-KITTI_DIR = ROOT.parent / "shared" / "data" / "kitti"
-# semantickitti-mini's evaluation split (its README): only ever reported on.
-EVALUATION_SEQUENCES = ("00", "03", "06", "08")
-# ... and its fit split: may be fitted to, trained on and choose.
-FIT_SEQUENCES = ("01", "02", "04", "05", "07", "09", "10")
-
-
-def is_evaluation_scan(path: str | Path, root: Path = KITTI_DIR) -> bool:
-    """Whether a scan file is in the shared KITTI data's evaluation sets (SqueezeSeg's scans,
-    the three SemanticKITTI scans, semantickitti-mini's evaluation sequences), which nothing
-    may train on."""
-    p, root = Path(path).resolve(), root.resolve()
-    mini = root / "semantickitti-mini" / "sequences"
-    return any(p.is_relative_to(folder) for folder in (
-        root / "squeezeseg", root / "semantickitti", *(mini / q for q in EVALUATION_SEQUENCES)))
-
 
 @dataclass(frozen=True)
 class ScanSet:
@@ -168,18 +150,6 @@ def _set_name(folder: Path) -> str:
     if folder.name == "velodyne" and folder.parent.name:
         return folder.parent.name
     return folder.name or str(folder)
-
-
-def mini_split(sensor: Sensor, sequences: tuple[str, ...],
-               root: Path = KITTI_DIR) -> list[ScanSet]:
-    """semantickitti-mini's sequences `sequences`, one set each, projected with `sensor`;
-    FalsifyError naming the folder when a sequence is absent."""
-    mini = root / "semantickitti-mini"
-    missing = [q for q in sequences if not (mini / "sequences" / q / "velodyne").is_dir()]
-    if missing:
-        raise FalsifyError(f"{mini}: sequences {', '.join(missing)} not found (see "
-                           "shared/data/README.md)")
-    return load_sets([str(mini)], sensor, sequences=list(sequences))
 
 
 def _stack(name: str, images: list[np.ndarray], ignore: list[np.ndarray],

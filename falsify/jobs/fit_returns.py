@@ -1,6 +1,6 @@
 """Fit the sensor's return model on the geometry and reflectance of KITTI's object frames.
 
-Run: ``python -m falsify.jobs.fit_returns ../shared/data/kitti/object/velodyne/*.bin
+Run: ``python -m falsify.jobs.fit_returns $KITTI_OBJECT/velodyne/*.bin
 --out configs/returns/kitti-hdl64e.json``. Only the points are used (never labels), and only
 the three object frames: the SqueezeSeg-layout and SemanticKITTI scans are evaluation data.
 
@@ -129,7 +129,7 @@ def fit(paths: list[Path]) -> dict:
     return {
         "name": "kitti-hdl64e",
         "fitted_on": [p.name for p in paths],
-        "command": "python -m falsify.jobs.fit_returns ../shared/data/kitti/object/velodyne/*.bin "
+        "command": "python -m falsify.jobs.fit_returns $KITTI_OBJECT/velodyne/*.bin "
                    "--out configs/returns/kitti-hdl64e.json",
         "points_used": int(pos.sum()),
         "dropout_candidates": int(len(cr)),

@@ -1,6 +1,6 @@
 """Fit the HDL-64E's ring geometry on the geometry of KITTI's object frames.
 
-Run: ``python -m falsify.jobs.fit_rings ../shared/data/kitti/object/velodyne/*.bin --json``. Only
+Run: ``python -m falsify.jobs.fit_rings $KITTI_OBJECT/velodyne/*.bin --json``. Only
 the points are used (never labels), and only the object frames: the SqueezeSeg-layout and
 SemanticKITTI scans are evaluation data.
 

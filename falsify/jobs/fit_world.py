@@ -11,20 +11,21 @@ Per scan, from SemanticKITTI labels in the front 90 degrees (what the range-imag
   CAR_RANGE;
 - the share of points on vegetation, trunks and terrain, and on cars.
 
-The fit reads only fit data: an evaluation scan (falsify.data.scansets.is_evaluation_scan) or a
-scan without SemanticKITTI labels is refused by name. `describe` reads any labelled set, for
-reporting.
+The fit reads only fit data: a held-out scan (falsify.data.holdout: a split manifest, or a
+SemanticKITTI root's official split) or a scan without SemanticKITTI labels is refused by name.
+`describe` reads any labelled set, for reporting.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from falsify.data.scansets import KITTI_DIR, is_evaluation_scan
+from falsify.data.holdout import check_not_held_out
 from falsify.data.velodyne import read_bin
 from falsify.errors import FalsifyError
 from falsify.semantic import RAW_ID, split_label
@@ -154,14 +155,11 @@ def describe(paths: list[str], sequences: list[str] | None = None) -> list[Scene
 
 
 def check_fit_data(paths: list[str], sequences: list[str] | None,
-                   kitti: Path = KITTI_DIR) -> None:
-    """FalsifyError naming the first scan that is evaluation data (never fitted to)."""
-    for _, path, _, _ in real_scans(paths, sequences):
-        if is_evaluation_scan(path, kitti):
-            raise FalsifyError(f"{path}: evaluation data (semantickitti-mini sequences 00, 03, "
-                               "06, 08, squeezeseg/ and semantickitti/) is only reported on, "
-                               "never fitted to; fit on the fit sequences 01, 02, 04, 05, 07, "
-                               "09, 10")
+                   holdout: Sequence[str | Path] = ()) -> None:
+    """FalsifyError naming the first scan that is held out (never fitted to): by the split
+    manifests `holdout`, FALSIFY_HOLDOUT, a splits.toml beside the data or its official split."""
+    files = [path for _, path, _, _ in real_scans(paths, sequences)]
+    check_not_held_out(files, holdout, "fit-world's scans")
 
 
 def world_scenes(sensor, scans: int = BASE_SCANS, seed: int = BASE_SEED,
@@ -228,14 +226,14 @@ class WorldFit:
 
 
 def fit_world(paths: list[str], sequences: list[str] | None, sensor, name: str,
-              kitti: Path = KITTI_DIR, base_scans: int = BASE_SCANS,
+              holdout: Sequence[str | Path] = (), base_scans: int = BASE_SCANS,
               keep_grid: tuple[float, ...] = PARKED_KEEP_GRID) -> WorldFit:
     """Fit a profile on the fit scans the paths name: each scan's road pitch, sensor height and
     car count, with the world's own median pitch and height as the base the draws add to, and
     Silverman's bandwidth as the draws' jitter (a kernel density estimate of the fit scans);
     then the share of parked cars kept, the `keep_grid` value whose profiled world's cars come
     nearest the fit scans' (parked_score; a tie keeps more)."""
-    check_fit_data(paths, sequences, kitti)
+    check_fit_data(paths, sequences, holdout)
     fit = describe(paths, sequences)
     base = world_scenes(sensor, base_scans)[0]
     profile = WorldProfile(

@@ -84,7 +84,8 @@ class RetrainRequest:
     oversample: int = 20
     train_scans: int | None = None  # use only the first N training scans (None: all)
     held_out_scans: int = 200
-    kitti: Path | None = None       # ../shared/data/kitti; checks are skipped where absent
+    kitti: Path | None = None       # a folder of real KITTI sets to check on (None: skipped)
+    holdout: tuple[Path, ...] = ()  # split manifests: held-out scans are never trained on
     workers: int = 2
     resume: bool = False
     selection: str = "blind"        # or "control": random non-blind cells, as many; or
@@ -306,15 +307,11 @@ class RetrainJob:
         train_index = _read_index(req.train_data)
         held = set(range(HELD_OUT_FIRST_BACKGROUND,
                          HELD_OUT_FIRST_BACKGROUND + HELD_OUT_BACKGROUNDS))
+        from falsify.data.holdout import check_not_held_out
+        check_not_held_out(train_files, req.holdout, "--train-data")
         if space.real_backgrounds:   # what R holds is trained on
-            from falsify.data.scansets import is_evaluation_scan
-            for b in req.retraining:
-                scan = space.real_backgrounds[b]
-                if is_evaluation_scan(scan.bin):
-                    raise ConfigError(
-                        f"--retraining-backgrounds: background {b} ({scan.bin}) is evaluation "
-                        "data (shared/data/README.md: only ever reported on); retrain on "
-                        "scans of the fit split")
+            check_not_held_out([space.real_backgrounds[b].bin for b in req.retraining],
+                               req.holdout, "--retraining-backgrounds")
         if train_index is not None and req.held_out_scans:
             first = int(train_index.get("first_background", -1))
             span = set(range(first, first + int(train_index.get("backgrounds", 0))))
@@ -492,7 +489,7 @@ class RetrainJob:
                      read_set("semantickitti", bins, sensor) if bins else None,
                      "kitti/semantickitti/*.bin projected with the config's sensor" if bins
                      else f"skipped: no scans in {kitti}/semantickitti"))
-        sets.append(evaluation_split(kitti, sensor))
+        sets.append(evaluation_split(kitti, sensor, req.holdout))
         present = [s for _, s, _ in sets if s is not None]
         scores = {}
         for when, model in (("before", req.model), ("after", Path(done["finetune"]["model"]))):
@@ -617,21 +614,23 @@ def region_figures(run, region: Sequence[int], threshold: float) -> dict:
             "below": int((score < threshold).sum())}
 
 
-def evaluation_split(kitti: Path | None, sensor) -> tuple:
-    """semantickitti-mini's evaluation sequences as one held-out check (only reported on), or
-    the note saying why it was skipped."""
-    from falsify.data.scansets import EVALUATION_SEQUENCES, read_set
+def evaluation_split(kitti: Path | None, sensor, holdout: tuple[Path, ...] = ()) -> tuple:
+    """The held-out scans of `kitti`/semantickitti-mini (by the split manifests, else its
+    official split) as one check, only reported on; or the note saying why it was skipped."""
+    from falsify.data.holdout import holdout_for
+    from falsify.data.scansets import read_set
     from falsify.world.real_scans import sequence_dirs, sequence_files
 
-    name = "real evaluation split (semantickitti-mini " + ", ".join(EVALUATION_SEQUENCES) + ")"
+    name = "real held-out split (semantickitti-mini)"
     root = kitti / "semantickitti-mini" if kitti else None
     found = sequence_dirs(root) if root is not None and root.is_dir() else None
-    if not found or any(q not in found for q in EVALUATION_SEQUENCES):
-        return (name, None, f"skipped: sequences {', '.join(EVALUATION_SEQUENCES)} not found "
-                            f"in {root}")
-    files = [f for q in EVALUATION_SEQUENCES for f in sequence_files(found[q])]
-    return (name, read_set("evaluation split", files, sensor),
-            "front 90 degrees, projected with the config's sensor; labels from labels/")
+    files = [f for d in (found or {}).values() for f in sequence_files(d)]
+    held = holdout_for(files, holdout).held_out(files)
+    if not held:
+        return (name, None, f"skipped: no held-out scans in {root}")
+    return (name, read_set("evaluation split", held, sensor),
+            f"{len(held)} scans, front 90 degrees, projected with the config's sensor; labels "
+            "from labels/")
 
 
 def control_cells(cmap, threshold: float, n: int, seed: int) -> list[tuple]:

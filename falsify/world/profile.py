@@ -22,7 +22,10 @@ from pathlib import Path
 import numpy as np
 
 from falsify.errors import ConfigError
+from falsify.paths import CONFIGS, config_path
 from falsify.world.streets import Background, build_background, thin_parked_cars
+
+WORLDS = CONFIGS / "worlds"   # the fitted profiles that ship
 
 PROFILE_VERSION = 1
 POSE_KEYS = ("pitch_deg", "height_m", "cars_front")
@@ -107,8 +110,11 @@ def thinned_street(bg_id: int, keep: float) -> Background:
 
 
 def load_profile(path: str | Path) -> WorldProfile:
-    """Read a profile written by `falsify fit-world`; ConfigError names the file and the key."""
-    p = Path(path)
+    """Read a profile written by `falsify fit-world` (a file, a bundled one's path such as
+    configs/worlds/NAME.json, or its NAME); ConfigError names the file and the key."""
+    p = config_path(path)
+    if not p.exists() and not p.suffix and (WORLDS / f"{p.name}.json").is_file():
+        p = WORLDS / f"{p.name}.json"
     if not p.is_file():
         raise ConfigError(f"--world {p}: no such file (write one with `falsify fit-world`)")
     try:

@@ -130,3 +130,18 @@ def sequence_files(folder: Path) -> list[Path]:
     return files
 
 
+
+
+def evenly_per_folder(found: list[tuple[str, Path, Path | None, str]], k: int
+                      ) -> list[tuple[str, Path, Path | None, str]]:
+    """At most `k` scans of each folder (a sequence's velodyne/, say), evenly spaced from its
+    first to its last in file order, so a config can name a whole data set and stay small."""
+    by_folder: dict[Path, list[int]] = {}
+    for i, (_, path, _, _) in enumerate(found):
+        by_folder.setdefault(path.parent, []).append(i)
+    keep: set[int] = set()
+    for idx in by_folder.values():
+        n = len(idx)
+        picks = {idx[0]} if k == 1 else {idx[round(j * (n - 1) / (k - 1))] for j in range(k)}
+        keep.update(idx if n <= k else picks)
+    return [f for i, f in enumerate(found) if i in keep]

@@ -439,10 +439,10 @@ def _real_backgrounds(spec: dict, where: str, base_dir: Path) -> tuple[RealScan,
     folders, KITTI object directories; relative to the config's folder) and optional
     `sequences = ["08", ...]`: the scans in order, each with where its labels come from."""
     key = "dims.background"
-    extra = sorted(set(spec) - {"real", "sequences"})
+    extra = sorted(set(spec) - {"real", "sequences", "per_sequence"})
     if extra:
         raise ConfigError(f"{where}{key}: unknown key {extra[0]!r} beside real; allowed: real, "
-                          "sequences")
+                          "sequences, per_sequence")
     paths = spec["real"]
     if (not isinstance(paths, list) or not paths
             or not all(isinstance(p, str) and p for p in paths)):
@@ -453,13 +453,22 @@ def _real_backgrounds(spec: dict, where: str, base_dir: Path) -> tuple[RealScan,
             isinstance(q, str) for q in sequences)):
         raise ConfigError(f"{where}{key}.sequences: expected a non-empty list of sequence ids "
                           "such as [\"00\", \"08\"]")
+    per_sequence = spec.get("per_sequence")
+    if per_sequence is not None and (isinstance(per_sequence, bool)
+                                     or not isinstance(per_sequence, int) or per_sequence < 1):
+        raise ConfigError(f"{where}{key}.per_sequence: expected an integer >= 1 (scans taken "
+                          f"evenly spaced from each folder of scans), got {per_sequence!r}")
     from falsify.errors import FalsifyError
-    from falsify.world.real_scans import real_scans
-    resolved = [p if Path(p).is_absolute() else str(base_dir / p) for p in paths]
+    from falsify.paths import expand_data_path
+    from falsify.world.real_scans import evenly_per_folder, real_scans
+    expanded = [expand_data_path(p, f"{where}{key}.real") for p in paths]
+    resolved = [p if Path(p).is_absolute() else str(base_dir / p) for p in expanded]
     try:
         found = real_scans(resolved, sequences)
     except FalsifyError as exc:
         raise ConfigError(f"{where}{key}.real: {exc}") from None
+    if per_sequence is not None:
+        found = evenly_per_folder(found, per_sequence)
     if len(found) > MAX_VALUES:
         raise ConfigError(f"{where}{key}.real: {len(found)} scans; at most {MAX_VALUES}")
     return tuple(RealScan(*f) for f in found)
