@@ -94,6 +94,7 @@ def kill_after_rows(cmd: list[str], db: Path, rows: int) -> int:
     return n
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_to_the_same_rows(tmp_path):
     config = small_config(tmp_path, xs=(-4.0, 4.0, 2.0), ys=(6.0, 18.0, 3.0))  # 5×5×2 = 50
     full, killed = tmp_path / "full", tmp_path / "killed"
@@ -290,6 +291,7 @@ def test_concurrent_search_gives_the_rows_curve_and_files_of_one_worker(tmp_path
     assert "results.csv" in files_one and files_one == files_two
 
 
+@pytest.mark.slow
 def test_interrupted_concurrent_search_resumes_to_the_same_rows(tmp_path):
     """An interrupt raised in one combination's thread stops the run; --resume computes only
     what is missing and ends with the rows of an uninterrupted run."""
@@ -313,6 +315,7 @@ def test_interrupted_concurrent_search_resumes_to_the_same_rows(tmp_path):
     pd.testing.assert_frame_equal(rows(full), rows(cut), check_exact=False, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_killed_concurrent_search_resumes_to_the_rows_of_one_worker(tmp_path):
     """kill -9 in the middle of a two-worker NLopt search (rows arriving from two combinations
     at once), then --resume: nothing recomputed or duplicated, the rows of one worker's run."""

@@ -33,6 +33,8 @@ from falsify.world.space import load_space
 
 from .test_bad_input import snapshot
 
+pytestmark = pytest.mark.slow   # the heavy tier: Ray: a local instance per module, whole grids
+
 ROOT = Path(__file__).resolve().parent.parent
 CI = ROOT / "tests" / "data" / "small-grid.toml"  # 24 samples on 2 streets
 

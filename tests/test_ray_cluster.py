@@ -17,6 +17,8 @@ from falsify.jobs.run import RunRequest, execute
 from falsify.results.store import STORE_NAME, TIMING_COLUMNS, Store, read_frame
 from falsify.world.space import load_space
 
+pytestmark = pytest.mark.slow   # the heavy tier: real multi-node Ray clusters
+
 ROOT = Path(__file__).resolve().parent.parent
 CI = ROOT / "tests" / "data" / "small-grid.toml"  # 24 samples on 2 streets
 

@@ -119,6 +119,7 @@ def test_cli(runs, tmp_path: Path, capsys) -> None:
     assert main(["report", str(runs["before"]), "--compare", str(tmp_path / "nope")]) == 2
 
 
+@pytest.mark.slow
 def test_paper_size(tmp_path: Path) -> None:
     """150 cells × 15 backgrounds = 2,250 rows: one file under 5 MB with 12 previews."""
     run = write_run(tmp_path / "paper", PAPER, undefined_every=37, invalid_every=53)

@@ -85,6 +85,7 @@ def experiment(inputs) -> dict:
     return {"out": out, "killed_state": state, "stamps": stamps, "result": result}
 
 
+@pytest.mark.slow
 def test_resume_after_kill_recomputes_nothing_finished(experiment) -> None:
     out, result = experiment["out"], experiment["result"]
     assert sorted(experiment["killed_state"]["done"]) == ["before", "finetune", "rows", "selected"]

@@ -26,6 +26,8 @@ from falsify.bench.tradeoff import (
 from falsify.cli import main
 from falsify.results.miou_maps import CellMap, fill_nearest, jaccard, map_error
 
+pytestmark = pytest.mark.slow   # the heavy tier: whole trade-off runs
+
 CONFIG = """name = "tiny"
 sensor = "kitti-hdl64e-front"
 seed = 0

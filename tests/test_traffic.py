@@ -111,6 +111,7 @@ def test_cli_traffic_choice(tmp_path, capsys) -> None:
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_ego_and_cars_stand_on_the_terrain(sim) -> None:
     """Every traffic kind stands the ego and its cars on the street's terrain: a drive ego once
     stayed at z = 0, a metre under the road on hills, and saw the road as a wall at its bumper.
@@ -126,6 +127,7 @@ def test_ego_and_cars_stand_on_the_terrain(sim) -> None:
     assert min(raised.values()) >= 2   # the streets have hills, so the check above can fail
 
 
+@pytest.mark.slow
 def test_the_ego_never_stands_in_a_background_obstacle(sim) -> None:
     """Drive scenes 1 and 67 (seed 0) once put the ego inside a parked bus of streets 1000 and
     1008; the ego pose is now drawn again until it is free (scenes that were free stay equal)."""
