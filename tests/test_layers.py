@@ -75,21 +75,13 @@ def sources() -> list[Path]:
     return [p for p in out if "__pycache__" not in p.parts]
 
 
-def imports(path: Path, typing_only: bool = True) -> list[tuple[int, str]]:
-    """(line, dotted name) of every import in the file, wherever it stands; `from falsify.world
-    import shapes` counts as an import of falsify.world.shapes. With typing_only=False, imports
-    under `if TYPE_CHECKING:` are left out (annotations: no dependency at run time)."""
+def imports(path: Path) -> list[tuple[int, str]]:
+    """(line, dotted name) of every import in the file, wherever it stands (in a function, under
+    `if TYPE_CHECKING:`); `from falsify.world import shapes` counts as an import of
+    falsify.world.shapes."""
     out = []
     tree = ast.parse(path.read_text(), str(path))
-    skip: set[int] = set()
-    if not typing_only:
-        for node in ast.walk(tree):
-            if (isinstance(node, ast.If) and isinstance(node.test, ast.Name)
-                    and node.test.id == "TYPE_CHECKING"):
-                skip.update(id(n) for b in node.body for n in ast.walk(b))
     for node in ast.walk(tree):
-        if id(node) in skip:
-            continue
         if isinstance(node, ast.Import):
             out += [(node.lineno, a.name) for a in node.names]
         elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
@@ -109,7 +101,7 @@ def module_deps() -> dict[str, set[str]]:
     for path in sources():
         me = module_of_file(path)
         got = set()
-        for _, name in imports(path, typing_only=False):
+        for _, name in imports(path):
             parts = name.split(".")
             if parts[0] in TOP:
                 parts = ["falsify", *parts]
@@ -176,7 +168,8 @@ def cycles(deps: dict[str, set[str]]) -> list[list[str]]:
 
 
 def test_no_import_cycle_between_modules():
-    """Lazy imports inside functions count; imports for annotations only do not."""
+    """Lazy imports inside functions count, and so do imports for annotations only
+    (`if TYPE_CHECKING:`): a cycle through them is still two modules that need each other."""
     found = cycles(module_deps())
     assert not found, f"import cycles: {found}"
 
@@ -198,6 +191,10 @@ def test_the_checkers_see_an_upward_import_and_a_cycle(tmp_path):
     bad.write_text("def f():\n    from falsify.jobs.run import execute\n")
     names = [n for _, n in imports(bad)]
     assert "falsify.jobs.run" in names
+    typed = tmp_path / "t.py"
+    typed.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                     "    from falsify.sensor.render import CameraRenderer\n")
+    assert "falsify.sensor.render" in [n for _, n in imports(typed)]
     assert FOLDERS[folder_of_module("falsify.jobs.run")] > FOLDERS["models"]
     assert folder_of_module("falsify.errors") == "falsify"
     assert folder_of_module("sampler.grid") == "sampler"

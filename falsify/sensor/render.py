@@ -20,20 +20,9 @@ from falsify.sensor.calibration import (
 from falsify.sensor.camera import Camera, CameraImage
 from falsify.sensor.lidar import SensorPose
 from falsify.sensor.look import Look, look_of
-from falsify.sensor.shading import rain_streaks, shade, shadowed, slab, sun
+from falsify.sensor.shading import Hits, rain_streaks, shade, shadowed, slab, sun
 from falsify.sensor.simulator import PlacedCar, Simulator
 from falsify.world.space import Sample
-
-
-@dataclass
-class Hits:
-    """Nearest hit per pixel (flat): distance, owner (-1 background, k = car k), primitive,
-    unnormalised normal in the owner's frame."""
-
-    t: np.ndarray
-    owner: np.ndarray
-    prim: np.ndarray
-    normal: np.ndarray
 
 
 @dataclass(frozen=True)

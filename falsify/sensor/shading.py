@@ -5,14 +5,36 @@ from __future__ import annotations
 
 import hashlib
 import math
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
+from falsify.sensor.camera import Camera
 from falsify.sensor.look import COLOURS, EXTINCTION, SUN_KEPT, Look
+from falsify.sensor.simulator import Simulator
 
-if TYPE_CHECKING:
-    from falsify.sensor.render import CameraRenderer, Hits
+
+@dataclass
+class Hits:
+    """Nearest hit per pixel (flat): distance, owner (-1 background, k = car k), primitive,
+    unnormalised normal in the owner's frame."""
+
+    t: np.ndarray
+    owner: np.ndarray
+    prim: np.ndarray
+    normal: np.ndarray
+
+
+class Renderer(Protocol):
+    """What shading reads of the camera renderer: its simulator (the cars' casters) and camera.
+    A protocol, so shading need not import the renderer that imports it."""
+
+    @property
+    def sim(self) -> Simulator: ...
+
+    @property
+    def camera(self) -> Camera: ...
 
 # Linear light to 8-bit sRGB-like values (gamma 2.2) through a table: 16 linear steps per code.
 _GAMMA = (np.linspace(0.0, 1.0, 4096) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
@@ -85,7 +107,7 @@ def ground_colours(bg, x: np.ndarray, y: np.ndarray, z: np.ndarray, up: np.ndarr
     col[up & ~road & ~pave] = _GRASS
 
 
-def shade(r: CameraRenderer, bg, placed, paints, hits: Hits, dirs, origin, axis: np.ndarray,
+def shade(r: Renderer, bg, placed, paints, hits: Hits, dirs, origin, axis: np.ndarray,
           look: Look, streaks: np.ndarray, shadow_test
           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Lambert plus a sun highlight on paint, cast shadows, sky light, headlights at night,
@@ -177,7 +199,7 @@ def shade(r: CameraRenderer, bg, placed, paints, hits: Hits, dirs, origin, axis:
     return rgb, lit, points[free]
 
 
-def shadowed(r: CameraRenderer, bg_caster, placed, points: np.ndarray,
+def shadowed(r: Renderer, bg_caster, placed, points: np.ndarray,
               sun_d: np.ndarray) -> np.ndarray:
     """Whether each point's ray to the sun is blocked by the background or a car."""
     blocked = np.zeros(len(points), bool)
