@@ -10,11 +10,26 @@ real point behind it; a real point inside the car's body is removed; every other
 real scan's bytes, so a car beyond the range or outside the field of view leaves the scan as it
 was. A car that would stand in a real object (a real car, a wall, a tree: at least
 COLLISION_POINTS points of it inside the car's body) makes the sample invalid, never merged.
+
+Weather and sensor faults (the effect dims) then act on every return of the scan, real or
+inserted, per ray as falsify.sensor.weather acts on a cast scan: a return of range R (along its
+ray) and stored intensity I (KITTI's remission, taken as range-compensated: received power
+I / R^2, the module's units) is attenuated two-way, competes with the fog's soft echo and the
+particles on its ray, and is kept where it reaches the detection floor; a recorded return was
+detected, so its clear power is taken as at least the floor (and a stored remission of 0, below
+KITTI's first step, as half that step: ZERO_REMISSION). A kept return keeps its point and
+label and reports I attenuated; a spurious echo is a point on the same ray (label 0). The water
+film darkens road, parking and sidewalk returns (SemanticKITTI ids; unlabelled scans: the points
+near their cell's lowest, as for the ground) at their incidence on the scan's fitted ground
+plane. Lasers out are the image's rows (laser rings), crosstalk its pixels. Ego motion is
+refused on real scans (space.py), as is any effect on a spherical image, whose bins are not
+the sensor's rays.
 """
 
 from __future__ import annotations
 
 import math
+import zlib
 from collections import OrderedDict
 from dataclasses import dataclass, replace
 
@@ -22,7 +37,7 @@ import numpy as np
 
 from falsify.data.kitti_object import points_in_box, read_calib, read_labels
 from falsify.data.velodyne import kitti_rows, read_bin, read_kitti
-from falsify.errors import FalsifyError
+from falsify.errors import ConfigError, FalsifyError
 from falsify.semantic import RAW_ID, RAW_NAMES, kitti4, split_label
 from falsify.sensor.lidar import Sensor, SensorPose
 from falsify.sensor.raycast import cast_through
@@ -36,9 +51,17 @@ from falsify.sensor.simulator import (
     check_placement,
     place,
 )
-from falsify.sensor.weather import NOMINAL_INTENSITY
+from falsify.sensor.weather import (
+    _RECORDED,
+    NOMINAL_INTENSITY,
+    Echoes,
+    Effects,
+    effect_seed,
+    effects_of,
+    stream,
+)
 from falsify.world.materials import GLASS
-from falsify.world.space import RealScan, Sample, Space, UserCar
+from falsify.world.space import EFFECT_DIMS, REAL_REFUSED, RealScan, Sample, Space, UserCar
 
 # SemanticKITTI ids a car may stand on: road, parking, sidewalk, other-ground, lane-marking,
 # terrain. Unlabeled (0) and outlier (1) are neither ground nor obstacle.
@@ -53,6 +76,12 @@ MAX_SLOPE = 0.3          # a fitted plane steeper than this (17 degrees) is clam
 LOWEST_CELL_M = 1.0      # unlabelled scans: ground = points near their 1 m cell's lowest point
 LOWEST_BAND_M = 0.15
 INSERTED_INSTANCE = 1 << 16   # instance ids of inserted cars: above SemanticKITTI's 16 bits
+WET_IDS = np.array([40, 44, 48])   # road, parking, sidewalk: what a water film lies on
+# KITTI stores remission in steps of 0.01, and some 12 % of a scan's points (a third of some
+# real cars') at 0: the sensor saw them, below its first step. Deciding what fog leaves, such a
+# return is taken as half a step (its intensity reported stays 0).
+ZERO_REMISSION = 0.005
+PLANE_REACH_M = 30.0     # the scan's ground plane (incidence on a wet road) is fitted this far
 # KITTI object types -> the SemanticKITTI id their box's points carry (others: unlabeled).
 OBJECT_TYPES = {"Car": RAW_ID["car"], "Van": RAW_ID["other-vehicle"], "Truck": RAW_ID["truck"],
                 "Tram": RAW_ID["other-vehicle"], "Pedestrian": RAW_ID["person"],
@@ -392,7 +421,78 @@ class RealScanner:
         """The real scan with the sample's cars inserted; InvalidSample for impossible ones."""
         bg = self.background(sample.background)
         placed = self.placed_cars(sample)
-        return self.insert(bg, placed, rng)
+        effects = effects_of(sample)
+        if effects.clear:
+            return self.insert(bg, placed, rng)
+        refuse_effects(self.sensor, [n for n, _ in sample.effects])
+        # As Simulator.scan: the effects' seed fixed by the sample and the generator's state,
+        # read before the scan's own draws without drawing.
+        seed = effect_seed(rng, zlib.crc32(repr(sample.values).encode()))
+        return self.weather(bg, self.insert(bg, placed, rng), effects, seed, rng is not None)
+
+    def weather(self, bg: RealBackground, scan: Scan, fx: Effects, seed: int,
+                dropouts: bool = True) -> Scan:
+        """The scan (cars inserted) with weather and faults on each of its returns, per ray as
+        Weather acts on a cast scan (the module's docstring). Where `dropouts` and the sensor has
+        a return model, an echo the weather weakened is kept with the ratio of the model's return
+        probabilities, weathered to clear (the recorded echo was seen once: the same draw decides
+        again), and a spurious echo with the model's probability; draws from the effects' seed."""
+        w = self.sim.weather
+        img = scan.image
+        valid = scan.valid
+        r = np.full(valid.shape, np.inf)
+        r[valid] = np.linalg.norm(img[valid, 0:3].astype(np.float64) - bg.origin[valid], axis=-1)
+        clear_i = np.where(valid, img[..., 3], np.float32(0.0))
+        e = Echoes(r, valid, clear_i, img[..., 5], scan.instance, scan.semantic)
+        if fx.medium:
+            ground = cos = None
+            if fx.wet_road > 0:
+                ground, cos = self.wet_ground(bg, scan)
+            # What decides detection: at least the floor (the return was recorded; a hair
+            # above, so that rounding never drops a return nothing weakened), and a stored
+            # remission of 0 (below KITTI's first step) taken as half a step.
+            at_floor = w.floor * (1.0 + 1e-9) * np.where(valid, r, 0.0) ** 2
+            least = np.where(valid, np.maximum(at_floor,
+                                               np.where(clear_i > 0, 0.0, ZERO_REMISSION)), 0.0)
+            e, spurious = w.through(fx, seed, e, clear_i, ground, cos, least)
+            returns = self.sim.returns
+            if dropouts and returns is not None:
+                now = returns.p_return(e.intensity)
+                keep = np.where(spurious, now, now / returns.p_return(clear_i))
+                if self._keep is not None:
+                    keep = np.where(spurious, keep * self._keep, keep)
+                e.valid = e.valid & (stream(seed, _RECORDED).random(r.shape) < keep)
+        if fx.crosstalk or fx.beam_loss:
+            e = w.faults(fx, seed, e)
+        ok = e.valid
+        moved = ok & (~valid | (e.r != r))   # an echo at another range: a new point on the ray
+        image = np.where(ok[..., None], img, np.float32(0.0))
+        image[..., 3] = np.where(ok, e.intensity, np.float32(0.0))
+        image[..., 5] = np.where(ok, e.cls, 0)
+        xyz = (bg.origin[moved] + bg.direction[moved] * e.r[moved][:, None]).astype(np.float32)
+        image[moved, 0:3] = xyz
+        image[moved, 4] = np.linalg.norm(xyz.astype(np.float64), axis=1)
+        inst = np.where(ok, e.inst, 0).astype(np.int32)
+        sem = None if e.semantic is None else np.where(ok, e.semantic, 0).astype(np.uint16)
+        return Scan(image, inst, sem)
+
+    def wet_ground(self, bg: RealBackground, scan: Scan) -> tuple[np.ndarray, np.ndarray]:
+        """(wet pixels, incidence cosine per pixel): the real returns from road, parking or
+        sidewalk (SemanticKITTI ids; without them: points within LOWEST_BAND_M of their cell's
+        lowest point, not in a labelled object, below the sensor by more than half its height),
+        and each ray's cosine to the normal of the ground plane fitted around the sensor."""
+        real = scan.valid & (scan.instance < INSERTED_INSTANCE)
+        if bg.dense and scan.semantic is not None:
+            ground = real & np.isin(scan.semantic, WET_IDS)
+        else:
+            xyz = scan.image[..., 0:3]
+            ground = real & _lowest_band(bg.cloud.points, xyz.reshape(-1, 3)).reshape(real.shape)
+            ground &= xyz[..., 2] < -0.5 * self.sensor.mount_height
+            if scan.semantic is not None:
+                ground &= scan.semantic == 0
+        _, gx, gy = fit_ground(bg.ground, 0.0, 0.0, PLANE_REACH_M, -self.sensor.mount_height)
+        normal = np.array([-gx, -gy, 1.0]) / math.sqrt(gx * gx + gy * gy + 1.0)
+        return ground, np.abs(bg.direction @ normal)
 
     def insert(self, bg: RealBackground, placed: list[PlacedCar],
                rng: np.random.Generator | None = None) -> Scan:
@@ -504,11 +604,46 @@ def _meets_box(o: np.ndarray, d: np.ndarray, limit: np.ndarray, lo: np.ndarray,
     return leave >= enter
 
 
+def refuse_effects(sensor: Sensor, names) -> None:
+    """ConfigError naming the first effect dim of `names` that a real background refuses
+    (REAL_REFUSED), or the first of any when the sensor stores its scans in a spherical image:
+    its bins are not the sensor's rays (an empty bin may be no ray at all, and a row is no
+    laser), so the effects have no ray to act on."""
+    names = list(names)
+    for name in names:
+        if name in REAL_REFUSED:
+            raise ConfigError(f"dims.{name}: {REAL_REFUSED[name]}")
+    if names and sensor.projection == "spherical":
+        raise ConfigError(f"dims.{names[0]}: weather and sensor faults on a real background act "
+                          f"on the sensor's rays; {sensor.name} stores scans in a spherical "
+                          "image whose bins are not its rays (use a sensor with the rings "
+                          "layout, e.g. kitti-hdl64e-front, or drop the dim)")
+
+
+def _lowest_band(cloud: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Bool per point: within LOWEST_BAND_M of the lowest point of the cloud in its
+    LOWEST_CELL_M cell (as _ground_points picks an unlabelled scan's ground)."""
+    def keys(p):
+        cell = np.floor(p[:, :2] / LOWEST_CELL_M).astype(np.int64)
+        return (cell[:, 0] << 32) + (cell[:, 1] & 0xFFFFFFFF)
+    uniq, inv = np.unique(keys(cloud), return_inverse=True)
+    low = np.full(len(uniq), np.inf)
+    np.minimum.at(low, inv, cloud[:, 2])
+    k = keys(points)
+    at = np.clip(np.searchsorted(uniq, k), 0, max(len(uniq) - 1, 0))
+    found = (uniq[at] == k) if len(uniq) else np.zeros(len(k), bool)
+    return found & (points[:, 2] <= np.where(found, low[at], -np.inf) + LOWEST_BAND_M)
+
+
 def scanner_for(space: Space, sensor: Sensor | None = None, lod: int = 2):
     """The scanner a space's samples are cast with: a RealScanner over its real backgrounds,
     else a Simulator of its streets."""
     from falsify.sensor.lidar import load_sensor
     sensor = sensor or load_sensor(space.sensor)
     if space.real_backgrounds:
+        try:
+            refuse_effects(sensor, [n for n in EFFECT_DIMS if n in space.dims])
+        except ConfigError as exc:
+            raise ConfigError(f"{space.source}: {exc}") from None
         return RealScanner(sensor, space.real_backgrounds, space.user_cars, lod=lod)
     return Simulator(sensor, space.user_cars, lod=lod)

@@ -91,8 +91,9 @@ COS_FLOOR = math.cos(math.radians(88.0))   # the most grazing hit the detection 
 NOMINAL_INTENSITY = 0.3      # a sensor without a return model: every hit this bright (road)
 KMH = 1.0 / 3.6
 
-# Streams of the effects' draws (one generator each, so each effect's draws are its own).
-_RAIN, _SNOW, _CROSSTALK, _BEAMS = 1, 2, 3, 4
+# Streams of the effects' draws (one generator each, so each effect's draws are its own);
+# _RECORDED: the return model's dropouts of a weathered real scan's echoes.
+_RAIN, _SNOW, _CROSSTALK, _BEAMS, _RECORDED = 1, 2, 3, 4, 5
 
 
 @dataclass(frozen=True)
@@ -423,20 +424,39 @@ class Weather:
         """The strongest echo per ray among the attenuated hard target, the fog's soft echo and
         the particles on the ray, kept where it reaches the detection floor. `clear_i` is the
         hard echo's clear intensity, 0 where there is none."""
+        ground = None
+        if fx.wet_road > 0:
+            ground = self.ground(mat, normal, np.where(e.valid, e.r, np.inf)) & e.valid
+        return self.through(fx, seed, e, clear_i, ground, cos)[0]
+
+    def through(self, fx: Effects, seed: int, e: Echoes, clear_i: np.ndarray,
+                ground: np.ndarray | None, cos: np.ndarray | None,
+                least: np.ndarray | None = None) -> tuple[Echoes, np.ndarray]:
+        """`medium` given the wet pixels (`ground`, with their incidence cosines `cos`; None
+        without a water film), and the pixels that now hold a spurious echo (a particle's or the
+        fog's). `least`, where given, is the least intensity each hard echo is taken to have had
+        when deciding what is detected (a recorded return reached the floor: its received power
+        was at least the floor, however dark its stored remission); the intensity reported for a
+        kept hard echo is still `clear_i` attenuated."""
         hard = e.valid
         hard_r = np.where(hard, e.r, np.inf)
         hard_i = clear_i.astype(np.float64)
-        if fx.wet_road > 0:
-            ground = self.ground(mat, normal, hard_r) & hard
-            hard_i[ground] *= np.interp(cos[ground], *_wet_table(float(fx.wet_road),
-                                                                 self.road_albedo))
+        lifted = None if least is None else np.maximum(hard_i, least)
+        if ground is not None:
+            wet = np.interp(cos[ground], *_wet_table(float(fx.wet_road), self.road_albedo))
+            hard_i[ground] *= wet
+            if lifted is not None:
+                lifted[ground] *= wet
         pf = [(rain(fx.rain), _RAIN)] if fx.rain > 0 else []
         pf += [(snow(fx.snow), _SNOW)] if fx.snow > 0 else []
         alpha_fog, beta = fog_coefficients(fx.fog)
         alpha = alpha_fog + sum(p.extinction for p, _ in pf)
         if alpha > 0:
             hard_i *= np.exp(-2.0 * alpha * hard_r)
-        best = hard_i / (hard_r * hard_r)      # received power; 0 where no hard echo
+            if lifted is not None:
+                lifted *= np.exp(-2.0 * alpha * hard_r)
+        # received power; 0 where no hard echo
+        best = (hard_i if lifted is None else lifted) / (hard_r * hard_r)
         best_r = hard_r
         spur = None                            # where the echo is not the hard target's
         if beta > 0:
@@ -455,7 +475,8 @@ class Weather:
             if spur is not None:
                 hard_i = np.where(spur, best * np.where(ok, best_r, 0.0) ** 2, hard_i)
             intensity = (hard_i * ok).astype(np.float32)
-        return Echoes(best_r, ok, intensity, cls, inst, sem)
+        spurious = np.zeros(hard.shape, bool) if spur is None else ok & spur
+        return Echoes(best_r, ok, intensity, cls, inst, sem), spurious
 
     def _fog(self, alpha: float, beta: float, hard_r: np.ndarray, hard_p: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

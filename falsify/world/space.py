@@ -46,6 +46,14 @@ EFFECT_DIMS: dict[str, tuple[float, float, str, bool]] = {
     "ego_speed": (0.0, 300.0, "km/h", False),
 }
 
+# Effect dims a real background refuses, with why. The others act on its recorded returns
+# (falsify.data.real_backgrounds, RealScanner.weather).
+REAL_REFUSED: dict[str, str] = {
+    "ego_speed": "ego motion is not applied to a real background: the recorded scan already "
+                 "holds the recording car's own motion, and moving its points faithfully needs "
+                 "that speed and each point's surface (drop the dim, or use street ids)",
+}
+
 Value = float | int | str
 
 
@@ -410,11 +418,9 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
         real = (real_backgrounds if real_backgrounds is not None
                 else _real_backgrounds(bg_raw, where, base_dir or Path(".")))
         bg = Categorical("background", tuple(range(len(real))))
-        effects = [e for e in EFFECT_DIMS if e in dims_raw]
-        if effects:
-            raise ConfigError(f"{where}dims.{effects[0]}: weather and sensor faults act on cast "
-                              "rays; a real background holds recorded points, so they cannot "
-                              "apply to it (drop the dim, or use street ids)")
+        refused = [e for e in REAL_REFUSED if e in dims_raw]
+        if refused:
+            raise ConfigError(f"{where}dims.{refused[0]}: {REAL_REFUSED[refused[0]]}")
     else:
         bg = _categorical("background", bg_raw, where, int)
         for v in bg.values:
