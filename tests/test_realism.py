@@ -373,13 +373,13 @@ def test_realism_bad_inputs_exit_2(sets, tmp_path: Path, capsys) -> None:
     wide.mkdir()
     np.save(wide / "000007.npy", np.zeros((64, 2048, 6), np.float32))
     cases = [
-        ([str(tmp_path / "missing")], "missing"),
-        ([str(empty)], "no .npy scans"),
+        ([str(tmp_path / "missing"), "--real", str(sets["real"])], "missing"),
+        ([str(empty), "--real", str(sets["real"])], "no .npy scans"),
         ([str(bad), "--real", str(sets["real"])], "000000.npy"),
         ([str(wide), "--real", str(sets["real"])], "000007.npy"),
         ([str(sets["old"]), "--real", str(tmp_path / "nothing.bin")], "nothing.bin"),
-        ([str(sets["old"]), "--scans", "0"], "--scans"),
-        ([str(sets["old"]), "--bootstrap", "-1"], "--bootstrap"),
+        ([str(sets["old"]), "--real", str(sets["real"]), "--scans", "0"], "--scans"),
+        ([str(sets["old"]), "--real", str(sets["real"]), "--bootstrap", "-1"], "--bootstrap"),
         ([str(sets["old"]), "--real", str(sets["real"]), "--model", str(tmp_path / "m.onnx")],
          "m.onnx"),
     ]
