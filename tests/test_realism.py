@@ -283,6 +283,7 @@ def run(args: list[str], capsys) -> tuple[int, dict | None, str]:
 
 
 @pytest.mark.skipif(not BUNDLED.exists(), reason="bundled model not trained yet")
+@pytest.mark.slow
 def test_realism_json_fields_and_determinism(sets, tmp_path: Path, capsys) -> None:
     args = ["realism", str(sets["old"]), str(sets["new"]), "--real", str(sets["real"]),
             "--bootstrap", "15", "--out", str(tmp_path / "a"), "--json"]

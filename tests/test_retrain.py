@@ -108,6 +108,7 @@ def _inputs_of(out: Path) -> dict:
     return {"config": root / "tiny.toml", "train": root / "train"}
 
 
+@pytest.mark.slow
 def test_result_and_files(experiment) -> None:
     out, r = experiment["out"], experiment["result"]
     assert r.cells == 2 and r.threshold == 0.99
@@ -131,6 +132,7 @@ def test_result_and_files(experiment) -> None:
     assert {(float(row["x"]), float(row["y"])) for row in rows} == blind
 
 
+@pytest.mark.slow
 def test_cli_json_and_gate_on_the_pair(experiment, capsys) -> None:
     out = experiment["out"]
     root = out.parent
@@ -147,6 +149,7 @@ def test_cli_json_and_gate_on_the_pair(experiment, capsys) -> None:
     assert code == (1 if verdict["new_blind_spots"] else 0)
 
 
+@pytest.mark.slow
 def test_comparison_page_in_chromium(browser, experiment) -> None:
     from selenium.webdriver.common.by import By
 
@@ -166,6 +169,7 @@ def test_comparison_page_in_chromium(browser, experiment) -> None:
     assert_offline(browser)
 
 
+@pytest.mark.slow
 def test_report_cli_rebuilds_the_page(experiment, tmp_path, capsys) -> None:
     out = experiment["out"]
     page = tmp_path / "page.html"
@@ -206,6 +210,7 @@ def test_bad_input_exits_2_and_writes_nothing(inputs, tmp_path, capsys, change,
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_existing_out_needs_resume(experiment, capsys) -> None:
     out = experiment["out"]
     root = out.parent
@@ -333,6 +338,7 @@ def test_rules_select_rs_samples_under_vs_rules_without_their_streets() -> None:
     assert not covered([street], rows).any()
 
 
+@pytest.mark.slow
 def test_selection_rules_and_its_random_control_run_the_experiment(inputs, tmp_path) -> None:
     results = {sel: RetrainJob(request(inputs, tmp_path / sel, selection=sel,
                                        held_out_scans=0)).run() for sel in ("rules", "random")}

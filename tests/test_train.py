@@ -31,6 +31,7 @@ def _weights(out):
     return torch.load(out / "squeezeseg.pt", weights_only=True)
 
 
+@pytest.mark.slow
 def test_train_writes_outputs_and_resume_is_exact(data, tmp_path):
     full = tmp_path / "full"
     assert main(["--data", str(data), "--out", str(full), "--epochs", "2",
