@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
+import shlex
+import signal
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 from falsify.checks import (
@@ -567,8 +572,87 @@ def summary_text(s) -> str:
     return "\n".join(lines)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C's KeyboardInterrupt so that a run stops the same clean way."""
+
+
+@contextlib.contextmanager
+def _stop_signals() -> Iterator[None]:
+    """For the block: SIGTERM raises Terminated and SIGINT KeyboardInterrupt (each where not
+    ignored), once; a second signal during the clean-up that follows is ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum: int, frame) -> None:
+        for sig in old:
+            signal.signal(sig, signal.SIG_IGN)
+        raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    old = {sig: h for sig, h in old.items() if h in (signal.SIG_DFL, signal.default_int_handler)}
+    for sig in old:
+        signal.signal(sig, stop)
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
+def _stop_name(exc: KeyboardInterrupt) -> tuple[str, int]:
+    """What stopped the command, and its exit status (128 + the signal's number)."""
+    return ("terminated", 143) if isinstance(exc, Terminated) else ("interrupted", 130)
+
+
+def _stopped_text(argv: list[str], out: Path, stored: int | None, advice: str = "") -> str:
+    """What a stopped run keeps (`stored` samples; None: not counted) and the command that goes
+    on: the same with --resume where a store is left, else the same again (a fresh run that
+    stored nothing is removed)."""
+    from falsify.results.store import STORE_NAME
+    then = f"{advice}, then " if advice else ""
+    if not (out / STORE_NAME).exists():
+        again = [a for a in argv if a != "--resume"]
+        return (f"nothing was stored in {out}; {then}run it again with: "
+                f"{shlex.join(['falsify', *again])}")
+    kept = "the finished samples are" if stored is None else f"{stored} samples are"
+    again = argv if "--resume" in argv else [*argv, "--resume"]
+    return (f"{kept} stored safely in {out}; {then}continue with: "
+            f"{shlex.join(['falsify', *again])}")
+
+
+def _interrupted_text(argv: list[str], out: Path) -> str:
+    """`_stopped_text` of a run stopped by a signal, its rows counted in its store."""
+    from falsify.results.store import stored_samples
+    try:
+        stored: int | None = stored_samples(out)
+    except FalsifyError:
+        stored = None
+    return _stopped_text(argv, out, stored)
+
+
+def _run_folder(argv: list[str]) -> Path | None:
+    """The run folder of a grid or search command line, read before the parser is built: its
+    --out given as `--out DIR` or `--out=DIR` (None for any other spelling, or command)."""
+    if argv[:1] not in (["grid"], ["search"]):
+        return None
+    out = next((a[len("--out="):] for a in argv if a.startswith("--out=")), None)
+    if "--out" in argv[:-1]:
+        out = argv[argv.index("--out") + 1]
+    return Path(out) if out else None
+
+
+def _lock_early(out: Path | None, argv: list[str]) -> contextlib.AbstractContextManager:
+    """Lock a run folder before the parser is built (its choices import the samplers: seconds),
+    so that a second run on a busy folder is refused at once; the run job holds it too."""
+    if out is None:
+        return contextlib.nullcontext()
+    from falsify.results.runlock import RunLock
+    return RunLock(out, command=shlex.join(["falsify", *argv]))
+
+
 def _run(args, command: str, algorithm: str) -> int:
-    from falsify.jobs.run import RunRequest, execute
+    from falsify.jobs.run import RunRequest, RunStopped, execute
 
     req = RunRequest(
         config=Path(args.config), out=Path(args.out), command=command, algorithm=algorithm,
@@ -578,7 +662,12 @@ def _run(args, command: str, algorithm: str) -> int:
         threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
         camera=args.camera, max_samples=args.max_samples, executor=args.executor,
         address=args.address)
-    summary = execute(req, on_progress=None if args.quiet else ProgressBar())
+    try:
+        summary = execute(req, on_progress=None if args.quiet else ProgressBar())
+    except RunStopped as exc:
+        argv = getattr(args, "argv", sys.argv[1:])
+        raise FalsifyError(f"{exc.reason}: {_stopped_text(argv, req.out, exc.stored, exc.advice)}"
+                           ) from None
     emit(args, summary.to_json(), summary_text(summary))
     return 0
 
@@ -1238,13 +1327,20 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] == ["train"]:   # training parses its own options (and its --help)
         from falsify.models.train import main as train_main
         return int(train_main(argv[1:]) or 0)
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    run = argv[:1] in (["grid"], ["search"])
+    out = _run_folder(argv)
     try:
-        return int(args.func(args) or 0)
+        with _stop_signals() if run else contextlib.nullcontext(), _lock_early(out, argv):
+            parser = build_parser()
+            args = parser.parse_args(argv)
+            args.argv = argv   # as typed: a stopped run's message repeats it to continue
+            return int(args.func(args) or 0)
     except FalsifyError as exc:
         print(f"falsify: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("falsify: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        what, code = _stop_name(exc)
+        bar = "\n" if run and sys.stderr.isatty() else ""   # end the progress bar's line
+        print(f"{bar}falsify: {what}" + (f": {_interrupted_text(argv, out)}" if out else ""),
+              file=sys.stderr)
+        return code

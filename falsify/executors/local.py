@@ -1,10 +1,17 @@
 """Local executors: one warm evaluator in this process, or a pool of worker processes that
-each hold their own (a Simulator with cached street hits and an inference session)."""
+each hold their own (a Simulator with cached street hits and an inference session).
+
+Workers ignore SIGINT: Ctrl-C reaches the whole process group, and only the driver acts on it.
+A run that ends on an exception (KeyboardInterrupt, a full disk) terminates its workers and joins
+them before the driver goes on, so none outlives it and no semaphore leaks.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 import os
+import signal
 import threading
 import time
 from collections.abc import Iterable, Iterator, Sequence
@@ -56,11 +63,45 @@ class ProcessExecutor:
     def __enter__(self) -> ProcessExecutor:
         self._pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context("spawn"),
                                          initializer=_init_worker, initargs=(self.settings,))
+        try:
+            # Start every worker now (else each starts with its first task): they ignore
+            # SIGINT from their first instruction on, which the initializer is too late for.
+            with _starting_workers():
+                for _ in range(self.workers):
+                    self._pool.submit(_nothing)
+        except BaseException:
+            self._stop()
+            raise
         return self
 
-    def __exit__(self, *exc) -> None:
-        if self._pool is not None:
+    def __exit__(self, exc_type, *exc) -> None:
+        if self._pool is None:
+            return
+        if exc_type is None:
             self._pool.shutdown(cancel_futures=True)
+        else:
+            self._stop()
+        self._pool = None
+
+    def _stop(self) -> None:
+        """End the workers now (their unfinished chunks are lost; stored rows are whole chunks)
+        and join them and the pool's thread, so that the pool's queues are released."""
+        pool = self._pool
+        assert pool is not None
+        # shutdown() forgets both: keep them. It goes first so that the pool's thread drops the
+        # cancelled futures before it finds the workers gone (it would fail on them after).
+        processes = list((getattr(pool, "_processes", None) or {}).values())
+        manager = getattr(pool, "_executor_manager_thread", None)
+        pool.shutdown(wait=False, cancel_futures=True)
+        for p in processes:
+            p.terminate()
+        for p in processes:
+            p.join(_JOIN_S)
+            if p.is_alive():
+                p.kill()
+                p.join()
+        if manager is not None:
+            manager.join(_JOIN_S)
 
     def map(self, chunks: Iterable[Sequence[Sample]]) -> Iterator[list[SampleResult]]:
         assert self._pool is not None
@@ -68,10 +109,36 @@ class ProcessExecutor:
 
 
 _worker: Evaluator | None = None
+_JOIN_S = 5.0   # how long a terminated worker may take to end before it is killed
+
+
+@contextlib.contextmanager
+def _starting_workers() -> Iterator[None]:
+    """For the block (in the main thread; signals are its alone): SIGINT ignored, which the
+    workers started here inherit, and SIGTERM held to its end, so that a worker being started
+    when it comes is known to the pool and ended with the others."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    old_term = signal.signal(signal.SIGTERM, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old_int)
+        signal.signal(signal.SIGTERM, old_term)
+        if held:
+            signal.raise_signal(signal.SIGTERM)
+
+
+def _nothing() -> None:
+    """A task that only makes the pool start a worker."""
 
 
 def _init_worker(settings: EvalSettings) -> None:
     global _worker
+    signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C is the driver's to handle
     threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True,
                      name="parent-watch").start()
     _worker = Evaluator(settings)

@@ -1,8 +1,10 @@
 """A falsification run from start to summary: checks, store, sampler loop, maps, retraining set.
 
 Everything a user can get wrong (config, model, sampler, run directory) is checked before the
-run directory is touched, so bad input leaves nothing half-written; what only the workers find
-(an actor that cannot start) removes the run this invocation made while it holds no row.
+run directory is written, so bad input leaves nothing half-written (the run lock, taken first so
+that one process writes a run, removes the folders it made); what only the workers find (an
+actor that cannot start) removes the run this invocation made while it holds no row. A full disk
+ends the run as a FalsifyError saying how many samples are stored and that --resume continues.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as dt
 import shutil
+import sqlite3
 import time
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, field, fields, replace
@@ -29,8 +32,19 @@ from falsify.paths import config_path
 from falsify.results.metrics import Scoring, Status, column
 from falsify.results.miou_maps import CellMap, miou_map, snap
 from falsify.results.replay import Replay
+from falsify.results.runlock import LOCK_NAME, RunLock, remove_empty
 from falsify.results.samples import CAR_SCORING
-from falsify.results.store import STORE_NAME, RunData, Store, export, read_frame, read_meta
+from falsify.results.store import (
+    STORE_NAME,
+    DiskFull,
+    RunData,
+    Store,
+    disk_full,
+    export,
+    read_frame,
+    read_meta,
+    stored_samples,
+)
 from falsify.sampler import NLOPT_ALGORITHMS, make_sampler
 from falsify.sampler.base import BATCH, Sampler, SearchResult
 from falsify.sensor.lidar import load_sensor
@@ -158,7 +172,7 @@ def prepare(req: RunRequest) -> Prepared:
                                    f"({old.get(key)!r} there, {meta.get(key)!r} now)")
     elif req.resume:
         raise FalsifyError(f"--resume: {req.out} holds no run to resume ({STORE_NAME} missing)")
-    elif req.out.exists() and any(req.out.iterdir()):
+    elif req.out.exists() and any(f.name != LOCK_NAME for f in req.out.iterdir()):
         raise FalsifyError(f"--out {req.out}: directory exists and is not empty")
     return Prepared(space, sampler, settings, seed, meta, seg)
 
@@ -214,24 +228,53 @@ class RunSummary:
         return out
 
 
+class RunStopped(FalsifyError):
+    """A run that ended early with its finished rows kept: `stored` samples in `run` (None when
+    they cannot be counted), which `--resume` continues once the `reason` is gone (`advice`)."""
+
+    def __init__(self, run: Path, reason: str, stored: int | None, advice: str):
+        self.run, self.reason, self.stored, self.advice = run, reason, stored, advice
+        kept = "the finished samples are" if stored is None else f"{stored} samples are"
+        super().__init__(f"{reason}: {kept} stored safely in {run}; {advice}, then continue "
+                         "the run with --resume")
+
+
 def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> RunSummary:
-    """Run the sampler to the end, then write maps, retraining set, tables and report."""
+    """Run the sampler to the end, then write maps, retraining set, tables and report; the run
+    folder is locked throughout. A full disk raises RunStopped."""
+    with RunLock(req.out) as lock:
+        try:
+            return _execute(req, on_progress, lock.made)
+        except (sqlite3.Error, OSError, DiskFull) as exc:
+            if not disk_full(exc, req.out):
+                raise
+            try:
+                stored: int | None = stored_samples(req.out)
+            except FalsifyError:
+                stored = None
+            raise RunStopped(req.out, "the disk is full", stored, "free some space") from None
+
+
+def _execute(req: RunRequest, on_progress: ProgressListener | None,
+             made: list[Path]) -> RunSummary:
+    """`execute` under the run lock; `made` are the folders made for the run."""
     p = prepare(req)
-    made = missing_folders(req.out)
+    fresh = not (req.out / STORE_NAME).exists()
     try:
-        req.out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise FalsifyError(f"--out {req.out}: cannot be made ({exc.strerror})") from None
-    store = Store(req.out / STORE_NAME, p.space, p.settings.scoring)
+        store = Store(req.out / STORE_NAME, p.space, p.settings.scoring)
+    except BaseException:
+        if fresh:
+            remove_run(req.out, made)
+        raise
     old = store.meta()
     now = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     started = time.perf_counter()
-    if not old:
-        store.set_meta(**p.meta, started=now, elapsed_s=0.0, curve=[])
     total = req.budget if req.budget is not None else (
         len(p.space.grid()) if req.algorithm == "grid" else None)
     progress = Progress(total, on_progress)
     try:
+        if not old:
+            store.set_meta(**p.meta, started=now, elapsed_s=0.0, curve=[])
         with Driver(p.settings, store, workers=req.workers, progress=progress,
                     model=p.model, executor=req.executor, address=req.address) as driver:
             store.set_meta(sessions=[*sessions_of(old), session(req, now)])
@@ -255,25 +298,14 @@ def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> Run
                   camera=req.camera)
 
 
-def missing_folders(path: Path) -> list[Path]:
-    """`path` and those of its parents that do not exist yet, deepest first (what mkdir makes)."""
-    out = []
-    while not path.exists() and path != path.parent:
-        out.append(path)
-        path = path.parent
-    return out
-
-
 def remove_run(out: Path, made: list[Path]) -> None:
-    """Delete a run store that holds no row, and the empty folders `made` for it: left behind,
-    it would make the next invocation ask for --resume, then refuse a fixed model or config."""
+    """Delete a run store that holds no row, its lock file, and the empty folders `made` for it:
+    left behind, it would make the next invocation ask for --resume, then refuse a fixed model
+    or config."""
     for suffix in ("", "-wal", "-shm", "-journal"):
         (out / f"{STORE_NAME}{suffix}").unlink(missing_ok=True)
-    for folder in made:
-        try:
-            folder.rmdir()
-        except OSError:   # not empty (or gone): keep it and its parents
-            break
+    (out / LOCK_NAME).unlink(missing_ok=True)
+    remove_empty(made)
 
 
 def session(req: RunRequest, started: str) -> dict:

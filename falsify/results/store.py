@@ -8,7 +8,9 @@ concurrently): one connection, every use of it and of the key cache under one lo
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import sqlite3
 import threading
 import tomllib
@@ -110,8 +112,13 @@ class Store:
                     + self.metric_columns + FIXED_COLUMNS[4:])
             sql = (f"INSERT INTO samples ({', '.join(_q(c) for c in cols)}) VALUES "
                    f"({', '.join('?' * len(cols))})")
-            with self.db:
-                self.db.executemany(sql, rows)
+            try:
+                with self.db:
+                    self.db.executemany(sql, rows)
+            except BaseException:   # rolled back (a full disk, say): forget them too
+                for row in rows:
+                    del self._cache[row[1]]
+                raise
             return len(rows)
 
     def renumber(self, order: Iterable[Sample]) -> int:
@@ -152,13 +159,59 @@ def _read_only(path: str | Path, query):
         with closing(sqlite3.connect(uri, uri=True)) as db:
             return query(db)
     except (sqlite3.DatabaseError, pd.errors.DatabaseError) as exc:
+        if disk_full(exc, path.parent):
+            raise DiskFull(f"{path}: cannot be read: the disk is full") from None
         raise FalsifyError(f"{path}: not a readable results file ({exc})") from None
+
+
+class DiskFull(FalsifyError):
+    """A run's file that cannot be read or written because its disk is full."""
+
+
+LOW_SPACE = 1 << 20   # bytes free under which an I/O error is taken for a full disk
+
+
+def disk_full(exc: BaseException, folder: Path) -> bool:
+    """Whether `exc` means that the disk holding `folder` is full: the OS's or SQLite's "no
+    space" (or over quota), DiskFull, or an SQLite I/O error while under LOW_SPACE bytes are
+    free (SQLite reports a shared-memory file it cannot grow as an I/O error)."""
+    if isinstance(exc, DiskFull):
+        return True
+    if isinstance(exc, OSError):
+        return exc.errno in (errno.ENOSPC, errno.EDQUOT)
+    if isinstance(exc, pd.errors.DatabaseError) and exc.__cause__ is not None:
+        exc = exc.__cause__   # pandas wraps the sqlite3 error
+    code = getattr(exc, "sqlite_errorcode", None)
+    if code == sqlite3.SQLITE_FULL:
+        return True
+    return (code is not None and code & 0xFF == sqlite3.SQLITE_IOERR
+            and free_bytes(folder) < LOW_SPACE)
+
+
+def free_bytes(folder: Path) -> float:
+    """Bytes free to this user on the file system of `folder` (or of its nearest existing
+    parent: an empty run's folder may be gone); infinite if that cannot be told."""
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        stat = os.statvfs(folder)
+    except OSError:
+        return float("inf")
+    return stat.f_bavail * stat.f_frsize
 
 
 def read_frame(path: str | Path) -> pd.DataFrame:
     """All sample rows of a run, in evaluation order."""
     return _read_only(path, lambda db: pd.read_sql_query(
         "SELECT * FROM samples ORDER BY eval_index", db))
+
+
+def stored_samples(run: str | Path) -> int:
+    """How many sample rows a run directory's store holds; 0 without a store."""
+    path = Path(run) / STORE_NAME
+    if not path.exists():
+        return 0
+    return _read_only(path, lambda db: db.execute("SELECT COUNT(*) FROM samples").fetchone()[0])
 
 
 def read_meta(path: str | Path) -> dict:
