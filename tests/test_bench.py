@@ -25,6 +25,7 @@ def _json(capsys, argv: list[str]) -> dict:
     return json.loads(capsys.readouterr().out)
 
 
+@pytest.mark.slow
 def test_bench_pipeline_reports_both_paths(capsys):
     r = _json(capsys, ["bench", "pipeline", "--config", str(CONFIGS / "ci.toml"),
                        "--samples", "24", "--workers", "2", "--json"])
@@ -83,6 +84,7 @@ def test_bench_memory_runs_a_whole_grid(capsys):
         assert r["memory"]["peak_rss_mb"] > 0 and r["memory"]["max_processes"] >= 3
 
 
+@pytest.mark.slow
 def test_bench_model_compares_variants_on_the_same_frames(capsys):
     pytest.importorskip("torch")
     r = _json(capsys, ["bench", "model", "--samples", "2", "--repeats", "1",
@@ -149,6 +151,68 @@ def test_bench_samples_given_are_honoured_and_defaults_are_each_benchmarks(what)
                           "samples", "naive_samples")
     assert given == {"samples": 1000, "naive_samples": 2}
     assert given_options(parse(["bench", what]), "samples", "naive_samples") == {}
+
+
+def test_default_runs_stay_small():
+    """Each `falsify bench` subcommand's default run finishes within 2 minutes on a 2-core
+    machine (docs/benchmarks.md, "Default runs"): few streets (each is built in every process
+    before the clock), and default sample counts that the default space holds, so that the
+    default run never refuses itself."""
+    from inspect import signature
+
+    from falsify.bench.nodes import bench_nodes
+    from falsify.bench.pipeline import bench_pipeline
+    from falsify.bench.scan import SIZE_SAMPLES, bench_scan
+    from falsify.cli.commands import BENCH_CONFIGS, MODEL_BENCH_FRAMES
+
+    parse = build_parser().parse_args
+    assert parse(["bench", "scan"]).config is None   # each benchmark's own, resolved in cmd_bench
+
+    def default(f, name: str):
+        return signature(f).parameters[name].default
+
+    grids = {what: load_space(CONFIGS / name).grid() for what, name in BENCH_CONFIGS.items()}
+    for what in ("scan", "pipeline", "nodes", "memory"):
+        assert len({s.background for s in grids[what]}) <= 3, what
+    assert len(grids["memory"]) <= 100          # bench memory runs the whole grid
+    assert default(bench_scan, "samples") == 1000 and default(bench_scan, "naive_samples") == 5
+    assert default(bench_scan, "size_samples") == SIZE_SAMPLES <= 150
+    for what, f in (("pipeline", bench_pipeline), ("nodes", bench_nodes)):
+        assert default(f, "samples") <= len(grids[what]), what
+    nodes = parse(["bench", "nodes"]).nodes
+    assert nodes == default(bench_nodes, "nodes") == 2
+    assert default(bench_nodes, "samples") > nodes * default(bench_nodes, "batch")
+    assert default(bench_pipeline, "samples") > 2 * default(bench_pipeline, "batch")
+    assert MODEL_BENCH_FRAMES == 8 and parse(["bench", "model"]).repeats == 1  # one batch of 8
+
+
+def test_scene_size_builds_each_scene_once(monkeypatch):
+    """`bench scan`'s scene-size part builds each of its four scenes once per street (a 16x
+    street's BVH takes seconds) and times them in interleaved passes; on a tiny street here."""
+    import numpy as np
+
+    from falsify.bench.scan import scene_size_effect
+    from falsify.world import streets
+
+    built = []
+
+    def tiny(bg_id):
+        built.append(bg_id)
+        v = np.array([[-80, -80, 0], [80, -80, 0], [80, 80, 0], [-80, 80, 0],
+                      [30, -5, 0], [30, 5, 0], [30, 5, 6], [30, -5, 6]], float)
+        f = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]], np.int32)
+        return streets.Background(bg_id, v, f, np.zeros(4, np.uint8), np.zeros(4, np.int32),
+                                  (), 5.0)
+
+    monkeypatch.setattr(streets, "build_background", tiny)
+    space = load_space(CONFIGS / "smoke.toml")
+    samples = [s for s in space.grid() if s.background == 0]
+    r = scene_size_effect(space, samples)
+    assert built == [0] * 4        # as built, 16x, 10x beyond range, image-only dims varied
+    assert r["samples"] == len(samples) and r["streets"] == 1
+    assert r["triangles_16x"] == 16 * r["triangles"] and r["triangles_10x"] == 10 * r["triangles"]
+    for key in ("ratio_16x_triangles", "ratio_10x_objects", "ratio_image_dims"):
+        assert r[key] > 0, key
 
 
 

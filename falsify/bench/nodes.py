@@ -55,7 +55,7 @@ class NodesBench:
         }
 
 
-def bench_nodes(config: str | Path, nodes: int = 3, samples: int = 240, batch: int = 8,
+def bench_nodes(config: str | Path, nodes: int = 2, samples: int = 120, batch: int = 8,
                 model: str | None = None, on_progress=None) -> NodesBench:
     """For n = 1..`nodes`: a fresh local cluster (a head that only schedules, n worker nodes of
     one CPU), one actor a node, the same samples through the driver and a store, timed after

@@ -154,7 +154,7 @@ class PipelineBench:
         }
 
 
-def bench_pipeline(config: str | Path, samples: int = 300, workers: int = 2,
+def bench_pipeline(config: str | Path, samples: int = 80, workers: int = 2,
                    model: str | None = None, batch: int = 8,
                    executor: str = "process") -> PipelineBench:
     """End-to-end samples/s through the real driver and store on `workers` processes (its

@@ -731,8 +731,16 @@ def _camera_option(p: argparse.ArgumentParser, help_text: str) -> None:
 # -- bench ----------------------------------------------------------------------------------
 # Held-out frames `bench model` compares the variants on unless --samples says otherwise (each
 # variant is timed on the first TIMED_FRAMES of them). Each is on a street of its own, built
-# first (about 0.7 s a street): 1,000 frames spent some 12 minutes there alone.
-MODEL_BENCH_FRAMES = 64
+# first (about 1 s a street): 1,000 frames spent some 12 minutes there alone. 8 frames are one
+# batch of onnx-fp32-batch8. Every variant runs a warm-up frame, --repeats timed runs of them
+# (default 1) and one for agreement: 17 frames, where torch-bf16 on a CPU without bf16 units is
+# emulated at 1.5-3 s a frame on a 2-core EPYC.
+MODEL_BENCH_FRAMES = 8
+# Each benchmark's space without --config: default runs finish within 2 minutes on a 2-core
+# machine (docs/benchmarks.md, "Default runs"); give --config configs/paper.toml for the
+# paper's whole space. `bench model` measures held-out frames, not a space.
+BENCH_CONFIGS = {"scan": "bench.toml", "pipeline": "bench.toml", "nodes": "bench.toml",
+                 "memory": "ci.toml", "search": "yaw.toml", "camera": "paper.toml"}
 
 
 def given_options(args, *names: str) -> dict:
@@ -812,8 +820,8 @@ def cmd_bench(args) -> int:
         raise UsageError(f"--fraction: {args.fraction} must be in (0, 1]")
     if args.out:
         check_out_dir(args.out)
-    if args.what == "search" and Path(args.config) == DEFAULT_CONFIG:
-        args.config = str(CONFIGS / "yaw.toml")
+    if args.config is None:
+        args.config = str(CONFIGS / BENCH_CONFIGS.get(args.what, DEFAULT_CONFIG.name))
     if args.what == "model":
         import numpy as np
 
@@ -845,7 +853,8 @@ def cmd_bench(args) -> int:
                             int8_path=WEIGHTS_DIR / "squeezeseg-int8.onnx" if shipped else None)
         add_shares(rows, count_flops(onnx).total, rates)
         result = {"benchmark": "model", "model": str(onnx), "frames": len(scans),
-                  "machine": machine(), "matrix_rates": rates, "variants": rows}
+                  "repeats": args.repeats, "machine": machine(), "matrix_rates": rates,
+                  "variants": rows}
         text = "\n".join([model_rates_text(rates), *(
             f"{r['variant']:16s} {r['ms_per_frame']:8.1f} ms/frame {r['fps']:6.1f} fps  car "
             f"IoU diff {r['car_iou_diff']:+.4f}" + ("" if r.get("share_of_matrix_rate") is None
@@ -1186,7 +1195,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="memory: peak memory of a whole `falsify grid --config ... --workers N` "
                    "run, all processes together; nodes: Ray on local clusters of 1..--nodes "
                    "one-CPU nodes")
-    b.add_argument("--config", default=str(DEFAULT_CONFIG))
+    b.add_argument("--config", default=None,
+                   help="the space (default: each benchmark's own: configs/bench.toml for scan, "
+                   "pipeline and nodes, configs/ci.toml for memory, configs/yaw.toml for "
+                   "search, configs/paper.toml for camera)")
     b.add_argument("--samples", type=int, default=None,
                    help="how many samples (default: each benchmark's own)")
     b.add_argument("--naive-samples", type=int, default=None,
@@ -1198,7 +1210,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bench model, pipeline, memory: an ONNX model (default bundled)")
     b.add_argument("--scans", default=None,
                    help="bench model: a folder of labelled .npy scans (default: generated)")
-    b.add_argument("--repeats", type=int, default=3)
+    b.add_argument("--repeats", type=int, default=1,
+                   help="bench model: timed runs of each variant over its frames, the best kept")
     b.add_argument("--calibration-scans", type=int, default=None, choices=range(1, 1025),
                    metavar="N", help="bench model: synthetic scenes to calibrate int8 on "
                    "(default: the export's 64; the bundled network's shipped int8 copy is "
@@ -1210,7 +1223,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bench search: budget as a fraction of the dense grid")
     b.add_argument("--seeds", type=int, default=3,
                    help="bench search: runs of each algorithm, from the config's seed on")
-    b.add_argument("--nodes", type=int, default=3, choices=range(1, 17), metavar="N",
+    b.add_argument("--nodes", type=int, default=2, choices=range(1, 17), metavar="N",
                    help="bench nodes: the largest local cluster, in one-CPU worker nodes")
     b.add_argument("--camera-preset", default="kitti-centre",
                    help="bench camera: the camera preset")
