@@ -1211,7 +1211,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--scans", default=None,
                    help="bench model: a folder of labelled .npy scans (default: generated)")
     b.add_argument("--repeats", type=int, default=1,
-                   help="bench model: timed runs of each variant over its frames, the best kept")
+                   help="bench model: timed runs of each variant over its frames, the best kept "
+                   "(default 1)")
     b.add_argument("--calibration-scans", type=int, default=None, choices=range(1, 1025),
                    metavar="N", help="bench model: synthetic scenes to calibrate int8 on "
                    "(default: the export's 64; the bundled network's shipped int8 copy is "
@@ -1224,7 +1225,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--seeds", type=int, default=3,
                    help="bench search: runs of each algorithm, from the config's seed on")
     b.add_argument("--nodes", type=int, default=2, choices=range(1, 17), metavar="N",
-                   help="bench nodes: the largest local cluster, in one-CPU worker nodes")
+                   help="bench nodes: the largest local cluster, in one-CPU worker nodes "
+                   "(default 2)")
     b.add_argument("--camera-preset", default="kitti-centre",
                    help="bench camera: the camera preset")
     b.add_argument("--json", action="store_true")
