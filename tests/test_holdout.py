@@ -160,3 +160,18 @@ def test_train_refuses_held_out_scans(tmp_path, capsys):
     assert rc == 2
     assert "000000.npy: a held-out scan" in capsys.readouterr().err
     assert not (out / "checkpoint.pt").exists()
+
+
+def test_a_missing_manifest_and_an_empty_holdout_exit_2_writing_nothing(tmp_path, capsys):
+    _sequence(tmp_path / "sk", "05", 1)
+    out = tmp_path / "profile.json"
+    assert main(["fit-world", str(tmp_path / "sk"), "--holdout", str(tmp_path / "no.toml"),
+                 "--out", str(out)]) == 2
+    assert f"{tmp_path / 'no.toml'}: no such split manifest" in capsys.readouterr().err
+    assert not out.exists()
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    manifest = tmp_path / "m.toml"
+    assert main(["holdout", str(empty), "--out", str(manifest)]) == 2
+    assert f"{empty}: no .bin scans here" in capsys.readouterr().err
+    assert not manifest.exists()
