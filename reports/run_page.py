@@ -116,9 +116,13 @@ def heatmap_section(data: RunData, cmap: CellMap, threshold: float) -> str:
 
     def tip(i: int, j: int) -> str:
         m = cmap.miou[j, i]
-        return _cell_tip(cmap.a_values[i], cmap.b_values[j], None if np.isnan(m) else float(m),
+        text = _cell_tip(cmap.a_values[i], cmap.b_values[j], None if np.isnan(m) else float(m),
                          int(cmap.samples[j, i]), int(cmap.undefined[j, i]),
                          int(cmap.invalid[j, i]), threshold)
+        if cmap.lower is not None and cmap.upper is not None and np.isfinite(m):
+            text += (f"\nestimate of the grid's mIoU; interval {cmap.lower[j, i]:.3f} to "
+                     f"{cmap.upper[j, i]:.3f}")
+        return text
 
     def attrs(i: int, j: int) -> str:
         m = cmap.miou[j, i]
@@ -138,13 +142,21 @@ def heatmap_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     mean_what = f"Mean {what}"
     n_blind = int(blind.sum())
     scored = int((~np.isnan(cmap.miou)).sum())
+    estimated = ""
+    if cmap.estimated:
+        options = data.meta.get("sampler_options") or {}
+        estimated = (f"""
+<p class="note">Estimated map (level-set sampler): {len(data.frame)} of the grid's samples were
+scored; each cell shows its estimate of the mean the full grid would give, and its tip the
+{float(options.get("confidence", 0.95)):.0%} interval. A cell is decided once its interval
+excludes the threshold.</p>""")
     return f"""
 <section id="map-section">
 <h2>mIoU over position (car 1){objective_title(data)}</h2>
 <p class="note">{mean_what} of the valid samples in each cell (over backgrounds and every
 other dimension), seen from above: the sensor at the bottom, forward (Y) up. {n_blind} of
 {scored} scored cells are blind spots (mIoU &lt; {threshold:.3f}, outlined). Hover a cell for
-its value; click it to list its samples.</p>
+its value; click it to list its samples.</p>{estimated}
 <div class="row">
 <figure class="main-map">{svg}</figure>
 <figure>{legend_svg(threshold)}</figure>

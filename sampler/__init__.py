@@ -10,6 +10,7 @@ import dataclasses
 from falsify.sampler.base import (
     ALGORITHMS,
     NLOPT_ALGORITHMS,
+    CellEstimate,
     Evaluate,
     Sampler,
     Score,
@@ -19,6 +20,7 @@ from falsify.sampler.base import (
 from falsify.sampler.bayes import BayesSampler
 from falsify.sampler.cross_entropy import CrossEntropySampler
 from falsify.sampler.grid import GridSampler
+from falsify.sampler.level_set import LevelSetSampler
 from falsify.sampler.nlopt import NloptSampler
 from falsify.sampler.random import RandomSampler
 from falsify.sampler.sobol import SobolSampler
@@ -30,7 +32,7 @@ def make_sampler(name: str, **options: object) -> Sampler:
     """Build a sampler by name; an unknown name or option raises ConfigError listing the allowed."""
     classes: dict[str, type] = {"grid": GridSampler, "random": RandomSampler,
                                 "sobol": SobolSampler, "cross-entropy": CrossEntropySampler,
-                                "bo": BayesSampler}
+                                "bo": BayesSampler, "level-set": LevelSetSampler}
     if name in classes:
         cls = classes[name]
     elif name in NLOPT_ALGORITHMS:
@@ -48,6 +50,7 @@ def make_sampler(name: str, **options: object) -> Sampler:
 
 __all__ = [
     "ALGORITHMS",
+    "CellEstimate",
     "NLOPT_ALGORITHMS",
     "Evaluate",
     "Sampler",

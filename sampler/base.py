@@ -29,20 +29,47 @@ _NLOPT_CANDIDATES = (
 NLOPT_ALGORITHMS: tuple[str, ...] = tuple(n for n in _NLOPT_CANDIDATES if hasattr(nlopt, n))
 """NLopt algorithms offered by name (those this NLopt build provides)."""
 
-ALGORITHMS: tuple[str, ...] = ("grid", "random", "sobol", "cross-entropy", *NLOPT_ALGORITHMS,
-                               "bo")
+ALGORITHMS: tuple[str, ...] = ("grid", "random", "sobol", "cross-entropy", "level-set",
+                               *NLOPT_ALGORITHMS, "bo")
 """Every name `make_sampler` accepts. `bo` is listed even without its optional Optuna, so that
 asking for it says how to install Optuna rather than that the name is unknown."""
 
 
 @dataclass(frozen=True)
+class CellEstimate:
+    """A map cell's estimated mean score (what the full grid would give), its interval, and how
+    many of its samples were scored; `decided` once the interval excludes the threshold."""
+
+    x: float | int | str
+    y: float | int | str
+    estimate: float | None        # None: no sample of the cell has a score
+    lower: float | None
+    upper: float | None
+    scored: int                   # samples evaluated
+    samples: int                  # samples the cell has in the grid
+    decided: bool
+    sd: float = 0.0
+
+    def as_list(self) -> list:
+        """[x, y, estimate, lower, upper, scored, samples], rounded, for the run's metadata."""
+        return [self.x, self.y, _rounded(self.estimate), _rounded(self.lower),
+                _rounded(self.upper), self.scored, self.samples]
+
+
+def _rounded(v: float | None) -> float | None:
+    return None if v is None else round(v, 6)
+
+
+@dataclass(frozen=True)
 class SearchResult:
-    """What a sampler did: the score of every evaluation in order, and the lowest it found."""
+    """What a sampler did: the score of every evaluation in order, and the lowest it found;
+    samplers that estimate the map (level-set) add each cell's estimate."""
 
     curve: tuple[Score, ...]          # car IoU per evaluation, in the sampler's order
     best: Score                       # the lowest defined score; None if none was defined
     best_sample: Sample | None
     samples: tuple[Sample, ...] = field(default=(), repr=False)   # each evaluation's sample
+    cells: tuple[CellEstimate, ...] = field(default=(), repr=False)
 
     @property
     def evaluations(self) -> int:

@@ -88,7 +88,7 @@ def test_registry_names_and_unknown_name():
                  "LN_COBYLA", "LN_NELDERMEAD", "LN_SBPLX"):
         assert name in NLOPT_ALGORITHMS
     with pytest.raises(ConfigError,
-                       match="allowed: grid, random, sobol, cross-entropy, GN_DIRECT_L"):
+                       match="allowed: grid, random, sobol, cross-entropy, level-set, GN_DIRECT_L"):
         make_sampler("annealing")
     with pytest.raises(ConfigError, match="unknown option 'bogus'; allowed: batch_size"):
         make_sampler("grid", bogus=1)

@@ -562,6 +562,11 @@ def summary_text(s) -> str:
         f"mean {what}: {s.mean_car_iou if s.objective is None else s.mean_objective}",
         f"retraining set: {s.retraining_samples} scans in {Path(s.run) / 'retrain'}",
     ]
+    if s.estimated:
+        e = s.estimated
+        lines.insert(2, f"estimated map (level-set): {e['scored']} of the grid's "
+                     f"{e['grid_samples']} samples scored ({e['scored'] / e['grid_samples']:.0%});"
+                     f" {e['undecided_cells']} cells undecided at {e['confidence']:.0%}")
     if s.executors:
         lines.append(f"computed on executors {', then '.join(s.executors)} (resumed on another; "
                      "the rows do not depend on the executor)")
@@ -659,7 +664,7 @@ def _run(args, command: str, algorithm: str) -> int:
         workers=args.workers, resume=args.resume,
         threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
         camera=args.camera, max_samples=args.max_samples, executor=args.executor,
-        address=args.address)
+        address=args.address, confidence=getattr(args, "confidence", None))
     try:
         summary = execute(req, on_progress=None if args.quiet else ProgressBar())
     except RunStopped as exc:
@@ -675,8 +680,12 @@ def cmd_grid(args) -> int:
 
 
 def cmd_search(args) -> int:
-    if args.budget is None or args.budget < 1:
-        raise UsageError("--budget: a number of evaluations >= 1 is required")
+    if args.budget is not None and args.budget < 1:
+        raise UsageError(f"--budget: {args.budget} must be a number of evaluations >= 1")
+    if args.budget is None and args.algorithm != "level-set":
+        raise UsageError("--budget: a number of evaluations >= 1 is required (only "
+                         "--algorithm level-set may run without one: until every cell is "
+                         "decided)")
     return _run(args, "search", args.algorithm)
 
 
@@ -738,7 +747,8 @@ MODEL_BENCH_FRAMES = 8
 # machine (docs/benchmarks.md, "Default runs"); give --config configs/paper.toml for the
 # paper's whole space. `bench model` measures held-out frames, not a space.
 BENCH_CONFIGS = {"scan": "bench.toml", "pipeline": "bench.toml", "nodes": "bench.toml",
-                 "memory": "ci.toml", "search": "yaw.toml", "camera": "paper.toml"}
+                 "memory": "ci.toml", "search": "yaw.toml", "camera": "paper.toml",
+                 "map": "weather.toml"}
 
 
 def given_options(args, *names: str) -> dict:
@@ -911,6 +921,20 @@ def cmd_bench(args) -> int:
             f"{r['evaluations_to_target']}; {_search_timing(r)}" for r in result["algorithms"])
         text += f"\n{result['per_evaluation_goal']}; on {args.workers} workers"
         text += "\n" + over_seeds_text(result)
+    elif args.what == "map":
+        from falsify.bench.map import BUDGETS, bench_map, map_text
+        if not args.out:
+            raise UsageError("bench map needs --out DIR (its grid run is resumable there)")
+        try:
+            budgets = BUDGETS if args.budgets is None else tuple(
+                float(b) for b in args.budgets.split(",") if b.strip())
+        except ValueError:
+            raise UsageError(f"--budgets {args.budgets!r}: shares of the grid such as "
+                             "0.1,0.2,0.3") from None
+        result = bench_map(args.config, args.out, budgets, seeds=args.seeds, model=args.model,
+                           threshold=args.threshold, confidence=args.confidence,
+                           workers=args.workers, timed=args.timed)
+        text = map_text(result)
     elif args.what == "scan":
         sb = bench_scan(args.config, workers=args.workers,
                               **given_options(args, "samples", "naive_samples"))
@@ -1179,20 +1203,27 @@ def build_parser() -> argparse.ArgumentParser:
     se = sub.add_parser("search", help="search a space for low car IoU within a budget")
     _run_options(se)
     se.add_argument("--algorithm", required=True, choices=[a for a in ALGORITHMS if a != "grid"],
-                    metavar="NAME", help="random, sobol, cross-entropy, bo (Bayesian "
+                    metavar="NAME", help="random, sobol, cross-entropy, level-set (which cells "
+                    "are blind, with few evaluations), bo (Bayesian "
                     "optimisation, Optuna's TPE: pip install \"falsify[bo]\"), or an NLopt "
                     "algorithm: " + ", ".join(a for a in ALGORITHMS if a not in (
-                        "grid", "random", "sobol", "cross-entropy", "bo")))
-    se.add_argument("--budget", type=int, default=None, help="number of evaluations")
+                        "grid", "random", "sobol", "cross-entropy", "level-set", "bo")))
+    se.add_argument("--budget", type=int, default=None,
+                    help="number of evaluations (level-set: at most; without it, until every "
+                    "cell is decided)")
+    se.add_argument("--confidence", type=float, default=None, metavar="P",
+                    help="level-set: a cell is decided once its P interval excludes the "
+                    "threshold (default 0.95)")
     se.set_defaults(func=cmd_search)
 
     from falsify.bench.tradeoff import KNOBS
     b = sub.add_parser("bench", help="measure a fast path beside its naive path")
-    b.add_argument("what", choices=["scan", "model", "pipeline", "search", "camera", "memory",
-                                     "nodes"],
+    b.add_argument("what", choices=["scan", "model", "pipeline", "search", "map", "camera",
+                                     "memory", "nodes"],
                    help="memory: peak memory of a whole `falsify grid --config ... --workers N` "
                    "run, all processes together; nodes: Ray on local clusters of 1..--nodes "
-                   "one-CPU nodes")
+                   "one-CPU nodes; map: the level-set sampler's map against the full grid's "
+                   "at each --budgets")
     b.add_argument("--config", default=None,
                    help="the space (default: each benchmark's own: configs/bench.toml for scan, "
                    "pipeline and nodes, configs/ci.toml for memory, configs/yaw.toml for "
@@ -1217,11 +1248,21 @@ def build_parser() -> argparse.ArgumentParser:
                    "measured unless this is given)")
     b.add_argument("--threads", type=int, default=2, choices=range(1, 65), metavar="N",
                    help="bench model: inference threads (a grid worker uses 1)")
-    b.add_argument("--out", default=None, help="bench search: where its runs go")
+    b.add_argument("--out", default=None, help="bench search, map: where their runs go")
+    b.add_argument("--budgets", default=None, metavar="F,F,...",
+                   help="bench map: budgets as shares of the grid's evaluations (default "
+                   "0.1,0.2,0.3; a run without a budget is always added)")
+    b.add_argument("--threshold", type=float, default=None, metavar="T",
+                   help="bench map: the blind-cell threshold (default the config's)")
+    b.add_argument("--confidence", type=float, default=None, metavar="P",
+                   help="bench map: the level-set sampler's confidence (default 0.95)")
+    b.add_argument("--timed", action="store_true",
+                   help="bench map: also run the level-set search for real and time it "
+                   "against the grid")
     b.add_argument("--fraction", type=float, default=0.2,
                    help="bench search: budget as a fraction of the dense grid")
     b.add_argument("--seeds", type=int, default=3,
-                   help="bench search: runs of each algorithm, from the config's seed on")
+                   help="bench search, map: runs of each algorithm, from the config's seed on")
     b.add_argument("--nodes", type=int, default=2, choices=range(1, 17), metavar="N",
                    help="bench nodes: the largest local cluster, in one-CPU worker nodes "
                    "(default 2)")

@@ -55,7 +55,9 @@ BATCHED = ("grid", "random", "sobol")   # samplers that take a batch_size
 # What --resume must find unchanged. The executor, --workers and --address are not here: the rows
 # do not depend on them (each sample's seed comes from the space and the sample alone), so a run
 # may be continued on another; each invocation is kept in the meta's `sessions`.
-RESUME_KEYS = ("config_hash", "model_hash", "algorithm", "seed", "budget", "fidelity")
+RESUME_KEYS = ("config_hash", "model_hash", "algorithm", "seed", "budget", "fidelity",
+               "sampler_options")
+LEVEL_SET = "level-set"
 
 
 @dataclass(frozen=True)
@@ -79,6 +81,7 @@ class RunRequest:
     report: bool = True
     camera: str | None = None    # camera preset: render the retraining set's images too
     max_samples: int = MAX_SAMPLES   # a grid or budget larger than this is refused up front
+    confidence: float | None = None  # level-set: the confidence a cell is decided at
     executor: str = "process"    # "process": local worker processes; "ray": actors on Ray
     address: str | None = None   # the Ray head with executor "ray" (None: a local instance)
 
@@ -118,7 +121,18 @@ def prepare(req: RunRequest) -> Prepared:
     # Cross-entropy's round size is part of the algorithm, so it keeps its own.
     sizes = ({"batch_size": max(BATCH, 16 * req.workers)} if req.algorithm in BATCHED
              else {"concurrent": req.workers} if req.algorithm in NLOPT_ALGORITHMS else {})
-    sampler = make_sampler(req.algorithm, **sizes)
+    # The level-set sampler decides cells against the run's threshold: it and the confidence
+    # choose its samples, so a resumed run must keep them.
+    options: dict | None = None
+    if req.confidence is not None and not 0.5 <= req.confidence < 1:
+        raise FalsifyError(f"--confidence: {req.confidence} must be in [0.5, 1)")
+    if req.algorithm == LEVEL_SET:
+        options = {"threshold": req.threshold or space.threshold}
+        if req.confidence is not None:
+            options["confidence"] = req.confidence
+    elif req.confidence is not None:
+        raise FalsifyError(f"--confidence is an option of --algorithm {LEVEL_SET}")
+    sampler = make_sampler(req.algorithm, **sizes, **(options or {}))
     if req.camera is not None and space.real_backgrounds:
         raise FalsifyError("--camera renders our streets; a space of real backgrounds has no "
                            "scene to render (drop --camera)")
@@ -155,6 +169,8 @@ def prepare(req: RunRequest) -> Prepared:
         "threshold": req.threshold or space.threshold, "workers": req.workers,
         "fidelity": req.fidelity, "lod": fid.lod, "executor": req.executor,
     }
+    if options is not None:
+        meta["sampler_options"] = options
     if space.real_backgrounds:   # which scans, so a report or gate need not look again
         meta["real_backgrounds"] = [[r.name, str(r.bin), None if r.label is None else str(r.label),
                                      r.kind] for r in space.real_backgrounds]
@@ -216,13 +232,14 @@ class RunSummary:
     executors: list[str] | None = None     # set when resumed on another executor: all, in order
     objective: str | None = None           # set when not car: the class (or miou) minimised
     mean_objective: float | None = None    # its mean over the valid samples
+    estimated: dict | None = None          # level-set: the map is an estimate; how sure
     search: SearchResult | None = field(default=None, repr=False)
 
     def to_json(self) -> dict:
         """Plain JSON data; `report`, `retraining_camera` and `executors` only when set."""
         out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "search"}
         for optional in ("report", "retraining_camera", "executors", "objective",
-                         "mean_objective"):
+                         "mean_objective", "estimated"):
             if out[optional] is None:
                 del out[optional]
         return out
@@ -286,6 +303,8 @@ def _execute(req: RunRequest, on_progress: ProgressListener | None,
         elapsed = float(old.get("elapsed_s", 0.0)) + time.perf_counter() - started
         store.set_meta(elapsed_s=round(elapsed, 3), curve=list(search.curve),
                        computed_last=progress.computed)
+        if search.cells:   # the level-set sampler's estimate of every cell
+            store.set_meta(cell_estimates=[c.as_list() for c in search.cells])
     except BaseException:
         if not old and not len(store):   # this invocation's run, and it holds no row
             store.close()
@@ -345,7 +364,7 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
     meta, frame = data.meta, data.frame
     thr = threshold if threshold is not None else float(meta.get("threshold", space.threshold))
     col = data.score_column
-    cmap = miou_map(frame, space, "x", "y", col)
+    cmap = data.cell_map()
     blind = cmap.blind_spots(thr)
     maps_dir = run / "maps"
     write_bytes(maps_dir / "miou_x_y.csv", cmap.to_frame().to_csv(index=False).encode())
@@ -374,7 +393,10 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
         threshold=thr, cells=int(np.isfinite(cmap.miou).sum()),
         blind_spots=len(blind),
         blind_spot_cells=[{"x": c.a, "y": c.b, "miou": round(c.miou, 4), "samples": c.samples}
+                          | ({} if c.lower is None else {"lower": round(c.lower, 4),
+                                                         "upper": round(c.upper, 4)})
                           for c in blind],
+        estimated=estimated_of(meta, cmap, thr),
         lowest=lowest, elapsed_s=meta.get("elapsed_s"), retraining_samples=retrain,
         retraining_camera=camera,
         executors=executors if len(executors := executors_of(meta)) > 1 else None,
@@ -389,6 +411,21 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
         from falsify.jobs.report import write_report
         summary = dataclasses.replace(summary, report=str(write_report(run, model=model)))
     return summary
+
+
+def estimated_of(meta: dict, cmap: CellMap, threshold: float) -> dict | None:
+    """For a map a level-set run estimated: the grid's samples it stands for, how many were
+    scored, and the cells whose interval still holds the threshold (budget spent first)."""
+    estimates = meta.get("cell_estimates")
+    if not estimates or not cmap.estimated:
+        return None
+    open_cells = [c for c in cmap.cells() if c.lower is not None and c.upper is not None
+                  and c.lower < threshold <= c.upper]
+    options = meta.get("sampler_options") or {}
+    return {"grid_samples": int(sum(e[6] for e in estimates)),
+            "scored": int(sum(e[5] for e in estimates)),
+            "confidence": float(options.get("confidence", 0.95)),
+            "undecided_cells": len(open_cells)}
 
 
 def class_maps(meta: dict) -> list[str]:

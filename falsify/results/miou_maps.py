@@ -36,6 +36,8 @@ class Cell:
     samples: int      # valid samples averaged
     undefined: int
     invalid: int
+    lower: float | None = None   # an estimated map's interval (level-set runs)
+    upper: float | None = None
 
 
 @dataclass(frozen=True)
@@ -50,15 +52,25 @@ class CellMap:
     samples: np.ndarray   # int64, same shape
     undefined: np.ndarray
     invalid: np.ndarray
+    lower: np.ndarray | None = None   # an estimated map's interval per cell (level-set runs)
+    upper: np.ndarray | None = None
+
+    @property
+    def estimated(self) -> bool:
+        """Whether miou is an estimate of the full grid's map, with an interval per cell."""
+        return self.lower is not None
 
     def cells(self) -> list[Cell]:
         out = []
         for j, bv in enumerate(self.b_values):
             for i, av in enumerate(self.a_values):
                 m = self.miou[j, i]
+                lo = hi = None
+                if self.lower is not None and self.upper is not None and np.isfinite(m):
+                    lo, hi = float(self.lower[j, i]), float(self.upper[j, i])
                 out.append(Cell(av, bv, None if np.isnan(m) else float(m),
                                 int(self.samples[j, i]), int(self.undefined[j, i]),
-                                int(self.invalid[j, i])))
+                                int(self.invalid[j, i]), lo, hi))
         return out
 
     def blind_spots(self, threshold: float) -> list[Cell]:
@@ -67,8 +79,24 @@ class CellMap:
         return sorted(cells, key=lambda c: (c.miou, str(c.a), str(c.b)))
 
     def to_frame(self) -> pd.DataFrame:
-        return pd.DataFrame([c.__dict__ for c in self.cells()]).rename(
+        frame = pd.DataFrame([c.__dict__ for c in self.cells()]).rename(
             columns={"a": self.a, "b": self.b})
+        return frame if self.estimated else frame.drop(columns=["lower", "upper"])
+
+
+def with_estimates(cmap: CellMap, estimates: Sequence[Sequence]) -> CellMap:
+    """`cmap` (an x × y map of a run's rows) with each cell's mIoU replaced by the estimate
+    of the full grid's [x, y, estimate, lower, upper, ...] and its interval kept."""
+    miou = np.full(cmap.miou.shape, np.nan)
+    lower, upper = miou.copy(), miou.copy()
+    for x, y, est, lo, hi, *_ in estimates:
+        i, j = _match(x, cmap.a_values), _match(y, cmap.b_values)
+        if i is None or j is None or est is None:
+            continue
+        i, j = cmap.a_values.index(i), cmap.b_values.index(j)
+        miou[j, i], lower[j, i], upper[j, i] = est, lo, hi
+    return CellMap(cmap.a, cmap.b, cmap.a_values, cmap.b_values, miou, cmap.samples,
+                   cmap.undefined, cmap.invalid, lower, upper)
 
 
 def axis_values(space: Space, dim: str) -> tuple:

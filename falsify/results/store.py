@@ -23,7 +23,7 @@ import pandas as pd
 
 from falsify.errors import FalsifyError
 from falsify.results.metrics import Scoring, Status
-from falsify.results.miou_maps import CellMap, miou_map
+from falsify.results.miou_maps import CellMap, miou_map, with_estimates
 from falsify.results.samples import CAR_SCORING, SampleResult, sample_key
 from falsify.world.space import DEFAULT_THRESHOLD, RealScan, Sample, Space, parse_space
 
@@ -294,9 +294,14 @@ class RunData:
     def cell_map(self, frame: pd.DataFrame | None = None, column: str | None = None
                  ) -> CellMap:
         """The (x, y) mIoU map of the run's objective (or of `column`), over its rows or a
-        subset of them."""
-        return miou_map(self.frame if frame is None else frame, self.space, "x", "y",
+        subset of them. A level-set run's own map is its estimate of the full grid's, with
+        each cell's interval (the counts are of the rows it scored)."""
+        cmap = miou_map(self.frame if frame is None else frame, self.space, "x", "y",
                         column or self.score_column)
+        estimates = self.meta.get("cell_estimates")
+        if frame is not None or column not in (None, self.score_column) or not estimates:
+            return cmap
+        return with_estimates(cmap, estimates)
 
 
 def open_run(run: str | Path) -> RunData:

@@ -1,0 +1,304 @@
+"""Level set: which cells of the x × y map are blind (mean score below the threshold), decided
+with as few evaluations as the scores allow, instead of scoring every sample of every cell.
+
+A cell's value is what the grid would report: the mean score over all its samples (the grid's
+other dims: backgrounds, weather, ... — here the *replicates*, a random factor shared by all
+cells). The sampler estimates it from a few of them and stops a cell once its interval excludes
+the threshold:
+
+- **Replicates as a random factor.** Scores follow an additive mixed model
+  y[c, r] = mu[c] + b[r] + e (cell effect, replicate effect b ~ N(0, tau^2), residual
+  e ~ N(0, sigma_c^2)), fitted by alternating ridge least squares (the BLUP of Henderson's mixed
+  model equations). A hard background lowers every cell it is scored in, so one cell's low
+  score on it says less about that cell than the raw mean would. Per-cell residual variances are
+  pooled with the global one (a scaled-inverse-chi-square prior with `prior_dof` degrees).
+- **Neighbouring cells borrow strength.** The fitted mu[c] are smoothed by a Gaussian process
+  over the cells' grid indices (squared-exponential kernel, constant mean, each cell's own noise
+  sigma_c^2 / n_c; Rasmussen & Williams 2006, eqs. 2.22-2.24), its length scale and signal
+  variance chosen from a fixed candidate set by the log marginal likelihood (eq. 2.30). Where a
+  cell has many scores its own data dominate; where it has few its neighbours do.
+- **Finite population.** A cell has R samples; its value is their mean. With n scored the
+  estimate is (sum of scored + sum over the rest of (mu + b[r])) / R, and its variance
+  ((R-n)/R)^2 var(mu) + (R-n) sigma_c^2 / R^2: zero once every sample is scored (Cochran 1977,
+  sampling without replacement).
+- **Sequential stopping.** Each round gives the next sample of the `round` cells whose interval
+  (estimate +- z sd, z from `confidence`) lies closest to the threshold in sd units, each cell's
+  samples taken in a balanced order (one seeded permutation of the replicates, rotated per cell,
+  so every replicate is scored about equally often and its effect stays estimable). The run
+  stops when every cell's interval excludes the threshold, or the budget is spent.
+
+Samples a run scores are ordinary grid samples, so its store, resume and report are a grid's;
+the run adds each cell's estimate and interval (`SearchResult.cells`), which its map and gate
+read. Deterministic: every choice is a function of (space, seed, options, the scores told).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from statistics import NormalDist
+
+import numpy as np
+from falsify.sampler.base import CellEstimate, Evaluate, Recorder, SearchResult, check_budget
+
+from falsify.errors import ConfigError
+from falsify.world.space import Sample, Space
+
+LENGTH_SCALES = (0.5, 1.0, 2.0, 3.0, 5.0)   # in cells; 0.5 leaves cells almost independent
+SIGNAL_SCALES = (0.5, 1.0, 2.0)               # times the spread of the fitted cell means
+FIT_ITERATIONS = 30
+VAR_FLOOR = 1e-6
+
+
+@dataclass(frozen=True)
+class Cells:
+    """The map's cells and the grid samples behind each: `samples[c][k]` is cell c's k-th sample
+    in its scoring order, `replicates[c][k]` that sample's replicate index."""
+
+    keys: tuple[tuple, ...]              # (x, y) per cell
+    index: np.ndarray                    # (cells, 2) grid indices of x and y
+    samples: tuple[tuple[Sample, ...], ...]
+    replicates: tuple[tuple[int, ...], ...]
+    n_replicates: int
+
+
+def cells_of(space: Space, seed: int) -> Cells:
+    """Group the space's grid by (x, y); order each cell's samples by one seeded permutation of
+    the replicates (the other dims' combinations), rotated by the cell's position."""
+    for dim in ("x", "y"):
+        if dim not in space.dims:
+            raise ConfigError(f"sampler level-set maps x × y; the space has no dim {dim!r}")
+    xs, ys = list(space.dims["x"].grid()), list(space.dims["y"].grid())
+    by_cell: dict[tuple, list[Sample]] = {}
+    rep_of: dict[tuple, int] = {}
+    for s in space.grid():
+        by_cell.setdefault((s["x"], s["y"]), []).append(s)
+        rep_of.setdefault(_replicate_key(s), len(rep_of))
+    n_rep = len(rep_of)
+    perm = np.random.default_rng(seed).permutation(n_rep)
+    rank = np.empty(n_rep, np.int64)
+    rank[perm] = np.arange(n_rep)
+    keys = sorted(by_cell, key=lambda k: (ys.index(k[1]), xs.index(k[0])))
+    samples, replicates = [], []
+    for c, key in enumerate(keys):
+        reps = [rep_of[_replicate_key(s)] for s in by_cell[key]]
+        order = sorted(range(len(reps)), key=lambda k: ((rank[reps[k]] - c) % n_rep, k))
+        samples.append(tuple(by_cell[key][k] for k in order))
+        replicates.append(tuple(reps[k] for k in order))
+    index = np.array([[xs.index(k[0]), ys.index(k[1])] for k in keys], dtype=np.float64)
+    return Cells(tuple(keys), index.reshape(-1, 2), tuple(samples), tuple(replicates), n_rep)
+
+
+def _replicate_key(s: Sample) -> tuple:
+    return tuple((n, v) for n, v in s.values if n not in ("x", "y"))
+
+
+@dataclass
+class _Fit:
+    """The additive model's fit: cell and replicate effects, per-cell residual variances."""
+
+    mu: np.ndarray        # (cells,) nan where a cell has no score
+    b: np.ndarray         # (replicates,)
+    var_b: np.ndarray     # (replicates,) each b's posterior variance, sigma^2 / (n_r + lambda)
+    var_cell: np.ndarray  # (cells,) residual variance per cell (pooled)
+    n: np.ndarray         # (cells,) scores per cell
+
+
+def fit_additive(cell: np.ndarray, rep: np.ndarray, y: np.ndarray, n_cells: int, n_rep: int,
+                 prior_dof: float) -> _Fit:
+    """Alternating ridge least squares for y = mu[cell] + b[rep] + e, the ridge on b being
+    sigma^2 / tau^2 (re-estimated each pass), then per-cell residual variances pooled with the
+    global one."""
+    n = np.bincount(cell, minlength=n_cells).astype(np.float64)
+    n_r = np.bincount(rep, minlength=n_rep).astype(np.float64)
+    b = np.zeros(n_rep)
+    mu = np.full(n_cells, np.nan)
+    has = n > 0
+    sigma2, lam = max(float(np.var(y)), VAR_FLOOR), 1.0
+    for _ in range(FIT_ITERATIONS):
+        mu[has] = np.bincount(cell, y - b[rep], minlength=n_cells)[has] / n[has]
+        b = np.bincount(rep, y - mu[cell], minlength=n_rep) / (n_r + lam)
+        resid = y - mu[cell] - b[rep]
+        dof = max(len(y) - int(has.sum()) - int((n_r > 0).sum()), 1)
+        sigma2 = max(float(resid @ resid) / dof, VAR_FLOOR)
+        tau2 = max(float(np.mean(b[n_r > 0] ** 2)) if (n_r > 0).any() else 0.0, VAR_FLOOR)
+        lam = sigma2 / tau2
+    resid = y - mu[cell] - b[rep]
+    ss = np.bincount(cell, resid ** 2, minlength=n_cells)
+    var_cell = (prior_dof * sigma2 + ss) / (prior_dof + np.maximum(n - 1, 0))
+    return _Fit(mu, b, sigma2 / (n_r + lam), var_cell, n)
+
+
+def gp_smooth(index: np.ndarray, mu: np.ndarray, noise: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior mean and variance of every cell's mean under a GP over grid indices, observed
+    as `mu` with variances `noise` where mu is finite; hyperparameters by marginal likelihood."""
+    obs = np.isfinite(mu)
+    if obs.sum() < 2:
+        mean = float(mu[obs][0]) if obs.any() else 0.5
+        var = np.where(obs, noise, 0.25)
+        return np.where(obs, mu, mean), var
+    X, yo, vo = index[obs], mu[obs], noise[obs]
+    d2_oo = ((X[:, None, :] - X[None, :, :]) ** 2).sum(-1)
+    d2_ao = ((index[:, None, :] - X[None, :, :]) ** 2).sum(-1)
+    w = 1.0 / vo
+    m = float((w * yo).sum() / w.sum())
+    spread = max(float(np.var(yo)) - float(np.mean(vo)), float(np.var(yo)) * 0.1, VAR_FLOOR)
+    best: tuple[float, float, float] | None = None
+    for ell in LENGTH_SCALES:
+        for scale in SIGNAL_SCALES:
+            s2 = spread * scale
+            K = s2 * np.exp(-0.5 * d2_oo / ell ** 2) + np.diag(vo)
+            L = np.linalg.cholesky(K + 1e-9 * np.eye(len(yo)))
+            alpha = np.linalg.solve(L.T, np.linalg.solve(L, yo - m))
+            lml = -0.5 * float((yo - m) @ alpha) - float(np.log(np.diag(L)).sum())
+            if best is None or lml > best[0] + 1e-12:
+                best = (lml, ell, s2)
+    assert best is not None
+    _, ell, s2 = best
+    K = s2 * np.exp(-0.5 * d2_oo / ell ** 2) + np.diag(vo)
+    L = np.linalg.cholesky(K + 1e-9 * np.eye(len(yo)))
+    Ks = s2 * np.exp(-0.5 * d2_ao / ell ** 2)
+    alpha = np.linalg.solve(L.T, np.linalg.solve(L, yo - m))
+    mean = m + Ks @ alpha
+    v = np.linalg.solve(L, Ks.T)
+    var = np.maximum(s2 - (v * v).sum(0), VAR_FLOOR)
+    return mean, var
+
+
+@dataclass(frozen=True)
+class LevelSetSampler:
+    """Rounds of `round` samples, each for the cell least sure to be on one side of the
+    threshold, until every cell is decided at `confidence` (two-sided) or `budget` runs out;
+    `initial` samples of every cell first. `threshold` None takes the space's."""
+
+    round: int = 16
+    initial: int = 2
+    confidence: float = 0.95
+    threshold: float | None = None
+    prior_dof: float = 4.0
+    name: str = field(default="level-set", init=False)
+
+    def __post_init__(self) -> None:
+        for key, low in (("round", 1), ("initial", 1)):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise ConfigError(f"sampler {self.name}: {key} must be an integer >= {low}, "
+                                  f"got {v!r}")
+        if not isinstance(self.confidence, int | float) or not 0.5 <= self.confidence < 1:
+            raise ConfigError(f"sampler {self.name}: confidence must be in [0.5, 1), got "
+                              f"{self.confidence!r}")
+        if self.threshold is not None and not 0 < self.threshold <= 1:
+            raise ConfigError(f"sampler {self.name}: threshold must be in (0, 1], got "
+                              f"{self.threshold!r}")
+        if not isinstance(self.prior_dof, int | float) or self.prior_dof <= 0:
+            raise ConfigError(f"sampler {self.name}: prior_dof must be > 0")
+
+    def run(self, space: Space, evaluate: Evaluate, budget: int | None,
+            seed: int) -> SearchResult:
+        left = check_budget(self.name, budget, required=False)
+        t = space.threshold if self.threshold is None else self.threshold
+        z = NormalDist().inv_cdf(0.5 + self.confidence / 2)
+        cells = cells_of(space, seed)
+        n_cells = len(cells.keys)
+        taken = np.zeros(n_cells, np.int64)             # samples scored per cell
+        scores: list[list[float | None]] = [[] for _ in range(n_cells)]
+        rec = Recorder(evaluate)
+
+        def score(picks: list[int]) -> None:
+            nonlocal left
+            if left is not None:
+                picks = picks[:left]
+                left -= len(picks)
+            batch = []
+            for c in picks:
+                batch.append(cells.samples[c][taken[c]])
+                taken[c] += 1
+            got = rec(batch)
+            if len(got) != len(batch):
+                raise RuntimeError(f"evaluate returned {len(got)} scores for {len(batch)} samples")
+            for c, s in zip(picks, got, strict=True):
+                scores[c].append(None if s is None or math.isnan(s) else float(s))
+
+        first = [c for k in range(self.initial) for c in range(n_cells)
+                 if k < len(cells.samples[c])]
+        for start in range(0, len(first), self.round):
+            if left == 0:
+                break
+            score(first[start:start + self.round])
+        est = self._estimate(cells, taken, scores, t, z)
+        while left is None or left > 0:
+            open_ = [(0.0 if e.estimate is None else abs(e.estimate - t) / max(e.sd, 1e-12), c)
+                     for c, e in enumerate(est)
+                     if not e.decided and taken[c] < len(cells.samples[c])]
+            if not open_:
+                break
+            open_.sort()
+            picks: list[int] = []
+            spare = {c: len(cells.samples[c]) - int(taken[c]) for _, c in open_}
+            while len(picks) < self.round and any(spare.values()):
+                for _, c in open_:
+                    if spare[c] and len(picks) < self.round:
+                        picks.append(c)
+                        spare[c] -= 1
+            score(picks)
+            est = self._estimate(cells, taken, scores, t, z)
+        result = rec.result()
+        return SearchResult(result.curve, result.best, result.best_sample, result.samples,
+                            cells=tuple(est))
+
+    def _estimate(self, cells: Cells, taken: np.ndarray, scores: list[list[float | None]],
+                  t: float, z: float) -> list[CellEstimate]:
+        """Every cell's estimate of its grid mean, interval and whether it is decided."""
+        n_cells = len(cells.keys)
+        cidx, ridx, ys = [], [], []
+        for c in range(n_cells):
+            for k, s in enumerate(scores[c]):
+                if s is not None:
+                    cidx.append(c)
+                    ridx.append(cells.replicates[c][k])
+                    ys.append(s)
+        out: list[CellEstimate] = []
+        if not ys:
+            for c, key in enumerate(cells.keys):
+                full = taken[c] == len(cells.samples[c])
+                out.append(CellEstimate(key[0], key[1], None, None, None, int(taken[c]),
+                                        len(cells.samples[c]), bool(full)))
+            return out
+        y = np.asarray(ys)
+        fit = fit_additive(np.asarray(cidx), np.asarray(ridx), y, n_cells, cells.n_replicates,
+                           self.prior_dof)
+        # the variance of each cell's mean: its residuals', and the replicate effects' it used
+        used_b = np.bincount(np.asarray(cidx), fit.var_b[np.asarray(ridx)], minlength=n_cells)
+        nn = np.maximum(fit.n, 1)
+        noise = np.where(fit.n > 0, fit.var_cell / nn + used_b / nn ** 2, np.inf)
+        mean, var = gp_smooth(cells.index, fit.mu, noise)
+        global_var = float(np.median(fit.var_cell))
+        for c, key in enumerate(cells.keys):
+            defined = [s for s in scores[c] if s is not None]
+            rest = cells.replicates[c][taken[c]:]
+            total = len(defined) + len(rest)
+            if total == 0:
+                out.append(CellEstimate(key[0], key[1], None, None, None, int(taken[c]),
+                                        len(cells.samples[c]), True))
+                continue
+            m = len(rest)
+            value = (sum(defined) + sum(mean[c] + fit.b[r] for r in rest)) / total
+            var_c = fit.var_cell[c] if fit.n[c] > 0 else global_var
+            # error of the unscored part: the cell mean's, each unscored replicate's effect's
+            # and its own residual (sampling without replacement: nothing once all are scored)
+            var_rest_b = float(sum(fit.var_b[r] for r in rest))
+            v = ((m / total) ** 2 * var[c] + (var_rest_b + m * var_c) / total ** 2)
+            sd = math.sqrt(max(v, 0.0))
+            lo, hi = value - z * sd, value + z * sd
+            decided = m == 0 or hi < t or lo >= t
+            out.append(CellEstimate(key[0], key[1], float(value), float(lo), float(hi),
+                                    int(taken[c]), len(cells.samples[c]), bool(decided),
+                                    sd=float(sd)))
+        return out
+
+
+def blind_cells(cells: Sequence[CellEstimate], threshold: float) -> list[CellEstimate]:
+    """The cells whose estimate is below the threshold."""
+    return [c for c in cells if c.estimate is not None and c.estimate < threshold]
