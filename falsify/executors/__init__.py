@@ -12,15 +12,31 @@ from falsify.models.runner import Segmenter
 EXECUTORS = ("process", "ray")
 
 
+INFERENCE = ("auto", "worker", "shared")
+
+
+def shared_inference(inference: str, kind: str, settings: EvalSettings, workers: int) -> bool:
+    """Whether one inference process runs the network for all workers: asked for ("shared"),
+    or "auto" on a GPU with several local workers; never for one worker (it runs in-process)."""
+    if inference not in INFERENCE:
+        raise ValueError(f"inference {inference!r}; allowed: {', '.join(INFERENCE)}")
+    if kind == "ray" or workers <= 1:
+        return False
+    return inference == "shared" or (inference == "auto" and settings.device == "cuda")
+
+
 def make_executor(kind: str, settings: EvalSettings, workers: int,
-                  address: str | None = None, model: Segmenter | None = None):
+                  address: str | None = None, model: Segmenter | None = None,
+                  inference: str = "auto"):
     """An executor (a context manager with `map(chunks)`) for `kind`: "process" runs one warm
-    evaluator here for one worker, else a pool of worker processes; "ray" runs actors on the
-    cluster at `address`. `model` is this process's open model, used in-process only."""
+    evaluator here for one worker, else a pool of worker processes (with one shared inference
+    process where `shared_inference` says so); "ray" runs actors on the cluster at `address`.
+    `model` is this process's open model, used in-process only."""
     if kind == "ray":
         from falsify.executors.ray import RayExecutor
         return RayExecutor(settings, workers, address)
     from falsify.executors.local import InlineExecutor, ProcessExecutor
     if workers <= 1:
         return InlineExecutor(settings, model)
-    return ProcessExecutor(settings, workers)
+    return ProcessExecutor(settings, workers,
+                           shared_inference(inference, kind, settings, workers))

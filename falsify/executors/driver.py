@@ -68,10 +68,11 @@ class Driver:
     def __init__(self, settings: EvalSettings, store: Store, workers: int = 1,
                  batch: int = 8, progress: Progress | None = None,
                  model: Segmenter | None = None, executor: str = "process",
-                 address: str | None = None):
+                 address: str | None = None, inference: str = "auto"):
         self.settings = settings
         self.kind = executor       # "process" (local processes) or "ray" (actors on a cluster)
         self.address = address     # the Ray head (None: the running or a new local instance)
+        self.inference = inference  # "auto", "worker" or "shared": where the network runs
         self.store = store
         self.workers = workers
         self.batch = batch
@@ -86,7 +87,7 @@ class Driver:
             self.model = load_segmenter(self.settings.model, backend=self.settings.backend,
                                         threads=1, device=self.settings.device)
         self.executor = make_executor(self.kind, self.settings, self.workers, self.address,
-                                      self.model).__enter__()
+                                      self.model, self.inference).__enter__()
         self.model_hash = self.executor.model_hash if inline else self.model.model_hash
         return self
 

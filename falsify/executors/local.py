@@ -53,16 +53,27 @@ class InlineExecutor:
 
 
 class ProcessExecutor:
-    """`workers` spawned processes, each with its own warm evaluator for the whole run."""
+    """`workers` spawned processes, each with its own warm evaluator for the whole run; with
+    `shared_inference` they cast scans only and one inference process runs the network for
+    all of them in batches (`falsify/executors/inference.py`)."""
 
-    def __init__(self, settings: EvalSettings, workers: int):
+    def __init__(self, settings: EvalSettings, workers: int, shared_inference: bool = False):
         self.settings = settings
         self.workers = workers
+        self.shared_inference = shared_inference
         self._pool: ProcessPoolExecutor | None = None
+        self._server = None
 
     def __enter__(self) -> ProcessExecutor:
+        client = None
+        if self.shared_inference:
+            from falsify.executors.inference import InferenceServer
+            self._server = InferenceServer(self.settings, self.workers)
+            self._server.start()
+            client = self._server.client_args()
         self._pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context("spawn"),
-                                         initializer=_init_worker, initargs=(self.settings,))
+                                         initializer=_init_worker,
+                                         initargs=(self.settings, client))
         try:
             # Start every worker now (else each starts with its first task): they ignore
             # SIGINT from their first instruction on, which the initializer is too late for.
@@ -75,13 +86,15 @@ class ProcessExecutor:
         return self
 
     def __exit__(self, exc_type, *exc) -> None:
-        if self._pool is None:
-            return
-        if exc_type is None:
-            self._pool.shutdown(cancel_futures=True)
-        else:
-            self._stop()
-        self._pool = None
+        if self._pool is not None:
+            if exc_type is None:
+                self._pool.shutdown(cancel_futures=True)
+            else:
+                self._stop()
+            self._pool = None
+        if self._server is not None:
+            self._server.stop()
+            self._server = None
 
     def _stop(self) -> None:
         """End the workers now (their unfinished chunks are lost; stored rows are whole chunks)
@@ -136,12 +149,18 @@ def _nothing() -> None:
     """A task that only makes the pool start a worker."""
 
 
-def _init_worker(settings: EvalSettings) -> None:
+def _init_worker(settings: EvalSettings, client: tuple | None = None) -> None:
+    """A worker's warm evaluator; `client` (the inference server's queues) makes its network
+    the shared inference process."""
     global _worker
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C is the driver's to handle
     threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True,
                      name="parent-watch").start()
-    _worker = Evaluator(settings)
+    model = None
+    if client is not None:
+        from falsify.executors.inference import remote_segmenter
+        model = remote_segmenter(settings, *client)
+    _worker = Evaluator(settings, model=model)
 
 
 def _exit_with_parent(parent: int, every_s: float = 1.0) -> None:

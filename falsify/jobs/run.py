@@ -82,6 +82,7 @@ class RunRequest:
     camera: str | None = None    # camera preset: render the retraining set's images too
     max_samples: int = MAX_SAMPLES   # a grid or budget larger than this is refused up front
     confidence: float | None = None  # level-set: the confidence a cell is decided at
+    inference: str = "auto"      # "worker", "shared" (one process runs the network), "auto"
     executor: str = "process"    # "process": local worker processes; "ray": actors on Ray
     address: str | None = None   # the Ray head with executor "ray" (None: a local instance)
 
@@ -111,6 +112,9 @@ def prepare(req: RunRequest) -> Prepared:
                            f"{req.max_samples:,}; raise --max-samples to run it")
     check_out_dir(req.out)
     check_executor(req.executor, req.address)
+    if req.inference == "shared" and req.executor == "ray":
+        raise FalsifyError("--inference shared runs one inference process beside local "
+                           "workers; with --executor ray each actor runs the network")
     if req.algorithm == "grid" and req.budget is None:
         space.check_size(req.max_samples)
     if req.threshold is not None and not 0 < req.threshold <= 1:
@@ -293,7 +297,8 @@ def _execute(req: RunRequest, on_progress: ProgressListener | None,
         if not old:
             store.set_meta(**p.meta, started=now, elapsed_s=0.0, curve=[])
         with Driver(p.settings, store, workers=req.workers, progress=progress,
-                    model=p.model, executor=req.executor, address=req.address) as driver:
+                    model=p.model, executor=req.executor, address=req.address,
+                    inference=req.inference) as driver:
             store.set_meta(sessions=[*sessions_of(old), session(req, now)])
             search = p.sampler.run(p.space, driver.evaluate, req.budget, p.seed)
             progress.tell(final=True)
@@ -335,6 +340,8 @@ def session(req: RunRequest, started: str) -> dict:
         out["address"] = req.address
     if req.device != "cpu":
         out["device"] = req.device
+    if req.inference != "auto":
+        out["inference"] = req.inference
     return out
 
 
