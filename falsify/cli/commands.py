@@ -664,7 +664,8 @@ def _run(args, command: str, algorithm: str) -> int:
         workers=args.workers, resume=args.resume,
         threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
         camera=args.camera, max_samples=args.max_samples, executor=args.executor,
-        address=args.address, confidence=getattr(args, "confidence", None))
+        address=args.address, confidence=getattr(args, "confidence", None),
+        inference=args.inference)
     try:
         summary = execute(req, on_progress=None if args.quiet else ProgressBar())
     except RunStopped as exc:
@@ -696,6 +697,10 @@ def _run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", choices=["onnx", "torch", "python"], default="onnx",
                    help=BACKEND_HELP)
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help=DEVICE_HELP)
+    p.add_argument("--inference", choices=["auto", "worker", "shared"], default="auto",
+                   help="where the network runs with several --workers: in each worker, or "
+                   "in one shared process that batches all workers' scans (auto: shared on "
+                   "cuda, else in each worker)")
     p.add_argument("--objective", default="car", metavar="CLASS",
                    help="what the samplers minimise and the maps show: a class the model "
                         "predicts (car, person, ... SemanticKITTI's names) or miou")
@@ -870,6 +875,17 @@ def cmd_bench(args) -> int:
                                                    f"the {r['precision']} matrix rate")
             if "error" not in r else f"{r['variant']:16s} did not run: {r['error']}"
             for r in rows)])
+    elif args.what == "pipeline" and (args.device == "cuda" or args.inference == "shared"):
+        from falsify.bench.shared import bench_shared
+        if args.executor == "ray":
+            raise UsageError("--inference shared runs beside local workers, not on Ray")
+        result = bench_shared(args.config, workers=args.workers, model=args.model,
+                              device=args.device, **given_options(args, "samples"))
+        text = (f"shared inference on {args.device}: {result['e2e_samples_per_s']} samples/s "
+                f"end to end on {args.workers} workers; the network alone "
+                f"{result['network_alone_frames_per_s']} frames/s, the workers' scans alone "
+                f"{result['scan_only_samples_per_s']} samples/s: "
+                f"{result['e2e_over_lower_ceiling']:.2f} of the lower (goal {result['goal']})")
     elif args.what == "pipeline":
         if args.executor == "ray":
             from falsify.executors.ray import import_ray
@@ -1045,6 +1061,15 @@ def tradeoff_text(summary: dict) -> str:
     lines.append(f"(* reference; {summary['samples']} samples; wrote {summary['files']['csv']}, "
                  f"{summary['files']['html']})")
     return "\n".join(lines)
+
+
+def cmd_agreement(args) -> int:
+    from falsify.jobs.agreement import format_text, run_agreement
+
+    result = run_agreement(args.world_run, args.real_run, threshold=args.threshold,
+                           fp_samples=args.fp_samples)
+    emit(args, result.to_json(), format_text(result))
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -1235,6 +1260,13 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--workers", type=int, default=2)
     b.add_argument("--executor", choices=["process", "ray"], default="process",
                    help="bench pipeline: also measure Ray actors against the processes")
+    b.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                   help="bench pipeline: where the network runs (cuda: one shared inference "
+                   "process on the GPU, against the network alone there and the workers' "
+                   "scan rate)")
+    b.add_argument("--inference", choices=["auto", "shared"], default="auto",
+                   help="bench pipeline: shared measures one inference process fed by the "
+                   "workers (the default on cuda)")
     b.add_argument("--model", default=None,
                    help="bench model, pipeline, memory: an ONNX model (default bundled)")
     b.add_argument("--scans", default=None,
@@ -1370,6 +1402,18 @@ def build_parser() -> argparse.ArgumentParser:
                     "random: as many of R's samples as rules takes, from anywhere (its control)")
     rt.add_argument("--json", action="store_true")
     rt.set_defaults(func=cmd_retrain)
+
+    ag = sub.add_parser("agreement", help="compare a run on our streets with a run of the same "
+                        "positions on real scans: how alike the network fails in both")
+    ag.add_argument("world_run", help="run directory of the world (our streets)")
+    ag.add_argument("real_run", help="run directory of the same positions on real scans")
+    ag.add_argument("--threshold", type=float, metavar="T",
+                    help="mIoU below which a cell is blind (default: the real run's)")
+    ag.add_argument("--fp-samples", type=int, default=0, metavar="N",
+                    help="replay N rows of each run to count false-positive car points by "
+                    "the class they lie on (default 0: skip)")
+    ag.add_argument("--json", action="store_true")
+    ag.set_defaults(func=cmd_agreement)
 
     from falsify.cli.camera import register as register_camera
     register_camera(sub)

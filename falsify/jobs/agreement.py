@@ -1,0 +1,393 @@
+"""How far a world is from real streets, measured by how the network fails in each.
+
+Two finished runs over the same positions, one on our streets (the world) and one with the car
+placed in real scans, compared three ways: the per-background spread of the placed car's IoU,
+precision and recall (with the 1-Wasserstein distance between the runs' spreads), the x × y maps
+of its IoU cell by cell (which blind spots the world finds and misses), and, optionally, what the
+false-positive car points of a few replayed samples lie on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from falsify.errors import FalsifyError
+from falsify.results.metrics import Status
+from falsify.results.miou_maps import CellMap, fmt_value, jaccard, miou_map
+from falsify.results.store import RunData, open_run
+
+METRICS = ("iou", "precision", "recall")
+QUANTILES = (0.1, 0.5, 0.9)
+PRECISION_NOTE = ("precision is car_precision on both runs; on real scans it counts the real "
+                  "cars as true positives too")
+MAX_FP_SAMPLES = 10_000
+
+
+# -- statistics ------------------------------------------------------------------------------
+def wasserstein1(u: Sequence[float], v: Sequence[float]) -> float | None:
+    """The 1-Wasserstein distance between two empirical 1-D distributions (equal weights per
+    value): W1 = ∫ |F_u(t) − F_v(t)| dt, the area between their empirical CDFs (Villani,
+    "Optimal Transport: Old and New", 2009, Remark 2.19); None if either is empty."""
+    a = np.sort(np.asarray(u, np.float64))
+    b = np.sort(np.asarray(v, np.float64))
+    if not len(a) or not len(b):
+        return None
+    both = np.sort(np.concatenate([a, b]))
+    widths = np.diff(both)
+    # Both CDFs are constant on each [both[k], both[k+1]): their values just right of both[k].
+    fa = np.searchsorted(a, both[:-1], side="right") / len(a)
+    fb = np.searchsorted(b, both[:-1], side="right") / len(b)
+    return float(np.sum(np.abs(fa - fb) * widths))
+
+
+@dataclass(frozen=True)
+class Distribution:
+    """Count, mean, extremes and 10th/50th/90th percentiles (linear interpolation, numpy's
+    default) of a set of values; all None when it is empty."""
+
+    count: int
+    mean: float | None
+    min: float | None
+    p10: float | None
+    p50: float | None
+    p90: float | None
+    max: float | None
+
+    @classmethod
+    def of(cls, values: Sequence[float]) -> Distribution:
+        v = np.asarray(values, np.float64)
+        v = v[np.isfinite(v)]
+        if not len(v):
+            return cls(0, None, None, None, None, None, None)
+        p10, p50, p90 = (float(q) for q in np.quantile(v, QUANTILES))
+        return cls(len(v), float(v.mean()), float(v.min()), p10, p50, p90, float(v.max()))
+
+    def to_json(self) -> dict:
+        return {k: _r(getattr(self, k)) for k in
+                ("count", "mean", "min", "p10", "p50", "p90", "max")}
+
+
+@dataclass(frozen=True)
+class MetricComparison:
+    """One metric of the placed car, its per-background means in each run and their W1."""
+
+    metric: str
+    world_column: str
+    real_column: str
+    world: Distribution
+    real: Distribution
+    w1: float | None
+    world_values: dict[str, float]   # background name -> mean over its ok rows
+    real_values: dict[str, float]
+
+    def to_json(self) -> dict:
+        return {"metric": self.metric, "world_column": self.world_column,
+                "real_column": self.real_column, "world": self.world.to_json(),
+                "real": self.real.to_json(), "w1": _r(self.w1),
+                "world_per_background": {k: _r(v) for k, v in self.world_values.items()},
+                "real_per_background": {k: _r(v) for k, v in self.real_values.items()}}
+
+
+@dataclass(frozen=True)
+class MapAgreement:
+    """The two x × y maps of the placed car's IoU over the cells both define; a cell is blind
+    below `threshold`. World misses: blind in the real run only; false alarms: world only."""
+
+    threshold: float
+    cells_world: int
+    cells_real: int
+    cells_both: int
+    mae: float | None
+    pearson: float | None      # None with under 2 cells or a constant map
+    blind_world: int
+    blind_real: int
+    agreement: float | None    # share of the common cells both call blind or both not
+    world_misses: tuple[tuple[float, float], ...]
+    false_alarms: tuple[tuple[float, float], ...]
+    jaccard: float
+
+    def to_json(self) -> dict:
+        return {"threshold": self.threshold, "cells_world": self.cells_world,
+                "cells_real": self.cells_real, "cells_both": self.cells_both,
+                "mae": _r(self.mae), "pearson": _r(self.pearson),
+                "blind_world": self.blind_world, "blind_real": self.blind_real,
+                "agreement": _r(self.agreement),
+                "world_misses": [list(c) for c in self.world_misses],
+                "false_alarms": [list(c) for c in self.false_alarms],
+                "jaccard": _r(self.jaccard)}
+
+
+@dataclass(frozen=True)
+class FalsePositives:
+    """Predicted-car points whose label is not car, in `samples` replayed rows of one run, by
+    the SemanticKITTI class of what they lie on."""
+
+    run: str
+    samples: int
+    points: int
+    by_class: dict[str, int]   # most points first
+    stored_fp: int             # the rows' stored car_fp, to compare with `points`
+    note: str = ""
+
+    def to_json(self) -> dict:
+        return {"run": self.run, "samples": self.samples, "points": self.points,
+                "by_class": dict(self.by_class), "stored_car_fp": self.stored_fp,
+                "note": self.note}
+
+
+@dataclass(frozen=True)
+class RunSide:
+    """One of the two runs as compared: where it is, what it ran on, which columns say how the
+    placed car did."""
+
+    path: str
+    real: bool
+    ok_rows: int
+    backgrounds: int
+    iou_column: str
+    recall_column: str
+
+    def to_json(self) -> dict:
+        return {"path": self.path, "backgrounds_are": "real scans" if self.real else "streets",
+                "ok_rows": self.ok_rows, "backgrounds": self.backgrounds,
+                "iou_column": self.iou_column, "recall_column": self.recall_column,
+                "precision_column": "car_precision"}
+
+
+@dataclass(frozen=True)
+class AgreementResult:
+    """The whole comparison of a world run with a real run."""
+
+    world: RunSide
+    real: RunSide
+    metrics: tuple[MetricComparison, ...]
+    map: MapAgreement
+    false_positives: tuple[FalsePositives, ...]   # empty when skipped
+    fp_note: str
+    precision_note: str = PRECISION_NOTE
+
+    def to_json(self) -> dict:
+        return {"world": self.world.to_json(), "real": self.real.to_json(),
+                "metrics": [m.to_json() for m in self.metrics], "map": self.map.to_json(),
+                "false_positives": [f.to_json() for f in self.false_positives],
+                "false_positives_note": self.fp_note, "precision_note": self.precision_note}
+
+
+def _r(v):
+    return None if v is None else round(float(v), 6) if isinstance(v, float) else v
+
+
+# -- the comparison --------------------------------------------------------------------------
+def placed_columns(data: RunData) -> dict[str, str]:
+    """The columns of the placed car's IoU, precision and recall: the inserted car's on real
+    backgrounds (inserted_*), the car class's on our streets; FalsifyError if one is missing."""
+    real = "inserted_iou" in data.frame.columns
+    cols = {"iou": "inserted_iou" if real else "car_iou", "precision": "car_precision",
+            "recall": "inserted_recall" if real else "car_recall"}
+    for c in cols.values():
+        if c not in data.frame.columns:
+            raise FalsifyError(f"{data.path}: samples table lacks column {c!r} (the car's "
+                               "scores); was it run with the car objective?")
+    return cols
+
+
+def ok_rows(data: RunData) -> pd.DataFrame:
+    return data.frame[data.frame["status"] == Status.OK]
+
+
+def per_background(data: RunData, column: str) -> dict[str, float]:
+    """Each background's mean of `column` over its ok rows (backgrounds where it is undefined
+    in every row left out), keyed by the background's name."""
+    ok = ok_rows(data)
+    if "background" not in ok.columns or not len(ok):
+        return {}
+    means = ok[column].astype(float).groupby(ok["background"], sort=True).mean().dropna()
+    return {_bg_name(data, bg): float(v) for bg, v in means.items()}
+
+
+def _bg_name(data: RunData, bg) -> str:
+    try:
+        return data.space.background_name(int(bg))
+    except (IndexError, TypeError, ValueError):
+        return str(bg)
+
+
+def compare_metric(world: RunData, real: RunData, metric: str) -> MetricComparison:
+    wc, rc = placed_columns(world)[metric], placed_columns(real)[metric]
+    wv, rv = per_background(world, wc), per_background(real, rc)
+    return MetricComparison(metric, wc, rc, Distribution.of(list(wv.values())),
+                            Distribution.of(list(rv.values())),
+                            wasserstein1(list(wv.values()), list(rv.values())), wv, rv)
+
+
+def check_same_grid(world: RunData, real: RunData, wmap: CellMap, rmap: CellMap) -> None:
+    """FalsifyError naming both runs and the dims whose grids differ."""
+    differ = []
+    for dim, a, b in (("x", wmap.a_values, rmap.a_values), ("y", wmap.b_values, rmap.b_values)):
+        same = len(a) == len(b) and all(abs(float(p) - float(q)) < 1e-6
+                                        for p, q in zip(a, b, strict=True))
+        if not same:
+            differ.append(f"{dim}: [{', '.join(fmt_value(v) for v in a)}] against "
+                          f"[{', '.join(fmt_value(v) for v in b)}]")
+    if differ:
+        raise FalsifyError(f"{world.path} and {real.path}: their x/y grids differ ("
+                           f"{'; '.join(differ)}); compare runs of the same positions")
+
+
+def map_agreement(wmap: CellMap, rmap: CellMap, threshold: float) -> MapAgreement:
+    """Agreement of two maps on one grid over the cells both define (see MapAgreement)."""
+    w, r = wmap.miou, rmap.miou
+    has_w, has_r = np.isfinite(w), np.isfinite(r)
+    both = has_w & has_r
+    wv, rv = w[both], r[both]
+    mae = float(np.abs(wv - rv).mean()) if len(wv) else None
+    pearson = None
+    if len(wv) >= 2 and np.ptp(wv) > 0 and np.ptp(rv) > 0:
+        pearson = float(np.corrcoef(wv, rv)[0, 1])
+    blind_w = both & (np.where(has_w, w, 1.0) < threshold)
+    blind_r = both & (np.where(has_r, r, 1.0) < threshold)
+
+    def cells(mask: np.ndarray) -> tuple[tuple[float, float], ...]:
+        jj, ii = np.nonzero(mask)
+        return tuple((float(wmap.a_values[i]), float(wmap.b_values[j]))
+                     for j, i in zip(jj, ii, strict=True))
+
+    agree = float((blind_w == blind_r)[both].mean()) if both.any() else None
+    return MapAgreement(threshold, int(has_w.sum()), int(has_r.sum()), int(both.sum()), mae,
+                        pearson, int(blind_w.sum()), int(blind_r.sum()), agree,
+                        cells(blind_r & ~blind_w), cells(blind_w & ~blind_r),
+                        jaccard(set(cells(blind_w)), set(cells(blind_r))))
+
+
+def side(data: RunData) -> RunSide:
+    cols = placed_columns(data)
+    ok = ok_rows(data)
+    n_bg = int(ok["background"].nunique()) if "background" in ok.columns else 0
+    return RunSide(str(data.path), cols["iou"] == "inserted_iou", len(ok), n_bg, cols["iou"],
+                   cols["recall"])
+
+
+def run_agreement(world_run: str | Path, real_run: str | Path, threshold: float | None = None,
+              fp_samples: int = 0, device: str = "cpu") -> AgreementResult:
+    """Compare a run on our streets with a run of the same positions on real scans; the
+    threshold defaults to the real run's, and `fp_samples` rows of each run are replayed."""
+    from falsify.checks import check_range
+    from falsify.jobs.gate import check_threshold
+
+    check_threshold(threshold)
+    check_range(fp_samples, "--fp-samples", 0, MAX_FP_SAMPLES)
+    world, real = open_run(world_run), open_run(real_run)
+    wcol, rcol = placed_columns(world)["iou"], placed_columns(real)["iou"]
+    wmap = miou_map(ok_rows(world), world.space, "x", "y", wcol)
+    rmap = miou_map(ok_rows(real), real.space, "x", "y", rcol)
+    check_same_grid(world, real, wmap, rmap)
+    t = real.threshold if threshold is None else float(threshold)
+    metrics = tuple(compare_metric(world, real, m) for m in METRICS)
+    if fp_samples:
+        fps = tuple(false_positives(d, fp_samples, device) for d in (world, real))
+        note = (f"{fp_samples} ok rows of each run replayed (evenly spaced in evaluation "
+                "order) and predicted again")
+    else:
+        fps, note = (), "skipped (--fp-samples 0); --fp-samples N replays N rows of each run"
+    return AgreementResult(side(world), side(real), metrics, map_agreement(wmap, rmap, t), fps,
+                           note)
+
+
+# -- false positives by what they lie on -----------------------------------------------------
+def spread_rows(frame: pd.DataFrame, n: int) -> pd.DataFrame:
+    """n rows evenly spaced over the frame in evaluation order (all when it has at most n)."""
+    frame = frame.sort_values("eval_index", kind="stable")
+    if len(frame) <= n:
+        return frame
+    return frame.iloc[np.unique(np.linspace(0, len(frame) - 1, n).round().astype(int))]
+
+
+def fp_classes(pred: np.ndarray, label: np.ndarray, valid: np.ndarray,
+               semantic: np.ndarray | None) -> dict[str, int]:
+    """Points predicted car (our class ids) whose label is not car, counted by the SemanticKITTI
+    train class of their raw id (by our four classes' name where the scan has no raw ids)."""
+    from falsify.classes import CAR, CLASSES
+    from falsify.semantic import TRAIN_CLASSES, train_ids
+
+    fp = valid & (pred == CAR) & (label != CAR)
+    if semantic is None:
+        ids, names = label[fp].astype(np.int64), CLASSES
+    else:
+        ids, names = train_ids(semantic[fp]).astype(np.int64), TRAIN_CLASSES
+    counts = np.bincount(ids, minlength=len(names))
+    return {names[k]: int(c) for k, c in enumerate(counts) if c}
+
+
+def false_positives(data: RunData, n: int, device: str = "cpu") -> FalsePositives:
+    """Replay n ok rows of a run (their scans as the run cast them), predict them with the
+    run's model, and count their false-positive car points by the class they lie on."""
+    from falsify.jobs.report import open_model, run_lod
+    from falsify.results.replay import Replay
+
+    rows = spread_rows(ok_rows(data), n)
+    seg, note = open_model(data.meta, True, device=device)
+    if seg is None:
+        return FalsePositives(str(data.path), 0, 0, {}, 0, note)
+    try:
+        replay = Replay(data.space, lod=run_lod(data.meta))
+    except Exception as exc:   # the rest of the comparison stands without it
+        return FalsePositives(str(data.path), 0, 0, {}, 0, f"scans not regenerated ({exc})")
+    total: dict[str, int] = {}
+    done, stored, errors = 0, 0, []
+    for _, row in rows.iterrows():
+        try:
+            _, scan = replay.scan(row)
+            pred = seg.predict(scan.image[None]).classes[0]
+        except Exception as exc:
+            errors.append(f"row {int(row['eval_index'])}: {exc}")
+            continue
+        for name, c in fp_classes(pred, scan.label, scan.valid, scan.semantic).items():
+            total[name] = total.get(name, 0) + c
+        done += 1
+        stored += int(row["car_fp"]) if pd.notna(row.get("car_fp")) else 0
+    notes = [note] + ([f"{len(errors)} not replayed ({errors[0]})"] if errors else [])
+    by_class = dict(sorted(total.items(), key=lambda kv: (-kv[1], kv[0])))
+    return FalsePositives(str(data.path), done, sum(total.values()), by_class, stored,
+                          "; ".join(n for n in notes if n))
+
+
+# -- text ------------------------------------------------------------------------------------
+def format_text(res: AgreementResult) -> str:
+    """A few aligned lines: the runs, the per-background spreads, the maps, false positives."""
+    def f(v) -> str:
+        return "-" if v is None else f"{v:.3f}"
+
+    def kind(s: RunSide) -> str:
+        return (f"{s.path} ({'real scans' if s.real else 'streets'}, {s.ok_rows} ok rows, "
+                f"{s.backgrounds} backgrounds)")
+
+    lines = [f"world: {kind(res.world)}", f"real:  {kind(res.real)}",
+             "placed car, per-background means:",
+             f"  {'metric':10s} {'run':5s} {'column':16s} {'n':>3s} {'mean':>6s} {'p10':>6s} "
+             f"{'p50':>6s} {'p90':>6s} {'min':>6s} {'max':>6s} {'W1':>6s}"]
+    for m in res.metrics:
+        for who, col, d, w1 in (("world", m.world_column, m.world, ""),
+                                ("real", m.real_column, m.real, f(m.w1))):
+            lines.append(f"  {m.metric if who == 'world' else '':10s} {who:5s} {col:16s} "
+                         f"{d.count:3d} {f(d.mean):>6s} {f(d.p10):>6s} {f(d.p50):>6s} "
+                         f"{f(d.p90):>6s} {f(d.min):>6s} {f(d.max):>6s} {w1:>6s}")
+    lines.append(f"  ({res.precision_note})")
+    a = res.map
+    lines.append(f"x × y map of the placed car's IoU over {a.cells_both} common cells: MAE "
+                 f"{f(a.mae)}, Pearson {f(a.pearson)}")
+    lines.append(f"blind below {a.threshold:g}: world {a.blind_world}, real {a.blind_real}; "
+                 f"alike {f(a.agreement)}, world misses {len(a.world_misses)}, world only "
+                 f"{len(a.false_alarms)}, Jaccard {f(a.jaccard)}")
+    if not res.false_positives:
+        lines.append(f"false-positive car points: {res.fp_note}")
+    for fp in res.false_positives:
+        top = ", ".join(f"{k} {v}" for k, v in list(fp.by_class.items())[:6]) or "none"
+        lines.append(f"false-positive car points, {fp.run}: {fp.points} in {fp.samples} "
+                     f"replayed rows (stored car_fp {fp.stored_fp}): {top}"
+                     + (f" [{fp.note}]" if fp.note else ""))
+    return "\n".join(lines)
