@@ -292,7 +292,9 @@ class LevelSetSampler:
             v = ((m / total) ** 2 * var[c] + (var_rest_b + m * var_c) / total ** 2)
             sd = math.sqrt(max(v, 0.0))
             lo, hi = value - z * sd, value + z * sd
-            decided = m == 0 or hi < t or lo >= t
+            # a cell none of whose scored samples has a score is not decided by its neighbours
+            # alone: the grid may well have no value for it (every sample invalid)
+            decided = m == 0 or (bool(defined) and (hi < t or lo >= t))
             out.append(CellEstimate(key[0], key[1], float(value), float(lo), float(hi),
                                     int(taken[c]), len(cells.samples[c]), bool(decided),
                                     sd=float(sd)))
