@@ -51,9 +51,10 @@ class CellEstimate:
     sd: float = 0.0
 
     def as_list(self) -> list:
-        """[x, y, estimate, lower, upper, scored, samples], rounded, for the run's metadata."""
+        """[x, y, estimate, lower, upper, scored, samples, decided], rounded, for the run's
+        metadata."""
         return [self.x, self.y, _rounded(self.estimate), _rounded(self.lower),
-                _rounded(self.upper), self.scored, self.samples]
+                _rounded(self.upper), self.scored, self.samples, self.decided]
 
 
 def _rounded(v: float | None) -> float | None:

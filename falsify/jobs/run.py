@@ -422,17 +422,15 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
 
 def estimated_of(meta: dict, cmap: CellMap, threshold: float) -> dict | None:
     """For a map a level-set run estimated: the grid's samples it stands for, how many were
-    scored, and the cells whose interval still holds the threshold (budget spent first)."""
+    scored, and the cells the sampler had not decided when it stopped (its budget spent)."""
     estimates = meta.get("cell_estimates")
     if not estimates or not cmap.estimated:
         return None
-    open_cells = [c for c in cmap.cells() if c.lower is not None and c.upper is not None
-                  and c.lower < threshold <= c.upper]
     options = meta.get("sampler_options") or {}
     return {"grid_samples": int(sum(e[6] for e in estimates)),
             "scored": int(sum(e[5] for e in estimates)),
             "confidence": float(options.get("confidence", 0.95)),
-            "undecided_cells": len(open_cells)}
+            "undecided_cells": sum(1 for e in estimates if len(e) > 7 and not e[7])}
 
 
 def class_maps(meta: dict) -> list[str]:
