@@ -1252,7 +1252,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--config", default=None,
                    help="the space (default: each benchmark's own: configs/bench.toml for scan, "
                    "pipeline and nodes, configs/ci.toml for memory, configs/yaw.toml for "
-                   "search, configs/paper.toml for camera)")
+                   "search, configs/weather.toml for map, configs/paper.toml for camera)")
     b.add_argument("--samples", type=int, default=None,
                    help="how many samples (default: each benchmark's own)")
     b.add_argument("--naive-samples", type=int, default=None,
