@@ -136,7 +136,7 @@ def test_the_inserted_cars_returns_are_attenuated_too(scanner, walls):
 
 # -- zero severity, every dim, seeds ----------------------------------------------------------
 SUPPORTED = {"fog": 40.0, "rain": 30.0, "snow": 3.0, "wet_road": 2.0, "beam_loss": 6,
-             "crosstalk": 300}
+             "beams": 32, "crosstalk": 300}
 
 
 def generator(seed: int | None) -> np.random.Generator | None:
@@ -169,6 +169,11 @@ def test_each_effect_dim_acts_on_a_real_background(tmp_path, scanner, walls, nam
         rows = np.flatnonzero(~got.valid.any(axis=1) & clear.valid.any(axis=1))
         assert len(rows) == SUPPORTED[name]
         assert not changed[np.setdiff1d(np.arange(got.image.shape[0]), rows)].any()
+    elif name == "beams":   # a 32-laser sensor: every other row as recorded, the rest empty
+        kept = np.arange(0, got.image.shape[0], 2)
+        assert not changed[kept].any()
+        assert not got.valid[np.setdiff1d(np.arange(got.image.shape[0]), kept)].any()
+        assert clear.valid[1::2].any()
     elif name == "crosstalk":   # points at random pixels, unlabelled; nothing else moved
         assert 0 < changed.sum() <= SUPPORTED[name]
         assert (got.label[changed] == 0).all() and got.valid[changed].all()

@@ -141,6 +141,7 @@ SEVERITIES = {
     "snow": [0.0, 0.5, 2.0, 8.0, 30.0],
     "wet_road": [0.0, 0.3, 0.8, 2.0, 10.0],
     "beam_loss": [0, 1, 4, 16, 64],
+    "beams": [0, 48, 32, 16, 8],     # lasers kept: fewer is worse
     "crosstalk": [0, 100, 1000, 5000, 20000],
     "ego_speed": [0.0, 20.0, 60.0, 150.0, 300.0],
 }
@@ -191,7 +192,7 @@ def test_zero_severity_is_todays_scan(sim):
     assert clear.image.tobytes() == same.image.tobytes()
 
 
-ONE_EACH = {"fog": 40.0, "rain": 30.0, "snow": 3.0, "wet_road": 2.0, "beam_loss": 6,
+ONE_EACH = {"fog": 40.0, "rain": 30.0, "snow": 3.0, "wet_road": 2.0, "beam_loss": 6, "beams": 32,
             "crosstalk": 300, "ego_speed": 80.0}
 
 
@@ -214,6 +215,20 @@ def test_each_effect_is_seeded_by_its_sample(sim, name):
         _, x = clear_and(sim, fx, seed=sample_seed(space, a))
         _, y = clear_and(sim, fx, seed=sample_seed(space, b))   # same scene, other seed
         assert x.image.tobytes() != y.image.tobytes()
+
+
+@pytest.mark.parametrize("beams, kept", [(32, np.arange(0, 64, 2)), (16, np.arange(0, 64, 4)),
+                                         (48, np.setdiff1d(np.arange(64), np.arange(3, 64, 4)))])
+def test_fewer_beams_keep_evenly_spaced_rows_of_the_same_scan(sim, beams, kept):
+    """Robo3D's cross-sensor corruption: a 64-laser scan seen as a sensor of `beams` lasers keeps
+    those rows as they were, and nothing of the others; as many lasers as rows change nothing."""
+    clear, fewer = clear_and(sim, Effects(beams=beams), seed=6)
+    assert np.array_equal(weather.kept_rows(64, beams), kept)
+    assert fewer.image[kept].tobytes() == clear.image[kept].tobytes()
+    gone = np.setdiff1d(np.arange(64), kept)
+    assert not fewer.valid[gone].any() and (fewer.image[gone] == 0).all()
+    _, all_rows = clear_and(sim, Effects(beams=64), seed=6)
+    assert all_rows.image.tobytes() == clear.image.tobytes()
 
 
 def test_effects_leave_the_scans_own_draws_alone(sim):
@@ -257,6 +272,7 @@ SEARCH_DIMS = (
     "[dims.snow]\nmin = 0.0\nmax = 5.0\nstep = 1.0\n"
     "[dims.wet_road]\nmin = 0.0\nmax = 3.0\nstep = 1.0\n"
     "[dims.beam_loss]\nmin = 0\nmax = 16\nstep = 4\n"
+    "[dims.beams]\nmin = 16\nmax = 64\nstep = 16\n"
     "[dims.crosstalk]\nmin = 0\nmax = 2000\nstep = 500\n"
     "[dims.ego_speed]\nmin = 0.0\nmax = 120.0\nstep = 30.0\n")
 
@@ -273,7 +289,7 @@ def test_samplers_search_the_effect_dims(tmp_path, args, rows):
                            "[dims.beam_loss]\nmin = 0\nmax = 8\nstep = 8\n")
         cmd = ["grid", cfg, *args[1:]]
     else:
-        # One position: NLopt's one run walks all seven effect dims from the box's centre.
+        # One position: NLopt's one run walks all eight effect dims from the box's centre.
         cfg = write_config(tmp_path / "w.toml", SEARCH_DIMS, ys="9.0")
         cmd = ["search", cfg, *args[1:]]
     run = tmp_path / "run"

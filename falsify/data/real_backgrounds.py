@@ -462,7 +462,7 @@ class RealScanner:
                 if self._keep is not None:
                     keep = np.where(spurious, keep * self._keep, keep)
                 e.valid = e.valid & (stream(seed, _RECORDED).random(r.shape) < keep)
-        if fx.crosstalk or fx.beam_loss:
+        if fx.crosstalk or fx.beam_loss or fx.beams:
             e = w.faults(fx, seed, e)
         ok = e.valid
         moved = ok & (~valid | (e.r != r))   # an echo at another range: a new point on the ray

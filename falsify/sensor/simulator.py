@@ -441,7 +441,7 @@ class Simulator:
             u = rng.random(r.shape)[valid]
             p = self.returns.p_return(intensity[valid]) * self._keep[valid]
             valid[valid] = u < p
-        if fx is not None and (fx.crosstalk or fx.beam_loss):
+        if fx is not None and (fx.crosstalk or fx.beam_loss or fx.beams):
             e = self.weather.faults(fx, fx_seed, Echoes(r, valid, intensity, cls, inst, sem))
             r, valid, intensity, cls, inst, sem = (e.r, e.valid, e.intensity, e.cls, e.inst,
                                                    e.semantic)

@@ -15,7 +15,10 @@ then the faults) to get what the sensor records:
 - wet_road: a water film on the road darkens its diffuse return, most at grazing incidence
   (Fresnel transmission in and out of the film and the light it traps: Lekner and Dorf, "Why some
   things are darker when wet", Applied Optics 27(7), 1988);
-- beam_loss: whole rows (lasers) out; crosstalk: spurious points from another sensor at random
+- beam_loss: whole rows (lasers) out, drawn at random; beams: a sensor with fewer lasers, N of the
+  rows kept evenly spaced (rows (k * H) // N: every other one for 32 of 64), the cross-sensor
+  corruption of Robo3D (Kong et al., ICCV 2023), 64 -> 32 / 16 beams by ring selection;
+  crosstalk: spurious points from another sensor at random
   pixels and ranges; ego_speed: each column fired at its time in the sweep from where the ego then
   is (the motion distortion of a rotating sensor).
 
@@ -105,6 +108,7 @@ class Effects:
     snow: float = 0.0          # mm/h of water
     wet_road: float = 0.0      # water film, mm
     beam_loss: int = 0         # lasers out
+    beams: int = 0             # lasers kept, evenly spaced (0 = all)
     crosstalk: int = 0         # spurious points per scan
     ego_speed: float = 0.0     # km/h
 
@@ -554,7 +558,8 @@ class Weather:
 
     # -- faults ------------------------------------------------------------------------------
     def faults(self, fx: Effects, seed: int, e: Echoes) -> Echoes:
-        """Crosstalk points written over the image, then the lost lasers' rows emptied."""
+        """Crosstalk points written over the image, then the lost lasers' rows emptied, then the
+        rows a sensor with `beams` lasers would not have."""
         s = self.sensor
         r, valid, intensity, cls, inst, sem = (e.r, e.valid, e.intensity, e.cls, e.inst,
                                                e.semantic)
@@ -580,7 +585,16 @@ class Weather:
             order = np.argsort(stream(seed, _BEAMS).random(s.rows), kind="stable")
             valid = valid.copy()
             valid[order[:min(fx.beam_loss, s.rows)]] = False
+        if 0 < fx.beams < s.rows:
+            kept = np.zeros(s.rows, bool)
+            kept[kept_rows(s.rows, fx.beams)] = True
+            valid = valid & kept[:, None]
         return Echoes(r, valid, intensity, cls, inst, sem)
+
+
+def kept_rows(rows: int, beams: int) -> np.ndarray:
+    """The rows a sensor of `beams` lasers keeps of `rows`, evenly spaced from the first."""
+    return (np.arange(min(beams, rows)) * rows) // min(beams, rows)
 
 
 def detection_floor(sensor: Sensor, returns: ReturnModel | None) -> float:

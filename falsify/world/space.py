@@ -4,7 +4,7 @@ A config names the sensor preset and one table per dimension. Car 1 is described
 `x`, `y`, `yaw`; car k >= 2 by `car_model_k`, `x_k`, `y_k`, `yaw_k` (defaulting to car 1's
 ranges). `count` says how many cars a sample holds, `background` which street it stands on, and
 image-only dims (`colour`, `weather`, `time_of_day`) are carried along but never change a scan.
-Effect dims (EFFECT_DIMS: `fog`, `rain`, `snow`, `wet_road`, `beam_loss`, `crosstalk`,
+Effect dims (EFFECT_DIMS: `fog`, `rain`, `snow`, `wet_road`, `beam_loss`, `beams`, `crosstalk`,
 `ego_speed`) are weather and faults in physical units that the sensor applies to each ray after
 casting (falsify.sensor.weather); absent or 0 is today's clear scan.
 """
@@ -42,6 +42,7 @@ EFFECT_DIMS: dict[str, tuple[float, float, str, bool]] = {
     "snow": (0.0, 100.0, "mm/h of water", False),
     "wet_road": (0.0, 20.0, "mm of water film", False),
     "beam_loss": (0.0, 128.0, "lasers", True),
+    "beams": (0.0, 128.0, "lasers kept (0 = all)", True),
     "crosstalk": (0.0, 100_000.0, "points per scan", True),
     "ego_speed": (0.0, 300.0, "km/h", False),
 }
