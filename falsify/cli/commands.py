@@ -1072,6 +1072,14 @@ def cmd_agreement(args) -> int:
     return 0
 
 
+def cmd_robustness(args) -> int:
+    from falsify.jobs.robustness import robustness, robustness_text
+
+    result = robustness(args.run, args.reference, args.column)
+    emit(args, result.to_json(), robustness_text(result))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="falsify", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
@@ -1414,6 +1422,18 @@ def build_parser() -> argparse.ArgumentParser:
                     "the class they lie on (default 0: skip)")
     ag.add_argument("--json", action="store_true")
     ag.set_defaults(func=cmd_agreement)
+
+    ro = sub.add_parser("robustness", help="per effect and severity the network's score, and "
+                        "mCE / mRR against a reference network (Robo3D's terms)")
+    ro.add_argument("run", help="run directory of a space with effect dims (0 among each's "
+                    "values: the clean rows)")
+    ro.add_argument("--reference", metavar="RUN",
+                    help="a run of the same space with the reference network (for CE, mCE)")
+    ro.add_argument("--column", default=None,
+                    help="the score (default: inserted_iou on real backgrounds, else the "
+                    "run's objective)")
+    ro.add_argument("--json", action="store_true")
+    ro.set_defaults(func=cmd_robustness)
 
     from falsify.cli.camera import register as register_camera
     register_camera(sub)

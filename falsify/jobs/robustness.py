@@ -1,0 +1,183 @@
+"""Robustness in the field's own terms: per effect and severity the network's mean score, and
+the corruption error and resilience rate against a reference network (mCE, mRR).
+
+Definitions as Robo3D gives them (Kong et al., "Robo3D: Towards Robust and Reliable 3D
+Perception against Corruptions", ICCV 2023, Sec. 3.2), after ImageNet-C (Hendrycks and
+Dietterich, ICLR 2019), with the score s (an IoU) at each severity l of effect e:
+
+    CE_e = sum_l (1 - s_{e,l}) / sum_l (1 - s^ref_{e,l})        mCE = mean_e CE_e
+    RR_e = sum_l s_{e,l} / (L_e * s_clean)                      mRR = mean_e RR_e
+
+A run holds the rows of one space; the rows whose effect dims are all zero are the clean ones,
+and those with exactly one effect non-zero are that effect at that severity (a factorial space
+also holds mixed rows, which are left out and counted). Robo3D scores mIoU over classes; here the
+score is the placed object's IoU (`inserted_iou` on real backgrounds, else the run's objective)
+unless another column is named.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from falsify.errors import FalsifyError
+from falsify.results.metrics import Status
+from falsify.results.store import RunData, open_run
+from falsify.world.space import EFFECT_DIMS
+
+
+@dataclass(frozen=True)
+class Level:
+    """One effect at one severity: the run's mean score, its rows, the reference's mean."""
+
+    severity: float
+    score: float
+    samples: int
+    reference: float | None = None
+
+    def to_json(self) -> dict:
+        return {"severity": self.severity, "score": round(self.score, 4),
+                "samples": self.samples,
+                "reference": None if self.reference is None else round(self.reference, 4)}
+
+
+@dataclass(frozen=True)
+class EffectRobustness:
+    """An effect's levels, its corruption error (None without a reference) and its resilience."""
+
+    effect: str
+    levels: tuple[Level, ...]
+    ce: float | None
+    rr: float
+
+    def to_json(self) -> dict:
+        return {"effect": self.effect, "levels": [lv.to_json() for lv in self.levels],
+                "ce": None if self.ce is None else round(self.ce, 4), "rr": round(self.rr, 4)}
+
+
+@dataclass(frozen=True)
+class RobustnessResult:
+    """The run's robustness per effect and overall."""
+
+    run: str
+    reference: str | None
+    column: str
+    clean: float
+    clean_samples: int
+    clean_reference: float | None
+    effects: tuple[EffectRobustness, ...]
+    mixed_samples: int          # rows with two or more effects at once, left out
+    mce: float | None
+    mrr: float
+
+    def to_json(self) -> dict:
+        return {"run": self.run, "reference": self.reference, "column": self.column,
+                "clean": round(self.clean, 4), "clean_samples": self.clean_samples,
+                "clean_reference": None if self.clean_reference is None
+                else round(self.clean_reference, 4),
+                "effects": [e.to_json() for e in self.effects],
+                "mixed_samples": self.mixed_samples,
+                "mce": None if self.mce is None else round(self.mce, 4),
+                "mrr": round(self.mrr, 4),
+                "definitions": "CE_e = sum_l (1 - s_el) / sum_l (1 - s_ref_el), mCE its mean; "
+                               "RR_e = sum_l s_el / (L_e s_clean), mRR its mean (Robo3D, "
+                               "ICCV 2023)"}
+
+
+def score_column(data: RunData, column: str | None) -> str:
+    """The named column, else the placed object's IoU: inserted_iou on real backgrounds."""
+    if column is not None:
+        if column not in data.frame.columns:
+            raise FalsifyError(f"--column {column!r}: not a column of {data.path}; allowed: "
+                               + ", ".join(c for c in data.frame.columns if c.endswith("_iou")))
+        return column
+    return "inserted_iou" if "inserted_iou" in data.frame.columns else data.score_column
+
+
+def levels_of(data: RunData, column: str) -> tuple[float, int, dict[str, dict[float, tuple]],
+                                                     int]:
+    """(clean mean, clean rows, {effect: {severity: (mean, rows)}}, mixed rows) over the ok
+    rows with a score."""
+    effects = [d for d in EFFECT_DIMS if d in data.space.dims]
+    if not effects:
+        raise FalsifyError(f"{data.path}: its space has no effect dim (one of "
+                           f"{', '.join(EFFECT_DIMS)}); robustness needs the same space with "
+                           "and without them")
+    f = data.frame[data.frame["status"] == Status.OK]
+    f = f[f[column].notna()]
+    values = f[effects].astype(float).fillna(0.0)
+    active = (values != 0).sum(axis=1)
+    clean = f[active == 0][column].astype(float)
+    if not len(clean):
+        raise FalsifyError(f"{data.path}: no row without effects (every effect dim at 0) to "
+                           "compare with; add 0 to each effect dim's values")
+    out: dict[str, dict[float, tuple]] = {}
+    for e in effects:
+        rows = f[(active == 1) & (values[e] != 0)]
+        groups = rows.groupby(values.loc[rows.index, e])[column]
+        out[e] = {float(sev): (float(g.astype(float).mean()), int(len(g)))
+                  for sev, g in groups}
+    return float(clean.mean()), int(len(clean)), out, int((active > 1).sum())
+
+
+def robustness(run: str | Path, reference: str | Path | None = None,
+               column: str | None = None) -> RobustnessResult:
+    """The run's per-effect levels, CE and RR against `reference` (a run of the same space
+    with another network), mCE and mRR."""
+    data = open_run(run)
+    col = score_column(data, column)
+    clean, n_clean, levels, mixed = levels_of(data, col)
+    if clean <= 0:
+        raise FalsifyError(f"{run}: the clean rows' mean {col} is 0; resilience is undefined")
+    ref_levels: dict[str, dict[float, tuple]] = {}
+    ref_clean = None
+    if reference is not None:
+        ref = open_run(reference)
+        if ref.meta.get("config_hash") != data.meta.get("config_hash"):
+            raise FalsifyError(f"--reference {reference}: not a run of the same space as {run} "
+                               "(their config hashes differ)")
+        ref_clean, _, ref_levels, _ = levels_of(ref, score_column(ref, column))
+    effects = []
+    for e, by_sev in levels.items():
+        if not by_sev:
+            continue
+        lv = tuple(Level(s, m, n, ref_levels.get(e, {}).get(s, (None,))[0])
+                   for s, (m, n) in sorted(by_sev.items()))
+        rr = float(np.sum([x.score for x in lv]) / (len(lv) * clean))
+        ce = None
+        if reference is not None and all(x.reference is not None for x in lv):
+            denom = float(np.sum([1.0 - x.reference for x in lv]))
+            ce = float(np.sum([1.0 - x.score for x in lv]) / denom) if denom > 0 else None
+        effects.append(EffectRobustness(e, lv, ce, rr))
+    if not effects:
+        raise FalsifyError(f"{run}: no row with exactly one effect non-zero; robustness "
+                           "compares each effect alone with the clean rows")
+    ces = [e.ce for e in effects if e.ce is not None]
+    return RobustnessResult(
+        str(run), None if reference is None else str(reference), col, clean, n_clean,
+        ref_clean, tuple(effects), mixed,
+        float(np.mean(ces)) if reference is not None and len(ces) == len(effects) else None,
+        float(np.mean([e.rr for e in effects])))
+
+
+def robustness_text(r: RobustnessResult) -> str:
+    """The table, a line per effect and severity, then mCE and mRR."""
+    lines = [f"{r.run}: {r.column}, clean {r.clean:.3f} ({r.clean_samples} rows)"
+             + ("" if r.clean_reference is None else
+                f"; reference {r.reference}: clean {r.clean_reference:.3f}")]
+    table = []
+    for e in r.effects:
+        for lv in e.levels:
+            table.append({"effect": e.effect, "severity": f"{lv.severity:g}",
+                          "score": f"{lv.score:.3f}", "rows": lv.samples,
+                          "reference": "" if lv.reference is None else f"{lv.reference:.3f}",
+                          "CE": "" if e.ce is None else f"{e.ce:.3f}", "RR": f"{e.rr:.3f}"})
+    lines.append(pd.DataFrame(table).to_string(index=False))
+    lines.append(("mCE " + ("- (no --reference)" if r.mce is None else f"{r.mce:.3f}"))
+                 + f", mRR {r.mrr:.3f}"
+                 + (f"; {r.mixed_samples} rows with several effects at once left out"
+                    if r.mixed_samples else ""))
+    return "\n".join(lines)
