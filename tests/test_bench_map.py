@@ -79,6 +79,7 @@ def test_compare_cells_counts_false_safe_and_blind():
     (["--budgets", "0"], "--budgets: 0.0 must be a share"),
     (["--budgets", "a,b"], "--budgets 'a,b'"),
     (["--threshold", "2"], "--threshold: 2.0"),
+    (["--confidence", "1.5"], "--confidence: 1.5"),
 ])
 def test_bad_options_exit_2_naming_them(config, tmp_path, capsys, argv, match):
     code = main(["bench", "map", "--config", str(config), "--out", str(tmp_path / "o"), *argv])

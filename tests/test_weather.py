@@ -254,6 +254,7 @@ def write_config(path, extra: str, ys: str = "9.0, 13.0") -> str:
     ("[dims.snow]\nmin = 0.0\nmax = 1000.0\nstep = 10.0\n", "dims.snow"),
     ("[dims.wet_road]\nvalues = [inf]\n", "dims.wet_road"),
     ("[dims.beam_loss]\nvalues = [2.5]\n", "dims.beam_loss"),
+    ("[dims.beams]\nvalues = [200]\n", "dims.beams"),
     ("[dims.crosstalk]\nvalues = [\"many\"]\n", "dims.crosstalk"),
     ("[dims.ego_speed]\nvalues = [-30.0]\n", "dims.ego_speed"),
     ("[dims.fogg]\nvalues = [50.0]\n", "dims.fogg"),

@@ -141,6 +141,8 @@ def bench_map(config: str | Path, out: str | Path, budgets: Sequence[float] = BU
             raise FalsifyError(f"--budgets: {b} must be a share of the grid in (0, 1]")
     if threshold is not None and not 0 < threshold <= 1:
         raise FalsifyError(f"--threshold: {threshold} must be in (0, 1]")
+    if confidence is not None and not 0.5 <= confidence < 1:   # before the grid's minutes
+        raise FalsifyError(f"--confidence: {confidence} must be in [0.5, 1)")
     out = Path(out)
     space = load_space(config)
     space.check_size(MAX_SAMPLES, "the benchmark's limit")
