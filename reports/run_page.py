@@ -150,9 +150,10 @@ def heatmap_section(data: RunData, cmap: CellMap, threshold: float) -> str:
 scored; each cell shows its estimate of the mean the full grid would give, and its tip the
 {float(options.get("confidence", 0.95)):.0%} interval. A cell is decided once its interval
 excludes the threshold.</p>""")
+    placed = "car" if data.space.model_dim == "car_model" else "actor"
     return f"""
 <section id="map-section">
-<h2>mIoU over position (car 1){objective_title(data)}</h2>
+<h2>mIoU over position ({placed} 1){objective_title(data)}</h2>
 <p class="note">{mean_what} of the valid samples in each cell (over backgrounds and every
 other dimension), seen from above: the sensor at the bottom, forward (Y) up. {n_blind} of
 {scored} scored cells are blind spots (mIoU &lt; {threshold:.3f}, outlined). Hover a cell for
@@ -166,7 +167,7 @@ its value; click it to list its samples.</p>{estimated}
 <h3 id="cell-title">Samples of a cell</h3>
 <p id="cell-hint" class="note">Click a cell of the map to list its samples here.</p>
 <div class="scroll"><table id="cell-table" hidden><thead><tr><th>eval</th><th>x</th><th>y</th>
-<th>yaw</th><th>car model</th><th>count</th><th>background</th><th>status</th><th>{what}</th>
+<th>yaw</th><th>{model_heading(data)}</th><th>count</th><th>background</th><th>status</th><th>{what}</th>
 <th>precision</th><th>recall</th><th>reason</th></tr></thead><tbody></tbody></table></div>
 </div>
 </section>"""
@@ -619,7 +620,8 @@ def worst_section(data: RunData, scans: Mapping[int, ReplayedScan], note: str,
     prec, rec = col.replace("_iou", "_precision"), col.replace("_iou", "_recall")
     previews = {ev: _preview(s) for ev, s in scans.items()}
     with_pred = any(p.pred_range for p in previews.values())
-    head = ("<tr><th>#</th><th>eval</th><th>x, y (m)</th><th>yaw</th><th>car model</th>"
+    head = ("<tr><th>#</th><th>eval</th><th>x, y (m)</th><th>yaw</th>"
+            f"<th>{model_heading(data)}</th>"
             f"<th>bg</th><th>{what}</th><th>precision /<br>recall</th>"
             "<th>car points<br>label / pred.</th><th>scan: range image, bird's-eye view"
             + (" (label above, prediction below)" if with_pred else " (label)")
@@ -638,7 +640,7 @@ def worst_section(data: RunData, scans: Mapping[int, ReplayedScan], note: str,
             f"<tr><td>{rank}</td><td>{int(r['eval_index'])}</td>"
             f'<td class="num">{esc(_dimtext(r, "x"))}, {esc(_dimtext(r, "y"))}</td>'
             f'<td class="num">{esc(_dimtext(r, "yaw"))}</td>'
-            f"<td>{esc(_dimtext(r, 'car_model'))}</td>"
+            f"<td>{esc(_dimtext(r, data.space.model_dim))}</td>"
             f"<td>{esc(_bg_text(data, r))}</td>"
             f'<td class="num bad">{f3(r[col])}</td>'
             f'<td class="num">{f3(r.get(prec))} /<br>{f3(r.get(rec))}</td>'
@@ -749,6 +751,11 @@ def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     return f'<section id="summary"><dl class="summary">{cards}</dl></section>'
 
 
+def model_heading(data: RunData) -> str:
+    """The model column's heading: "car model" in spaces that name the dim so, else "actor"."""
+    return "car model" if data.space.model_dim == "car_model" else "actor"
+
+
 def samples_json(data: RunData) -> dict:
     """The rows the click-to-list table needs, keyed to their heat-map cell."""
     from falsify.results.miou_maps import snap
@@ -760,7 +767,7 @@ def samples_json(data: RunData) -> dict:
             "iou", "precision", "recall", "reason"]
     col = data.score_column
     src = {"eval": "eval_index", "iou": col, "precision": col.replace("_iou", "_precision"),
-           "recall": col.replace("_iou", "_recall")}
+           "recall": col.replace("_iou", "_recall"), "car_model": data.space.model_dim}
     rows = []
     for k in range(len(f)):
         r = f.iloc[k]

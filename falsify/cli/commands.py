@@ -553,7 +553,7 @@ def summary_text(s) -> str:
     key = next((k for k in low if k != "sample"), "car_iou") if low else "car_iou"
     where = "" if low is None else ", ".join(f"{k}={v}" for k, v in low["sample"].items()
                                              if k in ("x", "y", "yaw", "background",
-                                                      "car_model"))
+                                                      "car_model", "actor"))
     lines = [
         f"{s.samples} samples ({s.computed_this_time} computed now, {s.invalid} invalid, "
         f"{s.undefined} undefined) in {s.elapsed_s:.1f} s",
@@ -701,9 +701,10 @@ def _run_options(p: argparse.ArgumentParser) -> None:
                    help="where the network runs with several --workers: in each worker, or "
                    "in one shared process that batches all workers' scans (auto: shared on "
                    "cuda, else in each worker)")
-    p.add_argument("--objective", default="car", metavar="CLASS",
+    p.add_argument("--objective", default=None, metavar="CLASS",
                    help="what the samplers minimise and the maps show: a class the model "
-                        "predicts (car, person, ... SemanticKITTI's names) or miou")
+                        "predicts (car, person, ... SemanticKITTI's names) or miou (default: "
+                        "the placed actors' class)")
     p.add_argument("--workers", type=int, default=1,
                    help="local worker processes, or Ray actors with --executor ray")
     p.add_argument("--executor", choices=["process", "ray"], default="process",

@@ -49,6 +49,7 @@ from falsify.sensor.simulator import (
     PlacedCar,
     Simulator,
     check_placement,
+    check_surface,
     place,
 )
 from falsify.sensor.weather import (
@@ -75,6 +76,10 @@ FIT_POINTS = 1000        # about this many ground points fit a car's plane
 MAX_SLOPE = 0.3          # a fitted plane steeper than this (17 degrees) is clamped to it
 LOWEST_CELL_M = 1.0      # unlabelled scans: ground = points near their 1 m cell's lowest point
 LOWEST_BAND_M = 0.15
+SURFACE_REACH_M = 0.75   # the ground points within this of an actor decide what it stands on
+# What the ground an actor stands on counts as, by SemanticKITTI ids (`[dims.actor] on`).
+SURFACE_IDS = {"road": np.array([40, 44, 60]), "sidewalk": np.array([48]),
+               "terrain": np.array([49, 72])}
 INSERTED_INSTANCE = 1 << 16   # instance ids of inserted cars: above SemanticKITTI's 16 bits
 WET_IDS = np.array([40, 44, 48])   # road, parking, sidewalk: what a water film lies on
 # KITTI stores remission in steps of 0.01, and some 12 % of a scan's points (a third of some
@@ -271,10 +276,11 @@ class RealScanner:
 
     def __init__(self, sensor: Sensor, backgrounds: tuple[RealScan, ...],
                  user_cars: dict[str, UserCar] | None = None, lod: int = 2,
-                 max_backgrounds: int = 16):
+                 max_backgrounds: int = 16, surfaces: tuple[str, ...] = ()):
         self.sensor = sensor
         self.real = backgrounds
         self.sim = Simulator(sensor, user_cars, lod=lod)
+        self.surfaces = surfaces   # per placed object, where it must stand (Space.surfaces)
         self._bg: OrderedDict[int, RealBackground] = OrderedDict()
         self._boxes: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, float]] = {}
         # (background, car) of the last placed_cars whose body holds no point of the cloud
@@ -309,14 +315,32 @@ class RealScanner:
         """The sample's cars standing on the real ground, or InvalidSample naming what a car
         would intersect: the ego car, another car, or a real object of the scan."""
         bg = self.background(sample.background)
-        placed = [place(c, FIRST_CAR_INSTANCE + i) for i, c in enumerate(sample.cars)]
+        placed = [replace(place(c, FIRST_CAR_INSTANCE + i), cls=self.sim.model_class(c.model))
+                  for i, c in enumerate(sample.cars)]
         check_placement(placed, [self.sim.footprint(c) for c in placed], Obstacles.of(()))
+        for i, car in enumerate(placed):
+            on = self.surfaces[i] if i < len(self.surfaces) else "any"
+            if on != "any":
+                check_surface(i + 1, car, on, self.surface(bg, car.x, car.y))
         settled = [self.settle(bg, c) for c in placed]
         self._empty_bodies = set()
         for i, car in enumerate(settled):
             if self.check_collision(bg, car, i + 1) == 0:
                 self._empty_bodies.add((id(bg), car))
         return settled
+
+    def surface(self, bg: RealBackground, x: float, y: float) -> str:
+        """What the scan's labels say the ground at (x, y) is: the most common of road (road,
+        parking, lane marking), sidewalk and other ground among the ground points within
+        SURFACE_REACH_M; "unlabelled ground" where none lies there."""
+        rows = bg.cloud.near(x, y, SURFACE_REACH_M)
+        if bg.cloud.semantic is None or not len(rows):
+            return "unlabelled ground"
+        p = bg.cloud.points[rows]
+        sem = bg.cloud.semantic[rows][np.hypot(p[:, 0] - x, p[:, 1] - y) <= SURFACE_REACH_M]
+        votes = {name: int(np.isin(sem, ids).sum()) for name, ids in SURFACE_IDS.items()}
+        best = max(votes, key=lambda k: votes[k])
+        return best if votes[best] else "unlabelled ground"
 
     def _box(self, car: PlacedCar) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """The car model's bounding box in its own frame: lowest and highest corner, the eight
@@ -645,5 +669,6 @@ def scanner_for(space: Space, sensor: Sensor | None = None, lod: int = 2):
             refuse_effects(sensor, [n for n in EFFECT_DIMS if n in space.dims])
         except ConfigError as exc:
             raise ConfigError(f"{space.source}: {exc}") from None
-        return RealScanner(sensor, space.real_backgrounds, space.user_cars, lod=lod)
-    return Simulator(sensor, space.user_cars, lod=lod)
+        return RealScanner(sensor, space.real_backgrounds, space.user_cars, lod=lod,
+                           surfaces=space.surfaces)
+    return Simulator(sensor, space.user_cars, lod=lod, surfaces=space.surfaces)

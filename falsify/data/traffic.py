@@ -89,7 +89,7 @@ def drive_scene(index: int, seed: int, sim: simulator.Simulator, bg_id: int,
         car = _other_car(rng, lanes, ego_lane, float(ego_x), direction, 1 + len(placed))
         outline = sim.footprint(car)
         try:
-            simulator.check_placement([*placed, car], [*outlines, outline], obstacles, ego)
+            simulator.check_placement([*placed, car], [*outlines, outline], obstacles, ego=ego)
         except simulator.InvalidSample:
             continue
         placed.append(car)

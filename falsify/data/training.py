@@ -129,7 +129,7 @@ def scene_for(index: int, seed: int, sim: Simulator,
                         cls=UNKNOWN if other else CAR, paint=paint)
         outline = sim.footprint(car)
         try:
-            check_placement([*placed, car], [*outlines, outline], obstacles, ego)
+            check_placement([*placed, car], [*outlines, outline], obstacles, ego=ego)
         except InvalidSample:
             continue
         placed.append(car)

@@ -48,6 +48,7 @@ from falsify.results.store import (
 from falsify.sampler import NLOPT_ALGORITHMS, make_sampler
 from falsify.sampler.base import BATCH, Sampler, SearchResult
 from falsify.sensor.lidar import load_sensor
+from falsify.world.actors import model_semantic
 from falsify.world.cars import load_user_car
 from falsify.world.space import Space, load_space
 
@@ -73,7 +74,8 @@ class RunRequest:
     model: str | None = None     # a model file, a bundled name, or a plug-in MODULE:FACTORY
     backend: str = "onnx"        # "python" is set for a plug-in
     device: str = "cpu"          # "cpu" or "cuda": where the network runs
-    objective: str = "car"       # a class the model predicts, or "miou": what the sampler minimises
+    objective: str | None = None  # a class the model predicts, or "miou": what the sampler
+    #                               minimises (None: the placed actors' class)
     workers: int = 1
     resume: bool = False
     threshold: float | None = None
@@ -154,7 +156,9 @@ def prepare(req: RunRequest) -> Prepared:
     threads = 2 if req.workers == 1 else 1
     # Open the model once here: a missing, corrupt or mismatched model fails before any sample.
     seg = load_segmenter(model, backend=backend, threads=threads, device=req.device)
-    scoring = Scoring.of(list(seg.spec.classes), req.objective)
+    objective = req.objective or Scoring.placed_class(
+        list(seg.spec.classes), (model_semantic(m, space.user_cars) for m in space.models()))
+    scoring = Scoring.of(list(seg.spec.classes), objective)
     if space.real_backgrounds:   # inserted and real objects scored apart as well
         scoring = replace(scoring, parts=True)
     settings = EvalSettings(space=space, model=model, backend=backend, threads=threads,

@@ -16,7 +16,7 @@ import numpy as np
 
 from falsify.classes import CAR, CLASSES
 from falsify.errors import ConfigError
-from falsify.semantic import TRAIN_CLASSES
+from falsify.semantic import TRAIN_CLASSES, kitti4, train_ids
 
 
 class Status(StrEnum):
@@ -158,6 +158,21 @@ class Scoring:
             raise ConfigError(f"--objective: {objective!r} is not a class this model "
                               f"predicts; allowed: {', '.join(allowed)}")
         return cls(classes, scored, objective)
+
+    @staticmethod
+    def placed_class(mapped: Sequence[str], semantics: Iterable[int]) -> str:
+        """The class a run scores by default: that of the placed objects (raw SemanticKITTI
+        ids), in the model's classes (four-class or SemanticKITTI's); ConfigError when they
+        are of several classes or of one the model counts as unknown."""
+        ids = np.array(sorted(set(semantics)), np.int64)
+        four = all(n in CLASSES for n in mapped)
+        names = sorted({CLASSES[c] for c in kitti4(ids)} if four
+                       else {TRAIN_CLASSES[c] for c in train_ids(ids)})
+        if len(names) == 1 and names[0] not in ("unknown", "unlabeled"):
+            return names[0]
+        raise ConfigError("--objective: the placed actors are " + ", ".join(names) + " in this "
+                          "model's classes; name the class to minimise (allowed: " + ", ".join(
+                              n for n in mapped if n not in ("unknown", "unlabeled")) + ", miou)")
 
     @property
     def semantic(self) -> bool:

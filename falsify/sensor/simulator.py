@@ -20,12 +20,13 @@ from typing import Protocol
 
 import numpy as np
 
+import falsify.world.actors as actors
 import falsify.world.cars as cars
 import falsify.world.road_users as road_users
 import falsify.world.streets as streets
 from falsify.classes import CAR
 from falsify.rotations import rot_x, rot_y, rot_z
-from falsify.semantic import RAW_ID
+from falsify.semantic import kitti4
 from falsify.sensor.lidar import Sensor, SensorPose
 from falsify.sensor.raycast import MeshCaster, cast_through
 from falsify.sensor.returns import load_return_model
@@ -184,12 +185,15 @@ class Simulator:
     """Holds the expensive state (BVHs, background hits) warm across many samples.
 
     `background_source` builds a background from its id (default: the procedural streets);
-    `max_bvh` backgrounds' BVHs and `max_hits` cached (background, pose) casts are kept."""
+    `max_bvh` backgrounds' BVHs and `max_hits` cached (background, pose) casts are kept;
+    `surfaces` says per placed object where it must stand ("any", "road", "sidewalk")."""
 
     def __init__(self, sensor: Sensor, user_cars: dict[str, UserCar] | None = None,
                  lod: int = 2, max_bvh: int = 2, max_hits: int = 256,
-                 background_source: Callable[[int], streets.Background] | None = None):
+                 background_source: Callable[[int], streets.Background] | None = None,
+                 surfaces: tuple[str, ...] = ()):
         self.sensor = sensor
+        self.surfaces = surfaces   # per placed object k, where it must stand (Space.surfaces)
         self.user_cars = dict(user_cars or {})
         self.lod = lod
         self._bvh: OrderedDict[int, tuple[_Caster, object]] = OrderedDict()
@@ -210,11 +214,10 @@ class Simulator:
         if model in self.user_cars:
             u = self.user_cars[model]
             return cars.load_user_car(u.file, u.scale, u.forward, u.up)
-        if model in road_users.OTHER_VEHICLES:
+        if model in road_users.OTHER_VEHICLES or model in actors.BUILTIN_ACTORS:
             import trimesh
 
-            v, f, _ = road_users.vehicle_model(model)
-            return trimesh.Trimesh(v, f, process=False)
+            return trimesh.Trimesh(*self.car_arrays(model), process=False)
         return cars.car_mesh(model, lod=self.lod)
 
     def car_arrays(self, model: str) -> tuple[np.ndarray, np.ndarray]:
@@ -225,6 +228,8 @@ class Simulator:
             return np.asarray(mesh.vertices), np.asarray(mesh.faces)
         if model in road_users.OTHER_VEHICLES:
             return road_users.vehicle_model(model)[:2]
+        if model in actors.BUILTIN_ACTORS:
+            return actors.actor_model(model)[:2]
         v, f, _ = cars.car_parts(model, self.lod)
         return v, f
 
@@ -234,14 +239,24 @@ class Simulator:
             return np.full(len(self.car_arrays(model)[1]), mid("paint mid"), np.uint8)
         if model in road_users.OTHER_VEHICLES:
             return road_users.vehicle_model(model)[2]
+        if model in actors.BUILTIN_ACTORS:
+            return actors.actor_model(model)[2]
         return cars.car_parts(model, self.lod)[2]
 
     def car_semantic(self, car: PlacedCar) -> int:
-        """The raw SemanticKITTI id a placed car's points carry: its kind's for the other
-        vehicles' models (truck, bus, other-vehicle), as car_mesh picks their mesh; else car."""
-        if car.model not in self.user_cars and car.model in road_users.OTHER_VEHICLES:
-            return road_users.OTHER_VEHICLE_SEMANTIC[car.model]
-        return RAW_ID["car"]
+        """The raw SemanticKITTI id a placed object's points carry (model_semantic)."""
+        return self.model_semantic(car.model)
+
+    def model_semantic(self, model: str) -> int:
+        """The raw SemanticKITTI id of a model's points (actors.model_semantic)."""
+        return actors.model_semantic(model, self.user_cars)
+
+    def model_class(self, model: str) -> int:
+        """A model's class in the four-class view: kitti4 of its id, but car for the other
+        vehicles' model names (traffic and training scenes count what they place as car)."""
+        if model in road_users.OTHER_VEHICLES and model not in self.user_cars:
+            return CAR
+        return int(kitti4(np.array([self.model_semantic(model)]))[0])
 
     def car_caster(self, model: str) -> tuple[_Caster, np.ndarray]:
         """The car's BVH in its own frame and its bounding box corners (8×3)."""
@@ -463,10 +478,28 @@ class Simulator:
     # -- samples --------------------------------------------------------------------------
     def placed_cars(self, sample: Sample) -> list[PlacedCar]:
         """The sample's cars in the world, or InvalidSample naming what they would intersect."""
-        placed = [place(c, FIRST_CAR_INSTANCE + i) for i, c in enumerate(sample.cars)]
+        placed = [replace(place(c, FIRST_CAR_INSTANCE + i), cls=self.model_class(c.model))
+                  for i, c in enumerate(sample.cars)]
         check_placement(placed, [self.footprint(c) for c in placed],
-                        self.obstacles(sample.background))
-        return [self.settle(sample.background, c) for c in placed]
+                        self.obstacles(sample.background), self.crosses_kerbs(placed))
+        settled = [self.settle(sample.background, c) for c in placed]
+        for i, car in enumerate(settled):
+            on = self.surfaces[i] if i < len(self.surfaces) else "any"
+            if on != "any":
+                check_surface(i + 1, car, on, self.surface(sample.background, car.x, car.y))
+        return settled
+
+    def crosses_kerbs(self, placed: Sequence[PlacedCar]) -> list[bool]:
+        """Per placed object, whether it may stand beyond the kerb (people and bicycles)."""
+        return [int(self.model_semantic(p.model)) in actors.KERB_CROSSING_IDS for p in placed]
+
+    def surface(self, bg_id: int, x: float, y: float) -> str:
+        """What the ground at world (x, y) is: "road", "sidewalk" or "terrain" (the street's
+        kerb and sidewalk lines; a background without terrain is all road)."""
+        if bg_id not in self._terrain:
+            self.background(bg_id)
+        t = self._terrain[bg_id]
+        return "road" if t is None else t.surface(x, y)
 
     def settle(self, bg_id: int, car: PlacedCar) -> PlacedCar:
         """The car standing on the background's ground (z, pitch, roll from its wheelbase)."""
@@ -533,15 +566,18 @@ class Obstacles:
 
 
 def check_placement(placed: Sequence[PlacedCar], outlines: Sequence[np.ndarray],
-                    obstacles: Obstacles, ego: np.ndarray = EGO_FOOTPRINT) -> None:
-    """Raise InvalidSample if car outlines overlap each other, the ego car or an obstacle."""
+                    obstacles: Obstacles, crosses_kerbs: Sequence[bool] | None = None,
+                    ego: np.ndarray = EGO_FOOTPRINT) -> None:
+    """Raise InvalidSample if car outlines overlap each other, the ego car or an obstacle (the
+    kerbs' outlines left out for the objects in `crosses_kerbs`: people and bicycles)."""
     for i, (car, poly) in enumerate(zip(placed, outlines, strict=True)):
         if polygons_overlap(poly, ego):
             raise InvalidSample(f"car {i + 1} ({car.model}) intersects the ego vehicle")
         for j in range(i):
             if polygons_overlap(poly, outlines[j]):
                 raise InvalidSample(f"car {i + 1} ({car.model}) intersects car {j + 1}")
-        obstacle = first_overlap(poly, obstacles)
+        kerbless = crosses_kerbs is not None and crosses_kerbs[i]
+        obstacle = first_overlap(poly, obstacles, skip_kerbs=kerbless)
         if obstacle is not None:
             raise InvalidSample(f"car {i + 1} ({car.model}) intersects the background's "
                                 f"{obstacle.label}")
@@ -561,14 +597,23 @@ def free_ego(sim: Simulator, bg_id: int, draw: Callable[[], SensorPose],
     raise InvalidSample(f"{what}: no free ego pose on background {bg_id} in {EGO_TRIES} draws")
 
 
-def first_overlap(poly: np.ndarray, obstacles: Obstacles):
-    """The first of the background's obstacles that the outline `poly` overlaps, or None."""
+def first_overlap(poly: np.ndarray, obstacles: Obstacles, skip_kerbs: bool = False):
+    """The first of the background's obstacles that the outline `poly` overlaps, or None;
+    `skip_kerbs` leaves out the kerbs' outlines (what stops a vehicle, not a person)."""
     lo, hi = poly.min(axis=0), poly.max(axis=0)
     near = np.flatnonzero(~((obstacles.lo > hi).any(axis=1) | (obstacles.hi < lo).any(axis=1)))
     for k in near:
+        if skip_kerbs and obstacles.items[k].label.startswith(streets.KERB_OBSTACLE):
+            continue
         if polygons_overlap(poly, obstacles.items[k].polygon):
             return obstacles.items[k]
     return None
+
+
+def check_surface(number: int, car: PlacedCar, on: str, found: str) -> None:
+    """InvalidSample naming the object and the surface it stands on unless that is `on`."""
+    if found != on:
+        raise InvalidSample(f"actor {number} ({car.model}) stands on {found}, not on the {on}")
 
 
 def ego_outline(pose: SensorPose) -> np.ndarray:

@@ -1,9 +1,13 @@
 """The modification space: dimensions read from a TOML config, validated, and the samples in it.
 
-A config names the sensor preset and one table per dimension. Car 1 is described by `car_model`,
-`x`, `y`, `yaw`; car k >= 2 by `car_model_k`, `x_k`, `y_k`, `yaw_k` (defaulting to car 1's
-ranges). `count` says how many cars a sample holds, `background` which street it stands on, and
-image-only dims (`colour`, `weather`, `time_of_day`) are carried along but never change a scan.
+A config names the sensor preset and one table per dimension. The object under test 1 is
+described by `actor` (or its older name `car_model`: a config keeps the name it uses, and its
+bytes), `x`, `y`, `yaw`; object k >= 2 by `actor_k`, `x_k`, `y_k`, `yaw_k` (defaulting to
+object 1's ranges). An actor is a built-in car model, a built-in road user
+(falsify.world.actors) or a user mesh (`[car_models.NAME]`, or `[actors.NAME]` with its
+SemanticKITTI `class`); `on` in its table says where it must stand. `count` says how many
+objects a sample holds, `background` which street it stands on, and image-only dims
+(`colour`, `weather`, `time_of_day`) are carried along but never change a scan.
 Effect dims (EFFECT_DIMS: `fog`, `rain`, `snow`, `wet_road`, `beam_loss`, `beams`, `crosstalk`,
 `ego_speed`) are weather and faults in physical units that the sensor applies to each ray after
 casting (falsify.sensor.weather); absent or 0 is today's clear scan.
@@ -26,7 +30,8 @@ from falsify.paths import config_path
 
 CONTINUOUS_BASE = ("x", "y", "yaw")
 IMAGE_ONLY = ("colour", "weather", "time_of_day")
-TOP_KEYS = {"name", "description", "sensor", "seed", "threshold", "dims", "car_models"}
+TOP_KEYS = {"name", "description", "sensor", "seed", "threshold", "dims", "car_models", "actors"}
+MODEL_DIMS = ("actor", "car_model")   # the object dim's name, and its older alias
 MAX_CARS = 8
 # How far a coordinate may reach: metres for x and y (far beyond any sensor's range), degrees
 # for yaw (one turn either way; the scene wraps any angle, a config needs no more).
@@ -34,6 +39,10 @@ LIMITS = {"x": 1000.0, "y": 1000.0, "yaw": 360.0}
 MAX_VALUES = 1_000_000   # values one dim may list or range over
 DEFAULT_THRESHOLD = 0.65   # mIoU below which a cell is a blind spot (the paper's)
 CAR_FILE_KEYS = {"file", "scale", "forward", "up"}
+ACTOR_FILE_KEYS = CAR_FILE_KEYS | {"class"}
+# The SemanticKITTI classes a user's actor may declare: the things a road holds.
+ACTOR_CLASSES = ("car", "truck", "bus", "other-vehicle", "motorcycle", "bicycle", "person",
+                 "bicyclist", "motorcyclist", "other-object")
 # Weather and sensor faults on the LiDAR: name -> (lowest, highest, unit, whole numbers only).
 # 0 is no effect; fog is the meteorological visibility (0 = no fog, small = dense).
 EFFECT_DIMS: dict[str, tuple[float, float, str, bool]] = {
@@ -102,13 +111,15 @@ Dim = Continuous | Categorical
 
 @dataclass(frozen=True)
 class UserCar:
-    """A car model the user brings as a mesh file."""
+    """A car model or actor the user brings as a mesh file, with the raw SemanticKITTI id its
+    points carry (car for `[car_models.*]`)."""
 
     name: str
     file: Path
     scale: float = 1.0
     forward: str = "+x"
     up: str = "+z"
+    semantic: int = 10
 
 
 @dataclass(frozen=True)
@@ -167,9 +178,10 @@ class Sample:
         out = []
         for k in range(1, self.count + 1):
             sfx = "" if k == 1 else f"_{k}"
+            model = self.get("actor" + sfx)
             out.append(
                 CarPose(
-                    model=str(self["car_model" + sfx]),
+                    model=str(self["car_model" + sfx] if model is None else model),
                     x=float(self["x" + sfx]),
                     y=float(self["y" + sfx]),
                     yaw=float(self["yaw" + sfx]),
@@ -202,6 +214,21 @@ class Space:
     config_hash: str = ""
     # Real scans as backgrounds (`[dims.background] real = [...]`): background k is the k-th.
     real_backgrounds: tuple[RealScan, ...] = ()
+    # Where object k must stand ("any", "road", "sidewalk"), for k = 1..max count; () is any.
+    surfaces: tuple[str, ...] = ()
+
+    @property
+    def model_dim(self) -> str:
+        """The name of object 1's model dim: "actor", or "car_model" in older configs."""
+        return "actor" if "actor" in self.dims else "car_model"
+
+    def models(self) -> tuple[str, ...]:
+        """Every model the space may place, over all objects' model dims, in first-seen order."""
+        out: dict[str, None] = {}
+        for name, dim in self.dims.items():
+            if car_index(name) and name.startswith(self.model_dim):
+                out.update((str(v), None) for v in dim.values)
+        return tuple(out)
 
     def require_streets(self, what: str) -> None:
         """ConfigError unless the backgrounds are our streets: `what` renders or rebuilds the
@@ -317,7 +344,7 @@ class Space:
 
 def car_index(name: str) -> int:
     """1 for car 1's dims, k for `*_k`, 0 for dims that are not per car."""
-    for base in ("car_model", *CONTINUOUS_BASE):
+    for base in (*MODEL_DIMS, *CONTINUOUS_BASE):
         if name == base:
             return 1
         if name.startswith(base + "_") and name[len(base) + 1:].isdigit():
@@ -370,17 +397,25 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
     if not 0.0 < threshold <= 1.0:
         raise ConfigError(f"{where}threshold: {threshold} must be in (0, 1]")
 
-    user_cars = _user_cars(raw.get("car_models", {}), where, base_dir or Path("."), builtin_cars)
-    models = (*builtin_cars, *user_cars)
+    from falsify.world.actors import ACTOR_NAMES
+    user_cars = _user_cars(raw.get("car_models", {}), where, base_dir or Path("."),
+                           (*builtin_cars, *ACTOR_NAMES))
+    user_cars |= _user_cars(raw.get("actors", {}), where, base_dir or Path("."),
+                            (*builtin_cars, *ACTOR_NAMES, *user_cars), table="actors")
+    models = (*builtin_cars, *ACTOR_NAMES, *user_cars)
 
     dims_raw = raw.get("dims")
     if not isinstance(dims_raw, dict):
-        raise ConfigError(f"{where}missing table [dims] (with car_model, x, y, yaw, count, "
+        raise ConfigError(f"{where}missing table [dims] (with actor, x, y, yaw, count, "
                           "background)")
-    for required in ("car_model", "x", "y", "background"):
+    if all(m in dims_raw for m in MODEL_DIMS):
+        raise ConfigError(f"{where}dims.car_model: the older name of dims.actor; give one of "
+                          "them, not both")
+    model_dim = "car_model" if "car_model" in dims_raw else "actor"
+    for required in (model_dim, "x", "y", "background"):
         if required not in dims_raw:
-            raise ConfigError(f"{where}dims.{required} is missing; required dims: car_model, x, "
-                              "y, background (yaw and count default to 0 and 1)")
+            raise ConfigError(f"{where}dims.{required} is missing; required dims: actor (or "
+                              "car_model), x, y, background (yaw and count default to 0 and 1)")
     dims_raw = dict(dims_raw)
     dims_raw.setdefault("yaw", {"values": [0.0]})
     dims_raw.setdefault("count", {"values": [1]})
@@ -391,24 +426,28 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
             raise ConfigError(f"{where}dims.count: {c} must be between 1 and {MAX_CARS}")
     max_count = max(int(c) for c in count.values)
 
-    allowed = {"car_model", *CONTINUOUS_BASE, "count", "background", *IMAGE_ONLY, *EFFECT_DIMS}
+    allowed = {model_dim, *CONTINUOUS_BASE, "count", "background", *IMAGE_ONLY, *EFFECT_DIMS}
     for k in range(2, max_count + 1):
-        allowed |= {f"car_model_{k}", *(f"{b}_{k}" for b in CONTINUOUS_BASE)}
+        allowed |= {f"{model_dim}_{k}", *(f"{b}_{k}" for b in CONTINUOUS_BASE)}
     unknown = sorted(set(dims_raw) - allowed)
     if unknown:
         raise ConfigError(f"{where}unknown dim dims.{unknown[0]}; allowed: "
                           f"{', '.join(sorted(allowed))}")
 
     dims: dict[str, Dim] = {}
+    surfaces: list[str] = []
     for k in range(1, max_count + 1):
         sfx = "" if k == 1 else f"_{k}"
-        spec = dims_raw.get("car_model" + sfx, dims_raw["car_model"])
-        dim = _categorical("car_model" + sfx, spec, where, str)
+        spec = dims_raw.get(model_dim + sfx, dims_raw[model_dim])
+        on, spec = _surface(spec, f"{where}dims.{model_dim}{sfx}")
+        surfaces.append(on)
+        dim = _categorical(model_dim + sfx, spec, where, str)
         for v in dim.values:
             if v not in models:
-                raise ConfigError(f"{where}dims.car_model{sfx}: unknown car model {v!r}; "
+                what = "car model" if model_dim == "car_model" else "actor"
+                raise ConfigError(f"{where}dims.{model_dim}{sfx}: unknown {what} {v!r}; "
                                   f"allowed: {', '.join(models)}")
-        dims["car_model" + sfx] = dim
+        dims[model_dim + sfx] = dim
         for base in CONTINUOUS_BASE:
             spec = dims_raw.get(base + sfx, dims_raw[base])
             dims[base + sfx] = _continuous_or_values(base + sfx, spec, where)
@@ -436,9 +475,28 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
     for effect in EFFECT_DIMS:
         if effect in dims_raw:
             dims[effect] = _continuous_or_values(effect, dims_raw[effect], where)
+    if any(on != "any" for on in surfaces):
+        unlabelled = [r.name for r in real if r.kind != "semantickitti"]
+        if unlabelled:
+            raise ConfigError(f"{where}dims.{model_dim}.on: {surfaces[0]!r} reads where the road "
+                              f"and sidewalk are from SemanticKITTI labels; background "
+                              f"{unlabelled[0]!r} has none (use on = \"any\")")
     return Space(name=name, sensor=sensor, seed=seed, threshold=threshold, dims=dims,
                  user_cars=user_cars, source=source, config_hash=config_hash,
-                 real_backgrounds=real)
+                 real_backgrounds=real,
+                 surfaces=tuple(surfaces) if any(on != "any" for on in surfaces) else ())
+
+
+def _surface(spec: Any, key: str) -> tuple[str, Any]:
+    """An actor dim's `on` (default "any") and its table without it; ConfigError names an
+    unknown surface with the allowed ones."""
+    from falsify.world.actors import SURFACES
+    if not isinstance(spec, dict) or "on" not in spec:
+        return "any", spec
+    on = spec["on"]
+    if on not in SURFACES:
+        raise ConfigError(f"{key}.on: {on!r}; allowed: {', '.join(SURFACES)}")
+    return on, {k: v for k, v in spec.items() if k != "on"}
 
 
 def _real_backgrounds(spec: dict, where: str, base_dir: Path) -> tuple[RealScan, ...]:
@@ -591,20 +649,34 @@ def _continuous_or_values(name: str, spec: Any, where: str) -> Dim:
     return dim
 
 
-def _user_cars(raw: Any, where: str, base_dir: Path, builtin: tuple[str, ...]) -> dict:
+def _user_cars(raw: Any, where: str, base_dir: Path, builtin: tuple[str, ...],
+               table: str = "car_models") -> dict:
+    """`[car_models.NAME]` (cars) or `[actors.NAME]` (with a SemanticKITTI `class`) tables as
+    UserCars; ConfigError names a bad key, a taken name or a missing class."""
     if not isinstance(raw, dict):
-        raise ConfigError(f"{where}car_models: expected tables like [car_models.mine] file = ...")
+        raise ConfigError(f"{where}{table}: expected tables like [{table}.mine] file = ...")
+    keys = ACTOR_FILE_KEYS if table == "actors" else CAR_FILE_KEYS
     out: dict[str, UserCar] = {}
     for name, spec in raw.items():
-        key = f"car_models.{name}"
+        key = f"{table}.{name}"
         if name in builtin:
-            raise ConfigError(f"{where}{key}: {name!r} is a built-in model; choose another name")
+            raise ConfigError(f"{where}{key}: {name!r} is a built-in or declared model; choose "
+                              "another name")
         if not isinstance(spec, dict) or "file" not in spec:
             raise ConfigError(f"{where}{key}: needs file = 'path/to/mesh' (OBJ, STL, PLY, GLB)")
-        extra = sorted(set(spec) - CAR_FILE_KEYS)
+        extra = sorted(set(spec) - keys)
         if extra:
             raise ConfigError(f"{where}{key}: unknown key {extra[0]!r}; allowed: "
-                              f"{', '.join(sorted(CAR_FILE_KEYS))}")
+                              f"{', '.join(sorted(keys))}")
+        semantic = 10
+        if table == "actors":
+            cls = spec.get("class")
+            if cls not in ACTOR_CLASSES:
+                raise ConfigError(f"{where}{key}.class: " + (
+                    "missing" if cls is None else repr(cls)) + "; a user's actor declares its "
+                    f"SemanticKITTI class, one of: {', '.join(ACTOR_CLASSES)}")
+            from falsify.semantic import RAW_ID
+            semantic = RAW_ID[cls]
         scale = spec.get("scale", 1.0)
         if isinstance(scale, bool) or not isinstance(scale, int | float) or not (
                 math.isfinite(scale) and scale > 0):
@@ -618,5 +690,5 @@ def _user_cars(raw: Any, where: str, base_dir: Path, builtin: tuple[str, ...]) -
         if not file.is_absolute():
             file = base_dir / file
         out[name] = UserCar(name, file, float(scale), spec.get("forward", "+x"),
-                            spec.get("up", "+z"))
+                            spec.get("up", "+z"), semantic)
     return out

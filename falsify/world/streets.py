@@ -45,6 +45,7 @@ from falsify.world.road_users import (
 from falsify.world.terrain import Terrain, draw_terrain, terrain_meshes
 
 MAX_BACKGROUND_ID: int = 999_999
+KERB_OBSTACLE: str = "curb"   # the label the kerbs' obstacle outlines start with
 ROAD_X: tuple[float, float] = (-170.0, 230.0)  # road, sidewalks and terrain span this x range
 FREE_ZONE: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 25.0), (-8.5, 7.5))
 SENSOR_CLEARANCE: float = 3.0  # metres around (0, 0) holding nothing but road
@@ -254,9 +255,9 @@ def _ground(st: _Street, lay: _Layout) -> None:
     for k, (u, v) in enumerate(zip(br[:-1], br[1:], strict=False)):
         ku, kv = float(t.kerb(u)), float(t.kerb(v))
         tag = "" if k == 0 else f" {k}"
-        st.obstacles.append(Footprint(f"curb left{tag}", np.array(
+        st.obstacles.append(Footprint(f"{KERB_OBSTACLE} left{tag}", np.array(
             [[u, ku], [v, kv], [v, far], [u, far]], dtype=np.float64)))
-        st.obstacles.append(Footprint(f"curb right{tag}", np.array(
+        st.obstacles.append(Footprint(f"{KERB_OBSTACLE} right{tag}", np.array(
             [[u, -far], [v, -far], [v, -kv], [u, -ku]], dtype=np.float64)))
 
 

@@ -118,6 +118,15 @@ class Terrain:
         rough = s.noise * np.clip(u / 0.6, 0.0, 1.0) * self._roughness(x, side * u)
         return base + hills + rough
 
+    def surface(self, x: float, y: float) -> str:
+        """What the ground at (x, y) is: "road" inside the kerbs, "sidewalk" out to the
+        sidewalk's back edge (kerb faces count as sidewalk, as SemanticKITTI labels them), else
+        "terrain"."""
+        kerb = float(self.kerb(x))
+        if abs(y) < kerb:
+            return "road"
+        return "sidewalk" if abs(y) <= kerb + self.sidewalk[0 if y > 0 else 1] else "terrain"
+
     def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Ground height at world (x, y): road, sidewalks, then the roadside profiles."""
         x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
