@@ -255,6 +255,8 @@ def write_config(path, extra: str, ys: str = "9.0, 13.0") -> str:
     ("[dims.wet_road]\nvalues = [inf]\n", "dims.wet_road"),
     ("[dims.beam_loss]\nvalues = [2.5]\n", "dims.beam_loss"),
     ("[dims.beams]\nvalues = [200]\n", "dims.beams"),
+    ("[dims.beams]\nvalues = [0, 48]\n", "dims.beams: 48 lasers do not divide"),
+    ("[dims.beams]\nmin = 16\nmax = 64\nstep = 16\n", "dims.beams: give values"),
     ("[dims.crosstalk]\nvalues = [\"many\"]\n", "dims.crosstalk"),
     ("[dims.ego_speed]\nvalues = [-30.0]\n", "dims.ego_speed"),
     ("[dims.fogg]\nvalues = [50.0]\n", "dims.fogg"),
@@ -273,7 +275,7 @@ SEARCH_DIMS = (
     "[dims.snow]\nmin = 0.0\nmax = 5.0\nstep = 1.0\n"
     "[dims.wet_road]\nmin = 0.0\nmax = 3.0\nstep = 1.0\n"
     "[dims.beam_loss]\nmin = 0\nmax = 16\nstep = 4\n"
-    "[dims.beams]\nmin = 16\nmax = 64\nstep = 16\n"
+    "[dims.beams]\nvalues = [16, 32, 64]\n"
     "[dims.crosstalk]\nmin = 0\nmax = 2000\nstep = 500\n"
     "[dims.ego_speed]\nmin = 0.0\nmax = 120.0\nstep = 30.0\n")
 
@@ -282,7 +284,7 @@ SEARCH_DIMS = (
     (["grid", "--max-samples", "8"], None),
     (["search", "--algorithm", "random", "--budget", "4"], 4),
     (["search", "--algorithm", "sobol", "--budget", "4"], 4),
-    (["search", "--algorithm", "LN_COBYLA", "--budget", "9"], 9),
+    (["search", "--algorithm", "LN_COBYLA", "--budget", "27"], 27),   # 9 per beams value
 ])
 def test_samplers_search_the_effect_dims(tmp_path, args, rows):
     if args[0] == "grid":   # a grid of 2 positions x 2 x 2 over two effect dims
@@ -290,7 +292,8 @@ def test_samplers_search_the_effect_dims(tmp_path, args, rows):
                            "[dims.beam_loss]\nmin = 0\nmax = 8\nstep = 8\n")
         cmd = ["grid", cfg, *args[1:]]
     else:
-        # One position: NLopt's one run walks all eight effect dims from the box's centre.
+        # One position: NLopt's run per beams value walks the seven continuous effect dims
+        # from the box's centre.
         cfg = write_config(tmp_path / "w.toml", SEARCH_DIMS, ys="9.0")
         cmd = ["search", cfg, *args[1:]]
     run = tmp_path / "run"
@@ -309,6 +312,7 @@ def test_samplers_search_the_effect_dims(tmp_path, args, rows):
         if hi is not None:
             assert col.max() <= hi + 1e-9
         assert col.nunique() > 1, name   # the sampler moved along every effect dim
+    assert set(frame["beams"]) <= {16, 32, 64}   # lasers that divide the sensor's 64
     assert frame["status"].isin(["ok", "undefined"]).all()
 
 

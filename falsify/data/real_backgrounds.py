@@ -57,6 +57,7 @@ from falsify.sensor.weather import (
     NOMINAL_INTENSITY,
     Echoes,
     Effects,
+    check_beams,
     effect_seed,
     effects_of,
     stream,
@@ -664,6 +665,7 @@ def scanner_for(space: Space, sensor: Sensor | None = None, lod: int = 2):
     else a Simulator of its streets."""
     from falsify.sensor.lidar import load_sensor
     sensor = sensor or load_sensor(space.sensor)
+    check_beams(space, sensor)
     if space.real_backgrounds:
         try:
             refuse_effects(sensor, [n for n in EFFECT_DIMS if n in space.dims])

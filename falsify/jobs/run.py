@@ -48,6 +48,7 @@ from falsify.results.store import (
 from falsify.sampler import NLOPT_ALGORITHMS, make_sampler
 from falsify.sampler.base import BATCH, Sampler, SearchResult
 from falsify.sensor.lidar import load_sensor
+from falsify.sensor.weather import check_beams
 from falsify.world.actors import model_semantic
 from falsify.world.cars import load_user_car
 from falsify.world.space import Space, load_space
@@ -164,6 +165,7 @@ def prepare(req: RunRequest) -> Prepared:
     settings = EvalSettings(space=space, model=model, backend=backend, threads=threads,
                             lod=fid.lod, device=req.device, scoring=scoring)
     sensor = load_sensor(space.sensor)
+    check_beams(space, sensor)
     seg.spec.check_fits(sensor, req.model or "bundled")
     for car in space.user_cars.values():   # a missing or broken mesh fails before the run dir
         load_user_car(car.file, car.scale, car.forward, car.up)

@@ -254,7 +254,8 @@ class Simulator:
     def model_class(self, model: str) -> int:
         """A model's class in the four-class view: kitti4 of its id, but car for the other
         vehicles' model names (traffic and training scenes count what they place as car)."""
-        if model in road_users.OTHER_VEHICLES and model not in self.user_cars:
+        if (model in road_users.OTHER_VEHICLES and model not in self.user_cars
+                and model not in actors.BUILTIN_ACTORS):
             return CAR
         return int(kitti4(np.array([self.model_semantic(model)]))[0])
 

@@ -41,6 +41,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from falsify.errors import ConfigError
 from falsify.rotations import rot_y
 from falsify.sensor.lidar import Sensor
 from falsify.sensor.returns import ReturnModel
@@ -590,6 +591,24 @@ class Weather:
             kept[kept_rows(s.rows, fx.beams)] = True
             valid = valid & kept[:, None]
         return Echoes(r, valid, intensity, cls, inst, sem)
+
+
+def check_beams(space: Space, sensor: Sensor) -> None:
+    """ConfigError naming dims.beams where a value is neither 0 (all lasers) nor a divisor of
+    the sensor's lasers: ring selection (Robo3D's cross-sensor corruption) keeps every k-th."""
+    dim = space.dims.get("beams")
+    if dim is None:
+        return
+    rows = sensor.rows
+    if not isinstance(dim, Categorical):
+        raise ConfigError(f"{space.source}: dims.beams: give values = [...], lasers that divide "
+                          f"{sensor.name}'s {rows}; a range lets a search pick ones that do not")
+    for v in dim.grid():
+        if int(v) and rows % int(v):
+            allowed = [d for d in range(1, rows + 1) if rows % d == 0]
+            raise ConfigError(f"{space.source}: dims.beams: {int(v)} lasers do not divide "
+                              f"{sensor.name}'s {rows}; allowed: 0 (all), "
+                              + ", ".join(map(str, allowed)))
 
 
 def kept_rows(rows: int, beams: int) -> np.ndarray:

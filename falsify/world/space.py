@@ -478,7 +478,8 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
     if any(on != "any" for on in surfaces):
         unlabelled = [r.name for r in real if r.kind != "semantickitti"]
         if unlabelled:
-            raise ConfigError(f"{where}dims.{model_dim}.on: {surfaces[0]!r} reads where the road "
+            on = next(on for on in surfaces if on != "any")
+            raise ConfigError(f"{where}dims.{model_dim}.on: {on!r} reads where the road "
                               f"and sidewalk are from SemanticKITTI labels; background "
                               f"{unlabelled[0]!r} has none (use on = \"any\")")
     return Space(name=name, sensor=sensor, seed=seed, threshold=threshold, dims=dims,
