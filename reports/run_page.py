@@ -243,13 +243,15 @@ def inserted_section(data: RunData, threshold: float) -> str:
             f'<td class="num">{mean(data.score_column)}</td>'
             f'<td class="num">{mean("inserted_iou")} / {mean("inserted_recall")}</td>'
             f'<td class="num">{mean("real_iou")} / {mean("real_recall")}</td></tr>')
+    o = data.objective
+    thing = "car" if o in ("car", "miou") else esc(o)
     return f"""
 <section id="inserted">
-<h2>Inserted and real cars</h2>
-<p class="note">Each sample is a real scan with the car inserted. The inserted car is scored
-with the scan's real cars left out, and the real cars with the inserted one left out, so a map
-of the inserted car shows where the network loses it. A position where the car would stand in a
-real car, wall or tree is invalid, counted and never merged.</p>
+<h2>Inserted and real {thing}s</h2>
+<p class="note">Each sample is a real scan with the {thing} inserted. The inserted {thing} is
+scored with the scan's real {thing}s left out, and the real {thing}s with the inserted one left
+out, so a map of the inserted {thing} shows where the network loses it. A position where the
+{thing} would stand in a real car, wall or tree is invalid, counted and never merged.</p>
 <div class="multiples">{"".join(figs)}</div>
 <table class="small"><thead><tr><th>real scan</th><th>valid</th><th>invalid</th>
 <th>mean {esc(objective_name(data))}</th><th>inserted IoU / recall</th>

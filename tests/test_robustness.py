@@ -37,7 +37,7 @@ REF = {(0.0, 0): 0.9, (100.0, 0): 0.8, (50.0, 0): 0.6, (0.0, 32): 0.7}
 
 def scores(table):
     def iou(s):
-        return table.get((float(s["fog"]), int(s["beams"])), 0.1)
+        return table.get((float(s.get("fog", 0.0)), int(s.get("beams", 0))), 0.1)
     return iou
 
 
@@ -96,3 +96,28 @@ def test_bad_input_is_named(tmp_path, runs, capsys):
     assert main(["robustness", str(mine), "--column", "nope"]) == 2
     assert "--column 'nope'" in capsys.readouterr().err
     assert main(["robustness", str(tmp_path / "missing")]) == 2
+
+
+def one_effect(effect: str, values: str) -> str:
+    """CONFIG with only `effect` among the effect dims (Robo3D's one effect a run)."""
+    head = CONFIG.split("[dims.fog]")[0]
+    return head + f"[dims.{effect}]\nvalues = [{values}]\n"
+
+
+def test_several_runs_one_effect_each_give_the_same_levels(tmp_path, runs, capsys):
+    fog, beams = (one_effect("fog", "0.0, 100.0, 50.0"), one_effect("beams", "0, 32"))
+    mine = [write_run(tmp_path / f"mine-{n}", c, iou=scores(MINE))
+            for n, c in (("fog", fog), ("beams", beams))]
+    ref = [write_run(tmp_path / f"ref-{n}", c, iou=scores(REF))
+           for n, c in (("fog", fog), ("beams", beams))]
+    split = robustness(mine, ref, column="car_iou")
+    product = robustness(runs[0], runs[1], column="car_iou")
+    assert split.mixed_samples == 0 and split.clean_samples == 16   # both runs' clean rows
+    assert split.clean == pytest.approx(product.clean)
+    assert split.mce == pytest.approx(product.mce) and split.mrr == pytest.approx(product.mrr)
+    assert main(["robustness", *map(str, mine), "--reference", *map(str, ref), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["mce"] == pytest.approx(product.mce, abs=1e-4)
+    with pytest.raises(FalsifyError, match="give one reference run per run"):
+        robustness(mine, ref[:1], column="car_iou")
+    with pytest.raises(FalsifyError, match="effect fog is in"):
+        robustness([mine[0], mine[0]], column="car_iou")

@@ -1486,10 +1486,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     ro = sub.add_parser("robustness", help="per effect and severity the network's score, and "
                         "mCE / mRR against a reference network (Robo3D's terms)")
-    ro.add_argument("run", help="run directory of a space with effect dims (0 among each's "
-                    "values: the clean rows)")
-    ro.add_argument("--reference", metavar="RUN",
-                    help="a run of the same space with the reference network (for CE, mCE)")
+    ro.add_argument("run", nargs="+", help="run directories of spaces with effect dims (0 "
+                    "among each's values: the clean rows); several runs, one effect each, pool "
+                    "their clean rows")
+    ro.add_argument("--reference", metavar="RUN", nargs="+",
+                    help="runs of the same spaces, in the same order, with the reference "
+                    "network (for CE, mCE)")
     ro.add_argument("--column", default=None,
                     help="the score (default: inserted_iou on real backgrounds, else the "
                     "run's objective)")

@@ -97,10 +97,9 @@ def score_column(data: RunData, column: str | None) -> str:
     return "inserted_iou" if "inserted_iou" in data.frame.columns else data.score_column
 
 
-def levels_of(data: RunData, column: str) -> tuple[float, int, dict[str, dict[float, tuple]],
+def levels_of(data: RunData, column: str) -> tuple[pd.Series, dict[str, dict[float, pd.Series]],
                                                      int]:
-    """(clean mean, clean rows, {effect: {severity: (mean, rows)}}, mixed rows) over the ok
-    rows with a score."""
+    """(clean scores, {effect: {severity: scores}}, mixed rows) over the ok rows with a score."""
     effects = [d for d in EFFECT_DIMS if d in data.space.dims]
     if not effects:
         raise FalsifyError(f"{data.path}: its space has no effect dim (one of "
@@ -114,52 +113,80 @@ def levels_of(data: RunData, column: str) -> tuple[float, int, dict[str, dict[fl
     if not len(clean):
         raise FalsifyError(f"{data.path}: no row without effects (every effect dim at 0) to "
                            "compare with; add 0 to each effect dim's values")
-    out: dict[str, dict[float, tuple]] = {}
+    out: dict[str, dict[float, pd.Series]] = {}
     for e in effects:
         rows = f[(active == 1) & (values[e] != 0)]
         groups = rows.groupby(values.loc[rows.index, e])[column]
-        out[e] = {float(sev): (float(g.astype(float).mean()), int(len(g)))
-                  for sev, g in groups}
-    return float(clean.mean()), int(len(clean)), out, int((active > 1).sum())
+        out[e] = {float(sev): g.astype(float) for sev, g in groups}
+    return clean, out, int((active > 1).sum())
 
 
-def robustness(run: str | Path, reference: str | Path | None = None,
+def merged_levels(runs: list[RunData], column: str | None
+                  ) -> tuple[pd.Series, dict[str, dict[float, pd.Series]], int]:
+    """levels_of over several runs of one background set (one effect dim each, say), their
+    clean rows pooled; FalsifyError names an effect two runs both hold."""
+    cleans, levels, mixed, owner = [], {}, 0, {}
+    for data in runs:
+        clean, by_effect, m = levels_of(data, score_column(data, column))
+        cleans.append(clean)
+        mixed += m
+        for e, by_sev in by_effect.items():
+            if not by_sev:
+                continue
+            if e in levels:
+                raise FalsifyError(f"{data.path}: effect {e} is in {owner[e]} too; give each "
+                                   "effect in one run")
+            levels[e], owner[e] = by_sev, data.path
+    return pd.concat(cleans), levels, mixed
+
+
+def robustness(run: str | Path | list, reference: str | Path | list | None = None,
                column: str | None = None) -> RobustnessResult:
-    """The run's per-effect levels, CE and RR against `reference` (a run of the same space
-    with another network), mCE and mRR."""
-    data = open_run(run)
-    col = score_column(data, column)
-    clean, n_clean, levels, mixed = levels_of(data, col)
+    """The runs' per-effect levels, CE and RR against `reference` (runs of the same spaces,
+    in the same order, with another network), mCE and mRR. Several runs pool their clean rows
+    and each adds its effects (Robo3D's effects one at a time, without their product)."""
+    runs = [run] if isinstance(run, str | Path) else list(run)
+    refs = (None if reference is None else
+            [reference] if isinstance(reference, str | Path) else list(reference))
+    datas = [open_run(r) for r in runs]
+    col = score_column(datas[0], column)
+    clean_rows, levels, mixed = merged_levels(datas, column)
+    clean = float(clean_rows.mean())
+    name = ", ".join(str(r) for r in runs)
     if clean <= 0:
-        raise FalsifyError(f"{run}: the clean rows' mean {col} is 0; resilience is undefined")
-    ref_levels: dict[str, dict[float, tuple]] = {}
+        raise FalsifyError(f"{name}: the clean rows' mean {col} is 0; resilience is undefined")
+    ref_levels: dict[str, dict[float, pd.Series]] = {}
     ref_clean = None
-    if reference is not None:
-        ref = open_run(reference)
-        if ref.meta.get("config_hash") != data.meta.get("config_hash"):
-            raise FalsifyError(f"--reference {reference}: not a run of the same space as {run} "
-                               "(their config hashes differ)")
-        ref_clean, _, ref_levels, _ = levels_of(ref, score_column(ref, column))
+    if refs is not None:
+        if len(refs) != len(runs):
+            raise FalsifyError(f"--reference: {len(refs)} runs for {len(runs)}; give one "
+                               "reference run per run, in the same order")
+        ref_datas = [open_run(r) for r in refs]
+        for r, d, rd in zip(refs, datas, ref_datas, strict=True):
+            if rd.meta.get("config_hash") != d.meta.get("config_hash"):
+                raise FalsifyError(f"--reference {r}: not a run of the same space as {d.path} "
+                                   "(their config hashes differ)")
+        ref_clean_rows, ref_levels, _ = merged_levels(ref_datas, column)
+        ref_clean = float(ref_clean_rows.mean())
     effects = []
     for e, by_sev in levels.items():
-        if not by_sev:
-            continue
-        lv = tuple(Level(s, m, n, ref_levels.get(e, {}).get(s, (None,))[0])
-                   for s, (m, n) in sorted(by_sev.items()))
+        lv = tuple(Level(s, float(g.mean()), int(len(g)),
+                         float(ref_levels[e][s].mean()) if s in ref_levels.get(e, {}) else None)
+                   for s, g in sorted(by_sev.items()))
         rr = float(np.sum([x.score for x in lv]) / (len(lv) * clean))
         ce = None
-        if reference is not None and all(x.reference is not None for x in lv):
+        if refs is not None and all(x.reference is not None for x in lv):
             denom = float(np.sum([1.0 - x.reference for x in lv]))
             ce = float(np.sum([1.0 - x.score for x in lv]) / denom) if denom > 0 else None
         effects.append(EffectRobustness(e, lv, ce, rr))
     if not effects:
-        raise FalsifyError(f"{run}: no row with exactly one effect non-zero; robustness "
+        raise FalsifyError(f"{name}: no row with exactly one effect non-zero; robustness "
                            "compares each effect alone with the clean rows")
     ces = [e.ce for e in effects if e.ce is not None]
     return RobustnessResult(
-        str(run), None if reference is None else str(reference), col, clean, n_clean,
-        ref_clean, tuple(effects), mixed,
-        float(np.mean(ces)) if reference is not None and len(ces) == len(effects) else None,
+        name, None if refs is None else ", ".join(str(r) for r in refs), col, clean,
+        int(len(clean_rows)), ref_clean, tuple(effects), mixed,
+        float(np.mean(ces)) if refs is not None and len(ces) == len(effects) else None,
         float(np.mean([e.rr for e in effects])))
 
 
