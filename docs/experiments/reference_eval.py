@@ -20,9 +20,10 @@ from pathlib import Path
 import numpy as np
 from falsify.models.runner import load_segmenter
 
-from falsify.data.velodyne import label_file, read_kitti
+from falsify.data.velodyne import read_kitti
 from falsify.semantic import TRAIN_CLASSES, train_ids
 from falsify.sensor.lidar import load_sensor
+from falsify.world.real_scans import label_file
 
 SPLITS = {"evaluation": ("00", "03", "06", "08"),
           "fit": ("01", "02", "04", "05", "07", "09", "10")}
