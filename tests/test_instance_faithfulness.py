@@ -128,3 +128,24 @@ def test_the_fit_split_holds_cars_and_persons_to_score(tmp_path, capsys):
     again = copy.deepcopy(printed)
     assert main(["faithfulness", "--instances", str(MINI), "--sequences", "07", "--json"]) == 0
     assert json.loads(capsys.readouterr().out) == again
+
+
+def test_a_turned_scan_shows_what_stood_beside_the_sensor(tmp_path):
+    """yaw_deg turns a real scan before projection: a car 12 m to the left, out of the front
+    view, comes straight ahead with its range kept; rings still come from the stored order."""
+    from dataclasses import replace
+
+    from falsify.data.real_backgrounds import read_background
+    scan, _ = _scan_with(tmp_path, [("sedan", 0.0, 12.0, 0.0, "car", 7)])
+    sensor = load_sensor(SENSOR)
+    ahead = read_background(scan, sensor)
+    turned = read_background(replace(scan, yaw_deg=-90.0), sensor)
+    assert not (ahead.scan.instance == 7).any()
+    mine = turned.scan.instance == 7
+    assert mine.sum() > 100
+    cols = np.nonzero(mine)[1]
+    assert abs(np.median(cols) - sensor.columns / 2) < 20
+    r = turned.scan.image[mine][:, 4]
+    assert 10.0 < np.median(r) < 13.0
+    assert read_background(replace(scan, yaw_deg=0.0), sensor).scan.image.tobytes() == \
+        ahead.scan.image.tobytes()

@@ -278,9 +278,6 @@ def test_config_names_the_missing_scan_and_refuses_weather(tmp_path):
     with pytest.raises(ConfigError, match=r"x.label: 1 labels for 2 points in x.bin"):
         load_space(space_toml(tmp_path / "b.toml", str(tmp_path / "x.bin")))
     (tmp_path / "x.label").unlink()
-    with pytest.raises(ConfigError, match=r"dims.ego_speed: ego motion is not applied"):
-        load_space(space_toml(tmp_path / "b.toml", str(tmp_path / "x.bin"),
-                              "[dims.ego_speed]\nvalues = [50.0]\n"))
     ok = space_toml(tmp_path / "c.toml", str(tmp_path / "x.bin"))
     (tmp_path / "d.toml").write_text(ok.read_text().replace("real = [", "values = [0]\nreal = ["))
     with pytest.raises(ConfigError, match=r"unknown key 'values' beside real"):

@@ -193,12 +193,29 @@ def test_each_effect_dim_acts_on_a_real_background(tmp_path, scanner, walls, nam
         assert lost.sum() > 50
 
 
-def test_ego_speed_and_spherical_images_are_refused_naming_the_dim(tmp_path, walls, capsys):
-    cfg = space_toml(tmp_path / "ego.toml", str(walls.bin), "[dims.ego_speed]\nvalues = [30.0]\n")
-    with pytest.raises(ConfigError, match=r"dims.ego_speed: ego motion is not applied to a real"):
-        load_space(cfg)
-    assert main(["grid", str(cfg), "--out", str(tmp_path / "run"), "--quiet"]) == 2
-    assert "dims.ego_speed" in capsys.readouterr().err and not (tmp_path / "run").exists()
+def test_ego_speed_moves_each_return_as_on_our_streets(scanner, walls):
+    """Each column fired from where the ego then is: a return on a wall facing the sensor (the
+    walls here are spheres about it) comes nearer by the ego's step along its ray, as
+    Weather.moving_ranges has it on a cast scan; the flat road's returns keep their range."""
+    speed = 60.0
+    clear = scanner.scan(sample(walls))
+    moving = scanner.scan(sample(walls, ego_speed=speed))
+    w = scanner.sim.weather
+    step = speed * weather.KMH * w.column_time                       # (W,) m along +x
+    u = scanner.sensor.directions
+    r0, r1 = clear.image[..., 4].astype(np.float64), moving.image[..., 4].astype(np.float64)
+    wall = clear.valid & (clear.semantic == RAW_ID["building"]) & moving.valid
+    expected = r0 - u[..., 0] * step[None, :]
+    assert np.abs(r1[wall] - expected[wall]).max() < 2e-3
+    assert np.abs(r1[wall] - r0[wall]).max() > 0.05            # it moved at all
+    road = clear.valid & (clear.semantic == RAW_ID["road"]) & moving.valid
+    interior = road & np.roll(road, 1, 0) & np.roll(road, -1, 0) & np.roll(road, 1, 1) & \
+        np.roll(road, -1, 1)
+    assert np.abs(r1[interior] - r0[interior]).max() < 2e-3
+    assert same(scanner.scan(sample(walls, ego_speed=0.0)), clear)
+
+
+def test_spherical_images_are_refused_naming_the_dim(tmp_path, walls):
     sph = tmp_path / "sph.toml"
     sph.write_text('sensor = "semantickitti-hdl64e"\n' + space_toml(
         tmp_path / "x.toml", str(walls.bin), "[dims.rain]\nvalues = [5.0]\n").read_text())

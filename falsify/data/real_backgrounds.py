@@ -38,6 +38,7 @@ import numpy as np
 from falsify.data.kitti_object import points_in_box, read_calib, read_labels
 from falsify.data.velodyne import kitti_rows, read_bin, read_kitti
 from falsify.errors import ConfigError, FalsifyError
+from falsify.rotations import rot_z
 from falsify.semantic import RAW_ID, RAW_NAMES, kitti4, split_label
 from falsify.sensor.lidar import Sensor, SensorPose
 from falsify.sensor.raycast import cast_through
@@ -63,7 +64,7 @@ from falsify.sensor.weather import (
     stream,
 )
 from falsify.world.materials import GLASS
-from falsify.world.space import EFFECT_DIMS, REAL_REFUSED, RealScan, Sample, Space, UserCar
+from falsify.world.space import EFFECT_DIMS, RealScan, Sample, Space, UserCar
 
 # SemanticKITTI ids a car may stand on: road, parking, sidewalk, other-ground, lane-marking,
 # terrain. Unlabeled (0) and outlier (1) are neither ground nor obstacle.
@@ -166,10 +167,14 @@ def read_background(real: RealScan, sensor: Sensor) -> RealBackground:
     pts = read_bin(real.bin)
     finite = np.isfinite(pts).all(axis=1)
     xyz = np.ascontiguousarray(pts[finite, :3])
-    if real.kind == "object":
-        sem, inst = _box_labels(real, xyz)
-        scan = image_from_points(sensor, xyz, kitti4(sem), inst, intensity=pts[finite, 3],
-                                 rows=kitti_rows(sensor, xyz), semantic=sem)
+    if real.kind == "object" or real.yaw_deg:
+        sem, inst = _labels(real, xyz, finite)
+        rows = kitti_rows(sensor, xyz)   # from the stored order, before turning
+        if real.yaw_deg:
+            xyz = np.ascontiguousarray((xyz.astype(np.float64) @ rot_z(real.yaw_deg).T)
+                                       .astype(np.float32))
+        scan = image_from_points(sensor, xyz, kitti4(sem) if sem is not None else np.zeros(
+            len(xyz), np.uint8), inst, intensity=pts[finite, 3], rows=rows, semantic=sem)
     else:
         scan = read_kitti(real.bin, real.label, sensor)
         sem = None
@@ -193,6 +198,22 @@ def read_background(real: RealScan, sensor: Sensor) -> RealBackground:
                           PointIndex.of(ground.astype(np.float64)),
                           np.stack([el.min(axis=1), el.max(axis=1)], axis=1), valid,
                           float(np.abs(origin).max()))
+
+
+def _labels(real: RealScan, xyz: np.ndarray, finite: np.ndarray
+            ) -> tuple[np.ndarray | None, np.ndarray]:
+    """Raw ids (None unlabelled) and instances of the finite points: from a KITTI object frame's
+    boxes or a SemanticKITTI .label; FalsifyError names a .label of the wrong length."""
+    if real.kind == "object":
+        return _box_labels(real, xyz)
+    if real.label is None:
+        return None, np.zeros(len(xyz), np.int32)
+    lab = np.fromfile(real.label, np.uint32)
+    if len(lab) != len(finite):
+        raise FalsifyError(f"{real.label}: {len(lab)} labels for {len(finite)} points in "
+                           f"{real.bin.name}")
+    sem, high = split_label(lab[finite])
+    return sem.astype(np.uint16), high.astype(np.int32)
 
 
 def _box_labels(real: RealScan, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -469,6 +490,9 @@ class RealScanner:
         r[valid] = np.linalg.norm(img[valid, 0:3].astype(np.float64) - bg.origin[valid], axis=-1)
         clear_i = np.where(valid, img[..., 3], np.float32(0.0))
         e = Echoes(r, valid, clear_i, img[..., 5], scan.instance, scan.semantic)
+        if fx.ego_speed:   # as on our streets, the surface from the scan's own neighbours
+            normal, cos = estimated_normals(img[..., 0:3], valid, bg.origin, bg.direction)
+            e = replace(e, r=np.where(valid, w.moving_ranges(r, normal, cos, fx.ego_speed), r))
         if fx.medium:
             ground = cos = None
             if fx.wet_road > 0:
@@ -604,6 +628,44 @@ class RealScanner:
         return Scan(image, inst, sem)
 
 
+# A neighbouring return farther than this share of the range (0.5 m at least) is another
+# surface: rows on a road grazed at range lie metres apart, a car's edge against a wall more.
+NEIGHBOUR_GAP = 0.25
+
+
+def estimated_normals(xyz: np.ndarray, valid: np.ndarray, origin: np.ndarray,
+                      direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each return's surface normal from its image neighbours (the cross product of the steps
+    to the next return along the row and down the column, each on the side whose return is
+    nearer, within NEIGHBOUR_GAP of the range), turned to face the sensor, and the cosine of its
+    ray to it; where no neighbour qualifies, the surface is taken to face the ray (cosine 1).
+    The normal map of surfel SLAM is made so from the vertex map (SuMa: Behley and Stachniss,
+    "Efficient Surfel-Based SLAM using 3D Laser Range Data in Urban Environments", RSS 2018)."""
+    p = np.where(valid[..., None], xyz.astype(np.float64), np.nan)
+    gap = np.maximum(0.5, NEIGHBOUR_GAP * np.linalg.norm(p - origin, axis=-1))
+    steps = []
+    for axis in (1, 0):
+        fwd = np.roll(p, -1, axis=axis) - p
+        back = p - np.roll(p, 1, axis=axis)
+        edge = [slice(None)] * 2
+        edge[axis] = -1
+        fwd[tuple(edge)] = np.nan
+        edge[axis] = 0
+        back[tuple(edge)] = np.nan
+        nf, nb = np.linalg.norm(fwd, axis=-1), np.linalg.norm(back, axis=-1)
+        use_back = ~(nf <= nb) & (nb <= gap)
+        step = np.where(use_back[..., None], back, fwd)
+        ok = np.where(use_back, nb, nf) <= gap
+        steps.append(np.where(ok[..., None], step, np.nan))
+    n = np.cross(steps[0], steps[1])
+    norm = np.linalg.norm(n, axis=-1)
+    good = np.isfinite(norm) & (norm > 1e-12)
+    n = np.where(good[..., None], n / np.where(good, norm, 1.0)[..., None], -direction)
+    facing = (n * direction).sum(axis=-1)
+    n = np.where((facing > 0)[..., None], -n, n)
+    return n, np.abs(facing)
+
+
 def _column_azimuths(sensor: Sensor) -> np.ndarray:
     """Each image column's centre azimuth, degrees counter-clockwise from +x."""
     if sensor.projection == "spherical":
@@ -630,14 +692,10 @@ def _meets_box(o: np.ndarray, d: np.ndarray, limit: np.ndarray, lo: np.ndarray,
 
 
 def refuse_effects(sensor: Sensor, names) -> None:
-    """ConfigError naming the first effect dim of `names` that a real background refuses
-    (REAL_REFUSED), or the first of any when the sensor stores its scans in a spherical image:
-    its bins are not the sensor's rays (an empty bin may be no ray at all, and a row is no
-    laser), so the effects have no ray to act on."""
+    """ConfigError naming the first effect dim of `names` when the sensor stores its scans in a
+    spherical image: its bins are not the sensor's rays (an empty bin may be no ray at all, and a
+    row is no laser), so the effects have no ray to act on."""
     names = list(names)
-    for name in names:
-        if name in REAL_REFUSED:
-            raise ConfigError(f"dims.{name}: {REAL_REFUSED[name]}")
     if names and sensor.projection == "spherical":
         raise ConfigError(f"dims.{names[0]}: weather and sensor faults on a real background act "
                           f"on the sensor's rays; {sensor.name} stores scans in a spherical "

@@ -2,8 +2,9 @@
 scan against a built-in actor of its class inserted in its place, scored by the same network
 over the same pixels (falsify.jobs.faithfulness does the same for KITTI object boxes).
 
-Per instance of a scored class with at least `min_points` points and `min_pixels` pixels in the
-sensor's image, two arms:
+Per instance of a scored class with at least `min_points` points, in a view of its own (the scan
+turned so that the instance lies straight ahead: a front-view sensor then sees every instance of
+the 360-degree scan) and with MIN_PIXELS pixels there, two arms:
 - real: the scan as read; the label is the instance's pixels;
 - inserted: the instance's points leave the range image, the cloud and the ground set (a
   SemanticKITTI instance is labelled point by point: no box to grow), then a built-in actor of
@@ -39,6 +40,7 @@ from falsify.data.velodyne import read_bin
 from falsify.errors import FalsifyError
 from falsify.jobs.faithfulness import ArmScore, Pooled, Spread, _rounded, pool, score_arm
 from falsify.models.runner import Segmenter
+from falsify.rotations import rot_z
 from falsify.semantic import TRAIN_ID, split_label
 from falsify.sensor.lidar import Sensor
 from falsify.sensor.scan import Scan
@@ -239,14 +241,17 @@ def without_instance(bg: RealBackground, xyz: np.ndarray, sem: np.ndarray, gone:
 def run_instance_faithfulness(paths: list[Path], sequences: list[str] | None, sensor: Sensor,
                               segmenter: Segmenter, min_points: int = MIN_POINTS,
                               seed: int = SEED) -> InstanceFaithfulness:
-    """Both arms for every scored instance of the labelled scans."""
+    """Both arms for every scored instance of the labelled scans, each in its own view."""
     ids = predicted_ids(segmenter)
     scans = semantic_scans(paths, sequences)
-    scanner = RealScanner(sensor, tuple(scans), max_backgrounds=1)
+    views = instance_views(scans, min_points)
+    scanner = RealScanner(sensor, tuple(v.scan for v in views), max_backgrounds=1)
     rows: list[InstanceRow] = []
     skipped: list[tuple[str, str, int, str]] = []
-    for f in range(len(scans)):
-        rows += scan_rows(scanner, f, segmenter, ids, min_points, seed, skipped)
+    for k, view in enumerate(views):
+        row = instance_row(scanner, k, view, segmenter, ids, seed, skipped)
+        if row is not None:
+            rows.append(row)
     classes = {}
     for cls in CLASSES:
         mine = [r for r in rows if r.cls == cls]
@@ -255,6 +260,39 @@ def run_instance_faithfulness(paths: list[Path], sequences: list[str] | None, se
     return InstanceFaithfulness(tuple(s.name for s in scans), sensor.name, segmenter.spec.name,
                                 segmenter.model_hash, min_points, seed, POSE, tuple(rows),
                                 classes, tuple(skipped))
+
+
+@dataclass(frozen=True)
+class View:
+    """One instance to score and the scan turned so that it lies straight ahead."""
+
+    scan: RealScan
+    source: str       # the scan's own name
+    cls: str
+    instance: int
+
+
+def instance_views(scans: list[RealScan], min_points: int) -> list[View]:
+    """Per scan, every instance of a scored class with at least `min_points` points, and the
+    scan turned by minus the points' mean azimuth (a front-view sensor sees any of the 360
+    degrees: all of a scan's instances count, not only those ahead)."""
+    out = []
+    for real in scans:
+        pts = read_bin(real.bin)
+        finite = np.isfinite(pts).all(axis=1)
+        xyz = pts[finite, :3].astype(np.float64)
+        sem, inst = split_label(np.fromfile(real.label, np.uint32)[finite])
+        for cls, (raw_ids, _) in CLASSES.items():
+            of_class = np.isin(sem, raw_ids)
+            for i in np.unique(inst[of_class & (inst > 0)]):
+                mine = of_class & (inst == i)
+                if mine.sum() < min_points:
+                    continue
+                az = math.degrees(math.atan2(xyz[mine, 1].sum(), xyz[mine, 0].sum()))
+                turn = round(-az, 2)
+                out.append(View(replace(real, name=f"{real.name}@{az:+.0f}", yaw_deg=turn),
+                                real.name, cls, int(i)))
+    return out
 
 
 def predicted_ids(segmenter: Segmenter) -> dict[str, int]:
@@ -271,65 +309,53 @@ def predicted_ids(segmenter: Segmenter) -> dict[str, int]:
     return {cls: TRAIN_ID[cls] for cls in CLASSES}
 
 
-def scan_rows(scanner: RealScanner, f: int, segmenter: Segmenter, ids: dict[str, int],
-              min_points: int, seed: int, skipped: list[tuple[str, str, int, str]]
-              ) -> list[InstanceRow]:
-    """The rows of scan `f`: the real scan and one inserted scan per scored instance, predicted
-    in one batch; instances too wide for one object are added to `skipped`, named."""
-    real = scanner.real[f]
-    bg = scanner.background(f)
+def instance_row(scanner: RealScanner, k: int, view: View, segmenter: Segmenter,
+                 ids: dict[str, int], seed: int, skipped: list[tuple[str, str, int, str]]
+                 ) -> InstanceRow | None:
+    """The row of view `k`: its instance removed and a built-in actor inserted in its place,
+    both scans predicted in one batch; None (and a line in `skipped`) where the instance is too
+    small in view or too wide for one object."""
+    real = scanner.real[k]
+    bg = scanner.background(k)
+    raw_ids, _ = CLASSES[view.cls]
     pts = read_bin(real.bin)
     finite = np.isfinite(pts).all(axis=1)
-    xyz = np.ascontiguousarray(pts[finite, :3])
-    sem, inst = split_label(np.fromfile(real.label, np.uint32))
-    sem, inst = sem[finite].astype(np.uint16), inst[finite].astype(np.int64)
-    todo = []
-    for cls, (raw_ids, _) in CLASSES.items():
-        of_class = np.isin(sem, raw_ids)
-        for i in np.unique(inst[of_class & (inst > 0)]):
-            gone = of_class & (inst == i)
-            pixels = bg.valid & np.isin(bg.scan.semantic, raw_ids) & (bg.scan.instance == i)
-            if gone.sum() >= min_points and pixels.sum() >= MIN_PIXELS:
-                todo.append((cls, int(i), gone, pixels))
-    if not todo:
-        return []
-    inserted, kept = [], []
-    for n, (cls, i, gone, pixels) in enumerate(todo):
-        removed = without_instance(bg, xyz, sem, gone, pixels, scanner.sensor.max_range)
-        centre = xyz[gone, :2].mean(axis=0)
-        ground_z, _, _ = fit_ground(removed.ground, float(centre[0]), float(centre[1]), 1.5,
-                                    -scanner.sensor.mount_height)
-        model, x, y, heading, extent = instance_pose(xyz[gone], cls, ground_z)
-        span = MAX_SPAN_M[cls]
-        if extent[0] > span[0] or extent[1] > span[1]:
-            skipped.append((real.name, cls, i, f"its points span {extent[0]:.1f} x "
-                            f"{extent[1]:.1f} m, more than one {cls} ({span[0]} x {span[1]})"))
-            continue
-        car = scanner.settle(removed, PlacedCar(model, x, y, heading, FIRST_CAR_INSTANCE))
-        scan = scanner.insert(removed, [car], np.random.default_rng([seed, f, n]))
-        inserted.append((removed, car, scan, extent))
-        kept.append(todo[n])
-    if not kept:
-        return []
-    todo = kept
-    pred = segmenter.predict(np.stack([bg.scan.image, *(s.image for _, _, s, _ in inserted)]))
-    rows = []
-    for n, ((cls, i, gone, pixels), (removed, car, scan, extent)) in enumerate(
-            zip(todo, inserted, strict=True), 1):
-        class_ids, class_id = CLASSES[cls][0], ids[cls]
-        columns = np.zeros(bg.valid.shape, bool)
-        columns[:, scanner.columns(car)] = True
-        others = bg.valid & np.isin(bg.scan.semantic, class_ids) & ~pixels
-        mask = columns & ~others
-        ins_label = scan.valid & (scan.instance >= INSERTED_INSTANCE)
-        rows.append(InstanceRow(
-            frame=real.name, instance=i, cls=cls, distance_m=math.hypot(car.x, car.y),
-            extent_lwh=extent, model=car.model, model_lwh=model_size(car.model),
-            heading_deg=car.heading_deg, removed_points=int(gone.sum()),
-            collision_points=int(scanner.body_points(removed.cloud.points, car).sum()),
-            real_points=int(pixels.sum()), inserted_points=int(ins_label.sum()),
-            scored_pixels=int(mask.sum()), left_out_pixels=int((columns & others).sum()),
-            real=score_arm((pred.classes[0] == class_id) & bg.valid, pixels, mask),
-            inserted=score_arm((pred.classes[n] == class_id) & scan.valid, ins_label, mask)))
-    return rows
-
+    xyz = pts[finite, :3].astype(np.float64) @ rot_z(real.yaw_deg).T   # as the view turned it
+    sem, inst = split_label(np.fromfile(real.label, np.uint32)[finite])
+    sem = sem.astype(np.uint16)
+    gone = np.isin(sem, raw_ids) & (inst == view.instance)
+    pixels = bg.valid & np.isin(bg.scan.semantic, raw_ids) & (bg.scan.instance == view.instance)
+    if pixels.sum() < MIN_PIXELS:
+        skipped.append((view.source, view.cls, view.instance,
+                        f"{int(pixels.sum())} pixels in view, fewer than {MIN_PIXELS}"))
+        return None
+    removed = without_instance(bg, xyz, sem, gone, pixels, scanner.sensor.max_range)
+    centre = xyz[gone, :2].mean(axis=0)
+    ground_z, _, _ = fit_ground(removed.ground, float(centre[0]), float(centre[1]), 1.5,
+                                -scanner.sensor.mount_height)
+    model, x, y, heading, extent = instance_pose(xyz[gone], view.cls, ground_z)
+    span = MAX_SPAN_M[view.cls]
+    if extent[0] > span[0] or extent[1] > span[1]:
+        skipped.append((view.source, view.cls, view.instance,
+                        f"its points span {extent[0]:.1f} x {extent[1]:.1f} m, more than one "
+                        f"{view.cls} ({span[0]} x {span[1]})"))
+        return None
+    car = scanner.settle(removed, PlacedCar(model, x, y, heading, FIRST_CAR_INSTANCE))
+    scan = scanner.insert(removed, [car], np.random.default_rng([seed, k]))
+    pred = segmenter.predict(np.stack([bg.scan.image, scan.image]))
+    class_id = ids[view.cls]
+    columns = np.zeros(bg.valid.shape, bool)
+    columns[:, scanner.columns(car)] = True
+    others = bg.valid & np.isin(bg.scan.semantic, raw_ids) & ~pixels
+    mask = columns & ~others
+    ins_label = scan.valid & (scan.instance >= INSERTED_INSTANCE)
+    return InstanceRow(
+        frame=real.name, instance=view.instance, cls=view.cls,
+        distance_m=math.hypot(car.x, car.y), extent_lwh=extent, model=car.model,
+        model_lwh=model_size(car.model), heading_deg=car.heading_deg,
+        removed_points=int(gone.sum()),
+        collision_points=int(scanner.body_points(removed.cloud.points, car).sum()),
+        real_points=int(pixels.sum()), inserted_points=int(ins_label.sum()),
+        scored_pixels=int(mask.sum()), left_out_pixels=int((columns & others).sum()),
+        real=score_arm((pred.classes[0] == class_id) & bg.valid, pixels, mask),
+        inserted=score_arm((pred.classes[1] == class_id) & scan.valid, ins_label, mask))

@@ -56,13 +56,6 @@ EFFECT_DIMS: dict[str, tuple[float, float, str, bool]] = {
     "ego_speed": (0.0, 300.0, "km/h", False),
 }
 
-# Effect dims a real background refuses, with why. The others act on its recorded returns
-# (falsify.data.real_backgrounds, RealScanner.weather).
-REAL_REFUSED: dict[str, str] = {
-    "ego_speed": "ego motion is not applied to a real background: the recorded scan already "
-                 "holds the recording car's own motion, and moving its points faithfully needs "
-                 "that speed and each point's surface (drop the dim, or use street ids)",
-}
 
 Value = float | int | str
 
@@ -131,6 +124,9 @@ class RealScan:
     bin: Path
     label: Path | None = None
     kind: str = "none"   # "semantickitti", "object" or "none" (unlabelled)
+    # The scan turned by this about the sensor's vertical axis before it is projected (rings
+    # still from the stored order): a front-view sensor sees another slice of the 360 degrees.
+    yaw_deg: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -458,9 +454,6 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
         real = (real_backgrounds if real_backgrounds is not None
                 else _real_backgrounds(bg_raw, where, base_dir or Path(".")))
         bg = Categorical("background", tuple(range(len(real))))
-        refused = [e for e in REAL_REFUSED if e in dims_raw]
-        if refused:
-            raise ConfigError(f"{where}dims.{refused[0]}: {REAL_REFUSED[refused[0]]}")
     else:
         bg = _categorical("background", bg_raw, where, int)
         for v in bg.values:
