@@ -267,3 +267,16 @@ real = ['{kerbside.bin}']
     assert "car, pedestrian" in proc.stderr and not (tmp_path / "mixed").exists()
     proc = run(mixed, tmp_path / "mixed", "--objective", "pedestrian", "--no-report")
     assert proc.returncode == 0, proc.stderr
+    with sqlite3.connect(tmp_path / "mixed" / "results.sqlite") as con:
+        rows = con.execute("SELECT actor, inserted_car_iou, inserted_car_recall, "
+                           "inserted_pedestrian_iou, inserted_pedestrian_recall, inserted_iou "
+                           "FROM samples WHERE status = 'ok'").fetchall()
+    # Each placed class scored apart: a sample's own class has a recall, the other none.
+    for actor, car_iou, car_rec, ped_iou, ped_rec, objective in rows:
+        assert (car_rec is None) == (actor != "sedan") and (ped_rec is None) == (actor == "sedan")
+        assert ped_iou == objective
+        assert actor != "sedan" or car_iou is not None
+    assert {r[0] for r in rows} == {"sedan", "pedestrian"}
+    with sqlite3.connect(out / "results.sqlite") as con:   # one class placed: no extra columns
+        names = [r[1] for r in con.execute("PRAGMA table_info(samples)")]
+    assert "inserted_iou" in names and not any(n.startswith("inserted_pedestrian") for n in names)

@@ -157,11 +157,13 @@ def prepare(req: RunRequest) -> Prepared:
     threads = 2 if req.workers == 1 else 1
     # Open the model once here: a missing, corrupt or mismatched model fails before any sample.
     seg = load_segmenter(model, backend=backend, threads=threads, device=req.device)
-    objective = req.objective or Scoring.placed_class(
-        list(seg.spec.classes), (model_semantic(m, space.user_cars) for m in space.models()))
+    semantics = [model_semantic(m, space.user_cars) for m in space.models()]
+    objective = req.objective or Scoring.placed_class(list(seg.spec.classes), semantics)
     scoring = Scoring.of(list(seg.spec.classes), objective)
     if space.real_backgrounds:   # inserted and real objects scored apart as well
-        scoring = replace(scoring, parts=True)
+        placed = [c for c in Scoring.placed_classes(list(seg.spec.classes), semantics)
+                  if c in scoring.scored and c not in ("unknown", "unlabeled")]
+        scoring = replace(scoring, parts=True, placed=tuple(placed) if len(placed) > 1 else ())
     settings = EvalSettings(space=space, model=model, backend=backend, threads=threads,
                             lod=fid.lod, device=req.device, scoring=scoring)
     sensor = load_sensor(space.sensor)

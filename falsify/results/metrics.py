@@ -140,6 +140,9 @@ class Scoring:
     # Real backgrounds: the objective class scored apart on the inserted objects (the real
     # ones left out) and on the real ones (the inserted left out), as PARTS columns.
     parts: bool = False
+    # Real backgrounds whose placed actors are of several classes: each of these scored apart
+    # on the inserted objects too, as inserted_<class>_iou and _recall columns.
+    placed: tuple[str, ...] = ()
 
     @classmethod
     def of(cls, mapped: Sequence[str], objective: str = "car") -> Scoring:
@@ -160,14 +163,19 @@ class Scoring:
         return cls(classes, scored, objective)
 
     @staticmethod
-    def placed_class(mapped: Sequence[str], semantics: Iterable[int]) -> str:
-        """The class a run scores by default: that of the placed objects (raw SemanticKITTI
-        ids), in the model's classes (four-class or SemanticKITTI's); ConfigError when they
-        are of several classes or of one the model counts as unknown."""
+    def placed_classes(mapped: Sequence[str], semantics: Iterable[int]) -> list[str]:
+        """The classes of the placed objects (raw SemanticKITTI ids) in the model's classes
+        (four-class or SemanticKITTI's), sorted, unknown and unlabeled included."""
         ids = np.array(sorted(set(semantics)), np.int64)
         four = all(n in CLASSES for n in mapped)
-        names = sorted({CLASSES[c] for c in kitti4(ids)} if four
-                       else {TRAIN_CLASSES[c] for c in train_ids(ids)})
+        return sorted({CLASSES[c] for c in kitti4(ids)} if four
+                      else {TRAIN_CLASSES[c] for c in train_ids(ids)})
+
+    @staticmethod
+    def placed_class(mapped: Sequence[str], semantics: Iterable[int]) -> str:
+        """The class a run scores by default: that of the placed objects; ConfigError when they
+        are of several classes or of one the model counts as unknown."""
+        names = Scoring.placed_classes(mapped, semantics)
         if len(names) == 1 and names[0] not in ("unknown", "unlabeled"):
             return names[0]
         raise ConfigError("--objective: the placed actors are " + ", ".join(names) + " in this "
@@ -185,7 +193,10 @@ class Scoring:
         cols = [f"{column(c)}_{m}" for c in self.scored
                 for m in ("tp", "fp", "fn", "iou", "precision", "recall")]
         cols += ["miou"] if self.semantic or self.objective == "miou" else []
-        return cols + (list(PARTS) if self.parts and self.objective != "miou" else [])
+        if self.parts:
+            cols += list(PARTS) if self.objective != "miou" else []
+            cols += [f"inserted_{column(c)}_{m}" for c in self.placed for m in ("iou", "recall")]
+        return cols
 
     @property
     def score_column(self) -> str:
@@ -200,7 +211,7 @@ class Scoring:
         pred = np.asarray(pred)
         truth = np.asarray(truth)
         parts = {}
-        if "inserted_iou" in self.columns:
+        if self.parts:
             parts = self.part_scores(pred, truth, inserted)
         if self.semantic:
             keep = truth != 0
@@ -229,14 +240,22 @@ class Scoring:
         """IoU and recall of the objective class on the inserted objects (the real pixels of
         that class left out) and on the real ones (the inserted pixels left out); unlabeled
         pixels are left out where the classes are SemanticKITTI's."""
-        c = self.classes.index(self.objective)
         ins = np.zeros(truth.shape, bool) if inserted is None else np.asarray(inserted, bool)
         labelled = truth != 0 if self.semantic else np.ones(truth.shape, bool)
         out: dict[str, float | None] = {}
-        for part, keep in (("inserted", ~((truth == c) & ~ins)), ("real", ~ins)):
-            keep &= labelled
+
+        def part(prefix: str, c: int, keep: np.ndarray) -> None:
+            keep = keep & labelled
             p, t = pred[keep] == c, truth[keep] == c
             tp, fp, fn = int((p & t).sum()), int((p & ~t).sum()), int((~p & t).sum())
-            out[f"{part}_iou"] = _ratio(tp, tp + fp + fn)
-            out[f"{part}_recall"] = _ratio(tp, tp + fn)
+            out[f"{prefix}_iou"] = _ratio(tp, tp + fp + fn)
+            out[f"{prefix}_recall"] = _ratio(tp, tp + fn)
+
+        if self.objective != "miou":
+            c = self.classes.index(self.objective)
+            part("inserted", c, ~((truth == c) & ~ins))
+            part("real", c, ~ins)
+        for name in self.placed:
+            c = self.classes.index(name)
+            part(f"inserted_{column(name)}", c, ~((truth == c) & ~ins))
         return out
