@@ -66,7 +66,28 @@ class ArmScore:
 
 
 @dataclass(frozen=True)
-class CarRow:
+class Arms:
+    """What both arms of one object have: the points left in the inserted body, each arm's
+    pixels, the pixels scored and left out, and each arm's score."""
+
+    collision_points: int        # cloud points left in the inserted object's body
+    real_points: int             # pixels of the real object in the image
+    inserted_points: int         # pixels of the inserted object
+    scored_pixels: int           # pixels both arms are scored over
+    left_out_pixels: int         # pixels of other objects of the class in its columns
+    real: ArmScore
+    inserted: ArmScore
+
+    @property
+    def iou_difference(self) -> float | None:
+        """Inserted minus real IoU; None where either is undefined."""
+        if self.real.iou is None or self.inserted.iou is None:
+            return None
+        return self.inserted.iou - self.real.iou
+
+
+@dataclass(frozen=True)
+class CarRow(Arms):
     """One real car and the synthetic car inserted in its place."""
 
     frame: str                   # object directory / frame id, e.g. "object/000002"
@@ -78,20 +99,6 @@ class CarRow:
     heading_deg: float           # the inserted car's heading, Velodyne frame
     ground_gap_m: float          # box bottom minus the ground plane fitted under it
     removed_points: int          # cloud points dropped (inside the grown box)
-    collision_points: int        # cloud points left in the inserted car's body (RealScanner)
-    real_points: int             # pixels of the real car (the box's points) in the image
-    inserted_points: int         # pixels of the inserted car
-    scored_pixels: int           # pixels both arms are scored over
-    left_out_pixels: int         # pixels of other cars and vans in the car's columns
-    real: ArmScore
-    inserted: ArmScore
-
-    @property
-    def iou_difference(self) -> float | None:
-        """Inserted minus real car IoU; None where either is undefined."""
-        if self.real.iou is None or self.inserted.iou is None:
-            return None
-        return self.inserted.iou - self.real.iou
 
 
 @dataclass(frozen=True)

@@ -38,7 +38,7 @@ from falsify.data.real_backgrounds import (
 )
 from falsify.data.velodyne import read_bin
 from falsify.errors import FalsifyError
-from falsify.jobs.faithfulness import ArmScore, Pooled, Spread, _rounded, pool, score_arm
+from falsify.jobs.faithfulness import Arms, Pooled, Spread, _rounded, pool, score_arm
 from falsify.models.runner import Segmenter
 from falsify.rotations import rot_z
 from falsify.semantic import TRAIN_ID, split_label
@@ -65,10 +65,10 @@ POSE = ("heading along the footprint's fitted rectangle; centre completed amodal
 
 
 @dataclass(frozen=True)
-class InstanceRow:
+class InstanceRow(Arms):
     """One real labelled instance and the built-in actor inserted in its place."""
 
-    frame: str
+    frame: str                    # the scan, and the view's azimuth
     instance: int                 # SemanticKITTI instance id in the scan
     cls: str                      # "car" or "person"
     distance_m: float             # horizontal distance of the inserted actor's origin
@@ -77,19 +77,6 @@ class InstanceRow:
     model_lwh: tuple[float, float, float]
     heading_deg: float
     removed_points: int
-    collision_points: int         # cloud points left in the inserted actor's body
-    real_points: int              # pixels of the real instance in the image
-    inserted_points: int
-    scored_pixels: int
-    left_out_pixels: int          # pixels of other instances of the class in its columns
-    real: ArmScore
-    inserted: ArmScore
-
-    @property
-    def iou_difference(self) -> float | None:
-        if self.real.iou is None or self.inserted.iou is None:
-            return None
-        return self.inserted.iou - self.real.iou
 
 
 @dataclass(frozen=True)
