@@ -280,3 +280,41 @@ real = ['{kerbside.bin}']
     with sqlite3.connect(out / "results.sqlite") as con:   # one class placed: no extra columns
         names = [r[1] for r in con.execute("PRAGMA table_info(samples)")]
     assert "inserted_iou" in names and not any(n.startswith("inserted_pedestrian") for n in names)
+
+
+def test_the_report_of_a_person_run_names_the_class_and_escapes_the_actor(tmp_path, kerbside,
+                                                                           browser):
+    """A user's actor named like markup, class person, in a real scan: the report's sections
+    name pedestrians, its tables show the name as text, and the page fetches nothing."""
+    import trimesh
+    from selenium.webdriver.common.by import By
+
+    from tests.conftest import assert_offline
+
+    odd = 'kid<b>&"x'
+    trimesh.creation.box(extents=(0.5, 0.4, 1.2)).export(tmp_path / "kid.obj")
+    cfg = tmp_path / "odd.toml"
+    cfg.write_text(f"""name = "odd"
+[actors.'{odd}']
+file = "kid.obj"
+class = "person"
+[dims.actor]
+values = ['{odd}']
+[dims.x]
+values = [-1.0, 2.0]
+[dims.y]
+values = [8.0]
+[dims.background]
+real = ['{kerbside.bin}']
+""")
+    out = tmp_path / "run"
+    assert run(cfg, out).returncode == 0
+    html = (out / "report.html").read_text()
+    assert odd not in html and "kid&lt;b&gt;&amp;&quot;x" in html
+    browser.get((out / "report.html").as_uri())
+    heading = browser.find_element(By.CSS_SELECTOR, "#inserted h2")
+    assert heading.text == "Inserted and real pedestrians"
+    cells = [td.text for td in browser.find_elements(By.CSS_SELECTOR, "td")]
+    assert odd in cells
+    assert not browser.find_elements(By.CSS_SELECTOR, "td b")
+    assert_offline(browser)
