@@ -318,3 +318,16 @@ real = ['{kerbside.bin}']
     assert odd in cells
     assert not browser.find_elements(By.CSS_SELECTOR, "td b")
     assert_offline(browser)
+
+
+@pytest.mark.parametrize("table, named", [
+    ('values = ["tank"]', "dims.actor: unknown actor 'tank'"),
+    ('values = ["pedestrian"]\non = "verge"', "dims.actor.on: 'verge'"),
+])
+def test_bad_actor_keys_exit_2_from_the_cli_and_write_nothing(tmp_path, table, named):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(f"[dims.actor]\n{table}\n[dims.x]\nvalues = [0.0]\n[dims.y]\n"
+                   "values = [10.0]\n[dims.background]\nvalues = [0]\n")
+    proc = run(cfg, tmp_path / "run")
+    assert proc.returncode == 2 and named in proc.stderr
+    assert not (tmp_path / "run").exists()

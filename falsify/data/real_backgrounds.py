@@ -50,7 +50,7 @@ from falsify.sensor.simulator import (
     PlacedCar,
     Simulator,
     check_placement,
-    check_surface,
+    check_surfaces,
     place,
 )
 from falsify.sensor.weather import (
@@ -340,10 +340,7 @@ class RealScanner:
         placed = [replace(place(c, FIRST_CAR_INSTANCE + i), cls=self.sim.model_class(c.model))
                   for i, c in enumerate(sample.cars)]
         check_placement(placed, [self.sim.footprint(c) for c in placed], Obstacles.of(()))
-        for i, car in enumerate(placed):
-            on = self.surfaces[i] if i < len(self.surfaces) else "any"
-            if on != "any":
-                check_surface(i + 1, car, on, self.surface(bg, car.x, car.y))
+        check_surfaces(placed, self.surfaces, lambda x, y: self.surface(bg, x, y))
         settled = [self.settle(bg, c) for c in placed]
         self._empty_bodies = set()
         for i, car in enumerate(settled):

@@ -483,12 +483,9 @@ class Simulator:
                   for i, c in enumerate(sample.cars)]
         check_placement(placed, [self.footprint(c) for c in placed],
                         self.obstacles(sample.background), self.crosses_kerbs(placed))
-        settled = [self.settle(sample.background, c) for c in placed]
-        for i, car in enumerate(settled):
-            on = self.surfaces[i] if i < len(self.surfaces) else "any"
-            if on != "any":
-                check_surface(i + 1, car, on, self.surface(sample.background, car.x, car.y))
-        return settled
+        check_surfaces(placed, self.surfaces,
+                       lambda x, y: self.surface(sample.background, x, y))
+        return [self.settle(sample.background, c) for c in placed]
 
     def crosses_kerbs(self, placed: Sequence[PlacedCar]) -> list[bool]:
         """Per placed object, whether it may stand beyond the kerb (people and bicycles)."""
@@ -611,10 +608,17 @@ def first_overlap(poly: np.ndarray, obstacles: Obstacles, skip_kerbs: bool = Fal
     return None
 
 
-def check_surface(number: int, car: PlacedCar, on: str, found: str) -> None:
-    """InvalidSample naming the object and the surface it stands on unless that is `on`."""
-    if found != on:
-        raise InvalidSample(f"actor {number} ({car.model}) stands on {found}, not on the {on}")
+def check_surfaces(placed: Sequence[PlacedCar], surfaces: Sequence[str],
+                   surface_at: Callable[[float, float], str]) -> None:
+    """InvalidSample naming the first object that stands on another surface than its own
+    (`surfaces[k]`, "any" where absent), by `surface_at(x, y)` of the background."""
+    for i, car in enumerate(placed):
+        on = surfaces[i] if i < len(surfaces) else "any"
+        if on == "any":
+            continue
+        found = surface_at(car.x, car.y)
+        if found != on:
+            raise InvalidSample(f"actor {i + 1} ({car.model}) stands on {found}, not on the {on}")
 
 
 def ego_outline(pose: SensorPose) -> np.ndarray:
