@@ -217,13 +217,16 @@ def multiples_section(data: RunData, threshold: float) -> str:
 
 
 def inserted_section(data: RunData, threshold: float) -> str:
-    """Runs on real backgrounds: the inserted car's own IoU and recall maps, and per real scan
-    the inserted and the real cars scored apart (each with the other left out)."""
+    """Runs on real backgrounds: the inserted object's own IoU and recall maps, and per real
+    scan the inserted and the real objects of the class scored apart (each with the other left
+    out)."""
     if "inserted_iou" not in data.frame:
         return ""
+    o = data.objective
+    thing = "car" if o in ("car", "miou") else o
     figs = []
-    for col, title in (("inserted_iou", "inserted car IoU"),
-                       ("inserted_recall", "inserted car recall")):
+    for col, title in (("inserted_iou", f"inserted {thing} IoU"),
+                       ("inserted_recall", f"inserted {thing} recall")):
         svg, mean, n_blind = _small_map(data.cell_map(column=col), threshold, title, title)
         figs.append(f'<figure class="multiple">{svg}<figcaption>{esc(title)} · {mean}<br>'
                     f"{n_blind} below {threshold:.2f}</figcaption></figure>")
@@ -243,8 +246,7 @@ def inserted_section(data: RunData, threshold: float) -> str:
             f'<td class="num">{mean(data.score_column)}</td>'
             f'<td class="num">{mean("inserted_iou")} / {mean("inserted_recall")}</td>'
             f'<td class="num">{mean("real_iou")} / {mean("real_recall")}</td></tr>')
-    o = data.objective
-    thing = "car" if o in ("car", "miou") else esc(o)
+    thing = esc(thing)
     return f"""
 <section id="inserted">
 <h2>Inserted and real {thing}s</h2>
