@@ -190,9 +190,12 @@ class InferenceServer:
             if self._process.is_alive():
                 self._process.terminate()
                 self._process.join()
+        # A worker terminated mid-put may hold a queue's write lock for ever: waiting for our
+        # own feeder thread to flush (join_thread) could then hang. Nothing left in the queues
+        # is needed once the process has ended, so do not wait for it.
         for q in (self.requests, self.slots, self._ready, *self.replies):
+            q.cancel_join_thread()
             q.close()
-            q.join_thread()
 
     def client_args(self) -> tuple:
         """What a worker needs to build its RemoteSegmenter (passed at the worker's start)."""
