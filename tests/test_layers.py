@@ -35,11 +35,13 @@ FOLDERS = {f: i for i, (_, folders) in enumerate(LAYERS) for f in folders}
 
 
 def folder_of_file(path: Path) -> str:
-    """The layer key of a source file: its folder, or falsify/__main__ for that one file."""
+    """The layer key of a source file: its folder (a family's subfolder, such as
+    models/runners, counts as its parent's), or falsify/__main__ for that one file."""
     rel = path.relative_to(ROOT)
     if rel.as_posix() == "falsify/__main__.py":
         return "falsify/__main__"
-    return rel.parent.as_posix()
+    parts = rel.parent.parts
+    return "/".join(parts[:2] if parts[0] == "falsify" else parts[:1])
 
 
 def module_of_file(path: Path) -> str:
