@@ -266,9 +266,9 @@ def test_selection_is_checked_and_part_of_the_resume_key(inputs, tmp_path) -> No
 
 
 def _load_compare_pairs():
-    """docs/paper-retraining/compare_pairs.py, the script the retraining write-up cites."""
+    """research/paper-retraining/compare_pairs.py, the script the retraining write-up cites."""
     import importlib.util
-    path = Path(__file__).resolve().parents[1] / "docs/paper-retraining/compare_pairs.py"
+    path = Path(__file__).resolve().parents[1] / "research/paper-retraining/compare_pairs.py"
     spec = importlib.util.spec_from_file_location("compare_pairs", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

@@ -9,11 +9,11 @@ counterexample, as VerifAI's falsifier reads it; an invalid sample is told the r
 Run it in a virtual environment of its own holding VerifAI and falsify:
 
     python -m venv /tmp/vfenv && /tmp/vfenv/bin/pip install verifai -e .
-    /tmp/vfenv/bin/python docs/experiments/verifai_compare.py \
-        --out docs/experiments/verifai-compare.json
+    /tmp/vfenv/bin/python research/experiments/verifai_compare.py \
+        --out research/experiments/verifai-compare.json
 
 The street is scan 10/000005 of semantickitti-mini's fit split
-(docs/experiments/verifai-compare.toml), chosen among the fit scans as one where about half of a
+(research/experiments/verifai-compare.toml), chosen among the fit scans as one where about half of a
 coarse grid of positions fails.
 """
 

@@ -2,8 +2,8 @@
 synthetic scans, and on synthetic scans only, with one recipe and one budget, scored on
 SemanticKITTI's evaluation split; with and without the intensity channel, over seeds.
 
-    python docs/experiments/augment_experiment.py --pack ROOT --out PACKED   # once, on CPU
-    python docs/experiments/augment_experiment.py --fit PACKED/fit.npz --eval PACKED/eval.npz \
+    python research/experiments/augment_experiment.py --pack ROOT --out PACKED   # once, on CPU
+    python research/experiments/augment_experiment.py --fit PACKED/fit.npz --eval PACKED/eval.npz \
         --synthetic DIR --out OUT [--seeds 0,1,2] [--steps 1000] [--device cuda]
 
 FIT.npz / EVAL.npz hold `images` (B, 64, 512, 6) range images of the semantickitti-mini fit

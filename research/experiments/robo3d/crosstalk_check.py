@@ -1,8 +1,8 @@
 """Where the bundled network puts cars when 200 crosstalk returns are added to a real scan: the
-sedan 12 m ahead on fit scan 3 of docs/experiments/robo3d/crosstalk.toml, clean and with
+sedan 12 m ahead on fit scan 3 of research/experiments/robo3d/crosstalk.toml, clean and with
 crosstalk, predicted side by side (robustness.md).
 
-    SEMANTICKITTI=DIR python docs/experiments/robo3d/crosstalk_check.py
+    SEMANTICKITTI=DIR python research/experiments/robo3d/crosstalk_check.py
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from falsify.models.runner import load_segmenter
 from falsify.data.real_backgrounds import scanner_for
 from falsify.world.space import load_space
 
-space = load_space("docs/experiments/robo3d/crosstalk.toml")
+space = load_space("research/experiments/robo3d/crosstalk.toml")
 scanner, net = scanner_for(space), load_segmenter(None)
 scans = [scanner.scan(space.make({"x": 0.0, "y": 12.0, "background": 3, "crosstalk": n}))
          for n in (0, 200)]

@@ -4,13 +4,13 @@
 # configs/paper-far.toml, V = backgrounds 0-6, R = 7-14, threshold 0.65, with R's scans at V's
 # blind cells (the paper) and, as the control, at as many random cells that are not blind.
 # Re-runnable: every step skips or resumes what is done. Run from the repo root:
-#   sh docs/paper-retraining/reproduce-other-world.sh
+#   sh research/paper-retraining/reproduce-other-world.sh
 set -eu
 DATA=${DATA:-../data}
 mkdir -p "$DATA"
 FIRST=$(cd "$DATA" && pwd)/first-world
 RUNS=${RUNS:-runs/paper-retraining-other-world}
-DOCS=docs/paper-retraining/other-world
+DOCS=research/paper-retraining/other-world
 mkdir -p "$RUNS" "$FIRST/model" "$DOCS"
 
 # 1. the network as it was bundled (weights of 4cc0bd3, exported at 4fa6da6)

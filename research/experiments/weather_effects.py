@@ -1,6 +1,6 @@
 """The bundled network's car IoU per weather or fault effect at three severities.
 
-Run from the repository root: `python docs/experiments/weather_effects.py OUT [--workers 2]`.
+Run from the repository root: `python research/experiments/weather_effects.py OUT [--workers 2]`.
 For each effect it writes a config (the paper's positions reduced to 5 x 4 on three streets,
 one car aligned with the view) whose effect dim takes 0 and the three severities below, runs
 `falsify grid` into OUT/<effect>/ (resumable), and prints a Markdown table of mean car IoU per

@@ -15,8 +15,8 @@ targeted run wins a pair if its mean car IoU over V's samples under the rules (t
 the control's by at least 0.05, and no held-out set (drive-style synthetic, the real KITTI sets,
 semantickitti-mini's evaluation split) drops by more than 0.01 car IoU in either arm.
 
-    python docs/experiments/designed_hole.py data/designed-hole \
-        --out docs/experiments/designed-hole/results.json
+    python research/experiments/designed_hole.py data/designed-hole \
+        --out research/experiments/designed-hole/results.json
 
 Resumable: finished grids and retraining runs are reused (`falsify retrain --resume`).
 """

@@ -1,12 +1,12 @@
 """The fitted-world training experiment (docs/experiments/fitted_world.md), resumable: every
 step whose output exists is skipped, so a killed run continues where it stopped.
 
-    python docs/experiments/fitted_world.py data/fitted-world \
-        --out docs/experiments/fitted-world/results.json
-    python docs/experiments/fitted_world.py data/fitted-world-parked \
+    python research/experiments/fitted_world.py data/fitted-world \
+        --out research/experiments/fitted-world/results.json
+    python research/experiments/fitted_world.py data/fitted-world-parked \
         --profile configs/worlds/semantickitti-fit-parked.json --train-seed 31 --val-seed 32 \
         --init models/weights/squeezeseg.pt --baseline squeezeseg \
-        --out docs/experiments/fitted-world-parked/results.json
+        --out research/experiments/fitted-world-parked/results.json
 
 (the first run fine-tuned the network bundled then, now `squeezeseg-v1`; its defaults are
 these options').

@@ -1,7 +1,7 @@
 """Per-class IoU of the 20-class reference networks on SemanticKITTI's evaluation split.
 
-    python docs/experiments/reference_eval.py [--split evaluation|fit] [--model NAME=REF:BACKEND]
-        [--root ROOT] > docs/experiments/reference-networks/eval.json
+    python research/experiments/reference_eval.py [--split evaluation|fit] [--model NAME=REF:BACKEND]
+        [--root ROOT] > research/experiments/reference-networks/eval.json
 
 ROOT defaults to ../shared/data/kitti/semantickitti-mini. Its evaluation split (sequences 00, 03,
 06, 08) is only reported on; its fit split (01, 02, 04, 05, 07, 09, 10) may choose between

@@ -1,6 +1,6 @@
 """A slow network for `falsify bench map --timed`: the bundled SqueezeSeg's answers, each frame
 held back `DELAY_S` seconds, as a heavy network (RangeNet++, a sparse-convolution net on a CPU)
-would take. Run it as `--model docs/experiments/level-set/slow_network.py:factory` (or `:drive`
+would take. Run it as `--model research/experiments/level-set/slow_network.py:factory` (or `:drive`
 for `squeezeseg-drive`)."""
 
 import time

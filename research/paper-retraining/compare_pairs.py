@@ -6,7 +6,7 @@ where the targeted run leads and by how much, with the read-outs fixed before th
 (the control wins a pair by the mirror); over all pairs, selection matters if it does in a
 majority of pairs and the mean lead over the pairs is > 0.01 (the control wins by the mirror),
 otherwise it is not resolved. Run from the repo root:
-python docs/paper-retraining/compare_pairs.py
+python research/paper-retraining/compare_pairs.py
 """
 from __future__ import annotations
 

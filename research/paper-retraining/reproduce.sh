@@ -4,12 +4,12 @@
 # `falsify retrain` on the paper's space at the paper's threshold twice: with R's scans at V's
 # blind cells (the paper) and with as many scans at random cells that are not blind (the
 # control). Outputs are copied here. Run from the repo root:
-#   sh docs/paper-retraining/reproduce.sh
+#   sh research/paper-retraining/reproduce.sh
 # DATA holds the scans and training runs (not committed), RUNS the experiment runs.
 set -eu
 DATA=${DATA:-../data}
 RUNS=${RUNS:-runs/paper-retraining}
-DOCS=docs/paper-retraining
+DOCS=research/paper-retraining
 W=models/weights
 mkdir -p "$RUNS"
 
@@ -57,7 +57,7 @@ python -m falsify.models.export $W/squeezeseg-drive-retrained.pt \
   --out $W/squeezeseg-drive-retrained.onnx \
   --note data=squeezeseg-drive-plus-R-scans-at-33-blind-cells-x5-plus-1000-drive-train \
   --note epochs=4 --note command="falsify retrain configs/paper.toml --model squeezeseg-drive \
---selection blind --epochs 4 (docs/paper-retraining/reproduce.sh)"
+--selection blind --epochs 4 (research/paper-retraining/reproduce.sh)"
 falsify grid $DOCS/blind/config-validation.toml --model squeezeseg-drive-retrained \
   --out "$RUNS/check-after" --workers 2 --quiet --no-report
 cmp "$RUNS/check-after/maps/miou_x_y.csv" $DOCS/blind/miou_after.csv
