@@ -2,7 +2,7 @@
 and the user's own data, named in configs as `${VARIABLE}` paths read from the environment.
 
 Installed, they are package data in falsify/configs; in a source checkout, the configs/ folder
-beside falsify/. The bundled weights live with the network (falsify.models.runner.WEIGHTS_DIR).
+beside falsify/. The bundled weights live with the network (falsify.models.runners.WEIGHTS_DIR).
 """
 
 from __future__ import annotations

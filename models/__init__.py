@@ -1,5 +1,5 @@
 """SqueezeSeg network, its recurrent CRF, ONNX export, runners and training.
 
-Installed as ``falsify.models``. Importing it or ``falsify.models.runner`` does not import torch;
+Installed as ``falsify.models``. Importing it or ``falsify.models.runners`` does not import torch;
 ``squeezeseg``, ``crf``, ``export`` and ``train`` do.
 """

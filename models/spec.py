@@ -189,6 +189,31 @@ def load_spec(path: str | Path) -> ModelSpec:
     return spec_from_dict(d, path)
 
 
+def _class_map(raw_classes: dict, path: str | Path, num_classes: int
+               ) -> dict[str, tuple[int, ...]]:
+    """A spec's "classes" (name -> output index or list of indices) as name -> indices;
+    FalsifyError on an unknown name, an index out of range or one index in two classes."""
+
+    def bad(why: str) -> FalsifyError:
+        return FalsifyError(f"model spec {path}: key 'classes' {why}")
+
+    classes: dict[str, tuple[int, ...]] = {}
+    for name, idx in raw_classes.items():
+        if name not in SPEC_CLASSES:
+            raise bad(f"has unknown class {name!r}; allowed {list(SPEC_CLASSES)}")
+        ids = idx if isinstance(idx, list) else [idx]
+        if not ids or not all(isinstance(i, int) and not isinstance(i, bool)
+                              and 0 <= i < num_classes for i in ids):
+            raise bad(f"'{name}' must map to output indices in [0, {num_classes})")
+        classes[name] = tuple(ids)
+    if all(name == "unknown" for name in classes):
+        raise bad("must map at least one class besides 'unknown' (e.g. 'car')")
+    used = [i for ids in classes.values() for i in ids]
+    if len(used) != len(set(used)):
+        raise bad("maps one output index to two classes")
+    return classes
+
+
 def spec_from_dict(d: Any, path: str | Path) -> ModelSpec:
     """Validate spec data (as a spec file holds it); FalsifyError names `path` (the file, or
     what the data came from) and the key on any problem.
@@ -242,21 +267,7 @@ def spec_from_dict(d: Any, path: str | Path) -> ModelSpec:
     num_classes = _get(d, "num_classes", path, int)
     if num_classes < 1:
         raise bad("num_classes", f"must be >= 1, got {num_classes}")
-    raw_classes = _get(d, "classes", path, dict)
-    classes: dict[str, tuple[int, ...]] = {}
-    for name, idx in raw_classes.items():
-        if name not in SPEC_CLASSES:
-            raise bad("classes", f"has unknown class {name!r}; allowed {list(SPEC_CLASSES)}")
-        ids = idx if isinstance(idx, list) else [idx]
-        if not ids or not all(isinstance(i, int) and not isinstance(i, bool)
-                              and 0 <= i < num_classes for i in ids):
-            raise bad("classes", f"'{name}' must map to output indices in [0, {num_classes})")
-        classes[name] = tuple(ids)
-    if all(name == "unknown" for name in classes):
-        raise bad("classes", "must map at least one class besides 'unknown' (e.g. 'car')")
-    used = [i for ids in classes.values() for i in ids]
-    if len(used) != len(set(used)):
-        raise bad("classes", "maps one output index to two classes")
+    classes = _class_map(_get(d, "classes", path, dict), path, num_classes)
     crf = _get(d, "crf_iterations", path, int, 0)
     if not 0 <= crf <= 3:
         raise bad("crf_iterations", f"must be 0..3, got {crf}")

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from falsify.models.runner import OnnxSegmenter, Prediction, TorchSegmenter
+from falsify.models.runners import OnnxSegmenter, Prediction, TorchSegmenter
 from falsify.models.spec import spec_path_for
 
 from falsify.errors import FalsifyError

@@ -1,5 +1,5 @@
 """Reports: HTML pages drawn from what they are given (a run's report, the trade-off page)."""
 
-from falsify.reports.run_page import ReplayedScan, ReportInput, render
+from falsify.reports.run import ReplayedScan, ReportInput, render
 
 __all__ = ["ReplayedScan", "ReportInput", "render"]

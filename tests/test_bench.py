@@ -116,7 +116,7 @@ def test_int8_matrix_rate_multiplies_integers_exactly():
     """The int8 product timed is a real u8 x s8 -> s32 product (checked against numpy), so its
     rate is of the integer path, not of a graph ONNX Runtime folded away."""
     import numpy as np
-    from falsify.models.runner import cpu_session
+    from falsify.models.runners import cpu_session
 
     from falsify.bench.machine import matmul_graph
 

@@ -44,7 +44,7 @@ def two_scans(tmp_path_factory) -> list[str]:
 def test_bands_add_up_to_the_pool_and_ignore_counts_nowhere(two_scans) -> None:
     if not BUNDLED.exists():
         pytest.skip("bundled model not trained yet")
-    from falsify.models.runner import load_segmenter
+    from falsify.models.runners import load_segmenter
 
     paths = two_scans
     images = np.stack([np.load(p) for p in paths])

@@ -39,7 +39,7 @@ def dirs() -> list[Path]:
 
 @pytest.fixture(scope="module")
 def result(dirs):
-    from falsify.models.runner import load_segmenter
+    from falsify.models.runners import load_segmenter
     return run_faithfulness(dirs, load_sensor("kitti-hdl64e-front"), load_segmenter(None))
 
 

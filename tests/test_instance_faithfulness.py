@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 import pytest
-from falsify.models.runner import load_segmenter
+from falsify.models.runners import load_segmenter
 
 from falsify.cli.commands import main
 from falsify.data.real_backgrounds import INSERTED_INSTANCE, RealScanner

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from falsify.models.runner import load_segmenter
+from falsify.models.runners import load_segmenter
 
 from falsify.cli import main
 from falsify.data.velodyne import read_kitti

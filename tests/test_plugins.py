@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 from falsify.models.plausible import plausible_scans
 from falsify.models.plugin import is_plugin
-from falsify.models.runner import BUNDLED_ONNX, PluginSegmenter, load_segmenter
+from falsify.models.runners import BUNDLED_ONNX, PluginSegmenter, load_segmenter
 from falsify.models.spec import SPEC_CLASSES, four_class_of, load_spec, spec_path_for, train_id_of
 
 from falsify.cli import main

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from falsify.models.runner import load_segmenter
+from falsify.models.runners import load_segmenter
 from falsify.models.spec import spec_path_for
 from falsify.sampler import make_sampler
 

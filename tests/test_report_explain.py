@@ -8,7 +8,7 @@ import re
 from pathlib import Path
 
 import pytest
-from falsify.reports.run_page import ReportInput, render
+from falsify.reports.run import ReportInput, render
 
 from falsify.errors import FalsifyError
 from falsify.jobs.explain import explain_run

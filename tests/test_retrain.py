@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from falsify.models.runner import BUNDLED_ONNX
+from falsify.models.runners import BUNDLED_ONNX
 
 from falsify.cli import main
 from falsify.data.training import TrafficOptions, write_dataset

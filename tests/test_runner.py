@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from falsify.models.plausible import plausible_scans
-from falsify.models.runner import (
+from falsify.models.runners import (
     BUNDLED_ONNX,
     WEIGHTS_DIR,
     load_segmenter,
@@ -176,7 +176,7 @@ def test_class_mapping_folds_outputs(exported, tmp_path):
 
 
 def test_network_batch_size_does_not_change_predictions(exported):
-    from falsify.models.runner import OnnxSegmenter
+    from falsify.models.runners import OnnxSegmenter
 
     scans = plausible_scans(5, seed=8)
     one = OnnxSegmenter(exported, threads=1, batch=1).run_raw(scans)
@@ -202,7 +202,7 @@ def test_runner_imports_and_runs_without_torch(exported):
     code = (
         "import sys; sys.modules['torch'] = None\n"
         "import numpy as np\n"
-        "from falsify.models.runner import load_segmenter\n"
+        "from falsify.models.runners import load_segmenter\n"
         "from falsify.models.plausible import plausible_scans\n"
         f"seg = load_segmenter({str(exported)!r}, threads=1)\n"
         "p = seg.predict(plausible_scans(1))\n"
@@ -284,22 +284,22 @@ def test_flushing_subnormals_leaves_the_bundled_outputs_unchanged(tmp_path):
     import subprocess
     import sys
 
-    from falsify.models.runner import BUNDLED_ONNX, _feeds
+    from falsify.models.runners import BUNDLED_ONNX, feeds
 
     scans = plausible_scans(2, seed=5)
     np.save(tmp_path / "scans.npy", scans)
     code = (
         "import numpy as np, onnxruntime as ort\n"
-        "from falsify.models.runner import _feeds, BUNDLED_ONNX\n"
+        "from falsify.models.runners import feeds, BUNDLED_ONNX\n"
         "from falsify.models.spec import load_spec, spec_path_for\n"
         "spec = load_spec(spec_path_for(BUNDLED_ONNX))\n"
         "s = ort.InferenceSession(str(BUNDLED_ONNX), providers=['CPUExecutionProvider'])\n"
         f"x = np.load({str(tmp_path / 'scans.npy')!r})\n"
-        "out = np.concatenate([s.run(None, _feeds(spec, x[i:i + 1]))[0] for i in range(2)])\n"
+        "out = np.concatenate([s.run(None, feeds(spec, x[i:i + 1]))[0] for i in range(2)])\n"
         f"np.save({str(tmp_path / 'plain.npy')!r}, out)\n")
     subprocess.run([sys.executable, "-c", code], check=True)
     seg = load_segmenter(BUNDLED_ONNX)
-    ours = np.concatenate([seg.session.run(None, _feeds(seg.spec, scans[i:i + 1]))[0]
+    ours = np.concatenate([seg.session.run(None, feeds(seg.spec, scans[i:i + 1]))[0]
                            for i in range(2)])
     assert np.array_equal(ours, np.load(tmp_path / "plain.npy"))
     assert np.float32(1e-39) * np.float32(1.0) == 0.0   # the flags are on in this thread

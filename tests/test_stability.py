@@ -201,7 +201,7 @@ BUNDLED = ROOT / "models" / "weights" / "squeezeseg.onnx"
 
 @pytest.mark.skipif(not BUNDLED.exists(), reason="bundled model not trained yet")
 def test_network_on_empty_far_and_non_finite_scans():
-    from falsify.models.runner import load_segmenter
+    from falsify.models.runners import load_segmenter
     model = load_segmenter()
     empty = np.zeros((1, 64, 512, 6), np.float32)
     pred = model.predict(empty)

@@ -88,7 +88,7 @@ def in_processes(target: Callable, n: int, args: tuple = (), timeout: float = 18
 
 def _matmul_session(m: int, k: int, n: int, kind: str = "fp32"):
     """The product graph on one ORT thread, and its input A."""
-    from falsify.models.runner import cpu_session
+    from falsify.models.runners import cpu_session
 
     model, a, _ = matmul_graph(m, k, n, kind)
     return cpu_session(model, threads=1), a
@@ -252,7 +252,7 @@ def _predict_all(seg, frames: np.ndarray, batch: int) -> tuple[int, float, float
 def _inference_worker(rank: int, n: int, barrier, model: str | None, frames_path: str,
                       batch: int) -> tuple[tuple | None, tuple]:
     """Rank 0 predicts every frame alone (the others wait), then each its share, all at once."""
-    from falsify.models.runner import load_segmenter
+    from falsify.models.runners import load_segmenter
 
     seg = load_segmenter(model, threads=1)
     frames = np.load(frames_path, mmap_mode="r" if rank else None)

@@ -65,7 +65,7 @@ def bench_nodes(config: str | Path, nodes: int = 2, samples: int = 120, batch: i
     from falsify.executors.driver import Driver, Progress
     from falsify.executors.evaluator import EvalSettings
     from falsify.executors.ray import import_ray
-    from falsify.models.runner import backend_for
+    from falsify.models.runners import backend_for
     from falsify.results.store import Store
 
     space = load_space(config)

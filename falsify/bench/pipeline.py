@@ -24,7 +24,7 @@ from falsify.checks import MAX_SAMPLES
 from falsify.data.real_backgrounds import scanner_for
 from falsify.errors import FalsifyError
 from falsify.models.flops import FlopCount
-from falsify.models.runner import BATCH
+from falsify.models.runners import BATCH
 from falsify.world.space import Sample, Space, load_space
 
 
@@ -166,19 +166,11 @@ def bench_pipeline(config: str | Path, samples: int = 80, workers: int = 2,
 
     from falsify.executors.evaluator import EvalSettings, Evaluator
     from falsify.models.flops import count_flops
-    from falsify.models.runner import backend_for, resolve_model
+    from falsify.models.runners import backend_for, resolve_model
     from falsify.results.store import Store
 
     space = load_space(config)
-    space.check_size(MAX_SAMPLES, "the benchmark's limit")
-    grid = possible(scanner_for(space), space.grid())   # a real street's collisions left out
-    if samples <= workers * batch:
-        raise FalsifyError(f"--samples: {samples} must be more than the first chunk of each "
-                           f"worker ({workers} x {batch}), which warms it up")
-    if samples > len(grid):   # the driver would read the repeats back from its store
-        raise FalsifyError(f"--samples: {samples} is more than the {len(grid)} samples of "
-                           f"{config}; the driver would answer the repeats from its store")
-    picked = grid[:samples]
+    picked = _pick(space, config, samples, workers, batch)
     backend = backend_for(model, "onnx")   # a plug-in runs as "python"
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -200,12 +192,7 @@ def bench_pipeline(config: str | Path, samples: int = 80, workers: int = 2,
         # 2. What a street costs a worker: generated and cast once, cold, in this process
         # (with `workers` 1, run 1 was in this process too and left the generated streets
         # cached: then only the BVH and the cast are timed).
-        t0 = time.perf_counter()
-        sim = scanner_for(space)
-        for bg in streets:
-            sim.background_hits(bg, sim.ego_pose(bg))
-        t_streets = time.perf_counter() - t0
-        del sim
+        t_streets = _street_build_time(space, streets)
 
         # 3. The same as 1 with one worker, one thread, in this process.
         store = Store(Path(tmp) / "one.sqlite", space)
@@ -216,18 +203,7 @@ def bench_pipeline(config: str | Path, samples: int = 80, workers: int = 2,
 
         # 4. In one process with 2 inference threads: the pipeline against inference alone.
         ev = Evaluator(EvalSettings(space=space, model=model, backend=backend, threads=2))
-        warm(ev.sim, picked)
-        ev.score_batch(picked[:batch])
-        scored = []
-        t0 = time.perf_counter()
-        for i in range(0, samples, batch):
-            scored.append(ev.score_batch(picked[i:i + batch]))
-        t_pipeline = time.perf_counter() - t0
-        images = [ev.scan(s).image for s in picked]
-        t0 = time.perf_counter()
-        for i in range(0, samples, batch):
-            ev.model.predict(np.stack(images[i:i + batch]))
-        t_infer = time.perf_counter() - t0
+        scored, images, t_pipeline, t_infer = _one_process_times(ev, picked, batch)
 
         # 5. The network alone on the same scans, 1 thread a process: 1 and `workers` at once;
         # then the machine's own matrix product the same way.
@@ -236,14 +212,8 @@ def bench_pipeline(config: str | Path, samples: int = 80, workers: int = 2,
         del images
         matmul = matmul_rate(workers)
 
-        ray = None
-        if executor == "ray":
-            store = Store(Path(tmp) / "ray.sqlite", space)
-            t_ray = _driver_time(settings, store, workers, batch, picked, "ray")
-            store.close()
-            ray = {"actors": workers, "samples_per_s": round(len(rest) / t_ray, 2),
-                   "against_processes": round(t_driver / t_ray, 3),
-                   **_ray_task_cost(settings, workers)}
+        ray = (_ray_bench(settings, Path(tmp) / "ray.sqlite", workers, batch, picked, t_driver)
+               if executor == "ray" else None)
         rows_per_s = _store_rate(Path(tmp) / "writes.sqlite", space, scored, ev.model_hash)
     return PipelineBench(
         config=str(config), samples=samples, model=ev.model.spec.name,
@@ -253,6 +223,63 @@ def bench_pipeline(config: str | Path, samples: int = 80, workers: int = 2,
         t_driver_1=t_driver_1, inference=inference, matmul=matmul,
         flops=count_flops(resolve_model(model)) if backend == "onnx" else None, memory=memory,
         driver_threads=settings.threads, ray=ray, streets=len(streets), t_streets=t_streets)
+
+
+def _pick(space: Space, config: str | Path, samples: int, workers: int, batch: int
+          ) -> list[Sample]:
+    """The first `samples` of the space's grid that a real street leaves possible; FalsifyError
+    where they do not outnumber the warm-up chunks or the grid holds fewer."""
+    space.check_size(MAX_SAMPLES, "the benchmark's limit")
+    grid = possible(scanner_for(space), space.grid())   # a real street's collisions left out
+    if samples <= workers * batch:
+        raise FalsifyError(f"--samples: {samples} must be more than the first chunk of each "
+                           f"worker ({workers} x {batch}), which warms it up")
+    if samples > len(grid):   # the driver would read the repeats back from its store
+        raise FalsifyError(f"--samples: {samples} is more than the {len(grid)} samples of "
+                           f"{config}; the driver would answer the repeats from its store")
+    return grid[:samples]
+
+
+def _street_build_time(space: Space, streets: tuple) -> float:
+    """Seconds to generate and cast every street once, cold, in this process."""
+    t0 = time.perf_counter()
+    sim = scanner_for(space)
+    for bg in streets:
+        sim.background_hits(bg, sim.ego_pose(bg))
+    return time.perf_counter() - t0
+
+
+def _one_process_times(ev, picked: list[Sample], batch: int
+                       ) -> tuple[list, list[np.ndarray], float, float]:
+    """The whole pipeline in this process against inference alone on the same scans: the
+    scored chunks, the scan images, and the seconds each took (after a warm-up chunk)."""
+    warm(ev.sim, picked)
+    ev.score_batch(picked[:batch])
+    scored = []
+    t0 = time.perf_counter()
+    for i in range(0, len(picked), batch):
+        scored.append(ev.score_batch(picked[i:i + batch]))
+    t_pipeline = time.perf_counter() - t0
+    images = [ev.scan(s).image for s in picked]
+    t0 = time.perf_counter()
+    for i in range(0, len(picked), batch):
+        ev.model.predict(np.stack(images[i:i + batch]))
+    return scored, images, t_pipeline, time.perf_counter() - t0
+
+
+def _ray_bench(settings, path: Path, workers: int, batch: int, picked: list[Sample],
+               t_driver: float) -> dict:
+    """The driver's run on `workers` Ray actors, storing to `path`, against the processes'
+    (`t_driver`), and Ray's own cost per task."""
+    from falsify.results.store import Store
+
+    store = Store(path, settings.space)
+    t_ray = _driver_time(settings, store, workers, batch, picked, "ray")
+    store.close()
+    rest = picked[workers * batch:]
+    return {"actors": workers, "samples_per_s": round(len(rest) / t_ray, 2),
+            "against_processes": round(t_driver / t_ray, 3),
+            **_ray_task_cost(settings, workers)}
 
 
 def _driver_window(settings, store, workers: int, batch: int, picked: list[Sample],

@@ -39,12 +39,8 @@ def bench_search(config: str | Path, out: str | Path, algorithms=SEARCH_ALGORITH
     out/ALGORITHM, the others' in out/ALGORITHM-seedS), so an interrupted benchmark continues
     where it stopped; only runs started in this invocation are timed. `bo` is skipped, and said
     so, where Optuna is not installed."""
-    import pandas as pd
-
-    from falsify.fileio import write_bytes
     from falsify.jobs.run import RunRequest, RunSummary, execute
     from falsify.results.store import read_frame
-    from falsify.sampler import NLOPT_ALGORITHMS
 
     check_range(seeds, "--seeds", 1, MAX_SEEDS)
     out = Path(out)
@@ -77,33 +73,10 @@ def bench_search(config: str | Path, out: str | Path, algorithms=SEARCH_ALGORITH
             other, _ = run(f"{algo}-seed{seed}", algo, budget, "search", seed)
             per_seed.append(found(other.run))
         assert done.search is not None
-        low = done.search.lowest
-        curves[algo] = low
-        hit = next((i + 1 for i, v in enumerate(low) if v is not None and v <= target), None)
-        frame = read_frame(done.run)
-        wall = float(done.elapsed_s) if fresh and done.elapsed_s is not None else None
-        evals = done.search.evaluations
-        rows.append({"algorithm": algo, "budget": budget, "evaluations": evals,
-                     "distinct_samples": int(len(frame)),
-                     "lowest": None if low[-1] is None else round(low[-1], 4),
-                     "evaluations_to_target": hit,
-                     "fraction_of_grid_to_target": None if hit is None else round(hit / n_grid, 4),
-                     "reached": hit is not None, "timed": fresh,
-                     "wall_s": None if wall is None else round(wall, 3),
-                     "s_per_evaluation": None if wall is None or not evals else
-                     round(wall / evals, 5),
-                     "over_seeds": over_seeds(per_seed)})
-    base = next((r["s_per_evaluation"] for r in rows if r["algorithm"] == "random"), None)
-    for r in rows:
-        ratio = (None if base is None or r["s_per_evaluation"] is None
-                 else round(r["s_per_evaluation"] / base, 3))
-        r["s_per_evaluation_vs_random"] = ratio
-        if r["algorithm"] in NLOPT_ALGORITHMS:
-            r["within_goal"] = None if ratio is None else ratio <= PER_EVALUATION_GOAL
-    longest = max((len(c) for c in curves.values()), default=0)
-    table = pd.DataFrame({a: c + [c[-1]] * (longest - len(c)) for a, c in curves.items()})
-    table.insert(0, "evaluation", range(1, longest + 1))
-    write_bytes(out / "search_curves.csv", table.to_csv(index=False).encode())
+        curves[algo] = done.search.lowest
+        rows.append(_algorithm_row(algo, done, fresh, per_seed, budget, n_grid, target))
+    _compare_with_random(rows)
+    _write_curves(curves, out / "search_curves.csv")
     return {"benchmark": "search", "config": str(config), "grid_samples": n_grid,
             "grid_lowest": round(grid_min, 4), "target": round(target, 4),
             "budget": budget, "fraction": fraction, "workers": workers, "algorithms": rows,
@@ -112,6 +85,57 @@ def bench_search(config: str | Path, out: str | Path, algorithms=SEARCH_ALGORITH
                                    "per evaluation",
             "timing": NOT_TIMED, "first_seed": FIRST_SEED,
             "curves_csv": str(out / "search_curves.csv"), "machine": machine()}
+
+
+def _algorithm_row(algo: str, done, fresh: bool, per_seed: list[dict], budget: int,
+                   n_grid: int, target: float) -> dict:
+    """An algorithm's row from its first seed's run `done`: evaluations to reach `target`, its
+    lowest score, its seconds per evaluation (only where `fresh`: run in this invocation) and
+    what it found over the seeds."""
+    from falsify.results.store import read_frame
+
+    low = done.search.lowest
+    hit = next((i + 1 for i, v in enumerate(low) if v is not None and v <= target), None)
+    frame = read_frame(done.run)
+    wall = float(done.elapsed_s) if fresh and done.elapsed_s is not None else None
+    evals = done.search.evaluations
+    return {"algorithm": algo, "budget": budget, "evaluations": evals,
+            "distinct_samples": int(len(frame)),
+            "lowest": None if low[-1] is None else round(low[-1], 4),
+            "evaluations_to_target": hit,
+            "fraction_of_grid_to_target": None if hit is None else round(hit / n_grid, 4),
+            "reached": hit is not None, "timed": fresh,
+            "wall_s": None if wall is None else round(wall, 3),
+            "s_per_evaluation": None if wall is None or not evals else
+            round(wall / evals, 5),
+            "over_seeds": over_seeds(per_seed)}
+
+
+def _compare_with_random(rows: list[dict]) -> None:
+    """Add each row's seconds per evaluation over random's, and for NLopt whether that meets
+    PER_EVALUATION_GOAL."""
+    from falsify.sampler import NLOPT_ALGORITHMS
+
+    base = next((r["s_per_evaluation"] for r in rows if r["algorithm"] == "random"), None)
+    for r in rows:
+        ratio = (None if base is None or r["s_per_evaluation"] is None
+                 else round(r["s_per_evaluation"] / base, 3))
+        r["s_per_evaluation_vs_random"] = ratio
+        if r["algorithm"] in NLOPT_ALGORITHMS:
+            r["within_goal"] = None if ratio is None else ratio <= PER_EVALUATION_GOAL
+
+
+def _write_curves(curves: dict[str, list], path: Path) -> None:
+    """Each algorithm's lowest score against evaluations as one CSV column, a shorter curve
+    held at its last value."""
+    import pandas as pd
+
+    from falsify.fileio import write_bytes
+
+    longest = max((len(c) for c in curves.values()), default=0)
+    table = pd.DataFrame({a: c + [c[-1]] * (longest - len(c)) for a, c in curves.items()})
+    table.insert(0, "evaluation", range(1, longest + 1))
+    write_bytes(path, table.to_csv(index=False).encode())
 
 
 def available(algorithms) -> tuple[list[str], dict[str, str]]:

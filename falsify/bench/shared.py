@@ -30,7 +30,7 @@ def bench_shared(config: str | Path, samples: int = 80, workers: int = 2,
     from falsify.executors.driver import Driver, Progress
     from falsify.executors.evaluator import EvalSettings
     from falsify.executors.inference import MAX_BATCH
-    from falsify.models.runner import backend_for, load_segmenter
+    from falsify.models.runners import backend_for, load_segmenter
     from falsify.results.store import Store
 
     space = load_space(config)

@@ -429,7 +429,7 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
     Bad input raises FalsifyError before anything is written."""
     from falsify.bench.machine import machine
     from falsify.fileio import write_bytes, write_json
-    from falsify.models.runner import BUNDLED_ONNX
+    from falsify.models.runners import BUNDLED_ONNX
     from falsify.reports.tradeoff_page import write_page
 
     knobs = parse_knobs(",".join(knobs))

@@ -7,7 +7,7 @@ order of the chunks; `make_executor` picks one by name, so the driver never name
 from __future__ import annotations
 
 from falsify.executors.evaluator import EvalSettings
-from falsify.models.runner import Segmenter
+from falsify.models.runners import Segmenter
 
 EXECUTORS = ("process", "ray")
 

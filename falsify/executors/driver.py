@@ -18,7 +18,7 @@ from typing import Any
 
 from falsify.executors import make_executor
 from falsify.executors.evaluator import EvalSettings
-from falsify.models.runner import Segmenter, load_segmenter
+from falsify.models.runners import Segmenter, load_segmenter
 from falsify.results.metrics import Status
 from falsify.results.samples import SampleResult
 from falsify.results.store import Store

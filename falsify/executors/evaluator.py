@@ -14,7 +14,7 @@ import numpy as np
 
 from falsify.data.real_backgrounds import INSERTED_INSTANCE, scanner_for
 from falsify.errors import FalsifyError
-from falsify.models.runner import Segmenter, load_segmenter
+from falsify.models.runners import Segmenter, load_segmenter
 from falsify.results.metrics import Scoring, Status
 from falsify.results.samples import CAR_SCORING, SampleResult, sample_seed
 from falsify.semantic import train_ids

@@ -11,7 +11,7 @@ every CPU core. With the network in each worker, N workers hold N contexts and s
   frames, and runs them as one call. On a GPU the call is padded to `max_batch` frames, so
   every frame is computed in a batch of the same size whatever arrived with it (the rows stay
   the same bytes run after run); on the CPU frames run one at a time as in a worker (the
-  fastest there, `models/runner.py`), so the rows equal the in-worker path's.
+  fastest there, `models/runners/`), so the rows equal the in-worker path's.
 - A failure in the network is sent back to the requester and raised there, as in a worker.
 """
 
@@ -29,7 +29,7 @@ import numpy as np
 
 from falsify.errors import FalsifyError
 from falsify.executors.evaluator import EvalSettings
-from falsify.models.runner import load_segmenter
+from falsify.models.runners import load_segmenter
 from falsify.models.spec import ModelSpec
 
 MAX_BATCH = 32      # frames a device call takes at most (a GPU's batch)

@@ -18,7 +18,7 @@ from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 
 from falsify.executors.evaluator import EvalSettings, Evaluator
-from falsify.models.runner import Segmenter
+from falsify.models.runners import Segmenter
 from falsify.results.samples import SampleResult
 from falsify.world.space import Sample
 

@@ -30,7 +30,7 @@ from pathlib import Path
 from falsify.errors import FalsifyError
 from falsify.executors.evaluator import EvalSettings, Evaluator
 from falsify.models.plugin import absolute_ref, is_plugin
-from falsify.models.runner import resolve_model
+from falsify.models.runners import resolve_model
 from falsify.models.spec import spec_path_for
 from falsify.results.samples import SampleResult
 from falsify.world.space import Sample

@@ -30,7 +30,7 @@ from falsify.data.real_backgrounds import (
     fit_ground,
 )
 from falsify.errors import FalsifyError
-from falsify.models.runner import Segmenter
+from falsify.models.runners import Segmenter
 from falsify.results.metrics import confusion
 from falsify.sensor.calibration import KittiCalib
 from falsify.sensor.lidar import Sensor

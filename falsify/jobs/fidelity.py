@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from falsify.errors import FalsifyError
-from falsify.models.runner import WEIGHTS_DIR
+from falsify.models.runners import WEIGHTS_DIR
 
 
 @dataclass(frozen=True)

@@ -39,7 +39,7 @@ from falsify.data.real_backgrounds import (
 from falsify.data.velodyne import read_bin
 from falsify.errors import FalsifyError
 from falsify.jobs.faithfulness import Arms, Pooled, Spread, _rounded, pool, score_arm
-from falsify.models.runner import Segmenter
+from falsify.models.runners import Segmenter
 from falsify.rotations import rot_z
 from falsify.semantic import TRAIN_ID, split_label
 from falsify.sensor.lidar import Sensor

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from falsify.data.scansets import ScanSet
-from falsify.models.runner import Segmenter
+from falsify.models.runners import Segmenter
 from falsify.results.metrics import CLASSES, ClassScore, Scoring, class_scores, confusion, pooled
 from falsify.semantic import TRAIN_CLASSES, train_ids
 

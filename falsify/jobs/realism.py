@@ -160,7 +160,7 @@ class EncoderFeatures:
     `onnx` package) and run in ONNX Runtime; per scan its tile means and valid-cell moments."""
 
     def __init__(self, path: str | Path | None = None, threads: int | None = 2) -> None:
-        from falsify.models.runner import BUNDLED_ONNX
+        from falsify.models.runners import BUNDLED_ONNX
         from falsify.models.spec import load_spec, model_hash, spec_path_for
 
         self.path = Path(path) if path is not None else BUNDLED_ONNX
@@ -176,7 +176,7 @@ class EncoderFeatures:
         except ImportError:
             raise FalsifyError("falsify realism reads encoder features with the onnx package: "
                                "pip install 'onnx>=1.15'") from None
-        from falsify.models.runner import cpu_session
+        from falsify.models.runners import cpu_session
 
         try:
             graph = onnx.load(str(self.path))
@@ -198,7 +198,7 @@ class EncoderFeatures:
         """(B, H, W, 6) scans -> their ScanFeatures. A fire9 cell is a sample when at least
         CELL_MIN_VALID of the input pixels it stands for (H / h rows by W / w columns) hold a
         return."""
-        from falsify.models.runner import check_scans
+        from falsify.models.runners import check_scans
         from falsify.models.spec import normalise
 
         a = check_scans(scans, self.spec, self.path)

@@ -9,8 +9,8 @@ from pathlib import Path
 from falsify.errors import FalsifyError
 from falsify.fileio import write_text
 from falsify.jobs.explain import explain_run
-from falsify.models.runner import Segmenter, load_segmenter
-from falsify.reports.run_page import WORST, ReplayedScan, ReportInput, render
+from falsify.models.runners import Segmenter, load_segmenter
+from falsify.reports.run import WORST, ReplayedScan, ReportInput, render
 from falsify.results.explain import MIN_SUPPORT, Explanation, score_name
 from falsify.results.replay import Replay
 from falsify.results.store import RunData, open_run

@@ -261,7 +261,7 @@ class RetrainJob:
     # checks before anything is written
     def prepare(self) -> dict:
         from falsify.jobs.gate import check_threshold
-        from falsify.models.runner import load_segmenter
+        from falsify.models.runners import load_segmenter
         from falsify.models.train import list_scans
         from falsify.world.space import load_space
 
@@ -467,7 +467,7 @@ class RetrainJob:
     def _checks(self, ctx: dict, done: dict) -> dict:
         from falsify.data.scansets import ScanSet, read_set
         from falsify.jobs.predict import evaluate
-        from falsify.models.runner import load_segmenter
+        from falsify.models.runners import load_segmenter
         from falsify.sensor.lidar import load_sensor
 
         req = self.req

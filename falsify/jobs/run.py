@@ -27,7 +27,7 @@ from falsify.executors.driver import Driver, Progress, ProgressListener
 from falsify.executors.evaluator import EvalSettings
 from falsify.fileio import write_bytes, write_json, write_npy
 from falsify.jobs.fidelity import preset
-from falsify.models.runner import Segmenter, backend_for, load_segmenter
+from falsify.models.runners import Segmenter, backend_for, load_segmenter
 from falsify.paths import config_path
 from falsify.results.metrics import Scoring, Status, column
 from falsify.results.miou_maps import CellMap, miou_map, snap

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from falsify.models.runner import load_segmenter
+from falsify.models.runners import load_segmenter
 
 from falsify.jobs.instance_faithfulness import run_instance_faithfulness
 from falsify.sensor.lidar import load_sensor

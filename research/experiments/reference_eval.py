@@ -18,7 +18,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from falsify.models.runner import load_segmenter
+from falsify.models.runners import load_segmenter
 
 from falsify.data.velodyne import read_kitti
 from falsify.semantic import TRAIN_CLASSES, train_ids

@@ -8,7 +8,7 @@ crosstalk, predicted side by side (robustness.md).
 from __future__ import annotations
 
 import numpy as np
-from falsify.models.runner import load_segmenter
+from falsify.models.runners import load_segmenter
 
 from falsify.data.real_backgrounds import scanner_for
 from falsify.world.space import load_space

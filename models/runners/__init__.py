@@ -1,0 +1,94 @@
+"""Segmentation runners: ONNX Runtime (default, no torch needed), torch and Python plug-ins
+(`falsify.models.plugin`), one interface, on the CPU or a CUDA GPU; `load_segmenter` picks one.
+
+``load_segmenter()`` checks the model against its spec JSON when it is created, so a wrong model
+fails before any sample runs. Predictions are in our class ids: 0 unknown, 1 car, 2 pedestrian,
+3 cyclist, with SemanticKITTI's train ids beside them; invalid pixels (range == 0) are always 0.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from falsify.models.plugin import check_device, is_plugin
+from falsify.models.runners.base import (
+    BACKENDS,
+    BATCH,
+    BUNDLED_ONNX,
+    BUNDLED_PT,
+    CARDS_DIR,
+    WEIGHTS_DIR,
+    Prediction,
+    Segmenter,
+    check_scans,
+    feeds,
+    points_of,
+    scatter,
+    to_prediction,
+)
+from falsify.models.runners.onnx import OnnxSegmenter, cpu_session, onnx_session
+from falsify.models.runners.plugin import PluginSegmenter
+from falsify.models.runners.torch import TorchSegmenter
+
+from falsify.errors import FalsifyError
+
+__all__ = [
+    "BACKENDS", "BATCH", "BUNDLED_ONNX", "BUNDLED_PT", "CARDS_DIR", "WEIGHTS_DIR",
+    "OnnxSegmenter", "PluginSegmenter", "Prediction", "Segmenter", "TorchSegmenter",
+    "backend_for", "check_scans", "cpu_session", "feeds", "load_segmenter", "onnx_session",
+    "points_of", "resolve_model", "scatter", "to_prediction",
+]
+
+
+def resolve_model(path: str | Path | None, backend: str = "onnx") -> Path:
+    """The file `load_segmenter` opens: the bundled model for None, a bundled model by name
+    (e.g. "squeezeseg-drive": models/weights/squeezeseg-drive.onnx) where no such file exists,
+    else the path, with .onnx and .pt mapped to the backend's file of the same stem."""
+    if path is not None and not Path(path).suffix and not Path(path).exists():
+        if (WEIGHTS_DIR / f"{path}.onnx").is_file():
+            path = WEIGHTS_DIR / f"{path}.onnx"
+        elif (CARDS_DIR / f"{path}.md").is_file():   # a network the wheel leaves out
+            raise FalsifyError(
+                f"--model {path}: not installed (the package ships the default network, "
+                f"squeezeseg, and its int8 variants); its card {CARDS_DIR / f'{path}.md'} says "
+                f"how to make it, or take {path}.onnx and {path}.json from the source "
+                f"repository's models/weights/ and pass --model PATH/{path}.onnx")
+    if backend == "torch":
+        p = BUNDLED_PT if path is None else Path(path)
+        return p.with_suffix(".pt") if p.suffix == ".onnx" else p
+    p = BUNDLED_ONNX if path is None else Path(path)
+    return p.with_suffix(".onnx") if p.suffix == ".pt" else p
+
+
+def backend_for(path: str | Path | None, backend: str) -> str:
+    """The backend a model runs on: "python" for a plug-in (`module:factory`), else `backend`."""
+    return "python" if is_plugin(path) else backend
+
+
+def load_segmenter(path: str | Path | None = None, backend: str = "onnx",
+                   threads: int | None = None, device: str = "cpu") -> Segmenter:
+    """Load a model: ``path=None`` is the bundled models/weights/squeezeseg.onnx (or .pt); a
+    bundled model can also be named (see `resolve_model`).
+
+    backend "onnx" reads ``<path>`` (.onnx) + ``<path>.json``; "torch" reads the .pt state dict
+    beside it (a .onnx path is mapped to the .pt of the same stem); "python" (set for any
+    ``module:factory`` or ``file.py:factory`` path) runs a plug-in. ``device`` is "cpu" or
+    "cuda".
+    """
+    check_device(device)
+    backend = backend_for(path, backend)
+    if backend not in BACKENDS:
+        raise FalsifyError(f"unknown model backend {backend!r}; choose 'onnx', 'torch' or "
+                           "'python' (a plug-in, MODULE:FACTORY)")
+    if backend == "python":
+        if path is None or not is_plugin(path):
+            raise FalsifyError(f"backend 'python' runs a plug-in: --model MODULE:FACTORY or "
+                               f"FILE.py:FACTORY, got {path}")
+        return PluginSegmenter(str(path), threads, device)
+    p = resolve_model(path, backend)
+    if backend == "torch":
+        return TorchSegmenter(p, threads, device=device)
+    if path is None and not p.is_file():
+        raise FalsifyError(f"bundled model {p} not found; train one with "
+                           "`falsify train --data DIR --out models/weights`")
+    return OnnxSegmenter(p, threads, device=device)

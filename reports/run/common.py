@@ -1,0 +1,60 @@
+"""What the run report's sections share: the objective's name, the model column's heading,
+cell keys, and a sample row's values as text."""
+
+from __future__ import annotations
+
+import math
+
+import pandas as pd
+from falsify.reports.page import esc
+
+from falsify.results.miou_maps import fmt_value
+from falsify.results.store import RunData
+
+
+def cell_key(x: float, y: float) -> str:
+    """A map cell's key, "x|y", as the click-to-list data and the comparison match cells."""
+    return f"{fmt_value(x)}|{fmt_value(y)}"
+
+
+def bg_values(data: RunData) -> tuple:
+    """The run's background values (none where its space has no background dim)."""
+    return tuple(data.space.dims["background"].grid()) if "background" in data.space.dims else ()
+
+
+def objective_name(data: RunData) -> str:
+    """What the run's map averages: car IoU, another class's IoU, or mIoU over its classes."""
+    o = data.objective
+    return "car IoU" if o == "car" else "mIoU over the scored classes" if o == "miou" else \
+        f"{esc(o)} IoU"
+
+
+def objective_title(data: RunData) -> str:
+    """The map's title suffix for a run with another objective than car ('' for car)."""
+    return "" if data.objective == "car" else f": objective {esc(data.objective)}"
+
+
+def model_heading(data: RunData) -> str:
+    """The model column's heading: "car model" in spaces that name the dim so, else "actor"."""
+    return "car model" if data.space.model_dim == "car_model" else "actor"
+
+
+def bg_text(data: RunData, row: pd.Series) -> str:
+    """A row's background: the real scan's name on real backgrounds, else the street's id."""
+    text = dim_text(row, "background")
+    if data.space.real_backgrounds and text != "—":
+        return data.space.background_name(int(float(text)))
+    return text
+
+
+def dim_text(row: pd.Series, name: str) -> str:
+    """A row's value of a dim as text: "—" where missing, x, y and yaw to at most 3 places."""
+    if name not in row.index:
+        return "—"
+    v = row[name]
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "—"
+    if isinstance(v, str):
+        return v
+    return f"{float(v):.3f}".rstrip("0").rstrip(".") if name in ("x", "y", "yaw") else \
+        fmt_value(v)

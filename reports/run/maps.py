@@ -1,0 +1,210 @@
+"""The run report's maps over position: the mIoU heat map with its per-background small
+multiples, the inserted and real objects' maps (real backgrounds) and the per-class maps."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from falsify.reports.charts import Grid, axes_svg, cells_svg, f3, legend_svg, svg_element, viridis
+from falsify.reports.page import esc
+from falsify.reports.run.common import bg_values, model_heading, objective_name, objective_title
+
+from falsify.results.metrics import Status, column
+from falsify.results.miou_maps import CellMap, fmt_value
+from falsify.results.store import RunData
+
+MAX_MULTIPLES = 30
+
+
+def _cell_tip(x: float, y: float, miou: float | None, n: int, undefined: int, invalid: int,
+              threshold: float) -> str:
+    where = f"x = {fmt_value(x)} m, y = {fmt_value(y)} m"
+    extra = []
+    if undefined:
+        extra.append(f"{undefined} undefined")
+    if invalid:
+        extra.append(f"{invalid} invalid")
+    more = f" ({', '.join(extra)})" if extra else ""
+    if miou is None:
+        return f"{where}\nno valid sample{more}"
+    s = f"{where}\nmIoU {miou:.3f} · {n} sample{'s' * (n != 1)}{more}"
+    if miou < threshold:
+        s += f"\nblind spot: {threshold - miou:.3f} below {threshold:.3f}"
+    return s
+
+
+def heatmap_section(data: RunData, cmap: CellMap, threshold: float) -> str:
+    grid = Grid.sized(cmap.a_values, cmap.b_values, 480, 430, left=52, top=8)
+    blind = np.nan_to_num(cmap.miou, nan=1.0) < threshold
+
+    def tip(i: int, j: int) -> str:
+        m = cmap.miou[j, i]
+        text = _cell_tip(cmap.a_values[i], cmap.b_values[j], None if np.isnan(m) else float(m),
+                         int(cmap.samples[j, i]), int(cmap.undefined[j, i]),
+                         int(cmap.invalid[j, i]), threshold)
+        if cmap.lower is not None and cmap.upper is not None and np.isfinite(m):
+            text += (f"\nestimate of the grid's mIoU; interval {cmap.lower[j, i]:.3f} to "
+                     f"{cmap.upper[j, i]:.3f}")
+        return text
+
+    def attrs(i: int, j: int) -> str:
+        m = cmap.miou[j, i]
+        return (f' data-x="{esc(fmt_value(cmap.a_values[i]))}" '
+                f'data-y="{esc(fmt_value(cmap.b_values[j]))}" '
+                f'data-miou="{"" if np.isnan(m) else f3(float(m))}" '
+                f'data-n="{int(cmap.samples[j, i])}" tabindex="0"')
+
+    show = grid.cw >= 34 and grid.ch >= 14
+    body = cells_svg(grid, cmap.miou, viridis, tip, "cell", blind,
+                     (lambda i, j: f3(float(cmap.miou[j, i]))) if show else None, attrs)
+    selbox = '<rect id="selbox" x="0" y="0" width="0" height="0" visibility="hidden"/>'
+    svg = svg_element(body + axes_svg(grid) + selbox, grid.left + grid.width + 8,
+               grid.top + grid.height + 60, "map", "heatmap", "mIoU heat map over x and y")
+    multiples = multiples_section(data, threshold)
+    what = objective_name(data)
+    mean_what = f"Mean {what}"
+    n_blind = int(blind.sum())
+    scored = int((~np.isnan(cmap.miou)).sum())
+    estimated = ""
+    if cmap.estimated:
+        options = data.meta.get("sampler_options") or {}
+        estimated = (f"""
+<p class="note">Estimated map (level-set sampler): {len(data.frame)} of the grid's samples were
+scored; each cell shows its estimate of the mean the full grid would give, and its tip the
+{float(options.get("confidence", 0.95)):.0%} interval. A cell is decided once its interval
+excludes the threshold.</p>""")
+    placed = "car" if data.space.model_dim == "car_model" else "actor"
+    return f"""
+<section id="map-section">
+<h2>mIoU over position ({placed} 1){objective_title(data)}</h2>
+<p class="note">{mean_what} of the valid samples in each cell (over backgrounds and every
+other dimension), seen from above: the sensor at the bottom, forward (Y) up. {n_blind} of
+{scored} scored cells are blind spots (mIoU &lt; {threshold:.3f}, outlined). Hover a cell for
+its value; click it to list its samples.</p>{estimated}
+<div class="row">
+<figure class="main-map">{svg}</figure>
+<figure>{legend_svg(threshold)}</figure>
+{multiples}
+</div>
+<div id="cell-samples">
+<h3 id="cell-title">Samples of a cell</h3>
+<p id="cell-hint" class="note">Click a cell of the map to list its samples here.</p>
+<div class="scroll"><table id="cell-table" hidden><thead><tr><th>eval</th><th>x</th><th>y</th>
+<th>yaw</th><th>{model_heading(data)}</th><th>count</th><th>background</th><th>status</th><th>{what}</th>
+<th>precision</th><th>recall</th><th>reason</th></tr></thead><tbody></tbody></table></div>
+</div>
+</section>"""
+
+
+def _small_map(cmap: CellMap, threshold: float, tip_prefix: str, title: str
+               ) -> tuple[str, str, int]:
+    """A small map in the main map's colours: its SVG, its mean over scored cells (text) and
+    its number of blind cells."""
+    grid = Grid.sized(cmap.a_values, cmap.b_values, 84, 96, lo=3, hi=42)
+    blind = np.nan_to_num(cmap.miou, nan=1.0) < threshold
+
+    def tip(i: int, j: int) -> str:
+        m = cmap.miou[j, i]
+        return f"{tip_prefix}\n" + _cell_tip(
+            cmap.a_values[i], cmap.b_values[j], None if np.isnan(m) else float(m),
+            int(cmap.samples[j, i]), int(cmap.undefined[j, i]), int(cmap.invalid[j, i]),
+            threshold)
+
+    body = cells_svg(grid, cmap.miou, viridis, tip, "mcell", blind)
+    valid = cmap.miou[~np.isnan(cmap.miou)]
+    mean = f3(float(valid.mean())) if valid.size else "—"
+    return (svg_element(body, grid.width, grid.height, "small", "", title), mean,
+            int(blind.sum()))
+
+
+def multiples_section(data: RunData, threshold: float) -> str:
+    """One small mIoU map per background, same colours and axes as the main map."""
+    bgs = bg_values(data)
+    if len(bgs) < 2:
+        return ""
+    shown = bgs[:MAX_MULTIPLES]
+    figs = []
+    for bg in shown:
+        cmap = data.cell_map(data.frame[data.frame["background"] == bg])
+        label = (data.space.background_name(bg) if data.space.real_backgrounds
+                 else f"background {bg}")
+        svg, mean, n_blind = _small_map(cmap, threshold, label, label)
+        short = label if data.space.real_backgrounds else f"bg {bg}"
+        figs.append(f'<figure class="multiple">{svg}'
+                    f"<figcaption>{esc(short)} · {mean}<br>{n_blind} blind"
+                    "</figcaption></figure>")
+    more = (f'<p class="note">showing {len(shown)} of {len(bgs)} backgrounds</p>'
+            if len(bgs) > len(shown) else "")
+    return (f'<div class="multiples-wrap"><h3>Per background</h3><div class="multiples">'
+            f'{"".join(figs)}</div>{more}</div>')
+
+
+def inserted_section(data: RunData, threshold: float) -> str:
+    """Runs on real backgrounds: the inserted object's own IoU and recall maps, and per real
+    scan the inserted and the real objects of the class scored apart (each with the other left
+    out)."""
+    if "inserted_iou" not in data.frame:
+        return ""
+    o = data.objective
+    thing = "car" if o in ("car", "miou") else o
+    figs = []
+    for col, title in (("inserted_iou", f"inserted {thing} IoU"),
+                       ("inserted_recall", f"inserted {thing} recall")):
+        svg, mean, n_blind = _small_map(data.cell_map(column=col), threshold, title, title)
+        figs.append(f'<figure class="multiple">{svg}<figcaption>{esc(title)} · {mean}<br>'
+                    f"{n_blind} below {threshold:.2f}</figcaption></figure>")
+    frame = data.frame
+    rows = []
+    for bg in bg_values(data):
+        mine = frame[frame["background"] == bg]
+        ok = mine[mine["status"] == Status.OK.value]
+
+        def mean(col: str, ok=ok) -> str:
+            v = ok[col].astype(float).mean() if col in ok and len(ok) else float("nan")
+            return "—" if math.isnan(v) else f3(v)
+        rows.append(
+            f"<tr><td>{esc(data.space.background_name(bg))}</td>"
+            f'<td class="num">{len(ok)}</td>'
+            f'<td class="num">{int((mine["status"] == Status.INVALID.value).sum())}</td>'
+            f'<td class="num">{mean(data.score_column)}</td>'
+            f'<td class="num">{mean("inserted_iou")} / {mean("inserted_recall")}</td>'
+            f'<td class="num">{mean("real_iou")} / {mean("real_recall")}</td></tr>')
+    thing = esc(thing)
+    return f"""
+<section id="inserted">
+<h2>Inserted and real {thing}s</h2>
+<p class="note">Each sample is a real scan with the {thing} inserted. The inserted {thing} is
+scored with the scan's real {thing}s left out, and the real {thing}s with the inserted one left
+out, so a map of the inserted {thing} shows where the network loses it. A position where the
+{thing} would stand in a real car, wall or tree is invalid, counted and never merged.</p>
+<div class="multiples">{"".join(figs)}</div>
+<table class="small"><thead><tr><th>real scan</th><th>valid</th><th>invalid</th>
+<th>mean {esc(objective_name(data))}</th><th>inserted IoU / recall</th>
+<th>real IoU / recall</th></tr></thead><tbody>{"".join(rows)}</tbody></table>
+</section>"""
+
+
+def class_maps_section(data: RunData, threshold: float) -> str:
+    """One small (x, y) IoU map per class the run scored (runs with SemanticKITTI classes or
+    an objective other than car): where each class, not only the objective, is lost."""
+    names = [c for c in data.meta.get("scored_classes") or [] if c not in ("unknown",
+                                                                          "unlabeled")]
+    figs = []
+    for name in names:
+        col = f"{column(name)}_iou"
+        if col not in data.frame:
+            continue
+        svg, mean, _ = _small_map(data.cell_map(column=col), threshold, name, f"{name} IoU")
+        figs.append(f'<figure class="multiple">{svg}<figcaption>{esc(name)} · {mean}'
+                    "</figcaption></figure>")
+    if not figs:
+        return ""
+    return f"""
+<section id="class-maps">
+<h2>IoU per class over position</h2>
+<p class="note">Each class's mean IoU per cell over the samples where the class is in the label
+or the prediction (blank: nowhere); the main map above shows the objective,
+{esc(data.objective)}.</p>
+<div class="multiples">{"".join(figs)}</div>
+</section>"""

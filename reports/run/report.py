@@ -1,0 +1,170 @@
+"""One self-contained HTML report of a run: the page assembled from its sections, with the
+stylesheet and script (reports/assets/) and the click-to-list data inlined.
+
+Everything is inline (CSS, JS, SVG, PNG previews as data: URIs) and a Content-Security-Policy
+forbids any fetch, so the file opens offline and leaks nothing. Output bytes depend only on the
+run (and the compared run): no render time, sorted data, fixed number formats.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from falsify.reports.charts import BLIND_STROKE, FONT, VIRIDIS
+from falsify.reports.explain_page import explain_section
+from falsify.reports.page import esc, head
+from falsify.reports.run.common import cell_key, objective_name
+from falsify.reports.run.compare import compare_section
+from falsify.reports.run.maps import class_maps_section, heatmap_section, inserted_section
+from falsify.reports.run.plots import distance_section, search_section
+from falsify.reports.run.summary import summary_section
+from falsify.reports.run.worst import ReplayedScan, worst_section
+
+import falsify
+from falsify.results.explain import Explanation
+from falsify.results.miou_maps import fmt_value
+from falsify.results.store import RunData
+
+WORST = 12
+ASSETS = Path(__file__).resolve().parent.parent / "assets"
+
+
+def script_json(obj: object) -> str:
+    """JSON that is safe inside <script>: no `<`, `>` or `&` can end the element."""
+    text = json.dumps(obj, separators=(",", ":"), sort_keys=True, ensure_ascii=True,
+                      allow_nan=False)
+    return text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
+
+
+def _clean(value: object) -> object:
+    """Plain JSON value: NaN → None, numpy scalars → Python, floats to 3 places."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        return value
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        return None if math.isnan(v) else round(v, 3)
+    return str(value)
+
+
+@dataclass(frozen=True)
+class ReportInput:
+    """Everything a report draws: the run, the run compared with, the worst samples' scans."""
+
+    run: RunData
+    before: RunData | None = None
+    scans: Mapping[int, ReplayedScan] = field(default_factory=dict)   # by eval index
+    note: str = ""
+    worst: int = WORST
+    retrain: dict | None = None   # a `falsify retrain` summary: adds the experiment's section
+    # the run's explanation (`falsify explain`), or one line saying why there is none;
+    # None leaves the Explain section out
+    explanation: Explanation | str | None = None
+
+
+def samples_json(data: RunData) -> dict:
+    """The rows the click-to-list table needs, keyed to their heat-map cell."""
+    from falsify.results.miou_maps import snap
+
+    f = data.frame
+    cx = snap(f["x"], data.space, "x")
+    cy = snap(f["y"], data.space, "y")
+    cols = ["cell", "eval", "x", "y", "yaw", "car_model", "count", "background", "status",
+            "iou", "precision", "recall", "reason"]
+    col = data.score_column
+    src = {"eval": "eval_index", "iou": col, "precision": col.replace("_iou", "_precision"),
+           "recall": col.replace("_iou", "_recall"), "car_model": data.space.model_dim}
+    rows = []
+    for k in range(len(f)):
+        r = f.iloc[k]
+        row: list = [cell_key(cx.iloc[k], cy.iloc[k])]
+        for c in cols[1:]:
+            name = src.get(c, c)
+            v = r[name] if name in f.columns else None
+            if v is not None and not isinstance(v, str) and pd.isna(v):
+                v = None
+            elif c in ("count", "background") and v is not None and not isinstance(v, str):
+                v = fmt_value(v)
+            row.append(_clean(v))
+        rows.append(row)
+    return {"columns": cols, "rows": rows}
+
+
+def _asset(name: str) -> str:
+    """A file of reports/assets/ as the page inlines it: after a newline, as the file holds it;
+    in the stylesheet $FONT and $BLIND stand for the charts' font and blind-spot colour."""
+    text = "\n" + (ASSETS / name).read_text(encoding="utf-8")
+    return text.replace("$FONT", FONT).replace("$BLIND", BLIND_STROKE)
+
+
+CSS = _asset("run.css")
+JS = _asset("run.js")
+
+CSP = ("default-src 'none'; img-src data:; style-src 'unsafe-inline'; "
+       "script-src 'unsafe-inline'; base-uri 'none'; form-action 'none'")
+
+DEFS = ('<svg width="0" height="0" style="position:absolute" aria-hidden="true"><defs>'
+        '<pattern id="hatch" width="6" height="6" patternUnits="userSpaceOnUse" '
+        'patternTransform="rotate(45)"><rect width="6" height="6" fill="#eceef1"/>'
+        '<line x1="0" y1="0" x2="0" y2="6" stroke="#b4bac3" stroke-width="2"/></pattern>'
+        '<linearGradient id="vir" x1="0" y1="1" x2="0" y2="0">'
+        + "".join(f'<stop offset="{k / 10:.1f}" stop-color="{c}"/>'
+                  for k, c in enumerate(VIRIDIS))
+        + "</linearGradient></defs></svg>")
+
+
+def render(report: ReportInput) -> str:
+    """The report as one self-contained HTML string (deterministic for its input); a
+    `falsify retrain` summary in `report.retrain` adds the retraining experiment's section."""
+    data, before, retrain = report.run, report.before, report.retrain
+    threshold = data.threshold
+    cmap = data.cell_map()
+    meta = data.meta
+    name = meta.get("space_name") or data.space.name
+    sections = [summary_section(data, cmap, threshold), heatmap_section(data, cmap, threshold)]
+    sections.append(inserted_section(data, threshold))
+    if meta.get("scored_classes") and "inserted_iou" not in data.frame:
+        sections.append(class_maps_section(data, threshold))
+    if report.explanation is not None:
+        sections.append(explain_section(data, report.explanation))
+    if meta.get("command") == "search":
+        sections.append(search_section(data, cmap, threshold))
+    if before is not None and retrain is not None:
+        from falsify.reports.retrain_page import retrain_section
+        sections.append(retrain_section(before, data, cmap, threshold, retrain))
+    if before is not None:
+        sections.append(compare_section(before, data, cmap, threshold,
+                                        ascending=retrain is not None))
+    sections.append(distance_section(data, threshold))
+    sections.append(worst_section(data, report.scans, report.note, report.worst))
+    payload = script_json({"samples": samples_json(data), "threshold": threshold})
+    return f"""{head(f"falsify report: {esc(name)}", CSP, CSS)}
+<body>
+{DEFS}
+<main>
+<h1>falsify report: {esc(name)}</h1>
+<p class="sub">{esc(meta.get("command", "run"))} run in {esc(data.path)} ·
+{objective_name(data)} of {esc(meta.get("model_name", "the model"))} per sample · threshold
+{threshold:.3f}</p>
+{"".join(sections)}
+<footer>falsify {esc(falsify.__version__)} · config hash
+<code>{esc(str(meta.get("config_hash") or "")[:12])}</code> · model hash
+<code>{esc(str(meta.get("model_hash") or "")[:12])}</code></footer>
+</main>
+<div id="tip" role="tooltip"></div>
+<script type="application/json" id="falsify-data">{payload}</script>
+<script>{JS}</script>
+</body>
+</html>
+"""

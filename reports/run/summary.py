@@ -1,0 +1,70 @@
+"""The run report's summary cards: model, config, sensor, sample counts, blind spots, the
+worst cell and sample, and the run's time."""
+
+from __future__ import annotations
+
+import numpy as np
+from falsify.reports.charts import f3
+from falsify.reports.page import esc
+from falsify.reports.run.common import bg_text, dim_text
+
+from falsify.results.metrics import Status
+from falsify.results.miou_maps import CellMap, fmt_value
+from falsify.results.store import RunData
+
+
+def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
+    meta, frame = data.meta, data.frame
+    status = frame["status"]
+    ok = data.ok
+    blind = cmap.blind_spots(threshold)
+    scored = int((~np.isnan(cmap.miou)).sum())
+    if len(ok):
+        low = data.worst(1).iloc[0]
+        lowest = (f"{f3(low[data.score_column])} at x = {dim_text(low, 'x')}, "
+                  f"y = {dim_text(low, 'y')}"
+                  f", background {esc(bg_text(data, low))} (eval {int(low['eval_index'])})")
+    else:
+        lowest = "—"
+    scored_cells = sorted((c for c in cmap.cells() if c.miou is not None),
+                          key=lambda c: (c.miou, str(c.a), str(c.b)))
+    worst_cell = "—"
+    if scored_cells:
+        w = scored_cells[0]
+        worst_cell = f"{w.miou:.3f} at x = {fmt_value(w.a)}, y = {fmt_value(w.b)}"
+    elapsed = meta.get("elapsed_s")
+    took = []
+    if isinstance(elapsed, int | float):
+        took.append(f"{float(elapsed):.1f} s")
+    if meta.get("workers"):
+        took.append(f"{esc(meta['workers'])} workers")
+    started = str(meta.get("started") or "—").replace("T", " ")
+    timing = (f"{esc(started)}<br><span class=\"note\">"
+              f"{' on '.join(took) or 'duration unknown'}</span>")
+    model = f"{esc(meta.get('model_name', '—'))} <code>{esc(str(meta.get('model_hash') or '')[:12])}</code>"  # noqa: E501
+    model_path = meta.get("model_path")
+    search = str(meta.get("command", "")) or "—"
+    if meta.get("algorithm"):
+        search += f" · {meta['algorithm']}"
+    if meta.get("budget") is not None:
+        search += f" · budget {meta['budget']}"
+    if meta.get("seed") is not None:
+        search += f" · seed {meta['seed']}"
+    items = [
+        ("Model", model + f'<br><span class="note">{esc(model_path or "bundled model")}'
+         f' · {esc(meta.get("backend", "onnx"))}</span>'),
+        ("Config", f"{esc(meta.get('space_name', data.space.name))}<br><span class=\"note\">"
+         f"{esc(meta.get('config_path', '—'))}</span>"),
+        ("Sensor", esc(meta.get("sensor", data.space.sensor))),
+        ("Run", esc(search)),
+        ("Samples", f"{len(frame)} ({len(ok)} valid)"),
+        ("Invalid samples", str(int((status == Status.INVALID).sum()))),
+        ("Undefined samples", str(int((status == Status.UNDEFINED).sum()))),
+        ("Blind spots", f'<span class="{"bad" if blind else ""}">{len(blind)}</span> of '
+         f"{scored} cells (mIoU &lt; {threshold:.3f})"),
+        ("Worst cell", worst_cell),
+        ("Lowest IoU", lowest),
+        ("Time", timing),
+    ]
+    cards = "".join(f"<div><dt>{k}</dt><dd>{v}</dd></div>" for k, v in items)
+    return f'<section id="summary"><dl class="summary">{cards}</dl></section>'
