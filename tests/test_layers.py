@@ -206,9 +206,9 @@ def test_the_checkers_see_an_upward_import_and_a_cycle(tmp_path):
 
 def test_the_renderers_neither_cast_nor_infer():
     """The HTML renderers draw what they are handed: no scene, sensor, replay or network."""
-    for path in (ROOT / "reports").glob("*.py"):
+    for path in (ROOT / "reports").rglob("*.py"):
         for line, name in imports(path):
             bad = (name.startswith(("falsify.sensor", "falsify.models", "models.",
                                     "falsify.results.replay", "falsify.world.streets",
                                     "falsify.world.cars", "falsify.executors")))
-            assert not bad, f"reports/{path.name}:{line} imports {name}"
+            assert not bad, f"{path.relative_to(ROOT)}:{line} imports {name}"
