@@ -256,7 +256,7 @@ def test_selection_is_checked_and_part_of_the_resume_key(inputs, tmp_path) -> No
     with pytest.raises(FalsifyError, match="--selection: 'aimed'; allowed: blind, control"):
         RetrainJob(request(inputs, tmp_path / "x", selection="aimed")).prepare()
     assert not (tmp_path / "x").exists()
-    key = RetrainJob(request(inputs, tmp_path / "y", selection="control")).prepare()["key"]
+    key = RetrainJob(request(inputs, tmp_path / "y", selection="control")).prepare().key
     assert key["selection"] == "control"
 
 
