@@ -75,11 +75,7 @@ def ground_points(xyz: np.ndarray, semantic: np.ndarray | None) -> np.ndarray:
     1 m cell's lowest points (within LOWEST_BAND_M of its lowest)."""
     if semantic is not None:
         return xyz[np.isin(semantic, GROUND_IDS)]
-    cell = np.floor(xyz[:, :2] / LOWEST_CELL_M).astype(np.int64)
-    key = (cell[:, 0] << 32) + (cell[:, 1] & 0xFFFFFFFF)
-    uniq, inv = np.unique(key, return_inverse=True)
-    low = np.full(len(uniq), np.inf)
-    np.minimum.at(low, inv, xyz[:, 2])
+    _, inv, low = _lowest_cells(xyz)
     return xyz[xyz[:, 2] <= low[inv] + LOWEST_BAND_M]
 
 
@@ -120,13 +116,22 @@ def _plane(a: np.ndarray, z: np.ndarray) -> np.ndarray:
 def lowest_band(cloud: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Bool per point: within LOWEST_BAND_M of the lowest point of the cloud in its
     LOWEST_CELL_M cell (as ground_points picks an unlabelled scan's ground)."""
-    def keys(p):
-        cell = np.floor(p[:, :2] / LOWEST_CELL_M).astype(np.int64)
-        return (cell[:, 0] << 32) + (cell[:, 1] & 0xFFFFFFFF)
-    uniq, inv = np.unique(keys(cloud), return_inverse=True)
-    low = np.full(len(uniq), np.inf)
-    np.minimum.at(low, inv, cloud[:, 2])
-    k = keys(points)
+    uniq, _, low = _lowest_cells(cloud)
+    k = _cell_keys(points)
     at = np.clip(np.searchsorted(uniq, k), 0, max(len(uniq) - 1, 0))
     found = (uniq[at] == k) if len(uniq) else np.zeros(len(k), bool)
     return found & (points[:, 2] <= np.where(found, low[at], -np.inf) + LOWEST_BAND_M)
+
+
+def _cell_keys(p: np.ndarray) -> np.ndarray:
+    """Each point's LOWEST_CELL_M cell as one int64 key."""
+    cell = np.floor(p[:, :2] / LOWEST_CELL_M).astype(np.int64)
+    return (cell[:, 0] << 32) + (cell[:, 1] & 0xFFFFFFFF)
+
+
+def _lowest_cells(cloud: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cloud's cells (sorted keys), each point's cell among them, and each cell's lowest z."""
+    uniq, inv = np.unique(_cell_keys(cloud), return_inverse=True)
+    low = np.full(len(uniq), np.inf)
+    np.minimum.at(low, inv, cloud[:, 2])
+    return uniq, inv, low
