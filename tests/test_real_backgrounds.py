@@ -19,10 +19,10 @@ from falsify.data.real_backgrounds import (
     INSERTED_INSTANCE,
     PointIndex,
     RealScanner,
-    _meets_box,
     fit_ground,
     pixel_directions,
 )
+from falsify.data.real_backgrounds.rays import meets_box as _meets_box
 from falsify.data.velodyne import read_kitti
 from falsify.errors import ConfigError, FalsifyError
 from falsify.results.metrics import Scoring

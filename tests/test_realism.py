@@ -13,22 +13,22 @@ from falsify.reports.realism_page import render_realism
 from scipy.linalg import sqrtm
 
 from falsify.cli import main
-from falsify.jobs.realism import (
-    REFERENCE,
-    STATISTICS,
+from falsify.jobs.realism import REFERENCE
+from falsify.results.distances import frechet_distance, frechet_from_samples, wasserstein_hist
+from falsify.results.feature_moments import (
     ScanFeatures,
-    SetStats,
-    bootstrap,
     cell_frechet,
     cell_moments,
-    distances,
-    frechet_distance,
     frechet_floor,
-    frechet_from_samples,
-    per_real_scan,
     pooled_moments,
+)
+from falsify.results.scan_statistics import (
+    STATISTICS,
+    SetStats,
+    bootstrap,
+    distances,
+    per_real_scan,
     profile_distances,
-    wasserstein_hist,
 )
 from falsify.sensor.lidar import load_sensor
 from falsify.sensor.simulator import PlacedCar, Simulator

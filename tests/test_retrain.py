@@ -17,14 +17,9 @@ from falsify.models.runners import BUNDLED_ONNX
 from falsify.cli import main
 from falsify.data.training import TrafficOptions, write_dataset
 from falsify.errors import FalsifyError
-from falsify.jobs.retrain import (
-    STAGES,
-    RetrainJob,
-    RetrainRequest,
-    control_cells,
-    parse_ids,
-    subset_config,
-)
+from falsify.jobs.retrain import STAGES, RetrainJob, RetrainRequest
+from falsify.jobs.retrain_config import parse_ids, subset_config
+from falsify.jobs.retrain_selection import control_cells
 from falsify.results.miou_maps import CellMap
 from falsify.results.samples import sample_seed
 from falsify.sensor.lidar import load_sensor
@@ -261,7 +256,7 @@ def test_selection_is_checked_and_part_of_the_resume_key(inputs, tmp_path) -> No
     with pytest.raises(FalsifyError, match="--selection: 'aimed'; allowed: blind, control"):
         RetrainJob(request(inputs, tmp_path / "x", selection="aimed")).prepare()
     assert not (tmp_path / "x").exists()
-    key = RetrainJob(request(inputs, tmp_path / "y", selection="control")).prepare()["key"]
+    key = RetrainJob(request(inputs, tmp_path / "y", selection="control")).prepare().key
     assert key["selection"] == "control"
 
 
@@ -325,7 +320,7 @@ def test_compare_pairs_matches_the_published_runs(capsys):
 
 
 def test_rules_select_rs_samples_under_vs_rules_without_their_streets() -> None:
-    from falsify.jobs.retrain import covered, transferable
+    from falsify.jobs.retrain_selection import covered, transferable
     from falsify.results.explain import Condition, Rule
 
     far = Rule((Condition("y", ">=", 16.0), Condition("background", "==", 5)), 10, 10, 1.0,
@@ -354,7 +349,7 @@ def test_selection_rules_and_its_random_control_run_the_experiment(inputs, tmp_p
 
 
 def test_random_rows_draw_as_many_seeded_samples_from_anywhere() -> None:
-    from falsify.jobs.retrain import random_rows
+    from falsify.jobs.retrain_selection import random_rows
 
     pool = pd.Series(np.arange(100)[::-1])
     rows = pd.DataFrame({"eval_index": np.arange(120)})
@@ -369,7 +364,7 @@ def test_random_rows_draw_as_many_seeded_samples_from_anywhere() -> None:
 def test_region_figures_read_the_region_of_a_run() -> None:
     from types import SimpleNamespace
 
-    from falsify.jobs.retrain import region_figures
+    from falsify.jobs.retrain_result import region_figures
 
     run = SimpleNamespace(score_column="car_iou", ok=pd.DataFrame(
         {"eval_index": [0, 1, 2, 3], "car_iou": [0.2, 0.6, 0.9, 0.1]}))

@@ -1,11 +1,13 @@
 """Where samples are scored: in this process, in local worker processes, or on Ray actors.
 
 Every executor scores chunks of samples with warm Evaluators and yields their results in the
-order of the chunks; `make_executor` picks one by name, so the driver never names a backend.
+order of the chunks (the `Executor` protocol of base.py); `make_executor` picks one by name, so
+the driver never names a backend.
 """
 
 from __future__ import annotations
 
+from falsify.executors.base import Executor
 from falsify.executors.evaluator import EvalSettings
 from falsify.models.runners import Segmenter
 
@@ -27,7 +29,7 @@ def shared_inference(inference: str, kind: str, settings: EvalSettings, workers:
 
 def make_executor(kind: str, settings: EvalSettings, workers: int,
                   address: str | None = None, model: Segmenter | None = None,
-                  inference: str = "auto"):
+                  inference: str = "auto") -> Executor:
     """An executor (a context manager with `map(chunks)`) for `kind`: "process" runs one warm
     evaluator here for one worker, else a pool of worker processes (with one shared inference
     process where `shared_inference` says so); "ray" runs actors on the cluster at `address`.

@@ -33,9 +33,9 @@ from falsify.data.real_backgrounds import (
     PointIndex,
     RealBackground,
     RealScanner,
-    _ground_points,
     fit_ground,
 )
+from falsify.data.real_backgrounds.ground import ground_points
 from falsify.data.velodyne import read_bin
 from falsify.errors import FalsifyError
 from falsify.jobs.faithfulness import Arms, Pooled, Spread, _rounded, pool, score_arm
@@ -222,7 +222,7 @@ def without_instance(bg: RealBackground, xyz: np.ndarray, sem: np.ndarray, gone:
     keep = ~gone
     return replace(bg, scan=Scan(image, inst, s), dist=dist, valid=valid,
                    cloud=PointIndex.of(xyz[keep], sem[keep]),
-                   ground=PointIndex.of(_ground_points(xyz[keep], sem[keep]).astype(np.float64)))
+                   ground=PointIndex.of(ground_points(xyz[keep], sem[keep]).astype(np.float64)))
 
 
 def run_instance_faithfulness(paths: list[Path], sequences: list[str] | None, sensor: Sensor,

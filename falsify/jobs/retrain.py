@@ -6,7 +6,7 @@ was in; the grids and the fine-tuning resume inside their stage too):
   before    grid over the validation backgrounds V with the model
   rows      grid over the retraining backgrounds R with the model (the rows to re-cast)
   selected  the V cells below the threshold; the scans of R at those cells, re-cast from the
-            rows by falsify.jobs.run.write_retraining_set (which replays them by
+            rows by falsify.jobs.retraining_set.write_retraining_set (which replays them by
             falsify.results.replay).
             With selection "control", as many cells drawn at random (seeded) from V's cells at
             or above the threshold: the same amount of extra data, not aimed at the blind
@@ -32,29 +32,42 @@ import contextlib
 import dataclasses
 import functools
 import json
-import math
 import shutil
-import tomllib
-from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
 from pathlib import Path
-
-import numpy as np
-import pandas as pd
 
 from falsify.checks import check_out_dir, check_range, check_seed
 from falsify.errors import ConfigError
 from falsify.executors.driver import ProgressListener
+from falsify.jobs.retrain_config import parse_ids, subset_config
+from falsify.jobs.retrain_result import (
+    Check,
+    FinetuneRecord,
+    GridRecord,
+    RetrainResult,
+    SelectedRecord,
+    as_json,
+    read_record,
+    read_summary,
+    result_of,
+    result_text,
+    rounded,
+)
+from falsify.jobs.retrain_selection import (
+    SELECTIONS,
+    control_cells,
+    covered,
+    random_rows,
+    transferable,
+)
+from falsify.jobs.retraining_set import plain_value, write_retraining_set
 from falsify.results.explain import Rule, explain
 from falsify.results.store import open_run
-from falsify.world.space import RealScan
+from falsify.world.space import Space
 
-SELECTIONS = ("blind", "control", "rules", "random")
 STAGES = ("before", "rows", "selected", "finetune", "after", "checks", "report")
 STAGE_FILE = "stages.json"
-MAX_CAR_IOU_DROP = 0.01      # the issue's bound on a regression check (the paper: 60.8 -> 60.6)
-MIN_BLIND_CELLS = 5          # the experiment needs at least this many blind cells before
-MIN_FIXED_SHARE = 0.8        # of which at least this share must reach the threshold after
 HELD_OUT_FIRST_BACKGROUND = 5000   # the drive-style held-out streets: 5000..5049, seed 2
 HELD_OUT_BACKGROUNDS = 50
 HELD_OUT_SEED = 2
@@ -94,157 +107,15 @@ class RetrainRequest:
 
 
 @dataclass(frozen=True)
-class Check:
-    """Pooled car IoU of the model before and after fine-tuning on one held-out set."""
+class RetrainContext:
+    """What `RetrainJob.prepare` found, for every stage: the space, the request's resume key,
+    the threshold and the training data (its scans and index.json, if any)."""
 
-    name: str
-    scans: int
-    before: float | None
-    after: float | None
-    note: str = ""
-
-    @property
-    def change(self) -> float | None:
-        return None if self.before is None or self.after is None else self.after - self.before
-
-    @property
-    def passed(self) -> bool | None:
-        """Car IoU dropped by at most MAX_CAR_IOU_DROP (None when the set was not available)."""
-        c = self.change
-        return None if c is None else c >= -MAX_CAR_IOU_DROP - 1e-12
-
-    def as_dict(self) -> dict:
-        return {**asdict(self), "change": _r(self.change), "passed": self.passed}
-
-
-@dataclass(frozen=True)
-class CellChange:
-    x: float
-    y: float
-    before: float
-    after: float | None
-
-    def as_dict(self) -> dict:
-        return {"x": self.x, "y": self.y, "miou_before": _r(self.before),
-                "miou_after": _r(self.after)}
-
-
-@dataclass(frozen=True)
-class RetrainResult:
-    """What the experiment found; `criteria` holds the issue's success criteria, each a bool."""
-
-    out: str
+    space: Space
+    key: dict
     threshold: float
-    selection: str                    # one of SELECTIONS
-    computed: tuple[str, ...]         # stages run this time
-    reused: tuple[str, ...]           # stages read back from stages.json
-    cells: int
-    blind_before: tuple[CellChange, ...]
-    blind_after: int | None
-    fixed: int | None
-    retraining_scans: int
-    mean_before: float | None
-    mean_after: float | None
-    training: dict
-    checks: tuple[Check, ...]
-    criteria: dict
-    model_after: str | None
-    report: str | None
-    summary: str | None
-    files: dict = field(default_factory=dict)
-    region: dict | None = None        # rules/random: V's samples under the rules, before/after
-
-    def to_json(self) -> dict:
-        d = asdict(self)
-        d["blind_before"] = [c.as_dict() for c in self.blind_before]
-        d["checks"] = [c.as_dict() for c in self.checks]
-        d["computed"], d["reused"] = list(self.computed), list(self.reused)
-        return d
-
-
-def _r(v: float | None) -> float | None:
-    return None if v is None or (isinstance(v, float) and math.isnan(v)) else round(float(v), 4)
-
-
-def parse_ids(text: str, option: str) -> tuple[int, ...]:
-    """'0-6' or '0,2,4' or '0-3,9' -> sorted unique ids; ConfigError naming the option."""
-    ids: set[int] = set()
-    try:
-        for part in text.split(","):
-            part = part.strip()
-            if "-" in part[1:]:
-                a, b = part.split("-", 1)
-                lo, hi = int(a), int(b)
-                if hi < lo:
-                    raise ValueError
-                ids.update(range(lo, hi + 1))
-            else:
-                ids.add(int(part))
-    except ValueError:
-        raise ConfigError(f"{option} {text!r}: expected background ids like 0-6 or 0,2,4") \
-            from None
-    if not ids or min(ids) < 0:
-        raise ConfigError(f"{option} {text!r}: expected non-negative background ids like 0-6")
-    return tuple(sorted(ids))
-
-
-# -- derived configs --------------------------------------------------------------------------
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int | float):
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, list):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise ConfigError(f"cannot write config value {v!r}")
-
-
-def toml_text(raw: dict, prefix: str = "") -> str:
-    """A parsed config written back as TOML (scalars, lists and nested tables only)."""
-    lines = [f"{k} = {_toml_value(v)}" for k, v in raw.items() if not isinstance(v, dict)]
-    out = "\n".join(lines) + ("\n" if lines else "")
-    for k, v in raw.items():
-        if isinstance(v, dict):
-            name = f"{prefix}{k}"
-            inner = toml_text(v, name + ".")
-            if any(not isinstance(x, dict) for x in v.values()) or not v:
-                out += f"\n[{name}]\n"
-            out += inner
-    return out
-
-
-def transferable(rule: Rule) -> Rule:
-    """The rule without its conditions on `background`: V's streets are not R's, so a rule's
-    region carries over to R only in the other dims."""
-    return dataclasses.replace(rule, conditions=tuple(
-        c for c in rule.conditions if c.dim != "background"))
-
-
-def covered(rules: Sequence[Rule], rows: pd.DataFrame) -> np.ndarray:
-    """Bool per row: covered by at least one rule's transferable conditions (a rule about a
-    street of V alone covers nothing in R)."""
-    out = np.zeros(len(rows), bool)
-    for rule in map(transferable, rules):
-        if rule.conditions:
-            out |= np.logical_and.reduce([c.mask(rows[c.dim]) for c in rule.conditions])
-    return out
-
-
-def subset_config(config: Path, backgrounds: Sequence[int], suffix: str,
-                  real: Sequence[RealScan] = ()) -> str:
-    """The config's text with its background dim replaced by `backgrounds` (paths absolute);
-    for a space of real scans (`real`, its scans), the scans of those backgrounds."""
-    raw = tomllib.loads(config.read_text(encoding="utf-8"))
-    raw["name"] = f"{raw.get('name', config.stem)}-{suffix}"
-    raw["dims"]["background"] = (
-        {"real": [str(real[b].bin.resolve()) for b in backgrounds]} if real
-        else {"values": list(backgrounds)})
-    for spec in raw.get("car_models", {}).values():
-        if isinstance(spec, dict) and "file" in spec and not Path(spec["file"]).is_absolute():
-            spec["file"] = str((config.parent / spec["file"]).resolve())
-    return toml_text(raw)
+    train_files: list[Path]
+    train_index: dict | None
 
 
 # -- the job ----------------------------------------------------------------------------------
@@ -259,68 +130,26 @@ class RetrainJob:
         self.on_progress = on_progress
 
     # checks before anything is written
-    def prepare(self) -> dict:
-        from falsify.jobs.gate import check_threshold
+    def prepare(self) -> RetrainContext:
+        from falsify.data.holdout import check_not_held_out
         from falsify.models.runners import load_segmenter
         from falsify.models.train import list_scans
         from falsify.world.space import load_space
 
         req = self.req
-        check_threshold(req.threshold)
-        for option, value, lo in (("--epochs", req.epochs, 1), ("--oversample", req.oversample, 1),
-                                  ("--batch", req.batch, 1), ("--workers", req.workers, 1),
-                                  ("--held-out-scans", req.held_out_scans, 0),
-                                  ("--train-scans", req.train_scans, 1)):
-            check_range(value, option, lo)
-        check_seed(req.seed)
-        check_out_dir(req.out)
+        _check_numbers(req)
         space = load_space(req.config)
         used = {int(b) for b in space.dims["background"].grid()}
-        for option, ids in (("--validation-backgrounds", req.validation),
-                            ("--retraining-backgrounds", req.retraining)):
-            if not ids:
-                raise ConfigError(f"{option}: no backgrounds given")
-            outside = sorted(set(ids) - used)
-            if outside:
-                raise ConfigError(f"{option}: background {outside[0]} is not in "
-                                  f"{req.config}'s backgrounds {sorted(used)}")
-        both = sorted(set(req.validation) & set(req.retraining))
-        if both:
-            raise ConfigError(f"--validation-backgrounds and --retraining-backgrounds share "
-                              f"background {both[0]}; V and R must be disjoint")
-        if req.selection not in SELECTIONS:
-            raise ConfigError(f"--selection: {req.selection!r}; allowed: {', '.join(SELECTIONS)}")
-        if req.precision not in ("auto", "bf16", "fp32"):
-            raise ConfigError(f"--precision: {req.precision!r}; allowed: auto, bf16, fp32")
-        if not req.lr > 0:
-            raise ConfigError(f"--lr: {req.lr} must be > 0")
-        if req.time_limit_min is not None and not req.time_limit_min > 0:
-            raise ConfigError(f"--time-limit-min: {req.time_limit_min} must be > 0")
-        if req.model.suffix != ".onnx" or not req.model.is_file():
-            raise ConfigError(f"--model {req.model}: expected an existing .onnx file")
-        weights = req.model.with_suffix(".pt")
-        if not weights.is_file():
-            raise ConfigError(f"--model {req.model}: fine-tuning starts from {weights}, "
-                              "which does not exist")
+        _check_backgrounds(req, used)
+        _check_settings(req)
         seg = load_segmenter(req.model, threads=1)
         train_files = list_scans(req.train_data, "--train-data")
         train_index = _read_index(req.train_data)
-        held = set(range(HELD_OUT_FIRST_BACKGROUND,
-                         HELD_OUT_FIRST_BACKGROUND + HELD_OUT_BACKGROUNDS))
-        from falsify.data.holdout import check_not_held_out
         check_not_held_out(train_files, req.holdout, "--train-data")
         if space.real_backgrounds:   # what R holds is trained on
             check_not_held_out([space.real_backgrounds[b].bin for b in req.retraining],
                                req.holdout, "--retraining-backgrounds")
-        if train_index is not None and req.held_out_scans:
-            first = int(train_index.get("first_background", -1))
-            span = set(range(first, first + int(train_index.get("backgrounds", 0))))
-            if span & held:
-                raise ConfigError(f"--train-data {req.train_data}: training backgrounds overlap "
-                                  f"the held-out streets {min(held)}..{max(held)}")
-            if span & used and not space.real_backgrounds:
-                raise ConfigError(f"--train-data {req.train_data}: training backgrounds overlap "
-                                  f"{req.config}'s test backgrounds")
+        _check_train_index(req, train_index, used, bool(space.real_backgrounds))
         threshold = req.threshold if req.threshold is not None else space.threshold
         key = {"config_hash": space.config_hash, "model_hash": seg.model_hash,
                "train_data": str(req.train_data.resolve()), "validation": list(req.validation),
@@ -329,23 +158,8 @@ class RetrainJob:
                "oversample": req.oversample, "train_scans": req.train_scans,
                "held_out_scans": req.held_out_scans, "precision": req.precision,
                "selection": req.selection}
-        state_path = req.out / STAGE_FILE
-        if state_path.exists():
-            if not req.resume:
-                raise ConfigError(f"--out {req.out} already holds a retraining run; pass "
-                                  "--resume to continue it or choose another --out")
-            old = json.loads(state_path.read_text(encoding="utf-8"))["request"]
-            for k in RESUME_KEYS:
-                if old.get(k) != key[k]:
-                    raise ConfigError(f"--resume: {k} differs from the run in {req.out} "
-                                      f"({old.get(k)!r} there, {key[k]!r} now)")
-        elif req.resume:
-            raise ConfigError(f"--resume: {req.out} holds no retraining run ({STAGE_FILE} "
-                              "missing)")
-        elif req.out.exists() and any(req.out.iterdir()):
-            raise ConfigError(f"--out {req.out}: directory exists and is not empty")
-        return {"space": space, "key": key, "threshold": threshold,
-                "train_files": train_files, "train_index": train_index}
+        _check_out(req, key)
+        return RetrainContext(space, key, threshold, train_files, train_index)
 
     def run(self) -> RetrainResult:
         ctx = self.prepare()
@@ -355,10 +169,10 @@ class RetrainJob:
         if state_path.exists():
             state = json.loads(state_path.read_text(encoding="utf-8"))
         else:
-            state = {"request": ctx["key"], "done": {}}
+            state = {"request": ctx.key, "done": {}}
             for name, ids in (("validation", req.validation), ("retraining", req.retraining)):
                 (req.out / f"config-{name}.toml").write_text(
-                    subset_config(req.config, ids, name, ctx["space"].real_backgrounds),
+                    subset_config(req.config, ids, name, ctx.space.real_backgrounds),
                     encoding="utf-8")
             _write_state(state_path, state)
         computed, reused = [], []
@@ -370,13 +184,13 @@ class RetrainJob:
                 continue   # nothing below the threshold: nothing to retrain or re-test
             if self.on_stage is not None:
                 self.on_stage(stage)
-            state["done"][stage] = getattr(self, f"_{stage}")(ctx, state["done"])
+            state["done"][stage] = as_json(getattr(self, f"_{stage}")(ctx, state["done"]))
             _write_state(state_path, state)
             computed.append(stage)
         return self._result(ctx, state["done"], tuple(computed), tuple(reused))
 
     # -- stages ---------------------------------------------------------------------------
-    def _grid(self, name: str, config: str, model: Path, threshold: float) -> dict:
+    def _grid(self, name: str, config: str, model: Path, threshold: float) -> GridRecord:
         from falsify.jobs.run import RunRequest, execute
         from falsify.results.store import STORE_NAME
 
@@ -385,32 +199,28 @@ class RetrainJob:
                                model=str(model), workers=self.req.workers,
                                resume=(out / STORE_NAME).exists(), threshold=threshold,
                                report=False), on_progress=self.on_progress)
-        return {k: getattr(s, k) for k in ("run", "samples", "ok", "invalid", "cells",
-                                           "blind_spots", "mean_car_iou", "elapsed_s",
-                                           "model_hash")}
+        return GridRecord.of(s)
 
-    def _before(self, ctx: dict, done: dict) -> dict:
-        return self._grid("before", "config-validation.toml", self.req.model, ctx["threshold"])
+    def _before(self, ctx: RetrainContext, done: dict) -> GridRecord:
+        return self._grid("before", "config-validation.toml", self.req.model, ctx.threshold)
 
-    def _rows(self, ctx: dict, done: dict) -> dict:
-        return self._grid("rows", "config-retraining.toml", self.req.model, ctx["threshold"])
+    def _rows(self, ctx: RetrainContext, done: dict) -> GridRecord:
+        return self._grid("rows", "config-retraining.toml", self.req.model, ctx.threshold)
 
-    def _selected(self, ctx: dict, done: dict) -> dict:
-        from falsify.jobs.run import write_retraining_set
-
+    def _selected(self, ctx: RetrainContext, done: dict) -> SelectedRecord:
         v = open_run(self.req.out / "before")
         r = open_run(self.req.out / "rows")
         cmap = v.cell_map()
-        blind = cmap.blind_spots(ctx["threshold"])
+        blind = cmap.blind_spots(ctx.threshold)
         chosen = None    # the blind cells
         rules: tuple[Rule, ...] = ()
         select = None
         if self.req.selection == "control" and blind:
-            chosen = control_cells(cmap, ctx["threshold"], len(blind), self.req.seed)
+            chosen = control_cells(cmap, ctx.threshold, len(blind), self.req.seed)
         by_rules = self.req.selection in ("rules", "random")
         region = None
         if by_rules:
-            rules = explain(v.frame, v.space, ctx["threshold"], score=v.score_column).rules
+            rules = explain(v.frame, v.space, ctx.threshold, score=v.score_column).rules
             select = functools.partial(covered, rules)
             region = sorted(int(i) for i in v.ok["eval_index"][covered(rules, v.ok)])
         if self.req.selection == "random":
@@ -418,17 +228,18 @@ class RetrainJob:
                                        r.ok["eval_index"], self.req.seed)
         # R's rows at the chosen cells of V (or under V's rules), into OUT/selected/retrain
         n = write_retraining_set(dataclasses.replace(r, path=self.req.out / "selected"), cmap,
-                                 ctx["threshold"], cells=chosen, select=select)
-        return {"cells": [{"x": c.a, "y": c.b, "miou": round(c.miou, 4)} for c in blind],
-                "selection": self.req.selection,
-                "control_cells": None if chosen is None else [
-                    {"x": _plain(a), "y": _plain(b)} for a, b in chosen],
-                "rules": [transferable(rule).text() or "(a street of V only)" for rule in rules]
-                if by_rules else None,
-                "region": region,
-                "scans": n, "folder": str(self.req.out / "selected" / "retrain")}
+                                 ctx.threshold, cells=chosen, select=select)
+        return SelectedRecord(
+            cells=[{"x": c.a, "y": c.b, "miou": round(c.miou, 4)} for c in blind],
+            selection=self.req.selection,
+            control_cells=None if chosen is None else [
+                {"x": plain_value(a), "y": plain_value(b)} for a, b in chosen],
+            rules=[transferable(rule).text() or "(a street of V only)" for rule in rules]
+            if by_rules else None,
+            region=region,
+            scans=n, folder=str(self.req.out / "selected" / "retrain"))
 
-    def _finetune(self, ctx: dict, done: dict) -> dict:
+    def _finetune(self, ctx: RetrainContext, done: dict) -> FinetuneRecord:
         from falsify.models.train import CHECKPOINT, TrainConfig, train
 
         req = self.req
@@ -436,7 +247,7 @@ class RetrainJob:
         if data.exists():
             shutil.rmtree(data)
         data.mkdir(parents=True)
-        files = ctx["train_files"][:req.train_scans] if req.train_scans else ctx["train_files"]
+        files = ctx.train_files[:req.train_scans] if req.train_scans else ctx.train_files
         for f in files:
             (data / f"t-{f.name}").symlink_to(f.resolve())
         selected = sorted((req.out / "selected" / "retrain").glob("*.npy"))
@@ -453,18 +264,18 @@ class RetrainJob:
                 seed=req.seed, lr=req.lr, precision=req.precision,
                 time_limit_min=req.time_limit_min, init=str(req.model.with_suffix(".pt")),
                 resume=(out / CHECKPOINT).exists()))
-        return {"model": str(out / "squeezeseg.onnx"), "training_scans": len(files),
-                "selected_scans": len(selected), "oversample": req.oversample,
-                "scans_per_epoch": len(files) + req.oversample * len(selected),
-                "epochs": req.epochs, "stopped": summary.get("stopped"),
-                "epoch_reached": summary.get("epoch"), "loss": summary.get("loss"),
-                "log": str(out / "train_log.jsonl")}
+        return FinetuneRecord(
+            model=str(out / "squeezeseg.onnx"), training_scans=len(files),
+            selected_scans=len(selected), oversample=req.oversample,
+            scans_per_epoch=len(files) + req.oversample * len(selected),
+            epochs=req.epochs, stopped=summary.get("stopped"),
+            epoch_reached=summary.get("epoch"), loss=summary.get("loss"),
+            log=str(out / "train_log.jsonl"))
 
-    def _after(self, ctx: dict, done: dict) -> dict:
-        return self._grid("after", "config-validation.toml", Path(done["finetune"]["model"]),
-                          ctx["threshold"])
+    def _after(self, ctx: RetrainContext, done: dict) -> GridRecord:
+        return self._grid("after", "config-validation.toml", _tuned(done), ctx.threshold)
 
-    def _checks(self, ctx: dict, done: dict) -> dict:
+    def _checks(self, ctx: RetrainContext, done: dict) -> dict:
         from falsify.data.scansets import ScanSet, read_set
         from falsify.jobs.predict import evaluate
         from falsify.models.runners import load_segmenter
@@ -478,7 +289,7 @@ class RetrainJob:
                          f"{HELD_OUT_FIRST_BACKGROUND + HELD_OUT_BACKGROUNDS - 1}, seed "
                          f"{HELD_OUT_SEED}, drive traffic"))
         kitti = req.kitti
-        sensor = load_sensor(ctx["space"].sensor)
+        sensor = load_sensor(ctx.space.sensor)
         sq = sorted((kitti / "squeezeseg").glob("*.npy")) if kitti else []
         sets.append(("real KITTI, SqueezeSeg layout",
                      read_set("squeezeseg", sq, sensor) if sq else None,
@@ -492,7 +303,7 @@ class RetrainJob:
         sets.append(evaluation_split(kitti, sensor, req.holdout))
         present = [s for _, s, _ in sets if s is not None]
         scores = {}
-        for when, model in (("before", req.model), ("after", Path(done["finetune"]["model"]))):
+        for when, model in (("before", req.model), ("after", _tuned(done))):
             result = evaluate(load_segmenter(model, threads=2), present) if present else None
             scores[when] = [] if result is None else [e.pooled.car().iou for e in result.sets]
         checks, k = [], 0
@@ -500,27 +311,27 @@ class RetrainJob:
             if scans is None:
                 checks.append(Check(name, 0, None, None, note))
                 continue
-            checks.append(Check(name, len(scans), _r(scores["before"][k]),
-                                _r(scores["after"][k]), note))
+            checks.append(Check(name, len(scans), rounded(scores["before"][k]),
+                                rounded(scores["after"][k]), note))
             k += 1
         return {"checks": [asdict(c) for c in checks]}
 
-    def _held_out(self, ctx: dict):
+    def _held_out(self, ctx: RetrainContext):
         """Drive-style held-out scans with the training set's sensor effects (written once)."""
         from falsify.data.scansets import npy_files, read_set
         from falsify.data.training import TrafficOptions, write_dataset
         from falsify.sensor.lidar import load_sensor
 
-        idx = ctx["train_index"] or {}
+        idx = ctx.train_index or {}
         effects = {k: float(idx[k]) for k in ("ray_drop", "range_noise") if k in idx}
-        sensor = load_sensor(ctx["space"].sensor, **effects)
+        sensor = load_sensor(ctx.space.sensor, **effects)
         folder = self.req.out / "held-out"
         opts = TrafficOptions(first_background=HELD_OUT_FIRST_BACKGROUND,
                               backgrounds=HELD_OUT_BACKGROUNDS, traffic="drive")
         write_dataset(sensor, folder, self.req.held_out_scans, seed=HELD_OUT_SEED, opts=opts)
         return read_set("held-out", npy_files(folder), sensor)
 
-    def _report(self, ctx: dict, done: dict) -> dict:
+    def _report(self, ctx: RetrainContext, done: dict) -> dict:
         from falsify.fileio import write_bytes, write_json
 
         out = self.req.out
@@ -545,73 +356,94 @@ class RetrainJob:
         return {"files": files}
 
     # -- result ---------------------------------------------------------------------------
-    def _result(self, ctx: dict, done: dict, computed: tuple[str, ...],
+    def _result(self, ctx: RetrainContext, done: dict, computed: tuple[str, ...],
                 reused: tuple[str, ...]) -> RetrainResult:
-        thr = ctx["threshold"]
-        out = self.req.out
-        before = done.get("before", {})
-        sel = done.get("selected", {})
-        blind_cells = sel.get("cells", [])
-        after_map = None
-        if "after" in done:
-            after_map = open_run(out / "after").cell_map()
-        lookup = {}
-        if after_map is not None:
-            for j, y in enumerate(after_map.b_values):
-                for i, x in enumerate(after_map.a_values):
-                    lookup[(float(x), float(y))] = float(after_map.miou[j, i])
-        changes = tuple(CellChange(c["x"], c["y"], c["miou"],
-                                   lookup.get((float(c["x"]), float(c["y"]))))
-                        for c in blind_cells)
-        fixed = None if after_map is None else sum(
-            1 for c in changes if c.after is not None and c.after >= thr)
-        checks = tuple(Check(**c) for c in done.get("checks", {}).get("checks", []))
-        mean_b = _cell_mean(open_run(out / "before").cell_map()) if "before" in done else None
-        mean_a = None if after_map is None else _cell_mean(after_map)
-        criteria = {
-            f"at_least_{MIN_BLIND_CELLS}_blind_cells_before": len(blind_cells) >= MIN_BLIND_CELLS,
-            f"at_least_{int(MIN_FIXED_SHARE * 100)}pct_fixed": None if fixed is None or
-            not blind_cells else fixed >= MIN_FIXED_SHARE * len(blind_cells),
-            "mean_not_dropping": None if mean_a is None or mean_b is None
-            else mean_a >= mean_b - 1e-9,
-            f"held_out_drops_at_most_{MAX_CAR_IOU_DROP}": None if not checks else
-            (all(c.passed for c in checks if c.passed is not None)
-             if any(c.passed is not None for c in checks) else None),
-        }
-        files = done.get("report", {}).get("files", {})
-        region = None
-        if sel.get("region") is not None:
-            region = {"rules": sel.get("rules"), "samples": len(sel["region"]),
-                      **{f"{k}_{when}": v for when in ("before", "after") if when in done
-                         for k, v in region_figures(open_run(out / when), sel["region"],
-                                                    thr).items()}}
-        return RetrainResult(
-            out=str(out), threshold=thr, selection=self.req.selection, computed=computed,
-            reused=reused,
-            cells=int(before.get("cells", 0)), blind_before=changes,
-            blind_after=None if after_map is None else len(after_map.blind_spots(thr)),
-            fixed=fixed, retraining_scans=int(sel.get("scans", 0)),
-            mean_before=_r(mean_b), mean_after=_r(mean_a), training=done.get("finetune", {}),
-            checks=checks, criteria=criteria, model_after=done.get("finetune", {}).get("model"),
-            report=files.get("report"), summary=files.get("summary"), files=files,
-            region=region)
+        return result_of(self.req.out, self.req.selection, ctx.threshold, done, computed,
+                         reused)
 
 
-def random_rows(n: int, eval_index: pd.Series, seed: int, rows: pd.DataFrame) -> np.ndarray:
-    """Bool per row of `rows`: among `n` of the `eval_index` values drawn without replacement
-    (seeded), so a control takes as many samples as its targeted twin, from anywhere."""
-    pool = np.sort(eval_index.to_numpy())
-    pick = np.random.default_rng(seed).choice(len(pool), size=min(n, len(pool)), replace=False)
-    return rows["eval_index"].isin(pool[pick]).to_numpy()
+def _check_numbers(req: RetrainRequest) -> None:
+    """The threshold, counts, seed and output folder's name, before the config is read."""
+    from falsify.jobs.gate import check_threshold
+
+    check_threshold(req.threshold)
+    for option, value, lo in (("--epochs", req.epochs, 1), ("--oversample", req.oversample, 1),
+                              ("--batch", req.batch, 1), ("--workers", req.workers, 1),
+                              ("--held-out-scans", req.held_out_scans, 0),
+                              ("--train-scans", req.train_scans, 1)):
+        check_range(value, option, lo)
+    check_seed(req.seed)
+    check_out_dir(req.out)
 
 
-def region_figures(run, region: Sequence[int], threshold: float) -> dict:
-    """Mean score and samples below the threshold of a run's valid samples in `region`
-    (eval indices): the region's state before or after fine-tuning."""
-    ok = run.ok
-    score = ok[run.score_column][ok["eval_index"].isin(region)]
-    return {"mean": _r(float(score.mean())) if len(score) else None,
-            "below": int((score < threshold).sum())}
+def _check_backgrounds(req: RetrainRequest, used: set[int]) -> None:
+    """V and R: given, among the config's backgrounds (`used`), and disjoint."""
+    for option, ids in (("--validation-backgrounds", req.validation),
+                        ("--retraining-backgrounds", req.retraining)):
+        if not ids:
+            raise ConfigError(f"{option}: no backgrounds given")
+        outside = sorted(set(ids) - used)
+        if outside:
+            raise ConfigError(f"{option}: background {outside[0]} is not in "
+                              f"{req.config}'s backgrounds {sorted(used)}")
+    both = sorted(set(req.validation) & set(req.retraining))
+    if both:
+        raise ConfigError(f"--validation-backgrounds and --retraining-backgrounds share "
+                          f"background {both[0]}; V and R must be disjoint")
+
+
+def _check_settings(req: RetrainRequest) -> None:
+    """Selection, precision, learning rate, time limit, and the model with its weights."""
+    if req.selection not in SELECTIONS:
+        raise ConfigError(f"--selection: {req.selection!r}; allowed: {', '.join(SELECTIONS)}")
+    if req.precision not in ("auto", "bf16", "fp32"):
+        raise ConfigError(f"--precision: {req.precision!r}; allowed: auto, bf16, fp32")
+    if not req.lr > 0:
+        raise ConfigError(f"--lr: {req.lr} must be > 0")
+    if req.time_limit_min is not None and not req.time_limit_min > 0:
+        raise ConfigError(f"--time-limit-min: {req.time_limit_min} must be > 0")
+    if req.model.suffix != ".onnx" or not req.model.is_file():
+        raise ConfigError(f"--model {req.model}: expected an existing .onnx file")
+    weights = req.model.with_suffix(".pt")
+    if not weights.is_file():
+        raise ConfigError(f"--model {req.model}: fine-tuning starts from {weights}, "
+                          "which does not exist")
+
+
+def _check_train_index(req: RetrainRequest, train_index: dict | None, used: set[int],
+                       real: bool) -> None:
+    """Training streets (by the training set's index.json) apart from the held-out streets
+    and, on our streets (not `real` scans), from the config's test backgrounds."""
+    held = set(range(HELD_OUT_FIRST_BACKGROUND,
+                     HELD_OUT_FIRST_BACKGROUND + HELD_OUT_BACKGROUNDS))
+    if train_index is not None and req.held_out_scans:
+        first = int(train_index.get("first_background", -1))
+        span = set(range(first, first + int(train_index.get("backgrounds", 0))))
+        if span & held:
+            raise ConfigError(f"--train-data {req.train_data}: training backgrounds overlap "
+                              f"the held-out streets {min(held)}..{max(held)}")
+        if span & used and not real:
+            raise ConfigError(f"--train-data {req.train_data}: training backgrounds overlap "
+                              f"{req.config}'s test backgrounds")
+
+
+def _check_out(req: RetrainRequest, key: dict) -> None:
+    """--out new and empty, or (with --resume) a run of the same experiment (RESUME_KEYS)."""
+    state_path = req.out / STAGE_FILE
+    if state_path.exists():
+        if not req.resume:
+            raise ConfigError(f"--out {req.out} already holds a retraining run; pass "
+                              "--resume to continue it or choose another --out")
+        old = json.loads(state_path.read_text(encoding="utf-8"))["request"]
+        for k in RESUME_KEYS:
+            if old.get(k) != key[k]:
+                raise ConfigError(f"--resume: {k} differs from the run in {req.out} "
+                                  f"({old.get(k)!r} there, {key[k]!r} now)")
+    elif req.resume:
+        raise ConfigError(f"--resume: {req.out} holds no retraining run ({STAGE_FILE} "
+                          "missing)")
+    elif req.out.exists() and any(req.out.iterdir()):
+        raise ConfigError(f"--out {req.out}: directory exists and is not empty")
 
 
 def evaluation_split(kitti: Path | None, sensor, holdout: tuple[Path, ...] = ()) -> tuple:
@@ -633,36 +465,9 @@ def evaluation_split(kitti: Path | None, sensor, holdout: tuple[Path, ...] = ())
             "from labels/")
 
 
-def control_cells(cmap, threshold: float, n: int, seed: int) -> list[tuple]:
-    """`n` cells drawn without replacement (seeded) from those at or above the threshold."""
-    ok = sorted(((c.a, c.b) for c in cmap.cells() if c.miou is not None and c.miou >= threshold),
-                key=lambda ab: (float(ab[0]), float(ab[1])))
-    if not ok:
-        return []
-    pick = np.random.default_rng(seed).choice(len(ok), size=min(n, len(ok)), replace=False)
-    return [ok[i] for i in sorted(pick)]
-
-
-def _plain(v):
-    """A cell coordinate as a JSON value (numpy scalars to Python numbers)."""
-    return v.item() if isinstance(v, np.generic) else v
-
-
-def _cell_mean(cmap) -> float | None:
-    """Mean of the cell mIoUs (every cell weighs the same, as in the paper's map)."""
-    v = cmap.miou[np.isfinite(cmap.miou)]
-    return float(v.mean()) if v.size else None
-
-
-def read_summary(path: Path, option: str) -> dict:
-    """A `falsify retrain` summary.json; FalsifyError naming the option and file otherwise."""
-    try:
-        summary = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ConfigError(f"{option} {path}: not a readable summary ({exc})") from None
-    if not isinstance(summary, dict) or "blind_before" not in summary:
-        raise ConfigError(f"{option} {path}: not a `falsify retrain` summary.json")
-    return summary
+def _tuned(done: dict) -> Path:
+    """The fine-tuned model of a finetune stage that is done."""
+    return Path(read_record(FinetuneRecord, done["finetune"]).model)
 
 
 def _read_index(folder: Path) -> dict | None:
@@ -675,39 +480,6 @@ def _read_index(folder: Path) -> dict | None:
 def _write_state(path: Path, state: dict) -> None:
     from falsify.fileio import write_json
     write_json(path, state)
-
-
-WHERE = {"blind": "at the blind cells",
-         "control": "control: at as many random cells that are not blind",
-         "rules": "under the rules explain finds on V's failing samples",
-         "random": "control: as many of R's samples as the rules take, drawn at random"}
-
-
-def result_text(r: RetrainResult) -> str:
-    """The result as a few lines for the terminal."""
-    lines = [f"retraining experiment in {r.out} (threshold {r.threshold}; stages run now: "
-             f"{', '.join(r.computed) or 'none'}; reused: {', '.join(r.reused) or 'none'})",
-             f"blind cells before: {len(r.blind_before)} of {r.cells}; retraining scans: "
-             f"{r.retraining_scans} ({WHERE[r.selection]})"]
-    if r.fixed is not None:
-        lines.append(f"after: {r.fixed} of {len(r.blind_before)} at or above the threshold, "
-                     f"{r.blind_after} blind cells; mean cell mIoU {r.mean_before} -> "
-                     f"{r.mean_after}")
-    if r.region is not None:
-        lines.append(f"region under the rules ({'; '.join(r.region['rules'] or []) or 'none'}):"
-                     f" {r.region['samples']} of V's samples, mean {r.region.get('mean_before')}"
-                     f" -> {r.region.get('mean_after')}, below the threshold "
-                     f"{r.region.get('below_before')} -> {r.region.get('below_after')}")
-    for c in r.checks:
-        if c.before is None:
-            lines.append(f"check {c.name}: {c.note}")
-        else:
-            lines.append(f"check {c.name} ({c.scans} scans): car IoU {c.before:.4f} -> "
-                         f"{c.after:.4f} ({c.change:+.4f})")
-    lines.append("criteria: " + ", ".join(f"{k}={v}" for k, v in r.criteria.items()))
-    if r.report:
-        lines.append(f"report: {r.report}")
-    return "\n".join(lines)
 
 
 __all__ = ["SELECTIONS", "control_cells", "RetrainRequest", "RetrainJob", "RetrainResult",

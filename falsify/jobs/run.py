@@ -11,27 +11,24 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
-import shutil
 import sqlite3
 import time
-from collections.abc import Callable, Collection
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from falsify.checks import MAX_SAMPLES, check_out_dir, check_range, check_seed
 from falsify.errors import FalsifyError
 from falsify.executors.driver import Driver, Progress, ProgressListener
 from falsify.executors.evaluator import EvalSettings
-from falsify.fileio import write_bytes, write_json, write_npy
+from falsify.fileio import write_bytes, write_json
 from falsify.jobs.fidelity import preset
+from falsify.jobs.retraining_set import plain_value, write_retraining_set
 from falsify.models.runners import Segmenter, backend_for, load_segmenter
 from falsify.paths import config_path
 from falsify.results.metrics import Scoring, Status, column
-from falsify.results.miou_maps import CellMap, miou_map, snap
-from falsify.results.replay import Replay
+from falsify.results.miou_maps import CellMap, miou_map
 from falsify.results.runlock import LOCK_NAME, RunLock, remove_empty
 from falsify.results.samples import CAR_SCORING
 from falsify.results.store import (
@@ -106,40 +103,8 @@ def prepare(req: RunRequest) -> Prepared:
     """Validate the request and open the model, without writing anything."""
     space = load_space(req.config)
     fid = preset(req.fidelity)
-    check_range(req.workers, "--workers", 1, 64)
-    check_range(req.budget, "--budget", 1)
-    check_seed(req.seed)
-    check_range(req.max_samples, "--max-samples", 1)
-    if req.budget is not None and req.budget > req.max_samples:
-        raise FalsifyError(f"--budget: {req.budget:,} is more than --max-samples "
-                           f"{req.max_samples:,}; raise --max-samples to run it")
-    check_out_dir(req.out)
-    check_executor(req.executor, req.address)
-    if req.inference == "shared" and req.executor == "ray":
-        raise FalsifyError("--inference shared runs one inference process beside local "
-                           "workers; with --executor ray each actor runs the network")
-    if req.algorithm == "grid" and req.budget is None:
-        space.check_size(req.max_samples)
-    if req.threshold is not None and not 0 < req.threshold <= 1:
-        raise FalsifyError(f"--threshold: {req.threshold} must be in (0, 1]")
-    # Batch samplers hand the driver whole batches; keep every worker busy with two chunks of
-    # 8 each. NLopt asks for one point at a time per discrete combination: run as many
-    # combinations at once as there are workers. Neither changes the samples or the rows.
-    # Cross-entropy's round size is part of the algorithm, so it keeps its own.
-    sizes = ({"batch_size": max(BATCH, 16 * req.workers)} if req.algorithm in BATCHED
-             else {"concurrent": req.workers} if req.algorithm in NLOPT_ALGORITHMS else {})
-    # The level-set sampler decides cells against the run's threshold: it and the confidence
-    # choose its samples, so a resumed run must keep them.
-    options: dict | None = None
-    if req.confidence is not None and not 0.5 <= req.confidence < 1:
-        raise FalsifyError(f"--confidence: {req.confidence} must be in [0.5, 1)")
-    if req.algorithm == LEVEL_SET:
-        options = {"threshold": req.threshold or space.threshold}
-        if req.confidence is not None:
-            options["confidence"] = req.confidence
-    elif req.confidence is not None:
-        raise FalsifyError(f"--confidence is an option of --algorithm {LEVEL_SET}")
-    sampler = make_sampler(req.algorithm, **sizes, **(options or {}))
+    _check_request(req, space)
+    sampler, options = _sampler_of(req, space)
     if req.camera is not None and space.real_backgrounds:
         raise FalsifyError("--camera renders our streets; a space of real backgrounds has no "
                            "scene to render (drop --camera)")
@@ -157,13 +122,7 @@ def prepare(req: RunRequest) -> Prepared:
     threads = 2 if req.workers == 1 else 1
     # Open the model once here: a missing, corrupt or mismatched model fails before any sample.
     seg = load_segmenter(model, backend=backend, threads=threads, device=req.device)
-    semantics = [model_semantic(m, space.user_cars) for m in space.models()]
-    objective = req.objective or Scoring.placed_class(list(seg.spec.classes), semantics)
-    scoring = Scoring.of(list(seg.spec.classes), objective)
-    if space.real_backgrounds:   # inserted and real objects scored apart as well
-        placed = [c for c in Scoring.placed_classes(list(seg.spec.classes), semantics)
-                  if c in scoring.scored and c not in ("unknown", "unlabeled")]
-        scoring = replace(scoring, parts=True, placed=tuple(placed) if len(placed) > 1 else ())
+    scoring = _scoring_of(req, space, seg)
     settings = EvalSettings(space=space, model=model, backend=backend, threads=threads,
                             lod=fid.lod, device=req.device, scoring=scoring)
     sensor = load_sensor(space.sensor)
@@ -171,7 +130,6 @@ def prepare(req: RunRequest) -> Prepared:
     seg.spec.check_fits(sensor, req.model or "bundled")
     for car in space.user_cars.values():   # a missing or broken mesh fails before the run dir
         load_user_car(car.file, car.scale, car.forward, car.up)
-    store_path = req.out / STORE_NAME
     meta = {
         "command": req.command, "config_path": str(req.config),
         "config_text": config_path(req.config).read_text(), "config_hash": space.config_hash,
@@ -189,7 +147,68 @@ def prepare(req: RunRequest) -> Prepared:
     if scoring != CAR_SCORING:   # car-objective, four-class runs keep their bytes
         meta.update(objective=scoring.objective, score_column=scoring.score_column,
                     scored_classes=list(scoring.scored))
-    if store_path.exists():
+    _check_run_dir(req, meta)
+    return Prepared(space, sampler, settings, seed, meta, seg)
+
+
+def _check_request(req: RunRequest, space: Space) -> None:
+    """The request's numbers, run folder, executor and threshold, in the order they are told."""
+    check_range(req.workers, "--workers", 1, 64)
+    check_range(req.budget, "--budget", 1)
+    check_seed(req.seed)
+    check_range(req.max_samples, "--max-samples", 1)
+    if req.budget is not None and req.budget > req.max_samples:
+        raise FalsifyError(f"--budget: {req.budget:,} is more than --max-samples "
+                           f"{req.max_samples:,}; raise --max-samples to run it")
+    check_out_dir(req.out)
+    check_executor(req.executor, req.address)
+    if req.inference == "shared" and req.executor == "ray":
+        raise FalsifyError("--inference shared runs one inference process beside local "
+                           "workers; with --executor ray each actor runs the network")
+    if req.algorithm == "grid" and req.budget is None:
+        space.check_size(req.max_samples)
+    if req.threshold is not None and not 0 < req.threshold <= 1:
+        raise FalsifyError(f"--threshold: {req.threshold} must be in (0, 1]")
+
+
+def _sampler_of(req: RunRequest, space: Space) -> tuple[Sampler, dict | None]:
+    """The request's sampler and the options a resumed run must keep (None: it has none)."""
+    # Batch samplers hand the driver whole batches; keep every worker busy with two chunks of
+    # 8 each. NLopt asks for one point at a time per discrete combination: run as many
+    # combinations at once as there are workers. Neither changes the samples or the rows.
+    # Cross-entropy's round size is part of the algorithm, so it keeps its own.
+    sizes = ({"batch_size": max(BATCH, 16 * req.workers)} if req.algorithm in BATCHED
+             else {"concurrent": req.workers} if req.algorithm in NLOPT_ALGORITHMS else {})
+    # The level-set sampler decides cells against the run's threshold: it and the confidence
+    # choose its samples, so a resumed run must keep them.
+    options: dict | None = None
+    if req.confidence is not None and not 0.5 <= req.confidence < 1:
+        raise FalsifyError(f"--confidence: {req.confidence} must be in [0.5, 1)")
+    if req.algorithm == LEVEL_SET:
+        options = {"threshold": req.threshold or space.threshold}
+        if req.confidence is not None:
+            options["confidence"] = req.confidence
+    elif req.confidence is not None:
+        raise FalsifyError(f"--confidence is an option of --algorithm {LEVEL_SET}")
+    return make_sampler(req.algorithm, **sizes, **(options or {})), options
+
+
+def _scoring_of(req: RunRequest, space: Space, seg: Segmenter) -> Scoring:
+    """What the run scores: the objective asked for (else the placed actors' class); on real
+    backgrounds inserted and real objects apart as well."""
+    semantics = [model_semantic(m, space.user_cars) for m in space.models()]
+    objective = req.objective or Scoring.placed_class(list(seg.spec.classes), semantics)
+    scoring = Scoring.of(list(seg.spec.classes), objective)
+    if space.real_backgrounds:   # inserted and real objects scored apart as well
+        placed = [c for c in Scoring.placed_classes(list(seg.spec.classes), semantics)
+                  if c in scoring.scored and c not in ("unknown", "unlabeled")]
+        scoring = replace(scoring, parts=True, placed=tuple(placed) if len(placed) > 1 else ())
+    return scoring
+
+
+def _check_run_dir(req: RunRequest, meta: dict) -> None:
+    """A run folder that is new and empty, or (with --resume) holds a run of the same request."""
+    if (req.out / STORE_NAME).exists():
         if not req.resume:
             raise FalsifyError(f"{req.out} already holds a run; pass --resume to continue it "
                                "or choose another --out")
@@ -202,7 +221,6 @@ def prepare(req: RunRequest) -> Prepared:
         raise FalsifyError(f"--resume: {req.out} holds no run to resume ({STORE_NAME} missing)")
     elif req.out.exists() and any(f.name != LOCK_NAME for f in req.out.iterdir()):
         raise FalsifyError(f"--out {req.out}: directory exists and is not empty")
-    return Prepared(space, sampler, settings, seed, meta, seg)
 
 
 def check_executor(executor: str, address: str | None) -> None:
@@ -397,7 +415,7 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
     if len(ok):
         row = ok.loc[ok[col].astype(float).idxmin()]
         lowest = {col: round(float(row[col]), 4),
-                  "sample": {d: _plain(row[d]) for d in space.dims}}
+                  "sample": {d: plain_value(row[d]) for d in space.dims}}
     summary = RunSummary(
         run=str(run), command=meta.get("command"), algorithm=meta.get("algorithm"),
         config=meta.get("config_path"), model=meta.get("model_name"),
@@ -458,52 +476,3 @@ def extra_map_pairs(space: Space) -> list[tuple[str, str]]:
             if (a, b) != ("x", "y"):
                 pairs.append((a, b))
     return pairs
-
-
-def write_retraining_set(data: RunData, cmap: CellMap, threshold: float, lod: int = 2,
-                         camera: str | None = None,
-                         cells: Collection[tuple] | None = None,
-                         select: Callable[[pd.DataFrame], np.ndarray] | None = None) -> int:
-    """Scans of every valid sample in a blind-spot cell (or in `cells`, (a, b) pairs, when
-    given: a control set; or the rows `select` marks among the valid ones), in SqueezeSeg's
-    layout, plus index.csv; with a camera preset, each scan's camera files beside it."""
-    space, frame = data.space, data.frame
-    out = data.path / "retrain"
-    if out.exists():
-        shutil.rmtree(out)
-    blind = (set(cells) if cells is not None
-             else {(c.a, c.b) for c in cmap.blind_spots(threshold)})
-    if (not blind and select is None) or not len(frame):
-        return 0
-    ok = data.ok.copy()
-    ok["_a"], ok["_b"] = snap(ok["x"], space, "x"), snap(ok["y"], space, "y")
-    chosen = (ok[select(ok)] if select is not None else
-              ok[[(a, b) in blind for a, b in zip(ok["_a"], ok["_b"], strict=True)]])
-    if not len(chosen):
-        return 0
-    replay = Replay(space, lod=lod)
-    renderer = None
-    if camera is not None:
-        from falsify.sensor.camera import camera_files, camera_preset
-        from falsify.sensor.render import CameraRenderer
-        renderer = CameraRenderer(replay.sim, camera_preset(camera))
-    rows = []
-    for _, row in chosen.iterrows():
-        sample, scan = replay.scan(row)
-        name = f"{int(row['eval_index']):06d}.npy"
-        write_npy(out / name, scan.image)
-        if renderer is not None:
-            for fname, blob in camera_files(renderer.render_sample(sample), name[:-3]).items():
-                write_bytes(out / fname, blob)
-        rows.append({"file": name, "eval_index": int(row["eval_index"]),
-                     **{d: _plain(row[d]) for d in space.dims},
-                     data.score_column: float(row[data.score_column])})
-    write_bytes(out / "index.csv", pd.DataFrame(rows).to_csv(index=False).encode())
-    return len(rows)
-
-
-def _plain(v):
-    """numpy scalars to Python values, integral floats of integer dims kept as stored."""
-    if isinstance(v, np.generic):
-        return v.item()
-    return v

@@ -31,18 +31,25 @@ from __future__ import annotations
 import math
 import zlib
 from collections import OrderedDict
-from dataclasses import dataclass, replace
+from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 
-from falsify.data.kitti_object import points_in_box, read_calib, read_labels
-from falsify.data.velodyne import kitti_rows, read_bin, read_kitti
+from falsify.data.real_backgrounds.background import RealBackground, read_background
+from falsify.data.real_backgrounds.ground import (
+    GROUND_IDS,
+    IGNORED_IDS,
+    fit_ground,
+    lowest_band,
+)
+from falsify.data.real_backgrounds.normals import estimated_normals
+from falsify.data.real_backgrounds.rays import column_azimuths, meets_box
 from falsify.errors import ConfigError, FalsifyError
-from falsify.rotations import rot_z
-from falsify.semantic import RAW_ID, RAW_NAMES, kitti4, split_label
+from falsify.semantic import RAW_NAMES, kitti4
 from falsify.sensor.lidar import Sensor, SensorPose
 from falsify.sensor.raycast import cast_through
-from falsify.sensor.scan import Scan, image_from_points
+from falsify.sensor.scan import Scan
 from falsify.sensor.simulator import (
     FIRST_CAR_INSTANCE,
     InvalidSample,
@@ -66,18 +73,8 @@ from falsify.sensor.weather import (
 from falsify.world.materials import GLASS
 from falsify.world.space import EFFECT_DIMS, RealScan, Sample, Space, UserCar
 
-# SemanticKITTI ids a car may stand on: road, parking, sidewalk, other-ground, lane-marking,
-# terrain. Unlabeled (0) and outlier (1) are neither ground nor obstacle.
-GROUND_IDS = np.array([40, 44, 48, 49, 60, 72])
-IGNORED_IDS = np.array([0, 1])
 CLEARANCE_M = 0.25       # real points this far above the ground under a car are in its body
 COLLISION_POINTS = 5     # obstacle points in a car's body that make the sample invalid
-GROUND_MARGIN_M = 1.0    # the ground plane is fitted on points this far around the car
-MIN_GROUND_POINTS = 20   # fewer than this around the car: look twice as far (three times)
-FIT_POINTS = 1000        # about this many ground points fit a car's plane
-MAX_SLOPE = 0.3          # a fitted plane steeper than this (17 degrees) is clamped to it
-LOWEST_CELL_M = 1.0      # unlabelled scans: ground = points near their 1 m cell's lowest point
-LOWEST_BAND_M = 0.15
 SURFACE_REACH_M = 0.75   # the ground points within this of an actor decide what it stands on
 # What the ground an actor stands on counts as, by SemanticKITTI ids (`[dims.actor] on`).
 SURFACE_IDS = {"road": np.array([40, 44, 60]), "sidewalk": np.array([48]),
@@ -89,206 +86,16 @@ WET_IDS = np.array([40, 44, 48])   # road, parking, sidewalk: what a water film 
 # return is taken as half a step (its intensity reported stays 0).
 ZERO_REMISSION = 0.005
 PLANE_REACH_M = 30.0     # the scan's ground plane (incidence on a wet road) is fitted this far
-# KITTI object types -> the SemanticKITTI id their box's points carry (others: unlabeled).
-OBJECT_TYPES = {"Car": RAW_ID["car"], "Van": RAW_ID["other-vehicle"], "Truck": RAW_ID["truck"],
-                "Tram": RAW_ID["other-vehicle"], "Pedestrian": RAW_ID["person"],
-                "Person_sitting": RAW_ID["person"], "Cyclist": RAW_ID["bicyclist"]}
 
 
-@dataclass(frozen=True)
-class PointIndex:
-    """Points bucketed in CELL_M squares of the ground plane and sorted by square, so the
-    points around a place are a few contiguous runs (a car's ground fit and collision test
-    read a thousand points, not the scan's hundred thousand)."""
+class CarHits(NamedTuple):
+    """The cars' nearest hit per flat pixel of the image (`RealScanner._cast_cars`)."""
 
-    points: np.ndarray             # (N, 3), sorted by square
-    semantic: np.ndarray | None    # (N,) raw SemanticKITTI ids of the points, where known
-    keys: np.ndarray               # (N,) each point's square, sorted
-
-    @classmethod
-    def of(cls, points: np.ndarray, semantic: np.ndarray | None = None) -> PointIndex:
-        keys = _square_keys(points[:, 0], points[:, 1])
-        order = np.argsort(keys, kind="stable")
-        return cls(np.ascontiguousarray(points[order]),
-                   None if semantic is None else semantic[order], keys[order])
-
-    def __len__(self) -> int:
-        return len(self.points)
-
-    def near(self, x: float, y: float, reach: float) -> np.ndarray:
-        """Indices of the points in the squares that the square of half-side `reach` around
-        (x, y) touches (a superset of those within `reach`)."""
-        ix = np.arange(math.floor((x - reach) / CELL_M), math.floor((x + reach) / CELL_M) + 1)
-        lo = np.searchsorted(self.keys, _square_key(ix, math.floor((y - reach) / CELL_M)))
-        hi = np.searchsorted(self.keys, _square_key(ix, math.floor((y + reach) / CELL_M)),
-                             side="right")
-        runs = [np.arange(a, b) for a, b in zip(lo.tolist(), hi.tolist(), strict=True) if b > a]
-        return np.concatenate(runs) if runs else np.empty(0, np.int64)
-
-    def subset(self, keep: np.ndarray) -> PointIndex:
-        """The points where `keep` is true, still sorted by square."""
-        return PointIndex(self.points[keep], None if self.semantic is None
-                          else self.semantic[keep], self.keys[keep])
-
-
-CELL_M = 2.0   # side of PointIndex's squares
-_KEY_OFFSET = 1 << 24   # squares of 2 m: keys stay positive and distinct within 33,000 km
-
-
-def _square_key(ix, iy):
-    return (np.asarray(ix, np.int64) + _KEY_OFFSET) * (2 * _KEY_OFFSET) + (iy + _KEY_OFFSET)
-
-
-def _square_keys(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    return _square_key(np.floor(x / CELL_M).astype(np.int64),
-                       np.floor(y / CELL_M).astype(np.int64))
-
-
-@dataclass(frozen=True)
-class RealBackground:
-    """A real scan ready for insertion: its range image as read, each pixel's ray, and the whole
-    cloud with its labels (for the ground and for collisions)."""
-
-    scan: Scan                 # the real scan in the sensor's image, as `predict` reads it
-    dist: np.ndarray           # (H, W) range of each pixel's point along its ray (at most the
-    #                            sensor's range: an empty pixel's ray may meet a car that far)
-    origin: np.ndarray         # (H, W, 3) where each pixel's ray starts (sensor frame)
-    direction: np.ndarray      # (H, W, 3) unit direction of each pixel's ray
-    cloud: PointIndex          # every finite point of the scan, with its label where known
-    dense: bool                # every point labelled (SemanticKITTI), not only boxes' points
-    ground: PointIndex         # the points a car may stand on
-    row_elevation: np.ndarray  # (H, 2) lowest and highest elevation (rad) of each row's rays
-    valid: np.ndarray          # (H, W) the pixels holding a real point
-    origin_reach: float        # the farthest any ray starts from the sensor's origin
-
-
-def read_background(real: RealScan, sensor: Sensor) -> RealBackground:
-    """Read a real scan and its labels; FalsifyError names a file that cannot be read."""
-    pts = read_bin(real.bin)
-    finite = np.isfinite(pts).all(axis=1)
-    xyz = np.ascontiguousarray(pts[finite, :3])
-    if real.kind == "object" or real.yaw_deg:
-        sem, inst = _labels(real, xyz, finite)
-        rows = kitti_rows(sensor, xyz)   # from the stored order, before turning
-        if real.yaw_deg:
-            xyz = np.ascontiguousarray((xyz.astype(np.float64) @ rot_z(real.yaw_deg).T)
-                                       .astype(np.float32))
-        scan = image_from_points(sensor, xyz, kitti4(sem) if sem is not None else np.zeros(
-            len(xyz), np.uint8), inst, intensity=pts[finite, 3], rows=rows, semantic=sem)
-    else:
-        scan = read_kitti(real.bin, real.label, sensor)
-        sem = None
-        if real.label is not None:
-            sem = split_label(np.fromfile(real.label, np.uint32))[0][finite].astype(np.uint16)
-    dense = real.kind == "semantickitti"
-    origin = np.zeros((*sensor.shape, 3))
-    if sensor.projection == "rings" and sensor.ray_origins is not None:
-        origin += sensor.ray_origins
-    valid = scan.valid
-    p = scan.image[..., 0:3].astype(np.float64) - origin
-    dist = np.where(valid, np.linalg.norm(p, axis=-1), np.inf)
-    direction = pixel_directions(sensor)
-    direction[valid] = p[valid] / dist[valid][:, None]
-    ground = _ground_points(xyz, sem if dense else None)
-    for a in (dist, origin, direction):
-        a.setflags(write=False)
-    el = np.arcsin(np.clip(direction[..., 2], -1.0, 1.0))
-    return RealBackground(scan, np.minimum(dist, sensor.max_range), origin, direction,
-                          PointIndex.of(xyz, sem), dense,
-                          PointIndex.of(ground.astype(np.float64)),
-                          np.stack([el.min(axis=1), el.max(axis=1)], axis=1), valid,
-                          float(np.abs(origin).max()))
-
-
-def _labels(real: RealScan, xyz: np.ndarray, finite: np.ndarray
-            ) -> tuple[np.ndarray | None, np.ndarray]:
-    """Raw ids (None unlabelled) and instances of the finite points: from a KITTI object frame's
-    boxes or a SemanticKITTI .label; FalsifyError names a .label of the wrong length."""
-    if real.kind == "object":
-        return _box_labels(real, xyz)
-    if real.label is None:
-        return None, np.zeros(len(xyz), np.int32)
-    lab = np.fromfile(real.label, np.uint32)
-    if len(lab) != len(finite):
-        raise FalsifyError(f"{real.label}: {len(lab)} labels for {len(finite)} points in "
-                           f"{real.bin.name}")
-    sem, high = split_label(lab[finite])
-    return sem.astype(np.uint16), high.astype(np.int32)
-
-
-def _box_labels(real: RealScan, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Raw ids and instances of a KITTI object frame's points from its label_2 boxes."""
-    calib = read_calib(real.bin.parent.parent / "calib" / f"{real.bin.stem}.txt")
-    sem = np.zeros(len(xyz), np.uint16)
-    inst = np.zeros(len(xyz), np.int32)
-    for k, obj in enumerate(read_labels(real.label)):
-        if obj.type in OBJECT_TYPES and obj.has_3d:
-            inside = points_in_box(xyz, obj, calib)
-            sem[inside] = OBJECT_TYPES[obj.type]
-            inst[inside] = k + 1
-    return sem, inst
-
-
-def pixel_directions(sensor: Sensor) -> np.ndarray:
-    """(H, W, 3) unit direction of each pixel of the sensor's image: its ray for the ring
-    layout; the centre of its bin for RangeNet++'s spherical projection (Milioto et al., IROS
-    2019: yaw = pi (1 - 2 (col + 0.5) / W) to the left, pitch = (1 - (row + 0.5) / H) fov +
-    fov_down)."""
-    if sensor.projection != "spherical":
-        return np.array(sensor.directions, dtype=np.float64)
-    h, w = sensor.shape
-    down = math.radians(sensor.fov_down_deg)
-    fov = abs(down) + abs(math.radians(sensor.fov_up_deg))
-    pitch = (1.0 - (np.arange(h) + 0.5) / h) * fov - abs(down)
-    az = np.pi * (1.0 - 2.0 * (np.arange(w) + 0.5) / w)
-    el, az = np.meshgrid(pitch, az, indexing="ij")
-    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1)
-
-
-def _ground_points(xyz: np.ndarray, semantic: np.ndarray | None) -> np.ndarray:
-    """The points a car may stand on: labelled ground where every point is labelled, else each
-    1 m cell's lowest points (within LOWEST_BAND_M of its lowest)."""
-    if semantic is not None:
-        return xyz[np.isin(semantic, GROUND_IDS)]
-    cell = np.floor(xyz[:, :2] / LOWEST_CELL_M).astype(np.int64)
-    key = (cell[:, 0] << 32) + (cell[:, 1] & 0xFFFFFFFF)
-    uniq, inv = np.unique(key, return_inverse=True)
-    low = np.full(len(uniq), np.inf)
-    np.minimum.at(low, inv, xyz[:, 2])
-    return xyz[xyz[:, 2] <= low[inv] + LOWEST_BAND_M]
-
-
-def fit_ground(ground: PointIndex, x: float, y: float, reach: float, default_z: float
-               ) -> tuple[float, float, float]:
-    """(z, dz/dx, dz/dy) of the ground plane at (x, y): least squares over the ground points
-    within reach + GROUND_MARGIN_M (twice and three times that when too few; every k-th of
-    them where there are more than 2 FIT_POINTS, a plane needs no more), refitted once without
-    points more than 0.15 m off; flat at `default_z` where none are near."""
-    for grow in (1.0, 2.0, 3.0):
-        r = (reach + GROUND_MARGIN_M) * grow
-        idx = ground.near(x, y, r)
-        cand = ground.points[idx[::max(1, len(idx) // FIT_POINTS)]]
-        near = cand[(cand[:, 0] - x) ** 2 + (cand[:, 1] - y) ** 2 <= r * r]
-        if len(near) >= MIN_GROUND_POINTS:
-            break
-    else:
-        return default_z, 0.0, 0.0
-    a = np.column_stack([np.ones(len(near)), near[:, 0] - x, near[:, 1] - y])
-    coef = _plane(a, near[:, 2])
-    keep = np.abs(a @ coef - near[:, 2]) <= 0.15
-    if keep.sum() >= MIN_GROUND_POINTS:
-        coef = _plane(a[keep], near[keep, 2])
-    gx, gy = (float(np.clip(v, -MAX_SLOPE, MAX_SLOPE)) for v in coef[1:])
-    return float(coef[0]), gx, gy
-
-
-def _plane(a: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Least-squares coefficients of z ~ a (n x 3), by lstsq where the normal equations are
-    near singular (points on a line), else by solving them (several times faster)."""
-    ata = a.T @ a
-    if abs(np.linalg.det(ata)) <= 1e-12 * np.trace(ata) ** 3:
-        return np.linalg.lstsq(a, z, rcond=None)[0]
-    return np.linalg.solve(ata, a.T @ z)
+    t: np.ndarray       # range along the pixel's ray (inf: no car)
+    car: np.ndarray     # index of the placed car hit (-1: none)
+    material: np.ndarray
+    cos: np.ndarray     # |cosine| of the ray to the hit face's normal
+    px: np.ndarray      # the pixels hit, sorted
 
 
 class RealScanner:
@@ -308,7 +115,7 @@ class RealScanner:
         # (background, car) of the last placed_cars whose body holds no point of the cloud
         self._empty_bodies: set[tuple[int, PlacedCar]] = set()
         self._max = max_backgrounds
-        self._columns = _column_azimuths(sensor)
+        self._columns = column_azimuths(sensor)
         self._keep = (self.sim.returns.keep_map(sensor.rows, sensor.azimuths_deg)
                       if self.sim.returns is not None and sensor.projection == "rings" else None)
 
@@ -532,7 +339,7 @@ class RealScanner:
             ground = real & np.isin(scan.semantic, WET_IDS)
         else:
             xyz = scan.image[..., 0:3]
-            ground = real & _lowest_band(bg.cloud.points, xyz.reshape(-1, 3)).reshape(real.shape)
+            ground = real & lowest_band(bg.cloud.points, xyz.reshape(-1, 3)).reshape(real.shape)
             ground &= xyz[..., 2] < -0.5 * self.sensor.mount_height
             if scan.semantic is not None:
                 ground &= scan.semantic == 0
@@ -546,40 +353,9 @@ class RealScanner:
         real return behind it; then the sensor's return model decides each car hit (glass
         never returns) and real points left inside a car's body go."""
         s = self.sensor
-        h, w = s.shape
-        hit_t = np.full(h * w, np.inf)   # flat pixel index -> nearest car hit so far
-        hit_car = np.full(h * w, -1, np.int64)
-        hit_mat = np.zeros(h * w, np.uint8)
-        hit_cos = np.zeros(h * w, np.float32)
+        w = s.shape[1]
         spans = [(self.rows(bg, car), self.columns(car)) for car in placed]
-        hit_px: list[np.ndarray] = []
-        for k, car in enumerate(placed):
-            rows, cols = spans[k]
-            if len(cols) == 0 or len(rows) == 0:
-                continue
-            px = (rows[:, None] * w + cols[None, :]).ravel()
-            caster, _ = self.sim.car_caster(car.model)
-            rot = car.rotation()
-            start = bg.origin.reshape(-1, 3)[px] if bg.origin_reach else np.zeros((1, 3))
-            o = np.broadcast_to((start - car.translation()) @ rot, (len(px), 3))
-            d = bg.direction.reshape(-1, 3)[px] @ rot
-            limit = np.minimum(bg.dist.ravel()[px], hit_t[px])
-            near = _meets_box(o, d, limit, *self._box(car)[:2])
-            if not near.any():
-                continue
-            px, o, d, limit = px[near], o[near], d[near], limit[near]
-            t, prim = cast_through(caster.bvh, o, d, limit, caster.face_pass, px, 0)
-            ok = (prim >= 0) & (t < limit) & (t >= s.min_range)
-            pn = prim[ok]
-            px = px[ok]
-            hit_t[px] = t[ok]
-            hit_car[px] = k
-            hit_mat[px] = caster.material[pn]
-            hit_cos[px] = np.abs((caster.normals[pn] * d[ok]).sum(axis=1))
-            hit_px.append(px)
-        # One car's pixels are in row-major order already; several cars' may overlap.
-        px = (hit_px[0] if len(hit_px) == 1 else np.unique(np.concatenate(hit_px)) if hit_px
-              else np.empty(0, np.int64))
+        hit_t, hit_car, hit_mat, hit_cos, px = self._cast_cars(bg, placed, spans)
         emptied = []
         for car, (rows, cols) in zip(placed, spans, strict=True):   # real points in its body
             if (id(bg), car) in self._empty_bodies:   # placed_cars found none in the cloud
@@ -624,68 +400,47 @@ class RealScanner:
             sem.ravel()[px] = car_sem
         return Scan(image, inst, sem)
 
+    def _cast_cars(self, bg: RealBackground, placed: list[PlacedCar],
+                   spans: list[tuple[np.ndarray, np.ndarray]]) -> CarHits:
+        """Each car cast at the rays of its (rows, columns) span, nearer than the real return
+        and any car cast before: per flat pixel the nearest hit's range, car, material and
+        incidence cosine, and the pixels hit (sorted)."""
+        s = self.sensor
+        h, w = s.shape
+        hit_t = np.full(h * w, np.inf)   # flat pixel index -> nearest car hit so far
+        hit_car = np.full(h * w, -1, np.int64)
+        hit_mat = np.zeros(h * w, np.uint8)
+        hit_cos = np.zeros(h * w, np.float32)
+        hit_px: list[np.ndarray] = []
+        for k, car in enumerate(placed):
+            rows, cols = spans[k]
+            if len(cols) == 0 or len(rows) == 0:
+                continue
+            px = (rows[:, None] * w + cols[None, :]).ravel()
+            caster, _ = self.sim.car_caster(car.model)
+            rot = car.rotation()
+            start = bg.origin.reshape(-1, 3)[px] if bg.origin_reach else np.zeros((1, 3))
+            o = np.broadcast_to((start - car.translation()) @ rot, (len(px), 3))
+            d = bg.direction.reshape(-1, 3)[px] @ rot
+            limit = np.minimum(bg.dist.ravel()[px], hit_t[px])
+            near = meets_box(o, d, limit, *self._box(car)[:2])
+            if not near.any():
+                continue
+            px, o, d, limit = px[near], o[near], d[near], limit[near]
+            t, prim = cast_through(caster.bvh, o, d, limit, caster.face_pass, px, 0)
+            ok = (prim >= 0) & (t < limit) & (t >= s.min_range)
+            pn = prim[ok]
+            px = px[ok]
+            hit_t[px] = t[ok]
+            hit_car[px] = k
+            hit_mat[px] = caster.material[pn]
+            hit_cos[px] = np.abs((caster.normals[pn] * d[ok]).sum(axis=1))
+            hit_px.append(px)
+        # One car's pixels are in row-major order already; several cars' may overlap.
+        px = (hit_px[0] if len(hit_px) == 1 else np.unique(np.concatenate(hit_px)) if hit_px
+              else np.empty(0, np.int64))
+        return CarHits(hit_t, hit_car, hit_mat, hit_cos, px)
 
-# A neighbouring return farther than this share of the range (0.5 m at least) is another
-# surface: rows on a road grazed at range lie metres apart, a car's edge against a wall more.
-NEIGHBOUR_GAP = 0.25
-
-
-def estimated_normals(xyz: np.ndarray, valid: np.ndarray, origin: np.ndarray,
-                      direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each return's surface normal from its image neighbours (the cross product of the steps
-    to the next return along the row and down the column, each on the side whose return is
-    nearer, within NEIGHBOUR_GAP of the range), turned to face the sensor, and the cosine of its
-    ray to it; where no neighbour qualifies, the surface is taken to face the ray (cosine 1).
-    The normal map of surfel SLAM is made so from the vertex map (SuMa: Behley and Stachniss,
-    "Efficient Surfel-Based SLAM using 3D Laser Range Data in Urban Environments", RSS 2018)."""
-    p = np.where(valid[..., None], xyz.astype(np.float64), np.nan)
-    gap = np.maximum(0.5, NEIGHBOUR_GAP * np.linalg.norm(p - origin, axis=-1))
-    steps = []
-    for axis in (1, 0):
-        fwd = np.roll(p, -1, axis=axis) - p
-        back = p - np.roll(p, 1, axis=axis)
-        edge = [slice(None)] * 2
-        edge[axis] = -1
-        fwd[tuple(edge)] = np.nan
-        edge[axis] = 0
-        back[tuple(edge)] = np.nan
-        nf, nb = np.linalg.norm(fwd, axis=-1), np.linalg.norm(back, axis=-1)
-        use_back = ~(nf <= nb) & (nb <= gap)
-        step = np.where(use_back[..., None], back, fwd)
-        ok = np.where(use_back, nb, nf) <= gap
-        steps.append(np.where(ok[..., None], step, np.nan))
-    n = np.cross(steps[0], steps[1])
-    norm = np.linalg.norm(n, axis=-1)
-    good = np.isfinite(norm) & (norm > 1e-12)
-    n = np.where(good[..., None], n / np.where(good, norm, 1.0)[..., None], -direction)
-    facing = (n * direction).sum(axis=-1)
-    n = np.where((facing > 0)[..., None], -n, n)
-    return n, np.abs(facing)
-
-
-def _column_azimuths(sensor: Sensor) -> np.ndarray:
-    """Each image column's centre azimuth, degrees counter-clockwise from +x."""
-    if sensor.projection == "spherical":
-        return 180.0 - (np.arange(sensor.columns) + 0.5) * 360.0 / sensor.columns
-    return np.asarray(sensor.azimuths_deg)
-
-
-def _meets_box(o: np.ndarray, d: np.ndarray, limit: np.ndarray, lo: np.ndarray,
-               hi: np.ndarray) -> np.ndarray:
-    """Bool per ray (car frame): the segment from o along d for `limit` metres meets the box
-    [lo, hi] (the slab test, Kay and Kajiya, SIGGRAPH 1986: the segment's parameter range
-    inside each pair of planes, intersected). A direction component of 0 is taken as 1e-12,
-    so a ray parallel to a slab is inside it or not, never NaN."""
-    enter = np.zeros(len(d))
-    leave = np.asarray(limit, dtype=np.float64).copy()
-    for k in range(3):   # one axis at a time: 1-D arrays, no strided reductions
-        dk = d[:, k]
-        dk = np.where(np.abs(dk) < 1e-12, 1e-12, dk)
-        t1 = (lo[k] - o[:, k]) / dk
-        t2 = (hi[k] - o[:, k]) / dk
-        np.maximum(enter, np.minimum(t1, t2), out=enter)
-        np.minimum(leave, np.maximum(t1, t2), out=leave)
-    return leave >= enter
 
 
 def refuse_effects(sensor: Sensor, names) -> None:
@@ -699,20 +454,6 @@ def refuse_effects(sensor: Sensor, names) -> None:
                           "image whose bins are not its rays (use a sensor with the rings "
                           "layout, e.g. kitti-hdl64e-front, or drop the dim)")
 
-
-def _lowest_band(cloud: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Bool per point: within LOWEST_BAND_M of the lowest point of the cloud in its
-    LOWEST_CELL_M cell (as _ground_points picks an unlabelled scan's ground)."""
-    def keys(p):
-        cell = np.floor(p[:, :2] / LOWEST_CELL_M).astype(np.int64)
-        return (cell[:, 0] << 32) + (cell[:, 1] & 0xFFFFFFFF)
-    uniq, inv = np.unique(keys(cloud), return_inverse=True)
-    low = np.full(len(uniq), np.inf)
-    np.minimum.at(low, inv, cloud[:, 2])
-    k = keys(points)
-    at = np.clip(np.searchsorted(uniq, k), 0, max(len(uniq) - 1, 0))
-    found = (uniq[at] == k) if len(uniq) else np.zeros(len(k), bool)
-    return found & (points[:, 2] <= np.where(found, low[at], -np.inf) + LOWEST_BAND_M)
 
 
 def scanner_for(space: Space, sensor: Sensor | None = None, lod: int = 2):
