@@ -55,4 +55,3 @@ class Caster:
         mat = np.asarray(material, np.uint8)
         return cls(MeshCaster(vertices, faces, anchor=anchor), mat, PASS_PROB[mat],
                    face_normals(vertices, faces))
-

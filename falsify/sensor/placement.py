@@ -9,10 +9,10 @@ from typing import Protocol
 
 import numpy as np
 
-import falsify.world.streets as streets
 from falsify.rotations import rot_z
 from falsify.sensor.lidar import SensorPose
 from falsify.sensor.scanner import InvalidSample, PlacedCar
+from falsify.world.street_layout import KERB_OBSTACLE
 
 # The ego vehicle's footprint around the sensor (KITTI's Passat, sensor behind the front axle);
 # a sampled car that overlaps it cannot exist. It is not drawn: real scans filter the ego car.
@@ -87,7 +87,7 @@ def first_overlap(poly: np.ndarray, obstacles: Obstacles, skip_kerbs: bool = Fal
     lo, hi = poly.min(axis=0), poly.max(axis=0)
     near = np.flatnonzero(~((obstacles.lo > hi).any(axis=1) | (obstacles.hi < lo).any(axis=1)))
     for k in near:
-        if skip_kerbs and obstacles.items[k].label.startswith(streets.KERB_OBSTACLE):
+        if skip_kerbs and obstacles.items[k].label.startswith(KERB_OBSTACLE):
             continue
         if polygons_overlap(poly, obstacles.items[k].polygon):
             return obstacles.items[k]

@@ -75,4 +75,3 @@ class Scanner(Protocol):
 
     def scan(self, sample: Sample, pose: SensorPose = ...,
              rng: np.random.Generator | None = None) -> Scan: ...
-

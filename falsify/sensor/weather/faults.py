@@ -69,4 +69,3 @@ def check_beams(space: Space, sensor: Sensor) -> None:
 def kept_rows(rows: int, beams: int) -> np.ndarray:
     """The rows a sensor of `beams` lasers keeps of `rows`, evenly spaced from the first."""
     return (np.arange(min(beams, rows)) * rows) // min(beams, rows)
-

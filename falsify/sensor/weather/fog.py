@@ -144,4 +144,3 @@ def fog_echoes(s: Sensor, alpha: float, beta: float, hard_r: np.ndarray, hard_p:
         best_r[near] = np.where(won, fr, hard_r[near])
         spur[near] = won
     return best, best_r, spur
-

@@ -125,4 +125,3 @@ def particle_echoes(s: Sensor, floor: float, p: Particles, gen: np.random.Genera
     flat_best[pix[stronger]] = power[stronger]
     flat_r[pix[stronger]] = at[stronger]
     flat_spur[pix[stronger]] = True
-

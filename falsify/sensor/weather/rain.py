@@ -19,4 +19,3 @@ def rain(rate: float) -> Particles:
     """Marshall and Palmer (1948), J. Meteorology 5:165: N0 = 8000, Lambda = 4.1 R^-0.21."""
     return Particles(RAIN_N0, RAIN_LAMBDA[0] * rate ** RAIN_LAMBDA[1], 1.0, RAIN_ECHO,
                      RAIN_MAX_MM)
-

@@ -20,4 +20,3 @@ def snow(rate: float) -> Particles:
     (melted diameters; a flake is (1 / SNOW_DENSITY)^(1/3) times wider)."""
     return Particles(SNOW_N0[0] * rate ** SNOW_N0[1], SNOW_LAMBDA[0] * rate ** SNOW_LAMBDA[1],
                      (1.0 / SNOW_DENSITY) ** (1.0 / 3.0), SNOW_ECHO, SNOW_MAX_MM)
-
