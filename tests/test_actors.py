@@ -19,7 +19,8 @@ from falsify.errors import ConfigError
 from falsify.results.metrics import Scoring
 from falsify.semantic import RAW_ID, TRAIN_CLASSES
 from falsify.sensor.lidar import load_sensor
-from falsify.sensor.simulator import FIRST_CAR_INSTANCE, InvalidSample, Simulator
+from falsify.sensor.scanner import FIRST_CAR_INSTANCE, InvalidSample
+from falsify.sensor.simulator import Simulator
 from falsify.world.actors import ACTOR_NAMES, BUILTIN_ACTORS, actor_model, model_semantic
 from falsify.world.cars import BUILTIN_MODELS
 from falsify.world.space import parse_space

@@ -16,7 +16,8 @@ from falsify.sensor.camera import camera_preset
 from falsify.sensor.lidar import SensorPose, load_sensor
 from falsify.sensor.look import Look, parse_look
 from falsify.sensor.render import CameraRenderer
-from falsify.sensor.simulator import PlacedCar, Simulator
+from falsify.sensor.scanner import PlacedCar
+from falsify.sensor.simulator import Simulator
 from falsify.world.space import load_space
 
 from .conftest import CONFIGS

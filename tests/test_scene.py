@@ -10,7 +10,8 @@ import trimesh
 
 from falsify.sensor.lidar import SensorPose, load_sensor
 from falsify.sensor.raycast import MeshCaster, cast_through
-from falsify.sensor.simulator import InvalidSample, PlacedCar, Simulator, place, porosity_seed
+from falsify.sensor.scanner import InvalidSample, PlacedCar, place
+from falsify.sensor.simulator import Simulator, porosity_seed
 from falsify.world.cars import car_mesh, car_parts
 from falsify.world.materials import MATERIAL_ID, PASS_PROB
 from falsify.world.space import CarPose, parse_space

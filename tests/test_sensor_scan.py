@@ -11,7 +11,8 @@ from falsify.data.range_npy import load_scan_npy
 from falsify.data.velodyne import KITTI_RINGS, kitti_rows, read_kitti, write_kitti
 from falsify.errors import ConfigError, FalsifyError
 from falsify.sensor.lidar import load_sensor, parse_sensor, preset_names
-from falsify.sensor.simulator import PlacedCar, Simulator
+from falsify.sensor.scanner import PlacedCar
+from falsify.sensor.simulator import Simulator
 
 
 def test_presets_load():

@@ -17,7 +17,8 @@ from falsify.results.metrics import class_scores, confusion
 from falsify.results.miou_maps import miou_map
 from falsify.sensor.lidar import load_sensor
 from falsify.sensor.raycast import MeshCaster
-from falsify.sensor.simulator import PlacedCar, Simulator, place
+from falsify.sensor.scanner import PlacedCar, place
+from falsify.sensor.simulator import Simulator
 from falsify.world.space import CarPose, parse_space
 
 from .conftest import ROOT

@@ -13,7 +13,8 @@ from falsify.cli import main
 from falsify.data.traffic import SAME_LANE_GAP, lanes_of
 from falsify.data.training import TRAFFIC_KINDS, TrafficOptions, scene_for, write_dataset
 from falsify.sensor.lidar import load_sensor
-from falsify.sensor.simulator import Simulator, ego_outline, first_overlap
+from falsify.sensor.placement import ego_outline, first_overlap
+from falsify.sensor.simulator import Simulator
 from tests.conftest import CONFIGS
 
 # sha256 of the scattered scenes 0, 3, ..., 21 (seed 0): the default must not move unless the

@@ -14,10 +14,12 @@ import pytest
 from falsify.sensor.lidar import SensorPose, load_sensor
 from falsify.sensor.raycast import MeshCaster, cast_through, unit_hash
 from falsify.sensor.returns import load_return_model
-from falsify.sensor.simulator import PlacedCar, Simulator
+from falsify.sensor.scanner import PlacedCar
+from falsify.sensor.simulator import Simulator
 from falsify.world import buildings, road_users, terrain, vegetation
 from falsify.world.materials import MATERIAL_ID, MATERIALS, PASS_PROB
-from falsify.world.streets import _layout, _Street, build_background
+from falsify.world.street_layout import _layout, _Street
+from falsify.world.streets import build_background
 
 from .conftest import ROOT
 

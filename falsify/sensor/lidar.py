@@ -244,33 +244,7 @@ def parse_sensor(raw: dict, source: str = "<sensor>") -> Sensor:
             raise ConfigError(f"{where}{key}: {v} must be <= {hi}")
         return float(v)
 
-    if ("elevations_deg" in raw) == ("vertical" in raw):
-        raise ConfigError(f"{where}give exactly one of elevations_deg (a per-beam table) or "
-                          "vertical = {{ up_deg, down_deg, beams }}")
-    if "elevations_deg" in raw:
-        el = raw["elevations_deg"]
-        if not isinstance(el, list) or not el or not all(
-                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-                for v in el):
-            raise ConfigError(f"{where}elevations_deg: expected a non-empty list of numbers")
-        elevations = [float(v) for v in el]
-        if any(b >= a for a, b in zip(elevations, elevations[1:], strict=False)):
-            raise ConfigError(f"{where}elevations_deg: must decrease strictly from the top row")
-    else:
-        v = raw["vertical"]
-        if not isinstance(v, dict) or set(v) != {"up_deg", "down_deg", "beams"}:
-            raise ConfigError(f"{where}vertical: expected {{ up_deg, down_deg, beams }}")
-        up, down, beams = v["up_deg"], v["down_deg"], v["beams"]
-        if isinstance(beams, bool) or not isinstance(beams, int) or beams < 1:
-            raise ConfigError(f"{where}vertical.beams: {beams!r} must be an integer >= 1")
-        numbers = all(isinstance(a, int | float) and math.isfinite(a) for a in (up, down))
-        if not numbers or up <= down:
-            raise ConfigError(f"{where}vertical: up_deg must be a number above down_deg")
-        elevations = list(np.linspace(float(up), float(down), beams)) if beams > 1 else [float(up)]
-    if elevations[0] >= 90.0 or elevations[-1] <= -90.0:
-        raise ConfigError(f"{where}vertical field of view {elevations[-1]:g}..{elevations[0]:g} "
-                          "deg: elevations must lie strictly inside (-90, 90) (FOV < 180 deg); "
-                          "the range-image projection cannot hold at the poles")
+    elevations = _elevations(raw, where)
 
     fov = raw.get("h_fov_deg")
     if (not isinstance(fov, list) or len(fov) != 2
@@ -306,6 +280,39 @@ def parse_sensor(raw: dict, source: str = "<sensor>") -> Sensor:
         ring_offsets_m=_ring_offsets(raw, len(elevations), where),
         **_projection(raw, where, full_circle=abs(left - right - 360.0) < 1e-9),
     )
+
+
+def _elevations(raw: dict, where: str) -> list[float]:
+    """The rows' elevations, from the top row down: `elevations_deg` (a per-beam table) or
+    `vertical` (beams evenly from up_deg to down_deg), strictly inside (-90, 90)."""
+    if ("elevations_deg" in raw) == ("vertical" in raw):
+        raise ConfigError(f"{where}give exactly one of elevations_deg (a per-beam table) or "
+                          "vertical = {{ up_deg, down_deg, beams }}")
+    if "elevations_deg" in raw:
+        el = raw["elevations_deg"]
+        if not isinstance(el, list) or not el or not all(
+                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+                for v in el):
+            raise ConfigError(f"{where}elevations_deg: expected a non-empty list of numbers")
+        elevations = [float(v) for v in el]
+        if any(b >= a for a, b in zip(elevations, elevations[1:], strict=False)):
+            raise ConfigError(f"{where}elevations_deg: must decrease strictly from the top row")
+    else:
+        v = raw["vertical"]
+        if not isinstance(v, dict) or set(v) != {"up_deg", "down_deg", "beams"}:
+            raise ConfigError(f"{where}vertical: expected {{ up_deg, down_deg, beams }}")
+        up, down, beams = v["up_deg"], v["down_deg"], v["beams"]
+        if isinstance(beams, bool) or not isinstance(beams, int) or beams < 1:
+            raise ConfigError(f"{where}vertical.beams: {beams!r} must be an integer >= 1")
+        numbers = all(isinstance(a, int | float) and math.isfinite(a) for a in (up, down))
+        if not numbers or up <= down:
+            raise ConfigError(f"{where}vertical: up_deg must be a number above down_deg")
+        elevations = list(np.linspace(float(up), float(down), beams)) if beams > 1 else [float(up)]
+    if elevations[0] >= 90.0 or elevations[-1] <= -90.0:
+        raise ConfigError(f"{where}vertical field of view {elevations[-1]:g}..{elevations[0]:g} "
+                          "deg: elevations must lie strictly inside (-90, 90) (FOV < 180 deg); "
+                          "the range-image projection cannot hold at the poles")
+    return elevations
 
 
 def _projection(raw: dict, where: str, full_circle: bool) -> dict:

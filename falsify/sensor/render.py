@@ -20,8 +20,9 @@ from falsify.sensor.calibration import (
 from falsify.sensor.camera import Camera, CameraImage
 from falsify.sensor.lidar import SensorPose
 from falsify.sensor.look import Look, look_of
+from falsify.sensor.scanner import PlacedCar
 from falsify.sensor.shading import Hits, rain_streaks, shade, shadowed, slab, sun
-from falsify.sensor.simulator import PlacedCar, Simulator
+from falsify.sensor.simulator import Simulator
 from falsify.world.space import Sample
 
 

@@ -120,41 +120,9 @@ def shade(r: Renderer, bg, placed, paints, hits: Hits, dirs, origin, axis: np.nd
     normal = hits.normal.astype(np.float64)
     albedo = np.zeros((n, 3))
     spec = np.zeros(n)
-    # Background surfaces, by class and shape.
-    b = np.flatnonzero(hit & (hits.owner < 0))
-    cls, inst = bg.face_class[hits.prim[b]], bg.face_instance[hits.prim[b]]
-    nb = normal[b]
-    up = np.abs(nb[:, 2]) > 0.9 * np.sqrt(np.einsum("ij,ij->i", nb, nb))
-    z, y, x = pos[b, 2], pos[b, 1], pos[b, 0]
-    col = _palette(hits.prim[b] // 12, _BUILDING)
-    ground_colours(bg, x, y, z, up, col)
-    things = np.flatnonzero((cls == 0) & (inst > 0))
-    tx, ty, tz = x[things], y[things], z[things]
-    above = tz - (bg.terrain.height(tx, ty) if bg.terrain is not None else 0.0)
-    col[things] = np.where((above > 2.0)[:, None], (0.05, 0.14, 0.04), (0.16, 0.12, 0.08))
-    col[cls == 1] = _palette(inst[cls == 1], _PARKED)
-    people = (cls == 2) | (cls == 3)
-    col[people] = _palette(inst[people], _CLOTHES)
-    albedo[b] = col
-    # Sampled cars: paint, dark glass above the belt line, dark tyres and sills low down.
-    for k, car in enumerate(placed):
-        mine = np.flatnonzero(hits.owner == k)
-        if not len(mine):
-            continue
-        _, corners = r.sim.car_caster(car.model)
-        height = float(corners[:, 2].max() - corners[:, 2].min())
-        local = (pos[mine] - car.translation()) @ car.rotation()
-        n_loc = normal[mine] / np.maximum(np.linalg.norm(normal[mine], axis=1,
-                                                         keepdims=True), 1e-12)
-        paint = np.tile(np.asarray(paints[k], np.float64), (len(mine), 1))
-        glass = (local[:, 2] > 0.62 * height) & (local[:, 2] < 0.96 * height) \
-            & (np.abs(n_loc[:, 2]) < 0.8)
-        paint[glass] = (0.02, 0.025, 0.03)
-        low = local[:, 2] < 0.27 * height
-        paint[low] = (0.03, 0.03, 0.03)
-        albedo[mine] = paint
-        spec[mine] = np.where(low, 0.05, np.where(glass, 0.9, 0.5))
-        normal[mine] = normal[mine] @ car.rotation().T
+    b, colours = _background_albedo(bg, hits, hit, pos, normal)
+    albedo[b] = colours
+    _car_albedo(r, placed, paints, hits, pos, normal, albedo, spec)
     # Light.
     nrm = normal / np.maximum(np.sqrt(np.einsum("ij,ij->i", normal, normal)), 1e-12)[:, None]
     nrm *= np.where(np.einsum("ij,ij->i", nrm, dirs) > 0, -1.0, 1.0)[:, None]
@@ -197,6 +165,51 @@ def shade(r: Renderer, bg, placed, paints, hits: Hits, dirs, origin, axis: np.nd
         out = out + 0.08 * streaks[:, None] * haze
     rgb = _GAMMA[(np.clip(out, 0.0, 1.0) * (len(_GAMMA) - 1) + 0.5).astype(np.int64)]
     return rgb, lit, points[free]
+
+
+def _background_albedo(bg, hits: Hits, hit: np.ndarray, pos: np.ndarray, normal: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """The background's hit pixels and their colours, by class and shape: the ground's, trees
+    green high up and brown low down, parked cars' paint, people's clothes, buildings'."""
+    b = np.flatnonzero(hit & (hits.owner < 0))
+    cls, inst = bg.face_class[hits.prim[b]], bg.face_instance[hits.prim[b]]
+    nb = normal[b]
+    up = np.abs(nb[:, 2]) > 0.9 * np.sqrt(np.einsum("ij,ij->i", nb, nb))
+    z, y, x = pos[b, 2], pos[b, 1], pos[b, 0]
+    col = _palette(hits.prim[b] // 12, _BUILDING)
+    ground_colours(bg, x, y, z, up, col)
+    things = np.flatnonzero((cls == 0) & (inst > 0))
+    tx, ty, tz = x[things], y[things], z[things]
+    above = tz - (bg.terrain.height(tx, ty) if bg.terrain is not None else 0.0)
+    col[things] = np.where((above > 2.0)[:, None], (0.05, 0.14, 0.04), (0.16, 0.12, 0.08))
+    col[cls == 1] = _palette(inst[cls == 1], _PARKED)
+    people = (cls == 2) | (cls == 3)
+    col[people] = _palette(inst[people], _CLOTHES)
+    return b, col
+
+
+def _car_albedo(r: Renderer, placed, paints, hits: Hits, pos: np.ndarray, normal: np.ndarray,
+                albedo: np.ndarray, spec: np.ndarray) -> None:
+    """The sampled cars' pixels, in place: paint, dark glass above the belt line, dark tyres
+    and sills low down (albedo and specular share), their normals turned to the world frame."""
+    for k, car in enumerate(placed):
+        mine = np.flatnonzero(hits.owner == k)
+        if not len(mine):
+            continue
+        _, corners = r.sim.car_caster(car.model)
+        height = float(corners[:, 2].max() - corners[:, 2].min())
+        local = (pos[mine] - car.translation()) @ car.rotation()
+        n_loc = normal[mine] / np.maximum(np.linalg.norm(normal[mine], axis=1,
+                                                         keepdims=True), 1e-12)
+        paint = np.tile(np.asarray(paints[k], np.float64), (len(mine), 1))
+        glass = (local[:, 2] > 0.62 * height) & (local[:, 2] < 0.96 * height) \
+            & (np.abs(n_loc[:, 2]) < 0.8)
+        paint[glass] = (0.02, 0.025, 0.03)
+        low = local[:, 2] < 0.27 * height
+        paint[low] = (0.03, 0.03, 0.03)
+        albedo[mine] = paint
+        spec[mine] = np.where(low, 0.05, np.where(glass, 0.9, 0.5))
+        normal[mine] = normal[mine] @ car.rotation().T
 
 
 def shadowed(r: Renderer, bg_caster, placed, points: np.ndarray,

@@ -15,8 +15,7 @@ import math
 import zlib
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
-from typing import Protocol
+from dataclasses import replace
 
 import numpy as np
 
@@ -25,12 +24,21 @@ import falsify.world.cars as cars
 import falsify.world.road_users as road_users
 import falsify.world.streets as streets
 from falsify.classes import CAR
-from falsify.rotations import rot_x, rot_y, rot_z
 from falsify.semantic import kitti4
+from falsify.sensor.hits import Caster, HitLayer
 from falsify.sensor.lidar import Sensor, SensorPose
-from falsify.sensor.raycast import MeshCaster, cast_through
+from falsify.sensor.placement import (
+    EGO_X_BACKWARD,
+    EGO_X_FORWARD,
+    Obstacles,
+    check_placement,
+    check_surfaces,
+    free_ego,
+)
+from falsify.sensor.raycast import cast_through
 from falsify.sensor.returns import load_return_model
 from falsify.sensor.scan import Scan, project_scan
+from falsify.sensor.scanner import FIRST_CAR_INSTANCE, InvalidSample, PlacedCar, Scanner, place
 from falsify.sensor.weather import (
     NOMINAL_INTENSITY,
     Echoes,
@@ -39,19 +47,16 @@ from falsify.sensor.weather import (
     effect_seed,
     effects_of,
 )
-from falsify.world.materials import GLASS, PAINTS, PASS_PROB, mid
-from falsify.world.space import CarPose, Sample, UserCar
+from falsify.world.materials import GLASS, PAINTS, mid
+from falsify.world.space import Sample, UserCar
 from falsify.world.terrain import Terrain
 
-# The ego vehicle's footprint around the sensor (KITTI's Passat, sensor behind the front axle);
-# a sampled car that overlaps it cannot exist. It is not drawn: real scans filter the ego car.
-EGO_FOOTPRINT = np.array([[-2.8, -0.95], [1.9, -0.95], [1.9, 0.95], [-2.8, 0.95]])
-FIRST_CAR_INSTANCE = 1
-EGO_TRIES = 50  # draws of a training scene's ego pose before a street counts as full
-# Where training scenes stand the ego along the road (x), heading +x and heading -x: beyond the
-# test site too, so narrowing streets are seen from inside their narrow stretches.
-EGO_X_FORWARD: tuple[float, float] = (-90.0, 90.0)
-EGO_X_BACKWARD: tuple[float, float] = (-50.0, 130.0)
+# The scanner's and placement's names callers import from here stay importable from here.
+__all__ = [
+    "EGO_X_BACKWARD", "EGO_X_FORWARD", "FIRST_CAR_INSTANCE", "InvalidSample", "Obstacles",
+    "PAINT_IDS", "PlacedCar", "Scanner", "Simulator", "check_placement", "check_surfaces",
+    "free_ego", "place", "porosity_seed", "release_free_heap",
+]
 PAINT_IDS = np.array(PAINTS, dtype=np.uint8)
 
 
@@ -78,108 +83,6 @@ def porosity_seed(bg_id: int) -> int:
     return 0x5EED0000 + int(bg_id)
 
 
-class InvalidSample(Exception):
-    """The sample's objects would intersect each other, the ego car or the background."""
-
-
-@dataclass(frozen=True)
-class PlacedCar:
-    """A car mesh at a world pose: the car frame's origin at (x, y) on the ground, turned by
-    `heading_deg` counter-clockwise from the world's +x (forward) axis."""
-
-    model: str
-    x: float
-    y: float
-    heading_deg: float
-    instance: int
-    cls: int = CAR
-    z: float = 0.0  # ground height, pitch and roll where it stands (Background.pose_on)
-    pitch_deg: float = 0.0
-    roll_deg: float = 0.0
-    paint: int | None = None  # material id replacing the model's paint; None keeps it
-
-    def rotation(self) -> np.ndarray:
-        r = rot_z(self.heading_deg)
-        if self.pitch_deg or self.roll_deg:
-            r = r @ rot_y(self.pitch_deg) @ rot_x(self.roll_deg)
-        return r
-
-    def translation(self) -> np.ndarray:
-        return np.array([self.x, self.y, self.z])
-
-    def matrix(self) -> np.ndarray:
-        """4x4 homogeneous car-to-world transform (rotation, then translation): the pose as a
-        mesh library such as trimesh takes it, for the naive paths that merge posed meshes."""
-        m = np.eye(4)
-        m[:3, :3], m[:3, 3] = self.rotation(), self.translation()
-        return m
-
-
-def place(pose: CarPose, instance: int) -> PlacedCar:
-    """Space coordinates (x to the right, y forward, yaw 0 = facing forward) to the world frame."""
-    heading = math.remainder(pose.yaw, 360.0)  # -180, 180 and 540 are one pose
-    return PlacedCar(pose.model, x=pose.y, y=-pose.x, heading_deg=heading, instance=instance)
-
-
-@dataclass
-class _Layer:
-    """Per-pixel nearest hit so far: range (inf = none), class, instance, material, the
-    cosine of the incidence angle (for the sensor's return model), the surface's unit normal
-    in the sensor frame, turned to face the sensor (H×W×3, zero where nothing is hit; for
-    weather and ego motion), and the raw SemanticKITTI id (uint16, 0 where nothing is hit)."""
-
-    dist: np.ndarray
-    cls: np.ndarray
-    inst: np.ndarray
-    mat: np.ndarray
-    cos: np.ndarray
-    normal: np.ndarray | None
-    semantic: np.ndarray
-
-    def copy(self, normals: bool = True) -> _Layer:
-        """A writable copy; without `normals` its normal is None (a clear scan needs none, and
-        copying them would cost every scan)."""
-        normal = self.normal.copy() if normals and self.normal is not None else None
-        return _Layer(self.dist.copy(), self.cls.copy(), self.inst.copy(), self.mat.copy(),
-                      self.cos.copy(), normal, self.semantic.copy())
-
-
-def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit normals per triangle (float64; zero for degenerate ones)."""
-    tri = np.asarray(vertices, np.float64)[faces]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-
-
-@dataclass(frozen=True)
-class _Caster:
-    """A BVH with what the sensor model needs per triangle: material, pass probability, normal."""
-
-    bvh: MeshCaster
-    material: np.ndarray
-    face_pass: np.ndarray
-    normals: np.ndarray
-
-    @classmethod
-    def of(cls, vertices, faces, material, anchor=None) -> _Caster:
-        mat = np.asarray(material, np.uint8)
-        return cls(MeshCaster(vertices, faces, anchor=anchor), mat, PASS_PROB[mat],
-                   face_normals(vertices, faces))
-
-
-class Scanner(Protocol):
-    """What scores samples needs from a scanner: its sensor, the ego pose on a street, warm
-    background hits, scans."""
-
-    sensor: Sensor
-
-    def ego_pose(self, bg_id: int, pose: SensorPose = ...) -> SensorPose: ...
-
-    def background_hits(self, bg_id: int, pose: SensorPose) -> object: ...
-
-    def scan(self, sample: Sample, pose: SensorPose = ...,
-             rng: np.random.Generator | None = None) -> Scan: ...
-
 
 class Simulator:
     """Holds the expensive state (BVHs, background hits) warm across many samples.
@@ -196,9 +99,9 @@ class Simulator:
         self.surfaces = surfaces   # per placed object k, where it must stand (Space.surfaces)
         self.user_cars = dict(user_cars or {})
         self.lod = lod
-        self._bvh: OrderedDict[int, tuple[_Caster, object]] = OrderedDict()
-        self._hits: OrderedDict[tuple, _Layer] = OrderedDict()
-        self._cars: dict[str, tuple[_Caster, np.ndarray]] = {}
+        self._bvh: OrderedDict[int, tuple[Caster, object]] = OrderedDict()
+        self._hits: OrderedDict[tuple, HitLayer] = OrderedDict()
+        self._cars: dict[str, tuple[Caster, np.ndarray]] = {}
         self._obstacles: dict[int, Obstacles] = {}
         self._terrain: dict[int, Terrain | None] = {}
         self._max_bvh, self._max_hits = max_bvh, max_hits
@@ -259,7 +162,7 @@ class Simulator:
             return CAR
         return int(kitti4(np.array([self.model_semantic(model)]))[0])
 
-    def car_caster(self, model: str) -> tuple[_Caster, np.ndarray]:
+    def car_caster(self, model: str) -> tuple[Caster, np.ndarray]:
         """The car's BVH in its own frame and its bounding box corners (8×3)."""
         if model not in self._cars:
             v, f = self.car_arrays(model)
@@ -267,7 +170,7 @@ class Simulator:
             lo, hi = used.min(axis=0), used.max(axis=0)
             corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                                 for z in (lo[2], hi[2])])
-            self._cars[model] = (_Caster.of(v, f, self.car_materials(model),
+            self._cars[model] = (Caster.of(v, f, self.car_materials(model),
                                             anchor=np.zeros(3)), corners)
         return self._cars[model]
 
@@ -277,7 +180,7 @@ class Simulator:
             self._bvh.move_to_end(bg_id)
             return self._bvh[bg_id]
         bg = self.background_source(bg_id)
-        entry = (_Caster.of(bg.vertices, bg.faces, bg.materials()), bg)
+        entry = (Caster.of(bg.vertices, bg.faces, bg.materials()), bg)
         self._obstacles[bg_id] = Obstacles.of(bg.obstacles)
         self._terrain[bg_id] = bg.terrain
         self._bvh[bg_id] = entry
@@ -287,7 +190,7 @@ class Simulator:
         return entry
 
     # -- casting --------------------------------------------------------------------------
-    def background_hits(self, bg_id: int, pose: SensorPose) -> _Layer:
+    def background_hits(self, bg_id: int, pose: SensorPose) -> HitLayer:
         """Every sensor ray cast at the background once per (background, pose), then cached."""
         key = (bg_id, pose)
         if key in self._hits:
@@ -315,7 +218,7 @@ class Simulator:
         # World to sensor frame, turned towards the sensor.
         normal[hit] = (caster.normals[prim[hit]] @ rot) * np.where(facing > 0, -1.0, 1.0)[:, None]
         shape = self.sensor.shape
-        layer = _Layer(t.reshape(shape), cls.reshape(shape), inst.reshape(shape),
+        layer = HitLayer(t.reshape(shape), cls.reshape(shape), inst.reshape(shape),
                        mat.reshape(shape), cos.reshape(shape), normal.reshape(*shape, 3),
                        sem.reshape(shape))
         for a in (layer.dist, layer.cls, layer.inst, layer.mat, layer.cos, layer.normal,
@@ -377,7 +280,7 @@ class Simulator:
         cols = all_cols[(rel <= span + eps) | (rel >= 360.0 - eps)]
         return rows, cols
 
-    def cast_car(self, layer: _Layer, car: PlacedCar, pose: SensorPose) -> int:
+    def cast_car(self, layer: HitLayer, car: PlacedCar, pose: SensorPose) -> int:
         """Cast the car's window rays at its BVH and keep the nearer hits; returns rays cast."""
         rows, cols = self.window(car, pose)
         if len(rows) == 0 or len(cols) == 0:
@@ -423,7 +326,7 @@ class Simulator:
             self.cast_car(layer, car, pose)
         return self.to_scan(layer, rng, effects, seed)
 
-    def to_scan(self, layer: _Layer, rng: np.random.Generator | None,
+    def to_scan(self, layer: HitLayer, rng: np.random.Generator | None,
                 effects: Effects | None = None, seed: int = 0) -> Scan:
         """Apply range limits, weather and sensor effects, then build the H×W×6 image. Clear
         effects take exactly today's path; others read their seed from `rng` without drawing
@@ -545,93 +448,3 @@ class Simulator:
         seed = 0 if effects.clear else zlib.crc32(repr(sample.values).encode())
         return self.render(sample.background, self.placed_cars(sample),
                            self.ego_pose(sample.background, pose), rng, effects, seed)
-
-
-@dataclass(frozen=True)
-class Obstacles:
-    """A background's obstacle outlines with their bounding boxes, for a quick first test."""
-
-    items: tuple
-    lo: np.ndarray  # (N, 2)
-    hi: np.ndarray  # (N, 2)
-
-    @classmethod
-    def of(cls, items: Sequence) -> Obstacles:
-        items = tuple(items)
-        lo = np.array([o.polygon.min(axis=0) for o in items]).reshape(-1, 2)
-        hi = np.array([o.polygon.max(axis=0) for o in items]).reshape(-1, 2)
-        return cls(items, lo, hi)
-
-
-def check_placement(placed: Sequence[PlacedCar], outlines: Sequence[np.ndarray],
-                    obstacles: Obstacles, crosses_kerbs: Sequence[bool] | None = None,
-                    ego: np.ndarray = EGO_FOOTPRINT) -> None:
-    """Raise InvalidSample if car outlines overlap each other, the ego car or an obstacle (the
-    kerbs' outlines left out for the objects in `crosses_kerbs`: people and bicycles)."""
-    for i, (car, poly) in enumerate(zip(placed, outlines, strict=True)):
-        if polygons_overlap(poly, ego):
-            raise InvalidSample(f"car {i + 1} ({car.model}) intersects the ego vehicle")
-        for j in range(i):
-            if polygons_overlap(poly, outlines[j]):
-                raise InvalidSample(f"car {i + 1} ({car.model}) intersects car {j + 1}")
-        kerbless = crosses_kerbs is not None and crosses_kerbs[i]
-        obstacle = first_overlap(poly, obstacles, skip_kerbs=kerbless)
-        if obstacle is not None:
-            raise InvalidSample(f"car {i + 1} ({car.model}) intersects the background's "
-                                f"{obstacle.label}")
-
-
-def free_ego(sim: Simulator, bg_id: int, draw: Callable[[], SensorPose],
-             what: str) -> tuple[SensorPose, np.ndarray]:
-    """The first pose from `draw()`, stood on the terrain, whose ego outline keeps off the
-    background's obstacles, and that outline (a training scene's ego once stood in parked
-    buses); InvalidSample naming `what` after EGO_TRIES draws."""
-    obstacles = sim.obstacles(bg_id)
-    for _ in range(EGO_TRIES):
-        pose = sim.ego_pose(bg_id, draw())
-        ego = ego_outline(pose)
-        if first_overlap(ego, obstacles) is None:
-            return pose, ego
-    raise InvalidSample(f"{what}: no free ego pose on background {bg_id} in {EGO_TRIES} draws")
-
-
-def first_overlap(poly: np.ndarray, obstacles: Obstacles, skip_kerbs: bool = False):
-    """The first of the background's obstacles that the outline `poly` overlaps, or None;
-    `skip_kerbs` leaves out the kerbs' outlines (what stops a vehicle, not a person)."""
-    lo, hi = poly.min(axis=0), poly.max(axis=0)
-    near = np.flatnonzero(~((obstacles.lo > hi).any(axis=1) | (obstacles.hi < lo).any(axis=1)))
-    for k in near:
-        if skip_kerbs and obstacles.items[k].label.startswith(streets.KERB_OBSTACLE):
-            continue
-        if polygons_overlap(poly, obstacles.items[k].polygon):
-            return obstacles.items[k]
-    return None
-
-
-def check_surfaces(placed: Sequence[PlacedCar], surfaces: Sequence[str],
-                   surface_at: Callable[[float, float], str]) -> None:
-    """InvalidSample naming the first object that stands on another surface than its own
-    (`surfaces[k]`, "any" where absent), by `surface_at(x, y)` of the background."""
-    for i, car in enumerate(placed):
-        on = surfaces[i] if i < len(surfaces) else "any"
-        if on == "any":
-            continue
-        found = surface_at(car.x, car.y)
-        if found != on:
-            raise InvalidSample(f"actor {i + 1} ({car.model}) stands on {found}, not on the {on}")
-
-
-def ego_outline(pose: SensorPose) -> np.ndarray:
-    """The ego vehicle's outline on the ground for a sensor pose."""
-    return EGO_FOOTPRINT @ rot_z(pose.heading_deg)[:2, :2].T + [pose.x, pose.y]
-
-
-def polygons_overlap(a: np.ndarray, b: np.ndarray) -> bool:
-    """Separating-axis test for two convex polygons (touching counts as overlap)."""
-    for poly in (a, b):
-        edges = np.roll(poly, -1, axis=0) - poly
-        normals = np.stack([-edges[:, 1], edges[:, 0]], axis=1)
-        pa, pb = a @ normals.T, b @ normals.T
-        if np.any((pa.max(axis=0) < pb.min(axis=0)) | (pb.max(axis=0) < pa.min(axis=0))):
-            return False
-    return True

@@ -11,6 +11,7 @@ origin at the footprint centre on the ground, +x forward.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 
 import numpy as np
 
@@ -66,88 +67,107 @@ def _glass_band(x0, x1, y, z0, z1) -> Part:
 def vehicle_parts(kind: str, rng: np.random.Generator) -> list[Part]:
     """One vehicle of `kind` (see OTHER_VEHICLES) with seeded proportions and paint."""
     paint = PAINTS[int(rng.integers(len(PAINTS)))]
-    if kind == "delivery van":
-        length, width, height = rng.uniform(5.3, 6.6), rng.uniform(1.95, 2.1), rng.uniform(2.4, 2.8)
-        cab = 1.0
-        half = length / 2
-        parts: list[Part] = [
-            (*shapes.boxes([-half, -width / 2, 0.35], [half - cab, width / 2, height]), paint),
-            (*shapes.boxes([half - cab, -width / 2, 0.35], [half, width / 2, 1.15]), paint),
-        ]
-        # Sloped windscreen and the cab roof.
-        v = np.array([[half - cab, -width / 2 + 0.05, height - 0.1],
-                      [half - cab, width / 2 - 0.05, height - 0.1],
-                      [half - 0.15, width / 2 - 0.05, 1.15],
-                      [half - 0.15, -width / 2 + 0.05, 1.15]])
-        parts.append((v, np.array([[0, 2, 1], [0, 3, 2]]), mid("glass")))
-        parts.append((*shapes.boxes([half - cab - 0.5, -0.5, 0.5], [half - cab, 0.5, 1.3]),
-                      mid("interior")))
-        for s in (1, -1):
-            parts.append(_glass_band(half - cab + 0.05, half - 0.3, s * width / 2, 1.2,
-                                     height - 0.25))
-        parts += _wheels([half - 0.9, -half + 1.0], width / 2 - 0.15, 0.36)
-        return parts
-    if kind == "box truck":
-        length, width = rng.uniform(7.0, 10.5), 2.5
-        height = rng.uniform(3.2, 3.9)
-        cab = 2.1
-        half = length / 2
-        parts = [
-            (*shapes.boxes([-half, -width / 2, 1.0], [half - cab - 0.2, width / 2, height]),
-             mid("paint bright")),
-            (*shapes.boxes([half - cab, -width / 2 + 0.05, 0.6], [half, width / 2 - 0.05, 1.6]),
-             paint),
-            (*shapes.boxes([half - cab, -width / 2 + 0.05, 2.5], [half - 0.3, width / 2 - 0.05,
-                                                                   3.0]), paint),
-            (*shapes.boxes([half - cab, -width / 2 + 0.05, 1.6], [half - cab + 0.4,
-                                                                   width / 2 - 0.05, 2.5]), paint),
-            (*shapes.boxes([-half, -0.4, 0.6], [half - cab, 0.4, 1.0]), mid("metal")),
-            (*shapes.boxes([half - cab + 0.5, -0.6, 0.9], [half - 0.6, 0.6, 1.8]),
-             mid("interior")),
-        ]
-        v = np.array([[half - 0.3, -width / 2 + 0.05, 2.5], [half - 0.3, width / 2 - 0.05, 2.5],
-                      [half, width / 2 - 0.05, 1.6], [half, -width / 2 + 0.05, 1.6]])
-        parts.append((v, np.array([[0, 2, 1], [0, 3, 2]]), mid("glass")))
-        for s in (1, -1):
-            parts.append(_glass_band(half - cab + 0.4, half - 0.3, s * (width / 2 - 0.05), 1.6,
-                                     2.5))
-        parts += _wheels([half - 1.2, -half + 1.6, -half + 2.9], width / 2 - 0.2, 0.5, 0.35)
-        return parts
-    if kind == "bus":
-        length, width, height = rng.uniform(10.5, 12.5), 2.55, rng.uniform(2.9, 3.3)
-        half = length / 2
-        parts = [
-            (*shapes.boxes([-half, -width / 2, 0.3], [half, width / 2, 1.1]), paint),
-            (*shapes.boxes([-half, -width / 2, height - 0.45], [half, width / 2, height]), paint),
-            (*shapes.boxes([-half, -width / 2, 1.1], [-half + 0.6, width / 2, height - 0.45]),
-             paint),
-            (*shapes.boxes([-half + 1.0, -width / 2 + 0.3, 0.5], [half - 1.5, width / 2 - 0.3,
-                                                                  1.5]), mid("interior")),
-        ]
-        for s in (1, -1):
-            parts.append(_glass_band(-half + 0.6, half, s * width / 2, 1.1, height - 0.45))
-        parts.append((np.array([[half, -width / 2, 1.1], [half, width / 2, 1.1],
-                                [half, width / 2, height - 0.45],
-                                [half, -width / 2, height - 0.45]]),
-                      np.array([[0, 1, 2], [0, 2, 3]]), mid("glass")))
-        parts += _wheels([half - 2.5, -half + 3.0], width / 2 - 0.2, 0.5, 0.3)
-        return parts
-    if kind == "trailer":
-        length, width = rng.uniform(3.5, 8.0), rng.uniform(2.0, 2.5)
-        half = length / 2
-        if rng.random() < 0.5:  # closed box trailer
-            body = shapes.boxes([-half, -width / 2, 0.7], [half, width / 2, rng.uniform(2.2, 3.4)])
-        else:  # flatbed with low sides
-            body = shapes.merge([shapes.boxes([-half, -width / 2, 0.7], [half, width / 2, 0.8]),
-                                 shapes.boxes([-half, -width / 2, 0.8], [half, -width / 2 + 0.05,
-                                                                          1.2]),
-                                 shapes.boxes([-half, width / 2 - 0.05, 0.8], [half, width / 2,
-                                                                               1.2])])
-        parts = [(*body, paint),
-                 (*shapes.boxes([half, -0.05, 0.5], [half + 1.4, 0.05, 0.6]), mid("metal"))]
-        parts += _wheels([0.0] if length < 6 else [-0.6, 0.6], width / 2 - 0.15, 0.35)
-        return parts
-    raise ValueError(f"unknown vehicle kind {kind!r}; allowed: {', '.join(OTHER_VEHICLES)}")
+    build = _VEHICLE_BUILDERS.get(kind)
+    if build is None:
+        raise ValueError(f"unknown vehicle kind {kind!r}; allowed: {', '.join(OTHER_VEHICLES)}")
+    return build(rng, paint)
+
+
+def _delivery_van(rng: np.random.Generator, paint: int) -> list[Part]:
+    """A delivery van: a tall cargo box behind a low cab with a sloped windscreen."""
+    length, width, height = rng.uniform(5.3, 6.6), rng.uniform(1.95, 2.1), rng.uniform(2.4, 2.8)
+    cab = 1.0
+    half = length / 2
+    parts: list[Part] = [
+        (*shapes.boxes([-half, -width / 2, 0.35], [half - cab, width / 2, height]), paint),
+        (*shapes.boxes([half - cab, -width / 2, 0.35], [half, width / 2, 1.15]), paint),
+    ]
+    # Sloped windscreen and the cab roof.
+    v = np.array([[half - cab, -width / 2 + 0.05, height - 0.1],
+                  [half - cab, width / 2 - 0.05, height - 0.1],
+                  [half - 0.15, width / 2 - 0.05, 1.15],
+                  [half - 0.15, -width / 2 + 0.05, 1.15]])
+    parts.append((v, np.array([[0, 2, 1], [0, 3, 2]]), mid("glass")))
+    parts.append((*shapes.boxes([half - cab - 0.5, -0.5, 0.5], [half - cab, 0.5, 1.3]),
+                  mid("interior")))
+    for s in (1, -1):
+        parts.append(_glass_band(half - cab + 0.05, half - 0.3, s * width / 2, 1.2,
+                                 height - 0.25))
+    parts += _wheels([half - 0.9, -half + 1.0], width / 2 - 0.15, 0.36)
+    return parts
+
+
+def _box_truck(rng: np.random.Generator, paint: int) -> list[Part]:
+    """A box truck: a cargo box on a frame behind a cab with windows."""
+    length, width = rng.uniform(7.0, 10.5), 2.5
+    height = rng.uniform(3.2, 3.9)
+    cab = 2.1
+    half = length / 2
+    parts = [
+        (*shapes.boxes([-half, -width / 2, 1.0], [half - cab - 0.2, width / 2, height]),
+         mid("paint bright")),
+        (*shapes.boxes([half - cab, -width / 2 + 0.05, 0.6], [half, width / 2 - 0.05, 1.6]),
+         paint),
+        (*shapes.boxes([half - cab, -width / 2 + 0.05, 2.5], [half - 0.3, width / 2 - 0.05,
+                                                               3.0]), paint),
+        (*shapes.boxes([half - cab, -width / 2 + 0.05, 1.6], [half - cab + 0.4,
+                                                               width / 2 - 0.05, 2.5]), paint),
+        (*shapes.boxes([-half, -0.4, 0.6], [half - cab, 0.4, 1.0]), mid("metal")),
+        (*shapes.boxes([half - cab + 0.5, -0.6, 0.9], [half - 0.6, 0.6, 1.8]),
+         mid("interior")),
+    ]
+    v = np.array([[half - 0.3, -width / 2 + 0.05, 2.5], [half - 0.3, width / 2 - 0.05, 2.5],
+                  [half, width / 2 - 0.05, 1.6], [half, -width / 2 + 0.05, 1.6]])
+    parts.append((v, np.array([[0, 2, 1], [0, 3, 2]]), mid("glass")))
+    for s in (1, -1):
+        parts.append(_glass_band(half - cab + 0.4, half - 0.3, s * (width / 2 - 0.05), 1.6,
+                                 2.5))
+    parts += _wheels([half - 1.2, -half + 1.6, -half + 2.9], width / 2 - 0.2, 0.5, 0.35)
+    return parts
+
+
+def _bus(rng: np.random.Generator, paint: int) -> list[Part]:
+    """A bus: a long body with a glass band along both sides and at the front."""
+    length, width, height = rng.uniform(10.5, 12.5), 2.55, rng.uniform(2.9, 3.3)
+    half = length / 2
+    parts = [
+        (*shapes.boxes([-half, -width / 2, 0.3], [half, width / 2, 1.1]), paint),
+        (*shapes.boxes([-half, -width / 2, height - 0.45], [half, width / 2, height]), paint),
+        (*shapes.boxes([-half, -width / 2, 1.1], [-half + 0.6, width / 2, height - 0.45]),
+         paint),
+        (*shapes.boxes([-half + 1.0, -width / 2 + 0.3, 0.5], [half - 1.5, width / 2 - 0.3,
+                                                              1.5]), mid("interior")),
+    ]
+    for s in (1, -1):
+        parts.append(_glass_band(-half + 0.6, half, s * width / 2, 1.1, height - 0.45))
+    parts.append((np.array([[half, -width / 2, 1.1], [half, width / 2, 1.1],
+                            [half, width / 2, height - 0.45],
+                            [half, -width / 2, height - 0.45]]),
+                  np.array([[0, 1, 2], [0, 2, 3]]), mid("glass")))
+    parts += _wheels([half - 2.5, -half + 3.0], width / 2 - 0.2, 0.5, 0.3)
+    return parts
+
+
+def _trailer(rng: np.random.Generator, paint: int) -> list[Part]:
+    """A trailer: a closed box or a flatbed with low sides, and its drawbar."""
+    length, width = rng.uniform(3.5, 8.0), rng.uniform(2.0, 2.5)
+    half = length / 2
+    if rng.random() < 0.5:  # closed box trailer
+        body = shapes.boxes([-half, -width / 2, 0.7], [half, width / 2, rng.uniform(2.2, 3.4)])
+    else:  # flatbed with low sides
+        body = shapes.merge([shapes.boxes([-half, -width / 2, 0.7], [half, width / 2, 0.8]),
+                             shapes.boxes([-half, -width / 2, 0.8], [half, -width / 2 + 0.05,
+                                                                      1.2]),
+                             shapes.boxes([-half, width / 2 - 0.05, 0.8], [half, width / 2,
+                                                                           1.2])])
+    parts = [(*body, paint),
+             (*shapes.boxes([half, -0.05, 0.5], [half + 1.4, 0.05, 0.6]), mid("metal"))]
+    parts += _wheels([0.0] if length < 6 else [-0.6, 0.6], width / 2 - 0.15, 0.35)
+    return parts
+
+
+_VEHICLE_BUILDERS: dict[str, Callable[[np.random.Generator, int], list[Part]]] = {
+    "delivery van": _delivery_van, "box truck": _box_truck, "bus": _bus, "trailer": _trailer}
 
 
 @functools.lru_cache(maxsize=16)

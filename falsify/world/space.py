@@ -27,106 +27,32 @@ from falsify.checks import SEED_MAX
 from falsify.errors import ConfigError
 from falsify.fileio import read_bytes
 from falsify.paths import config_path
+from falsify.world.space_dims import (
+    CONTINUOUS_BASE,
+    EFFECT_DIMS,
+    IMAGE_ONLY,
+    MODEL_DIMS,
+    Categorical,
+    Continuous,
+    Dim,
+    Value,
+    car_index,
+    read_categorical,
+    read_continuous_or_values,
+    read_typed,
+)
+from falsify.world.space_files import RealScan, UserCar, read_real_backgrounds, read_user_cars
 
-CONTINUOUS_BASE = ("x", "y", "yaw")
-IMAGE_ONLY = ("colour", "weather", "time_of_day")
+# The dims' and files' names callers import from here stay importable from here.
+__all__ = [
+    "DEFAULT_THRESHOLD", "EFFECT_DIMS", "IMAGE_ONLY", "CarPose", "Categorical", "Continuous",
+    "Dim", "RealScan", "Sample", "Space", "UserCar", "Value", "car_index", "load_space",
+    "parse_space",
+]
+
 TOP_KEYS = {"name", "description", "sensor", "seed", "threshold", "dims", "car_models", "actors"}
-MODEL_DIMS = ("actor", "car_model")   # the object dim's name, and its older alias
 MAX_CARS = 8
-# How far a coordinate may reach: metres for x and y (far beyond any sensor's range), degrees
-# for yaw (one turn either way; the scene wraps any angle, a config needs no more).
-LIMITS = {"x": 1000.0, "y": 1000.0, "yaw": 360.0}
-MAX_VALUES = 1_000_000   # values one dim may list or range over
 DEFAULT_THRESHOLD = 0.65   # mIoU below which a cell is a blind spot (the paper's)
-CAR_FILE_KEYS = {"file", "scale", "forward", "up"}
-ACTOR_FILE_KEYS = CAR_FILE_KEYS | {"class"}
-# The SemanticKITTI classes a user's actor may declare: the things a road holds.
-ACTOR_CLASSES = ("car", "truck", "bus", "other-vehicle", "motorcycle", "bicycle", "person",
-                 "bicyclist", "motorcyclist", "other-object")
-# Weather and sensor faults on the LiDAR: name -> (lowest, highest, unit, whole numbers only).
-# 0 is no effect; fog is the meteorological visibility (0 = no fog, small = dense).
-EFFECT_DIMS: dict[str, tuple[float, float, str, bool]] = {
-    "fog": (0.0, 100_000.0, "m of visibility", False),
-    "rain": (0.0, 500.0, "mm/h", False),
-    "snow": (0.0, 100.0, "mm/h of water", False),
-    "wet_road": (0.0, 20.0, "mm of water film", False),
-    "beam_loss": (0.0, 128.0, "lasers", True),
-    "beams": (0.0, 128.0, "lasers kept (0 = all)", True),
-    "crosstalk": (0.0, 100_000.0, "points per scan", True),
-    "ego_speed": (0.0, 300.0, "km/h", False),
-}
-
-
-Value = float | int | str
-
-
-@dataclass(frozen=True)
-class Continuous:
-    """A real-valued dim with inclusive bounds and the step the grid uses."""
-
-    name: str
-    lo: float
-    hi: float
-    step: float
-
-    @property
-    def size(self) -> int:
-        """How many values the grid takes, computed without making them."""
-        return int(math.floor((self.hi - self.lo) / self.step + 1e-9)) + 1
-
-    def grid(self) -> tuple[float, ...]:
-        return tuple(round(self.lo + i * self.step, 10) for i in range(self.size))
-
-    def contains(self, value: float) -> bool:
-        return self.lo - 1e-9 <= value <= self.hi + 1e-9
-
-
-@dataclass(frozen=True)
-class Categorical:
-    """A dim that takes one of a listed set of values (strings or integers)."""
-
-    name: str
-    values: tuple[Value, ...]
-
-    @property
-    def size(self) -> int:
-        return len(self.values)
-
-    def grid(self) -> tuple[Value, ...]:
-        return self.values
-
-    def contains(self, value: Value) -> bool:
-        return value in self.values
-
-
-Dim = Continuous | Categorical
-
-
-@dataclass(frozen=True)
-class UserCar:
-    """A car model or actor the user brings as a mesh file, with the raw SemanticKITTI id its
-    points carry (car for `[car_models.*]`)."""
-
-    name: str
-    file: Path
-    scale: float = 1.0
-    forward: str = "+x"
-    up: str = "+z"
-    semantic: int = 10
-
-
-@dataclass(frozen=True)
-class RealScan:
-    """A real scan a background may be: its KITTI .bin and where its labels come from (a
-    SemanticKITTI .label, a KITTI object frame's label_2 boxes, or none)."""
-
-    name: str
-    bin: Path
-    label: Path | None = None
-    kind: str = "none"   # "semantickitti", "object" or "none" (unlabelled)
-    # The scan turned by this about the sensor's vertical axis before it is projected (rings
-    # still from the stored order): a front-view sensor sees another slice of the 360 degrees.
-    yaw_deg: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -338,15 +264,6 @@ class Space:
         return out
 
 
-def car_index(name: str) -> int:
-    """1 for car 1's dims, k for `*_k`, 0 for dims that are not per car."""
-    for base in (*MODEL_DIMS, *CONTINUOUS_BASE):
-        if name == base:
-            return 1
-        if name.startswith(base + "_") and name[len(base) + 1:].isdigit():
-            return int(name[len(base) + 1:])
-    return 0
-
 
 def load_space(path: str | Path, builtin_cars: tuple[str, ...] | None = None) -> Space:
     """Read and validate a space config (a file, or a bundled config by its name); every problem
@@ -377,29 +294,62 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
     if builtin_cars is None:
         from falsify.world.cars import BUILTIN_MODELS
         builtin_cars = BUILTIN_MODELS
-    from falsify.world.streets import MAX_BACKGROUND_ID
-
     where = f"{source}: "
+    name, sensor, seed, threshold = _top_keys(raw, source, where)
+
+    from falsify.world.actors import ACTOR_NAMES
+    user_cars = read_user_cars(raw.get("car_models", {}), where, base_dir or Path("."),
+                               (*builtin_cars, *ACTOR_NAMES))
+    user_cars |= read_user_cars(raw.get("actors", {}), where, base_dir or Path("."),
+                                (*builtin_cars, *ACTOR_NAMES, *user_cars), table="actors")
+    models = (*builtin_cars, *ACTOR_NAMES, *user_cars)
+
+    dims_raw, model_dim = _dims_table(raw, where)
+    count = read_categorical("count", dims_raw["count"], where, int)
+    for c in count.values:
+        if not 1 <= int(c) <= MAX_CARS:
+            raise ConfigError(f"{where}dims.count: {c} must be between 1 and {MAX_CARS}")
+    max_count = max(int(c) for c in count.values)
+    _check_dim_names(dims_raw, model_dim, max_count, where)
+
+    dims, surfaces = _object_dims(dims_raw, model_dim, max_count, models, where)
+    dims["count"] = count
+    bg, real = _background_dim(dims_raw["background"], where, base_dir, real_backgrounds)
+    dims["background"] = bg
+    for image_dim in IMAGE_ONLY:
+        if image_dim in dims_raw:
+            dims[image_dim] = read_categorical(image_dim, dims_raw[image_dim], where, str)
+    for effect in EFFECT_DIMS:
+        if effect in dims_raw:
+            dims[effect] = read_continuous_or_values(effect, dims_raw[effect], where)
+    _check_labelled(surfaces, real, model_dim, where)
+    return Space(name=name, sensor=sensor, seed=seed, threshold=threshold, dims=dims,
+                 user_cars=user_cars, source=source, config_hash=config_hash,
+                 real_backgrounds=real,
+                 surfaces=tuple(surfaces) if any(on != "any" for on in surfaces) else ())
+
+
+def _top_keys(raw: dict[str, Any], source: str, where: str) -> tuple[str, str, int, float]:
+    """The config's name, sensor, seed and threshold; ConfigError names an unknown top-level
+    key or a value out of range."""
     extra = sorted(set(raw) - TOP_KEYS)
     if extra:
         raise ConfigError(f"{where}unknown key {extra[0]!r}; allowed: "
                           f"{', '.join(sorted(TOP_KEYS))}")
-    name = _typed(raw, "name", str, where, default=Path(source).stem)
-    sensor = _typed(raw, "sensor", str, where, default="kitti-hdl64e-front")
-    seed = _typed(raw, "seed", int, where, default=0)
+    name = read_typed(raw, "name", str, where, default=Path(source).stem)
+    sensor = read_typed(raw, "sensor", str, where, default="kitti-hdl64e-front")
+    seed = read_typed(raw, "seed", int, where, default=0)
     if not 0 <= seed <= SEED_MAX:
         raise ConfigError(f"{where}seed: {seed} must be between 0 and {SEED_MAX}")
-    threshold = float(_typed(raw, "threshold", (int, float), where, default=DEFAULT_THRESHOLD))
+    threshold = float(read_typed(raw, "threshold", (int, float), where, default=DEFAULT_THRESHOLD))
     if not 0.0 < threshold <= 1.0:
         raise ConfigError(f"{where}threshold: {threshold} must be in (0, 1]")
+    return name, sensor, seed, threshold
 
-    from falsify.world.actors import ACTOR_NAMES
-    user_cars = _user_cars(raw.get("car_models", {}), where, base_dir or Path("."),
-                           (*builtin_cars, *ACTOR_NAMES))
-    user_cars |= _user_cars(raw.get("actors", {}), where, base_dir or Path("."),
-                            (*builtin_cars, *ACTOR_NAMES, *user_cars), table="actors")
-    models = (*builtin_cars, *ACTOR_NAMES, *user_cars)
 
+def _dims_table(raw: dict[str, Any], where: str) -> tuple[dict[str, Any], str]:
+    """The [dims] table, yaw and count defaulted, and the name of object 1's model dim (actor,
+    or car_model in older configs); ConfigError names a missing required dim."""
     dims_raw = raw.get("dims")
     if not isinstance(dims_raw, dict):
         raise ConfigError(f"{where}missing table [dims] (with actor, x, y, yaw, count, "
@@ -415,13 +365,12 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
     dims_raw = dict(dims_raw)
     dims_raw.setdefault("yaw", {"values": [0.0]})
     dims_raw.setdefault("count", {"values": [1]})
+    return dims_raw, model_dim
 
-    count = _categorical("count", dims_raw["count"], where, int)
-    for c in count.values:
-        if not 1 <= int(c) <= MAX_CARS:
-            raise ConfigError(f"{where}dims.count: {c} must be between 1 and {MAX_CARS}")
-    max_count = max(int(c) for c in count.values)
 
+def _check_dim_names(dims_raw: dict[str, Any], model_dim: str, max_count: int,
+                     where: str) -> None:
+    """ConfigError naming a dim that a space of up to `max_count` objects cannot have."""
     allowed = {model_dim, *CONTINUOUS_BASE, "count", "background", *IMAGE_ONLY, *EFFECT_DIMS}
     for k in range(2, max_count + 1):
         allowed |= {f"{model_dim}_{k}", *(f"{b}_{k}" for b in CONTINUOUS_BASE)}
@@ -430,6 +379,11 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
         raise ConfigError(f"{where}unknown dim dims.{unknown[0]}; allowed: "
                           f"{', '.join(sorted(allowed))}")
 
+
+def _object_dims(dims_raw: dict[str, Any], model_dim: str, max_count: int,
+                 models: tuple[str, ...], where: str) -> tuple[dict[str, Dim], list[str]]:
+    """Each object's model dim (values among `models`) and its x, y, yaw, object k's tables
+    defaulting to object 1's, and where each object must stand."""
     dims: dict[str, Dim] = {}
     surfaces: list[str] = []
     for k in range(1, max_count + 1):
@@ -437,7 +391,7 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
         spec = dims_raw.get(model_dim + sfx, dims_raw[model_dim])
         on, spec = _surface(spec, f"{where}dims.{model_dim}{sfx}")
         surfaces.append(on)
-        dim = _categorical(model_dim + sfx, spec, where, str)
+        dim = read_categorical(model_dim + sfx, spec, where, str)
         for v in dim.values:
             if v not in models:
                 what = "car model" if model_dim == "car_model" else "actor"
@@ -446,28 +400,34 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
         dims[model_dim + sfx] = dim
         for base in CONTINUOUS_BASE:
             spec = dims_raw.get(base + sfx, dims_raw[base])
-            dims[base + sfx] = _continuous_or_values(base + sfx, spec, where)
-    dims["count"] = count
-    real: tuple[RealScan, ...] = ()
-    bg_raw = dims_raw["background"]
+            dims[base + sfx] = read_continuous_or_values(base + sfx, spec, where)
+    return dims, surfaces
+
+
+def _background_dim(bg_raw: Any, where: str, base_dir: Path | None,
+                    real_backgrounds: tuple[RealScan, ...] | None
+                    ) -> tuple[Categorical, tuple[RealScan, ...]]:
+    """The background dim and its real scans: indices into `real = [...]` (or into the
+    `real_backgrounds` a run recorded), else street ids with no scans."""
+    from falsify.world.streets import MAX_BACKGROUND_ID
+
     if isinstance(bg_raw, dict) and "real" in bg_raw:
         real = (real_backgrounds if real_backgrounds is not None
-                else _real_backgrounds(bg_raw, where, base_dir or Path(".")))
-        bg = Categorical("background", tuple(range(len(real))))
-    else:
-        bg = _categorical("background", bg_raw, where, int)
-        for v in bg.values:
-            if not 0 <= int(v) <= MAX_BACKGROUND_ID:
-                raise ConfigError(f"{where}dims.background: unknown background {v}; allowed: "
-                                  f"integer ids 0..{MAX_BACKGROUND_ID}, or real = [KITTI .bin "
-                                  "scans, folders or SemanticKITTI sequences]")
-    dims["background"] = bg
-    for image_dim in IMAGE_ONLY:
-        if image_dim in dims_raw:
-            dims[image_dim] = _categorical(image_dim, dims_raw[image_dim], where, str)
-    for effect in EFFECT_DIMS:
-        if effect in dims_raw:
-            dims[effect] = _continuous_or_values(effect, dims_raw[effect], where)
+                else read_real_backgrounds(bg_raw, where, base_dir or Path(".")))
+        return Categorical("background", tuple(range(len(real)))), real
+    bg = read_categorical("background", bg_raw, where, int)
+    for v in bg.values:
+        if not 0 <= int(v) <= MAX_BACKGROUND_ID:
+            raise ConfigError(f"{where}dims.background: unknown background {v}; allowed: "
+                              f"integer ids 0..{MAX_BACKGROUND_ID}, or real = [KITTI .bin "
+                              "scans, folders or SemanticKITTI sequences]")
+    return bg, ()
+
+
+def _check_labelled(surfaces: list[str], real: tuple[RealScan, ...], model_dim: str,
+                    where: str) -> None:
+    """ConfigError where an object must stand on road or sidewalk on a real background without
+    SemanticKITTI labels to say where they are."""
     if any(on != "any" for on in surfaces):
         unlabelled = [r.name for r in real if r.kind != "semantickitti"]
         if unlabelled:
@@ -475,10 +435,6 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
             raise ConfigError(f"{where}dims.{model_dim}.on: {on!r} reads where the road "
                               f"and sidewalk are from SemanticKITTI labels; background "
                               f"{unlabelled[0]!r} has none (use on = \"any\")")
-    return Space(name=name, sensor=sensor, seed=seed, threshold=threshold, dims=dims,
-                 user_cars=user_cars, source=source, config_hash=config_hash,
-                 real_backgrounds=real,
-                 surfaces=tuple(surfaces) if any(on != "any" for on in surfaces) else ())
 
 
 def _surface(spec: Any, key: str) -> tuple[str, Any]:
@@ -491,198 +447,3 @@ def _surface(spec: Any, key: str) -> tuple[str, Any]:
     if on not in SURFACES:
         raise ConfigError(f"{key}.on: {on!r}; allowed: {', '.join(SURFACES)}")
     return on, {k: v for k, v in spec.items() if k != "on"}
-
-
-def _real_backgrounds(spec: dict, where: str, base_dir: Path) -> tuple[RealScan, ...]:
-    """`real = [...]` (KITTI .bin files, folders of them, SemanticKITTI roots or sequence
-    folders, KITTI object directories; relative to the config's folder) and optional
-    `sequences = ["08", ...]`: the scans in order, each with where its labels come from."""
-    key = "dims.background"
-    extra = sorted(set(spec) - {"real", "sequences", "per_sequence"})
-    if extra:
-        raise ConfigError(f"{where}{key}: unknown key {extra[0]!r} beside real; allowed: real, "
-                          "sequences, per_sequence")
-    paths = spec["real"]
-    if (not isinstance(paths, list) or not paths
-            or not all(isinstance(p, str) and p for p in paths)):
-        raise ConfigError(f"{where}{key}.real: expected a non-empty list of paths (KITTI .bin "
-                          "scans, folders, SemanticKITTI roots or sequences)")
-    sequences = spec.get("sequences")
-    if sequences is not None and (not isinstance(sequences, list) or not sequences or not all(
-            isinstance(q, str) for q in sequences)):
-        raise ConfigError(f"{where}{key}.sequences: expected a non-empty list of sequence ids "
-                          "such as [\"00\", \"08\"]")
-    per_sequence = spec.get("per_sequence")
-    if per_sequence is not None and (isinstance(per_sequence, bool)
-                                     or not isinstance(per_sequence, int) or per_sequence < 1):
-        raise ConfigError(f"{where}{key}.per_sequence: expected an integer >= 1 (scans taken "
-                          f"evenly spaced from each folder of scans), got {per_sequence!r}")
-    from falsify.errors import FalsifyError
-    from falsify.paths import expand_data_path
-    from falsify.world.real_scans import evenly_per_folder, real_scans
-    expanded = [expand_data_path(p, f"{where}{key}.real") for p in paths]
-    resolved = [p if Path(p).is_absolute() else str(base_dir / p) for p in expanded]
-    try:
-        found = real_scans(resolved, sequences)
-    except FalsifyError as exc:
-        raise ConfigError(f"{where}{key}.real: {exc}") from None
-    if per_sequence is not None:
-        found = evenly_per_folder(found, per_sequence)
-    if len(found) > MAX_VALUES:
-        raise ConfigError(f"{where}{key}.real: {len(found)} scans; at most {MAX_VALUES}")
-    return tuple(RealScan(*f) for f in found)
-
-
-def _typed(raw: dict, key: str, types, where: str, default):
-    if key not in raw:
-        return default
-    value = raw[key]
-    if isinstance(value, bool) or not isinstance(value, types):
-        names = (types.__name__ if isinstance(types, type)
-                 else " or ".join(t.__name__ for t in types))
-        raise ConfigError(f"{where}{key}: expected {names}, got {value!r}")
-    return value
-
-
-def _categorical(name: str, spec: Any, where: str, kind: type) -> Categorical:
-    """`{values = [...]}` or, for integers, `{range = [start, stop]}` (stop exclusive)."""
-    key = f"dims.{name}"
-    if not isinstance(spec, dict):
-        raise ConfigError(f"{where}{key}: expected a table with 'values' (a list)")
-    extra = sorted(set(spec) - {"values", "range"})
-    if extra:
-        raise ConfigError(f"{where}{key}: unknown key {extra[0]!r}; allowed: values"
-                          + (", range" if kind is int else ""))
-    if "range" in spec and kind is int:
-        r = spec["range"]
-        if (not isinstance(r, list) or len(r) != 2
-                or not all(isinstance(v, int) and not isinstance(v, bool) for v in r)):
-            raise ConfigError(f"{where}{key}.range: expected [start, stop] integers")
-        if not 0 < r[1] - r[0] <= MAX_VALUES:
-            raise ConfigError(f"{where}{key}.range: [{r[0]}, {r[1]}) holds {r[1] - r[0]} values; "
-                              f"allowed 1 to {MAX_VALUES}")
-        values = list(range(r[0], r[1]))
-    elif "values" in spec:
-        values = spec["values"]
-    else:
-        raise ConfigError(f"{where}{key}: needs 'values'" + (" or 'range'" if kind is int else ""))
-    if not isinstance(values, list) or not values:
-        raise ConfigError(f"{where}{key}.values: expected a non-empty list")
-    if len(values) > MAX_VALUES:
-        raise ConfigError(f"{where}{key}.values: {len(values)} values; at most {MAX_VALUES}")
-    for v in values:
-        if isinstance(v, bool) or not isinstance(v, kind):
-            raise ConfigError(f"{where}{key}.values: {v!r} is not {kind.__name__}")
-    if len(set(values)) != len(values):
-        raise ConfigError(f"{where}{key}.values: duplicate values")
-    return Categorical(name, tuple(values))
-
-
-def _continuous_or_values(name: str, spec: Any, where: str) -> Dim:
-    """`{min, max, step}` for a range, or `{values = [...]}` for fixed values (all numbers),
-    within the dim's limit (LIMITS, or EFFECT_DIMS' bounds, whole numbers where it says so) and at
-    most MAX_VALUES of them."""
-    key = f"dims.{name}"
-    whole = False
-    if name in EFFECT_DIMS:
-        lo, hi, unit, whole = EFFECT_DIMS[name]
-    else:
-        limit = LIMITS[name.split("_")[0]]
-        lo, hi = -limit, limit
-        unit = "degrees" if name.startswith("yaw") else "m"
-
-    def within(v: float, what: str) -> None:
-        if not lo <= v <= hi:
-            raise ConfigError(f"{where}{what}: {v:g} is beyond the allowed {lo:g} to "
-                              f"{hi:g} {unit}")
-        if whole and v != int(v):
-            raise ConfigError(f"{where}{what}: {v:g} is not a whole number of {unit}")
-    if not isinstance(spec, dict):
-        raise ConfigError(f"{where}{key}: expected a table with min, max, step (or values)")
-    if "values" in spec:
-        if set(spec) != {"values"}:
-            raise ConfigError(f"{where}{key}: give either values or min/max/step, not both")
-        values = spec["values"]
-        if not isinstance(values, list) or not values:
-            raise ConfigError(f"{where}{key}.values: expected a non-empty list of numbers")
-        for v in values:
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-                raise ConfigError(f"{where}{key}.values: {v!r} is not a finite number")
-            within(float(v), f"{key}.values")
-        if len(values) > MAX_VALUES:
-            raise ConfigError(f"{where}{key}.values: {len(values)} values; at most {MAX_VALUES}")
-        if len(values) == 1:
-            v = float(values[0])
-            return Continuous(name, v, v, 1.0)
-        return Categorical(name, tuple(float(v) for v in values))
-    missing = [k for k in ("min", "max", "step") if k not in spec]
-    if missing:
-        raise ConfigError(f"{where}{key}: missing {missing[0]!r}; a range needs min, max, step")
-    extra = sorted(set(spec) - {"min", "max", "step"})
-    if extra:
-        raise ConfigError(f"{where}{key}: unknown key {extra[0]!r}; allowed: min, max, step, "
-                          "values")
-    nums = {}
-    for k in ("min", "max", "step"):
-        v = spec[k]
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-            raise ConfigError(f"{where}{key}.{k}: expected a finite number, got {v!r}")
-        nums[k] = float(v)
-    if nums["step"] <= 0:
-        raise ConfigError(f"{where}{key}.step: {nums['step']:g} must be > 0")
-    if nums["max"] < nums["min"]:
-        raise ConfigError(f"{where}{key}: empty range, max {nums['max']:g} < min {nums['min']:g}")
-    within(nums["min"], f"{key}.min")
-    within(nums["max"], f"{key}.max")
-    if whole and nums["step"] != int(nums["step"]):
-        raise ConfigError(f"{where}{key}.step: {nums['step']:g} is not a whole number of {unit}")
-    dim = Continuous(name, nums["min"], nums["max"], nums["step"])
-    if dim.size > MAX_VALUES:
-        raise ConfigError(f"{where}{key}.step: {nums['step']:g} makes {dim.size} values; at most "
-                          f"{MAX_VALUES} (take a larger step)")
-    return dim
-
-
-def _user_cars(raw: Any, where: str, base_dir: Path, builtin: tuple[str, ...],
-               table: str = "car_models") -> dict:
-    """`[car_models.NAME]` (cars) or `[actors.NAME]` (with a SemanticKITTI `class`) tables as
-    UserCars; ConfigError names a bad key, a taken name or a missing class."""
-    if not isinstance(raw, dict):
-        raise ConfigError(f"{where}{table}: expected tables like [{table}.mine] file = ...")
-    keys = ACTOR_FILE_KEYS if table == "actors" else CAR_FILE_KEYS
-    out: dict[str, UserCar] = {}
-    for name, spec in raw.items():
-        key = f"{table}.{name}"
-        if name in builtin:
-            raise ConfigError(f"{where}{key}: {name!r} is a built-in or declared model; choose "
-                              "another name")
-        if not isinstance(spec, dict) or "file" not in spec:
-            raise ConfigError(f"{where}{key}: needs file = 'path/to/mesh' (OBJ, STL, PLY, GLB)")
-        extra = sorted(set(spec) - keys)
-        if extra:
-            raise ConfigError(f"{where}{key}: unknown key {extra[0]!r}; allowed: "
-                              f"{', '.join(sorted(keys))}")
-        semantic = 10
-        if table == "actors":
-            cls = spec.get("class")
-            if cls not in ACTOR_CLASSES:
-                raise ConfigError(f"{where}{key}.class: " + (
-                    "missing" if cls is None else repr(cls)) + "; a user's actor declares its "
-                    f"SemanticKITTI class, one of: {', '.join(ACTOR_CLASSES)}")
-            from falsify.semantic import RAW_ID
-            semantic = RAW_ID[cls]
-        scale = spec.get("scale", 1.0)
-        if isinstance(scale, bool) or not isinstance(scale, int | float) or not (
-                math.isfinite(scale) and scale > 0):
-            raise ConfigError(f"{where}{key}.scale: {scale!r} must be a finite number > 0")
-        for axis_key in ("forward", "up"):
-            v = spec.get(axis_key, "+x" if axis_key == "forward" else "+z")
-            if v not in ("+x", "-x", "+y", "-y", "+z", "-z"):
-                raise ConfigError(f"{where}{key}.{axis_key}: {v!r}; allowed: +x, -x, +y, -y, "
-                                  "+z, -z")
-        file = Path(spec["file"])
-        if not file.is_absolute():
-            file = base_dir / file
-        out[name] = UserCar(name, file, float(scale), spec.get("forward", "+x"),
-                            spec.get("up", "+z"), semantic)
-    return out
