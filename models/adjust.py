@@ -1,7 +1,6 @@
 """Logit adjustment: undo the class weights' bias in a trained SqueezeSeg's logits.
 
-    python -m falsify.models.adjust WEIGHTS.pt --val DIR --out ADJUSTED.pt [--alphas A,B,...]
-        [--json]
+    falsify adjust WEIGHTS.pt --val DIR --out ADJUSTED.pt [--alphas A,B,...] [--json]
 
 Training weighs the cross-entropy by CLASS_WEIGHTS (unknown 1/15, car 1, pedestrian and cyclist
 10), which shifts the learned logit of class c by about log(w_c / w_unknown): the network calls
@@ -16,10 +15,8 @@ Real scans must never be --val.
 
 from __future__ import annotations
 
-import json
-import sys
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -121,65 +118,28 @@ def choose_alpha(state: dict, val: str | Path, alphas: Sequence[float] = DEFAULT
     return Adjustment(str(val), len(files), best.alpha, scores)
 
 
-def _alphas(text: str) -> list[float]:
-    try:
-        values = [float(t) for t in text.split(",") if t.strip()]
-    except ValueError:
-        raise FalsifyError(f"--alphas {text!r}: write comma-separated numbers in [0, 2]") \
-            from None
-    if not values or any(not 0.0 <= v <= 2.0 for v in values):
-        raise FalsifyError(f"--alphas {text!r}: write comma-separated numbers in [0, 2]")
-    return values
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """`python -m falsify.models.adjust WEIGHTS.pt --val DIR --out ADJUSTED.pt`: choose alpha on
-    synthetic validation scans and write the adjusted weights."""
-    import argparse
-
+def adjust_weights(weights: str | Path, val: str | Path, out: str | Path,
+                   alphas: Sequence[float] = DEFAULT_ALPHAS) -> Adjustment:
+    """Choose alpha on the synthetic validation scans of `val` for SqueezeSeg `weights` (a
+    state dict or a training checkpoint.pt) and write the adjusted state dict to `out` (.pt);
+    FalsifyError, with nothing written, on bad input."""
     import torch
 
-    p = argparse.ArgumentParser(prog="python -m falsify.models.adjust", description=main.__doc__)
-    p.add_argument("weights", help="a state dict (.pt) or a training checkpoint.pt")
-    p.add_argument("--val", required=True, help="folder of synthetic .npy validation scans")
-    p.add_argument("--out", required=True, help="the adjusted state dict (.pt) to write")
-    p.add_argument("--alphas", default=",".join(map(str, DEFAULT_ALPHAS)),
-                   help="comma-separated alphas to try (default 0, 0.05, ..., 1)")
-    p.add_argument("--json", action="store_true", help="print the result as JSON")
-    a = p.parse_args(argv)
+    out = Path(out)
+    if out.suffix != ".pt":
+        raise FalsifyError(f"--out {out}: must end in .pt")
     try:
-        alphas = _alphas(a.alphas)
-        out = Path(a.out)
-        if out.suffix != ".pt":
-            raise FalsifyError(f"--out {out}: must end in .pt")
-        try:
-            state = torch.load(a.weights, map_location="cpu", weights_only=True)
-        except Exception as exc:  # OSError, RuntimeError, pickle.UnpicklingError, ...
-            raise FalsifyError(f"{a.weights}: cannot load weights "
-                               f"({str(exc).splitlines()[0]})") from None
-        if not isinstance(state, dict):
-            raise FalsifyError(f"{a.weights}: not a state dict or training checkpoint")
-        state = state.get("model", state)
-        result = choose_alpha(state, a.val, alphas)
-        adjusted = adjust_state(state, result.chosen)
-    except FalsifyError as exc:
-        print(f"python -m falsify.models.adjust: error: {exc}", file=sys.stderr)
-        return 2
+        state = torch.load(weights, map_location="cpu", weights_only=True)
+    except Exception as exc:  # OSError, RuntimeError, pickle.UnpicklingError, ...
+        raise FalsifyError(f"{weights}: cannot load weights "
+                           f"({str(exc).splitlines()[0]})") from None
+    if not isinstance(state, dict):
+        raise FalsifyError(f"{weights}: not a state dict or training checkpoint")
+    state = state.get("model", state)
+    result = choose_alpha(state, val, alphas)
+    adjusted = adjust_state(state, result.chosen)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(".tmp")
     torch.save(adjusted, tmp)
     tmp.replace(out)
-    if a.json:
-        print(json.dumps({**asdict(result), "out": str(out)}, indent=1))
-    else:
-        print(f"{result.scans} scans of {result.val}; car IoU / precision / recall per alpha:")
-        for s in result.scores:
-            mark = "  <- chosen" if s.alpha == result.chosen else ""
-            prec = "-" if s.car_precision is None else f"{s.car_precision:.3f}"
-            print(f"  alpha {s.alpha:4.2f}  {s.car_iou:.4f} / {prec} / {s.car_recall:.3f}{mark}")
-        print(f"wrote {out} (alpha {result.chosen})")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    return result

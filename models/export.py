@@ -276,69 +276,47 @@ def convert_fp16(onnx_in: str | Path, onnx_out: str | Path,
     return onnx_out
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """`python -m falsify.models.export WEIGHTS.pt --out MODEL.onnx`: export trained weights
-    with their spec."""
-    import argparse
-    import json
-    import sys
-
-    p = argparse.ArgumentParser(prog="python -m falsify.models.export", description=main.__doc__)
-    p.add_argument("weights", help="a state dict (.pt) or a training checkpoint.pt")
-    p.add_argument("--out", required=True, help="the .onnx to write (spec .json beside it)")
-    p.add_argument("--crf-iterations", type=int, default=3, choices=range(4))
-    p.add_argument("--height", type=int, default=64)
-    p.add_argument("--width", type=int, default=512)
-    p.add_argument("--note", action="append", default=[], metavar="KEY=VALUE",
-                   help="extra facts recorded in the spec (repeatable)")
-    p.add_argument("--int8", default=None, metavar="PATH",
-                   help="also write a static int8 copy (CRF kept fp32) to PATH, calibrated on "
-                   "training-style synthetic scenes")
-    p.add_argument("--calibration-scans", type=int, default=None, choices=range(1, 1025),
-                   metavar="N", help="--int8: how many scenes to calibrate on (default 64)")
-    a = p.parse_args(argv)
-
-    def fail(message: str) -> int:
-        print(f"python -m falsify.models.export: error: {message}", file=sys.stderr)
-        return 2
-
-    if a.int8 and (a.height, a.width) != (64, 512):
-        return fail("--int8 calibrates on the kitti-hdl64e-front preset: 64 x 512 only")
-    bad = [n for n in a.note if "=" not in n or not n.split("=", 1)[0]]
+def export_weights(weights: str | Path, out: str | Path, crf_iterations: int = 3,
+                   height: int = 64, width: int = 512, notes: Sequence[str] = (),
+                   int8: str | Path | None = None,
+                   calibration_scans: int | None = None) -> dict[str, str]:
+    """Export trained SqueezeSeg weights (a state dict or a training checkpoint.pt) to `out`
+    (.onnx, its spec .json and a .pt of the weights beside it), each KEY=VALUE of `notes`
+    recorded in the spec; with `int8`, also a static int8 copy there, calibrated on
+    `calibration_scans` training-style synthetic scenes (default 64). Returns the files written;
+    FalsifyError before writing anything on bad input."""
+    if int8 and (height, width) != (64, 512):
+        raise FalsifyError("--int8 calibrates on the kitti-hdl64e-front preset: 64 x 512 only")
+    bad = [n for n in notes if "=" not in n or not n.split("=", 1)[0]]
     if bad:
-        return fail(f"--note {bad[0]!r}: write KEY=VALUE")
+        raise FalsifyError(f"--note {bad[0]!r}: write KEY=VALUE")
     import torch
     from falsify.models.squeezeseg import SqueezeSeg
     try:
-        state = torch.load(a.weights, map_location="cpu", weights_only=True)
+        state = torch.load(weights, map_location="cpu", weights_only=True)
     except Exception as exc:  # OSError, RuntimeError, pickle.UnpicklingError, ...
-        return fail(f"{a.weights}: cannot load weights ({str(exc).splitlines()[0]})")
+        raise FalsifyError(f"{weights}: cannot load weights "
+                           f"({str(exc).splitlines()[0]})") from None
     if not isinstance(state, dict):
-        return fail(f"{a.weights}: not a state dict or training checkpoint")
+        raise FalsifyError(f"{weights}: not a state dict or training checkpoint")
     state = state.get("model", state)
-    model = SqueezeSeg(crf_iterations=a.crf_iterations)
+    model = SqueezeSeg(crf_iterations=crf_iterations)
     try:
         model.load_state_dict(state)
     except RuntimeError as exc:
-        return fail(f"{a.weights}: not SqueezeSeg weights ({str(exc).splitlines()[0]})")
-    extra = dict(n.split("=", 1) for n in a.note)
-    out = Path(a.out)
-    path, spec = export_onnx(model, out, H=a.height, W=a.width, name=out.stem, **extra)
+        raise FalsifyError(f"{weights}: not SqueezeSeg weights "
+                           f"({str(exc).splitlines()[0]})") from None
+    extra = dict(n.split("=", 1) for n in notes)
+    out = Path(out)
+    path, spec = export_onnx(model, out, H=height, W=width, name=out.stem, **extra)
     torch.save({k: v.contiguous() for k, v in model.state_dict().items()}, out.with_suffix(".pt"))
     written = {"onnx": str(path), "spec": str(spec_path_for(path)),
                "weights": str(out.with_suffix(".pt"))}
-    if a.int8:
-        from falsify.data.training import calibration_scans
+    if int8:
+        from falsify.data.training import calibration_scans as scenes
         from falsify.sensor.lidar import load_sensor
 
-        Path(a.int8).parent.mkdir(parents=True, exist_ok=True)
-        scans = calibration_scans(load_sensor("kitti-hdl64e-front"), a.calibration_scans)
-        written["int8"] = str(quantize_int8(path, a.int8, scans=scans))
-    print(json.dumps(written))
-    return 0
-
-
-if __name__ == "__main__":
-    import sys
-
-    sys.exit(main())
+        Path(int8).parent.mkdir(parents=True, exist_ok=True)
+        scans = scenes(load_sensor("kitti-hdl64e-front"), calibration_scans)
+        written["int8"] = str(quantize_int8(path, int8, scans=scans))
+    return written

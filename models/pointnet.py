@@ -10,7 +10,8 @@ train id i; output 0, unlabeled, reads as unknown).
 
 ``--model falsify.models.pointnet:factory`` runs it with seeded random weights: plumbing, not a
 trained network. For trained weights, a file plug-in calls ``factory("net.pt", device=device)``.
-`export_onnx` writes it as a points-in ONNX model ((1, N, 4) in, (1, N, 20) logits out).
+`export_onnx` writes it as a points-in ONNX model ((1, N, 4) in, (1, N, 20) logits out);
+``falsify train-pointnet`` trains it (`train`).
 Importing this module imports torch.
 """
 
@@ -246,37 +247,3 @@ def _validate(model: PointNetSeg, files: list[Path], spec: ModelSpec, device: st
     iou = [float(tp[c] / denom[c]) if denom[c] else None for c in range(n)]
     present = [v for c, v in enumerate(iou) if c and conf[c].sum()]
     return {"val_car_iou": iou[1], "val_miou": float(np.mean(present)) if present else None}
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """python -m falsify.models.pointnet --data DIR --out DIR [--epochs N] [--device cuda]"""
-    import argparse
-    import json
-    import sys
-
-    p = argparse.ArgumentParser(prog="python -m falsify.models.pointnet",
-                                description="train the reference PointNet on npy scans with "
-                                            "SemanticKITTI train ids")
-    p.add_argument("--data", required=True)
-    p.add_argument("--out", required=True)
-    p.add_argument("--val-data", default=None)
-    p.add_argument("--epochs", type=int, default=20)
-    p.add_argument("--batch", type=int, default=16)
-    p.add_argument("--points", type=int, default=16384)
-    p.add_argument("--lr", type=float, default=1e-3)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    p.add_argument("--time-limit-min", type=float, default=None)
-    a = p.parse_args(argv)
-    try:
-        last = train(a.data, a.out, a.epochs, a.batch, a.points, a.lr, a.seed, a.device,
-                     a.time_limit_min, a.val_data)
-    except FalsifyError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    print(json.dumps(last))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,6 +1,6 @@
 """Train SqueezeSeg on a directory of ``*.npy`` scans (H, W, 6), resumable exactly.
 
-    python -m falsify.models.train --data DIR --out DIR [--epochs N] [--batch B] [--resume]
+    falsify train --data DIR --out DIR [--epochs N] [--batch B] [--resume]
         [--seed S] [--time-limit-min M] [--val-data DIR] [--precision auto|bf16|fp32]
         [--classes kitti4|semantickitti] [--device cpu|cuda]
 
@@ -15,10 +15,9 @@ step, torch RNG), ``train_log.jsonl`` (one line per epoch), and at the end ``squ
 
 from __future__ import annotations
 
-import argparse
+import contextlib
 import json
 import os
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -225,14 +224,64 @@ def _load(path: Path, option: str, torch) -> dict:
 
 def train(cfg: TrainConfig) -> dict:
     """Run (or resume) training; returns a summary dict. See the module docstring for files."""
-    import contextlib
-
     import torch
-    from falsify.models.export import export_onnx
-    from falsify.models.squeezeseg import SqueezeSeg
 
     t_start = time.monotonic()
     out = Path(cfg.out)
+    files, val_files, shape = _checked_inputs(cfg, torch)
+    use_bf16 = _use_bf16(cfg, torch)
+
+    def autocast():
+        if use_bf16:
+            return torch.autocast(cfg.device, dtype=torch.bfloat16)
+        return contextlib.nullcontext()
+
+    model, opt, weights = _build(cfg, files, shape, torch)
+    ckpt_path = out / CHECKPOINT
+    run = _Progress(*_restore(cfg, model, opt, ckpt_path, torch))
+    model.train(not cfg.crf_only)  # CRF-only: the frozen backbone runs as at inference
+    out.mkdir(parents=True, exist_ok=True)   # only once every input has been checked
+
+    limit = cfg.time_limit_min * 60.0 if cfg.time_limit_min else None
+    while run.epoch < cfg.epochs and run.stopped == "done":
+        losses, frames, batches, sec = _train_epoch(
+            cfg, model, opt, weights, files, shape, autocast, run,
+            lambda: limit is not None and time.monotonic() - t_start > limit)
+        end_of_epoch = run.step >= batches
+        if end_of_epoch:
+            run.epoch, run.step = run.epoch + 1, 0
+        _save_atomic({"model": model.state_dict(), "optim": opt.state_dict(), "epoch": run.epoch,
+                      "step": run.step, "torch_rng": torch.get_rng_state(),
+                      "config": json.dumps(asdict(cfg))}, ckpt_path)
+        run.last = _epoch_record(cfg, run, end_of_epoch, batches, losses, frames, sec, use_bf16)
+        if val_files and (end_of_epoch or run.stopped != "done"):
+            run.last.update(validate(model, val_files, cfg, shape, autocast))
+        if run.stopped != "done":
+            run.last["stopped"] = run.stopped
+        with open(out / LOG, "a", encoding="utf-8") as fh:
+            fh.write(json.dumps(run.last) + "\n")
+        print(json.dumps(run.last), flush=True)
+
+    if run.stopped == "max_steps":
+        return {"stopped": run.stopped, "epoch": run.epoch, "step": run.step}
+    return _finish(cfg, model, out, shape, run, torch)
+
+
+@dataclass
+class _Progress:
+    """Where a training run stands: the epoch, the step in it, the steps run by this call, why
+    it stopped ("done" while it runs on) and the last epoch's log record."""
+
+    epoch: int
+    step: int
+    steps_run: int = 0
+    stopped: str = "done"
+    last: dict = field(default_factory=dict)
+
+
+def _checked_inputs(cfg: TrainConfig, torch) -> tuple[list[Path], list[Path], tuple[int, int]]:
+    """The training and validation scans and the scans' (H, W), once every option has been
+    checked; sets torch's threads and deterministic algorithms on the way, as training needs."""
     files = list_scans(cfg.data)
     first = load_scan(files[0])
     shape = first.shape[:2]
@@ -263,15 +312,21 @@ def train(cfg: TrainConfig) -> dict:
         raise FalsifyError(f"--init {cfg.init}: no such file")
     if cfg.precision not in ("auto", "bf16", "fp32"):
         raise FalsifyError(f"--precision must be auto, bf16 or fp32, got {cfg.precision!r}")
+    return files, val_files, shape
+
+
+def _use_bf16(cfg: TrainConfig, torch) -> bool:
+    """Whether to train under bf16 autocast: asked for, or auto where the device has bf16."""
     use_bf16 = cfg.precision == "bf16" or (cfg.precision == "auto" and bf16_supported())
 
     if cfg.device == "cuda" and cfg.precision == "auto":
         use_bf16 = torch.cuda.is_bf16_supported()
+    return use_bf16
 
-    def autocast():
-        if use_bf16:
-            return torch.autocast(cfg.device, dtype=torch.bfloat16)
-        return contextlib.nullcontext()
+
+def _build(cfg: TrainConfig, files: list[Path], shape, torch):
+    """A seeded SqueezeSeg on the device, its optimiser and the loss's class weights."""
+    from falsify.models.squeezeseg import SqueezeSeg
 
     torch.manual_seed(cfg.seed)
     model = SqueezeSeg(cfg.channels, crf_iterations=cfg.crf_iterations,
@@ -285,8 +340,13 @@ def train(cfg: TrainConfig) -> dict:
                             else cfg.weight_decay)
     weights = torch.tensor(CLASS_WEIGHTS if cfg.classes == "kitti4"
                            else semantic_weights(files, shape), dtype=torch.float32).to(cfg.device)
+    return model, opt, weights
+
+
+def _restore(cfg: TrainConfig, model, opt, ckpt_path: Path, torch) -> tuple[int, int]:
+    """--resume: the checkpoint's model, optimiser and RNG, and its (epoch, step); --init: the
+    weights only, from (0, 0); neither: (0, 0)."""
     epoch, step = 0, 0
-    ckpt_path = out / CHECKPOINT
     if cfg.resume:
         if not ckpt_path.is_file():
             raise FalsifyError(f"--resume: no checkpoint {ckpt_path}")
@@ -302,144 +362,81 @@ def train(cfg: TrainConfig) -> dict:
         except RuntimeError as exc:
             raise FalsifyError(f"--init {cfg.init}: not SqueezeSeg weights for these channels "
                                f"({str(exc).splitlines()[0]})") from exc
-    model.train(not cfg.crf_only)  # CRF-only: the frozen backbone runs as at inference
-    out.mkdir(parents=True, exist_ok=True)   # only once every input has been checked
+    return epoch, step
 
-    def checkpoint(e: int, s: int) -> None:
-        _save_atomic({"model": model.state_dict(), "optim": opt.state_dict(), "epoch": e,
-                      "step": s, "torch_rng": torch.get_rng_state(),
-                      "config": json.dumps(asdict(cfg))}, ckpt_path)
 
-    def log(rec: dict) -> None:
-        with open(out / LOG, "a", encoding="utf-8") as fh:
-            fh.write(json.dumps(rec) + "\n")
+def _train_epoch(cfg: TrainConfig, model, opt, weights, files: list[Path], shape, autocast,
+                 run: _Progress, out_of_time) -> tuple[list[float], int, int, float]:
+    """Train `run.epoch` from `run.step` to its end, or until --max-steps or the time limit
+    (`out_of_time()`) stops it (`run.stopped`); returns its losses, frames, batches and
+    seconds."""
+    import torch
 
-    limit = cfg.time_limit_min * 60.0 if cfg.time_limit_min else None
-    steps_run, stopped, last = 0, "done", {}
     n = len(files)
-    while epoch < cfg.epochs and stopped == "done":
-        rng = np.random.default_rng([cfg.seed, epoch])  # order and flips depend on epoch only
-        perm = rng.permutation(n)
-        flips = rng.random(n) < 0.5
-        for g in opt.param_groups:
-            g["lr"] = cfg.lr * cfg.lr_decay**epoch
-        batches = [perm[i:i + cfg.batch] for i in range(0, n, cfg.batch)]
-        losses, t_epoch, frames = [], time.monotonic(), 0
-        while step < len(batches):
-            idx = batches[step]
-            scans = np.stack([flip(s) if flips[i] else s
-                              for i, s in ((i, load_scan(files[i], shape)) for i in idx)])
-            x, xyz, mask, labels = (t.to(cfg.device) for t in batch_tensors(scans, cfg.channels))
-            if cfg.classes == "semantickitti":
-                mask = mask * (labels != 0)[:, None]   # unlabeled pixels are not scored
-            with autocast():
-                xc = x.contiguous(memory_format=torch.channels_last)
-                # The CRF's energies live in [0, ~1.2] (softmax + small messages, as in the
-                # official code), so a cross-entropy on them cannot saturate and the class
-                # weights swamp the unknown class; the backbone's logits train cleanly and the
-                # CRF keeps its published initialisation at inference.
-                logits = model.backbone(xc) if cfg.loss_on == "backbone" else model(xc, xyz, mask)
-            loss = masked_loss(logits, labels, mask, weights)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            losses.append(float(loss.detach()))
-            frames += len(idx)
-            step += 1
-            steps_run += 1
-            if cfg.max_steps is not None and steps_run >= cfg.max_steps:
-                stopped = "max_steps"
-            elif limit is not None and time.monotonic() - t_start > limit:
-                stopped = "time_limit"
-            if stopped != "done":
-                break
-        sec = time.monotonic() - t_epoch
-        end_of_epoch = step >= len(batches)
-        if end_of_epoch:
-            epoch, step = epoch + 1, 0
-        checkpoint(epoch, step)
-        last = {"epoch": epoch if end_of_epoch else epoch + step / len(batches),
-                "loss": float(np.mean(losses)) if losses else None,
-                "lr": cfg.lr * cfg.lr_decay**(epoch - 1 if end_of_epoch else epoch),
-                "seconds": round(sec, 2),
-                "ms_per_frame_step": round(1e3 * sec / max(frames, 1), 1),
-                "precision": "bf16" if use_bf16 else "fp32"}
-        if val_files and (end_of_epoch or stopped != "done"):
-            last.update(validate(model, val_files, cfg, shape, autocast))
-        if stopped != "done":
-            last["stopped"] = stopped
-        log(last)
-        print(json.dumps(last), flush=True)
+    rng = np.random.default_rng([cfg.seed, run.epoch])  # order and flips depend on epoch only
+    perm = rng.permutation(n)
+    flips = rng.random(n) < 0.5
+    for g in opt.param_groups:
+        g["lr"] = cfg.lr * cfg.lr_decay**run.epoch
+    batches = [perm[i:i + cfg.batch] for i in range(0, n, cfg.batch)]
+    losses, t_epoch, frames = [], time.monotonic(), 0
+    while run.step < len(batches):
+        idx = batches[run.step]
+        scans = np.stack([flip(s) if flips[i] else s
+                          for i, s in ((i, load_scan(files[i], shape)) for i in idx)])
+        x, xyz, mask, labels = (t.to(cfg.device) for t in batch_tensors(scans, cfg.channels))
+        if cfg.classes == "semantickitti":
+            mask = mask * (labels != 0)[:, None]   # unlabeled pixels are not scored
+        with autocast():
+            xc = x.contiguous(memory_format=torch.channels_last)
+            # The CRF's energies live in [0, ~1.2] (softmax + small messages, as in the
+            # official code), so a cross-entropy on them cannot saturate and the class
+            # weights swamp the unknown class; the backbone's logits train cleanly and the
+            # CRF keeps its published initialisation at inference.
+            logits = model.backbone(xc) if cfg.loss_on == "backbone" else model(xc, xyz, mask)
+        loss = masked_loss(logits, labels, mask, weights)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+        frames += len(idx)
+        run.step += 1
+        run.steps_run += 1
+        if cfg.max_steps is not None and run.steps_run >= cfg.max_steps:
+            run.stopped = "max_steps"
+        elif out_of_time():
+            run.stopped = "time_limit"
+        if run.stopped != "done":
+            break
+    return losses, frames, len(batches), time.monotonic() - t_epoch
 
-    if stopped == "max_steps":
-        return {"stopped": stopped, "epoch": epoch, "step": step}
+
+def _epoch_record(cfg: TrainConfig, run: _Progress, end_of_epoch: bool, batches: int,
+                  losses: list[float], frames: int, sec: float, use_bf16: bool) -> dict:
+    """The log line of an epoch (or of its part run before a stop)."""
+    return {"epoch": run.epoch if end_of_epoch else run.epoch + run.step / batches,
+            "loss": float(np.mean(losses)) if losses else None,
+            "lr": cfg.lr * cfg.lr_decay**(run.epoch - 1 if end_of_epoch else run.epoch),
+            "seconds": round(sec, 2),
+            "ms_per_frame_step": round(1e3 * sec / max(frames, 1), 1),
+            "precision": "bf16" if use_bf16 else "fp32"}
+
+
+def _finish(cfg: TrainConfig, model, out: Path, shape, run: _Progress, torch) -> dict:
+    """Write the final weights (and, unless --no-export, the ONNX model and its spec); the run's
+    summary."""
+    from falsify.models.export import export_onnx
+
+    last = run.last
     final = model.to("cpu", memory_format=torch.contiguous_format).eval()
     state = {k: v.contiguous() for k, v in final.state_dict().items()}
     torch.save(state, out / "squeezeseg.pt")
-    summary = {"stopped": stopped, "epoch": epoch, "step": step, **{
+    summary = {"stopped": run.stopped, "epoch": run.epoch, "step": run.step, **{
         k: last.get(k) for k in ("loss", "val_car_iou")}}
     if cfg.export:
         export_onnx(final, out / "squeezeseg.onnx", H=shape[0], W=shape[1], name="squeezeseg",
                     classes=None if cfg.classes == "kitti4" else "semantickitti",
-                    trained_epochs=epoch, seed=cfg.seed, data=Path(cfg.data).name,
+                    trained_epochs=run.epoch, seed=cfg.seed, data=Path(cfg.data).name,
                     val_car_iou=last.get("val_car_iou"))
         # the .pt gets the same spec as the .onnx (same stem): load_segmenter(out/'x.pt', 'torch')
     return summary
-
-
-def parse_args(argv: Sequence[str] | None) -> TrainConfig:
-    """CLI -> TrainConfig."""
-    p = argparse.ArgumentParser(prog="python -m falsify.models.train",
-                                description=__doc__.split("\n")[0])
-    p.add_argument("--data", required=True, help="folder of *.npy scans (H, W, 6)")
-    p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--epochs", type=int, default=30)
-    p.add_argument("--batch", type=int, default=8)
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--time-limit-min", type=float, default=None)
-    p.add_argument("--val-data", default=None, help="folder of *.npy scans for car IoU")
-    p.add_argument("--lr", type=float, default=1e-3)
-    p.add_argument("--lr-decay", type=float, default=0.95)
-    p.add_argument("--crf-iterations", type=int, default=3, choices=range(4))
-    p.add_argument("--channels", default=",".join(DEFAULT_CHANNELS),
-                   help=f"comma list from {','.join(ALL_CHANNELS)}")
-    p.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp32"])
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--max-steps", type=int, default=None, help=argparse.SUPPRESS)
-    p.add_argument("--no-export", action="store_true", help="skip the ONNX export at the end")
-    p.add_argument("--loss-on", default="backbone", choices=["backbone", "crf"],
-                   help="train on the pre-CRF logits (default) or on the CRF's energies")
-    p.add_argument("--init", default=None, help="start from these weights (fresh optimiser)")
-    p.add_argument("--crf-only", action="store_true",
-                   help="train only the CRF compatibility matrices, the backbone frozen")
-    p.add_argument("--classes", default="kitti4", choices=CLASS_SETS,
-                   help="what channel 5 holds: our four classes or SemanticKITTI's train ids")
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    p.add_argument("--holdout", action="append", default=[], metavar="SPLITS_TOML",
-                   help="a split manifest whose held-out scans --data and --val-data may not "
-                   "hold (also $FALSIFY_HOLDOUT and a splits.toml beside the data)")
-    a = p.parse_args(argv)
-    return TrainConfig(
-        data=a.data, out=a.out, epochs=a.epochs, batch=a.batch, seed=a.seed, lr=a.lr,
-        lr_decay=a.lr_decay, crf_iterations=a.crf_iterations,
-        channels=tuple(c.strip() for c in a.channels.split(",") if c.strip()),
-        precision=a.precision, threads=a.threads, time_limit_min=a.time_limit_min,
-        val_data=a.val_data, resume=a.resume, max_steps=a.max_steps, export=not a.no_export,
-        loss_on=a.loss_on, init=a.init, crf_only=a.crf_only, classes=a.classes,
-        device=a.device, holdout=tuple(a.holdout))
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """CLI entry point; returns the exit code (2 on a FalsifyError)."""
-    try:
-        summary = train(parse_args(argv))
-    except FalsifyError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    print(json.dumps(summary))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

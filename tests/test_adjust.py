@@ -10,11 +10,13 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from falsify.models.adjust import adjust_state, choose_alpha, logit_offsets, main  # noqa: E402
+from falsify.models.adjust import adjust_state, choose_alpha, logit_offsets  # noqa: E402
 from falsify.models.plausible import plausible_scans  # noqa: E402
 from falsify.models.spec import DEFAULT_CHANNELS  # noqa: E402
 from falsify.models.squeezeseg import SqueezeSeg  # noqa: E402
 from falsify.models.train import CLASS_WEIGHTS, batch_tensors  # noqa: E402
+
+from falsify.cli import main as falsify_main  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -29,6 +31,11 @@ def val(tmp_path_factory):
 def state():
     torch.manual_seed(0)
     return SqueezeSeg(DEFAULT_CHANNELS, crf_iterations=1).state_dict()
+
+
+def main(argv: list[str]) -> int:
+    """`falsify adjust ARGV`."""
+    return falsify_main(["adjust", *argv])
 
 
 def _model(state, crf=1):

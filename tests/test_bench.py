@@ -11,7 +11,9 @@ import os
 
 import pytest
 
-from falsify.cli.commands import build_parser, given_options, main, pipeline_figures_text
+from falsify.cli import build_parser, main
+from falsify.cli.bench import pipeline_figures_text
+from falsify.cli.common import given_options
 from falsify.world.space import load_space
 
 from .conftest import CONFIGS, ROOT
@@ -163,10 +165,10 @@ def test_default_runs_stay_small():
     from falsify.bench.nodes import bench_nodes
     from falsify.bench.pipeline import bench_pipeline
     from falsify.bench.scan import SIZE_SAMPLES, bench_scan
-    from falsify.cli.commands import BENCH_CONFIGS, MODEL_BENCH_FRAMES
+    from falsify.cli.bench import BENCH_CONFIGS, MODEL_BENCH_FRAMES
 
     parse = build_parser().parse_args
-    assert parse(["bench", "scan"]).config is None   # each benchmark's own, resolved in cmd_bench
+    assert parse(["bench", "scan"]).config is None   # each benchmark's own, resolved in bench.run
 
     def default(f, name: str):
         return signature(f).parameters[name].default

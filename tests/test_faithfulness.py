@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from falsify.classes import CAR
-from falsify.cli.commands import main
+from falsify.cli import main
 from falsify.data.kitti_object import points_in_box, read_calib, read_labels
 from falsify.data.real_backgrounds import COLLISION_POINTS, INSERTED_INSTANCE, RealScanner
 from falsify.jobs.faithfulness import (

@@ -9,12 +9,22 @@ import dataclasses
 import numpy as np
 import pytest
 
+from falsify.cli import main as falsify_main
 from falsify.errors import FalsifyError
-from falsify.jobs.fit_returns import main as fit_returns_main
-from falsify.jobs.fit_rings import fit, fit_rings, main
+from falsify.jobs.fit_rings import fit, fit_rings
 from falsify.sensor.lidar import load_sensor
 from falsify.sensor.simulator import Simulator
 from falsify.world.streets import build_background
+
+
+def main(argv: list[str]) -> int:
+    """`falsify fit-rings ARGV`."""
+    return falsify_main(["fit-rings", *argv])
+
+
+def fit_returns_main(argv: list[str]) -> int:
+    """`falsify fit-returns ARGV`."""
+    return falsify_main(["fit-returns", *argv])
 
 
 def tilted_room():

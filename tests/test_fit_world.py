@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from falsify.cli.commands import main
+from falsify.cli import main
 from falsify.errors import ConfigError, FalsifyError
 from falsify.jobs.fit_world import (
     check_fit_data,

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from falsify.models.runners import load_segmenter
 
-from falsify.cli.commands import main
+from falsify.cli import main
 from falsify.data.real_backgrounds import INSERTED_INSTANCE, RealScanner
 from falsify.jobs.faithfulness import Spread
 from falsify.jobs.instance_faithfulness import (

@@ -144,7 +144,10 @@ def test_dataset_semantic_labels_and_workers(tmp_path: Path, capsys) -> None:
 
 def test_trainer_learns_semantickitti_classes(tmp_path: Path, capsys) -> None:
     pytest.importorskip("torch")
-    from falsify.models.train import main as train_main
+
+    def train_main(argv):
+        return main(["train", *argv])
+
     data = tmp_path / "d"
     assert main(["dataset", str(SMOKE), "--scans", "8", "--labels", "semantickitti",
                  "--max-cars", "3", "--out", str(data), "--json"]) == 0

@@ -13,7 +13,7 @@ import pytest
 from falsify.reports.realism_page import render_realism
 
 from falsify.cli import main
-from falsify.cli.commands import _realism_text
+from falsify.cli.realism import realism_text
 from falsify.data.scansets import load_sets
 from falsify.results.scan_statistics import SetStats
 from falsify.semantic import TRAIN_CLASSES, kitti4, kitti4_of_train, train_ids
@@ -162,7 +162,7 @@ def test_four_class_statistics_equal_those_of_default_labels(both) -> None:
 @needs_model
 def test_text_and_page_show_the_classes(both) -> None:
     doc, out = both
-    text = _realism_text(doc, out)         # what the command prints
+    text = realism_text(doc, out)          # what the command prints
     line = next(x for x in text.splitlines() if x.startswith("semantic_classes"))
     assert f"{doc['distances'][SK]['01']['semantic_classes']:.4f}" in line
     assert "—" in line and "diagnostic" in line         # the four-class set has none

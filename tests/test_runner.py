@@ -217,7 +217,10 @@ def test_runner_imports_and_runs_without_torch(exported):
 
 def test_export_cli_writes_model_and_int8_copy(exported, tmp_path, capsys):
     pytest.importorskip("torch")
-    from falsify.models.export import main as export_main
+    from falsify.cli import main
+
+    def export_main(argv):
+        return main(["export", *argv])
 
     out, q = tmp_path / "net.onnx", tmp_path / "int8" / "net-int8.onnx"   # folder made
     assert export_main([str(exported.with_suffix(".pt")), "--out", str(out), "--int8", str(q),
@@ -231,7 +234,10 @@ def test_export_cli_writes_model_and_int8_copy(exported, tmp_path, capsys):
 
 def test_export_cli_rejects_bad_input_before_writing(exported, tmp_path, capsys):
     torch = pytest.importorskip("torch")
-    from falsify.models.export import main as export_main
+    from falsify.cli import main
+
+    def export_main(argv):
+        return main(["export", *argv])
 
     out = tmp_path / "net.onnx"
     args = [str(exported.with_suffix(".pt")), "--out", str(out)]

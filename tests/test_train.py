@@ -10,8 +10,9 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from falsify.models.plausible import plausible_scans  # noqa: E402
-from falsify.models.train import flip, main  # noqa: E402
+from falsify.models.train import flip  # noqa: E402
 
+from falsify.cli import main as falsify_main  # noqa: E402
 from falsify.errors import FalsifyError  # noqa: E402
 
 
@@ -25,6 +26,11 @@ def data(tmp_path_factory):
 
 
 ARGS = ["--batch", "2", "--seed", "3", "--precision", "fp32", "--crf-iterations", "1"]
+
+
+def main(argv: list[str]) -> int:
+    """`falsify train ARGV`."""
+    return falsify_main(["train", *argv])
 
 
 def _weights(out):

@@ -195,7 +195,7 @@ def test_scans_are_deterministic_with_returns_and_intensity():
 
 
 def test_fit_refuses_evaluation_scans(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "falsify.jobs.fit_returns",
+    r = subprocess.run([sys.executable, "-m", "falsify", "fit-returns",
                         str(tmp_path / "squeezeseg" / "x.bin"), "--out", str(tmp_path / "o")],
                        capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 2 and "object" in r.stderr

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 from falsify.checks import check_out_dir
@@ -50,7 +51,24 @@ def bench_camera_text(config: str, camera: str, **options) -> tuple[dict, str]:
                f"{r['speedup_cold']}x cold, {r['speedup_warm']}x warm")
 
 
-def cmd_calib(args) -> int:
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """`falsify calib`'s options."""
+    from falsify.sensor.camera import CAMERA_PRESETS, DEFAULT_CAMERA
+
+    p.add_argument("directory", nargs="?", default=None,
+                   help="a KITTI object directory (velodyne, image_2, calib, label_2)")
+    p.add_argument("--out", default=None,
+                   help="a folder for one overlay PNG per frame (none are written without it)")
+    p.add_argument("--scenes", default=None, metavar="CONFIG",
+                   help="instead: score car points on car pixels over samples of a space")
+    p.add_argument("--samples", type=int, default=100, help="--scenes: samples of the grid")
+    p.add_argument("--camera", default=DEFAULT_CAMERA, choices=CAMERA_PRESETS,
+                   help="--scenes: the camera preset")
+    p.add_argument("--json", action="store_true")
+
+
+def run(args) -> int:
+    """`falsify calib`: a KITTI object directory's calibration, or our scenes'."""
     import json
 
     from falsify.jobs.calib import check_kitti_dir, scene_agreement
@@ -83,23 +101,3 @@ def cmd_calib(args) -> int:
     else:
         print(text)
     return 0
-
-
-def register(sub) -> None:
-    """Add `falsify calib` to the CLI's subparsers."""
-    from falsify.sensor.camera import CAMERA_PRESETS, DEFAULT_CAMERA
-
-    c = sub.add_parser("calib", help="check a LiDAR-camera calibration: KITTI object frames "
-                       "(points in 3D boxes inside 2D boxes) or our scenes (car points on car "
-                       "pixels)")
-    c.add_argument("directory", nargs="?", default=None,
-                   help="a KITTI object directory (velodyne, image_2, calib, label_2)")
-    c.add_argument("--out", default=None,
-                   help="a folder for one overlay PNG per frame (none are written without it)")
-    c.add_argument("--scenes", default=None, metavar="CONFIG",
-                   help="instead: score car points on car pixels over samples of a space")
-    c.add_argument("--samples", type=int, default=100, help="--scenes: samples of the grid")
-    c.add_argument("--camera", default=DEFAULT_CAMERA, choices=CAMERA_PRESETS,
-                   help="--scenes: the camera preset")
-    c.add_argument("--json", action="store_true")
-    c.set_defaults(func=cmd_calib)

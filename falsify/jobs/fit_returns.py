@@ -1,6 +1,6 @@
 """Fit the sensor's return model on the geometry and reflectance of KITTI's object frames.
 
-Run: ``python -m falsify.jobs.fit_returns $KITTI_OBJECT/velodyne/*.bin
+Run: ``falsify fit-returns $KITTI_OBJECT/velodyne/*.bin
 --out configs/returns/kitti-hdl64e.json``. Only the points are used (never labels), and only
 the three object frames: the SqueezeSeg-layout and SemanticKITTI scans are evaluation data.
 
@@ -18,16 +18,12 @@ What is fitted, from each frame projected into the 64×2048 HDL-64E grid:
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 from pathlib import Path
 
 import numpy as np
 from scipy.optimize import minimize
 
-from falsify.data.velodyne import fit_frames, read_kitti
-from falsify.errors import FalsifyError
+from falsify.data.velodyne import read_kitti
 from falsify.sensor.lidar import load_sensor
 
 BLOCKED_FIRST_ROW = 55  # rows from here down are checked for the ego body's shadow
@@ -53,11 +49,45 @@ def _normals_cos(img: np.ndarray, dirs: np.ndarray) -> np.ndarray:
 
 
 def fit(paths: list[Path]) -> dict:
+    """The return model fitted on KITTI object frames (.bin, KITTI's ring order), as the JSON
+    document configs/returns/ holds."""
     sensor = load_sensor("kitti-hdl64e-360")
-    dirs = sensor.directions
     rows = sensor.rows
+    feats, cands, valid_stack = _gather(paths, sensor)
+    cos_exp, atten, levels, used = _fit_intensity(feats)
+    ci = np.concatenate(cands["I"]).astype(np.float64)
+    cr = np.concatenate(cands["returned"])
+    crow = np.concatenate(cands["row"])
+    (p_min, p_max, i0, k), row_keep = _fit_dropout(ci, cr, crow, rows)
+    valid_all = np.mean(valid_stack, axis=0)  # (rows, W) fraction of frames with a return
+    blocked = []
+    for rr in range(BLOCKED_FIRST_ROW, rows):
+        blocked.append([round(float(v), 3)
+                        for v in valid_all[rr].reshape(AZ_BINS, -1).mean(axis=1)])
+    blocked_rows = list(range(BLOCKED_FIRST_ROW, rows))
+    # Above the blocked rows the per-row factor carries the laser's own weakness.
+    return {
+        "name": "kitti-hdl64e",
+        "fitted_on": [p.name for p in paths],
+        "command": "falsify fit-returns $KITTI_OBJECT/velodyne/*.bin "
+                   "--out configs/returns/kitti-hdl64e.json",
+        "points_used": used,
+        "dropout_candidates": int(len(cr)),
+        "candidate_return_rate": float(cr.mean()),
+        "params": {"reflectivity": levels, "cos_exp": cos_exp, "atten_m": atten,
+                   "p_min": p_min, "p_max": p_max, "i0": i0, "k": k, "retro_gain": 1.0,
+                   "row_keep": [round(v, 4) for v in row_keep],
+                   "blocked_rows": blocked_rows, "blocked": blocked},
+    }
+
+
+def _gather(paths: list[Path], sensor) -> tuple[dict, dict, list[np.ndarray]]:
+    """Per frame: the points with a known incidence (intensity, cos, range, on the ground), the
+    dropout candidates (their neighbours' intensity, returned or not, row), and the mask of
+    pixels with a return."""
+    dirs = sensor.directions
     feats = {"I": [], "cos": [], "r": [], "ground": []}
-    cand_i, cand_ret, cand_row = [], [], []
+    cands = {"I": [], "returned": [], "row": []}
     valid_stack = []
     for path in paths:
         scan = read_kitti(path, None, sensor)
@@ -78,9 +108,15 @@ def fit(paths: list[Path]) -> dict:
         both = (left > 0) & (right > 0) & (np.abs(left - right) < 0.03 * np.maximum(left, right))
         both[BLOCKED_FIRST_ROW:] = False
         inten = (np.roll(img[..., 3], 1, 1) + np.roll(img[..., 3], -1, 1)) / 2
-        cand_i.append(inten[both])
-        cand_ret.append(valid[both])
-        cand_row.append(np.nonzero(both)[0])
+        cands["I"].append(inten[both])
+        cands["returned"].append(valid[both])
+        cands["row"].append(np.nonzero(both)[0])
+    return feats, cands, valid_stack
+
+
+def _fit_intensity(feats: dict) -> tuple[float, float, dict[str, float], int]:
+    """cos_exp and atten_m by least squares of log intensity, the reflectivity levels, and how
+    many points the fit used."""
     inten_all = np.concatenate(feats["I"]).astype(np.float64)
     cos = np.concatenate(feats["cos"])
     rng = np.concatenate(feats["r"]).astype(np.float64)
@@ -96,10 +132,13 @@ def fit(paths: list[Path]) -> dict:
               "mid": float(np.quantile(refl[~ground], 0.5)),
               "bright": float(np.quantile(refl[~ground], 0.85)),
               "retro": float(np.quantile(refl, 0.997))}
-    ci = np.concatenate(cand_i).astype(np.float64)
-    cr = np.concatenate(cand_ret)
-    crow = np.concatenate(cand_row)
+    return cos_exp, atten, levels, int(pos.sum())
 
+
+def _fit_dropout(ci: np.ndarray, cr: np.ndarray, crow: np.ndarray, rows: int
+                 ) -> tuple[tuple[float, float, float, float], list[float]]:
+    """P(return | expected intensity) by maximum likelihood over the dropout candidates
+    (p_min, p_max, i0, k), and the per-row factor."""
     def p_of(x, ii):
         p_min, p_max, i0, k = x
         return p_min + (p_max - p_min) * (1.0 - np.exp(-(np.maximum(ii, 0) / i0) ** k))
@@ -119,45 +158,4 @@ def fit(paths: list[Path]) -> dict:
             row_keep.append(1.0)
         else:
             row_keep.append(float(np.clip(cr[m].mean() / pred[m].mean(), 0.3, 1.0 / p_max)))
-    valid_all = np.mean(valid_stack, axis=0)  # (rows, W) fraction of frames with a return
-    blocked = []
-    for rr in range(BLOCKED_FIRST_ROW, rows):
-        blocked.append([round(float(v), 3)
-                        for v in valid_all[rr].reshape(AZ_BINS, -1).mean(axis=1)])
-    blocked_rows = list(range(BLOCKED_FIRST_ROW, rows))
-    # Above the blocked rows the per-row factor carries the laser's own weakness.
-    return {
-        "name": "kitti-hdl64e",
-        "fitted_on": [p.name for p in paths],
-        "command": "python -m falsify.jobs.fit_returns $KITTI_OBJECT/velodyne/*.bin "
-                   "--out configs/returns/kitti-hdl64e.json",
-        "points_used": int(pos.sum()),
-        "dropout_candidates": int(len(cr)),
-        "candidate_return_rate": float(cr.mean()),
-        "params": {"reflectivity": levels, "cos_exp": cos_exp, "atten_m": atten,
-                   "p_min": p_min, "p_max": p_max, "i0": i0, "k": k, "retro_gain": 1.0,
-                   "row_keep": [round(v, 4) for v in row_keep],
-                   "blocked_rows": blocked_rows, "blocked": blocked},
-    }
-
-
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("bins", nargs="+", help="KITTI object frames (velodyne/*.bin)")
-    ap.add_argument("--out", required=True)
-    args = ap.parse_args(argv)
-    try:
-        paths = fit_frames(args.bins)
-    except FalsifyError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    out = fit(paths)
-    Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
-    p = out["params"]
-    print(json.dumps({k: p[k] for k in ("reflectivity", "cos_exp", "atten_m", "p_min", "p_max",
-                                        "i0", "k")}))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    return (p_min, p_max, i0, k), row_keep

@@ -1,6 +1,6 @@
 """Fit the HDL-64E's ring geometry on the geometry of KITTI's object frames.
 
-Run: ``python -m falsify.jobs.fit_rings $KITTI_OBJECT/velodyne/*.bin --json``. Only
+Run: ``falsify fit-rings $KITTI_OBJECT/velodyne/*.bin --json``. Only
 the points are used (never labels), and only the object frames: the SqueezeSeg-layout and
 SemanticKITTI scans are evaluation data.
 
@@ -15,15 +15,12 @@ says how well one origin per ring explains the points. These are the `elevations
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from falsify.data.velodyne import KITTI_RINGS, fit_frames, kitti_rows, read_bin
+from falsify.data.velodyne import KITTI_RINGS, kitti_rows, read_bin
 from falsify.errors import FalsifyError
 from falsify.sensor.lidar import load_sensor
 
@@ -78,30 +75,3 @@ def fit(paths: list[Path]) -> list[RingFit]:
         pts.append(p[:, :3])
         rings.append(ring)
     return fit_rings(np.concatenate(pts), np.concatenate(rings), KITTI_RINGS)
-
-
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("bins", nargs="+", help="KITTI object frames (velodyne/*.bin)")
-    ap.add_argument("--json", action="store_true", help="print the fit as JSON")
-    args = ap.parse_args(argv)
-    try:
-        paths = fit_frames(args.bins)
-        rings = fit(paths)
-    except FalsifyError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    if args.json:
-        print(json.dumps({"frames": [str(p) for p in paths],
-                          "rings": [asdict(r) for r in rings]}, indent=1))
-        return 0
-    print("ring  theta_deg   dz_m  residual_deg  points")
-    for r in rings:
-        print(f"{r.ring:4d} {r.theta_deg:10.4f} {r.dz_m:6.4f} {r.residual_deg:13.5f} {r.points:7d}")
-    print(f"elevations_deg = {[r.theta_deg for r in rings]}")
-    print(f"ring_offsets_m = {[r.dz_m for r in rings]}")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

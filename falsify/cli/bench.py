@@ -1,0 +1,342 @@
+"""`falsify bench`: measure a fast path beside its naive path, one benchmark per WHAT."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from falsify.checks import MAX_SAMPLES, check_out_dir, check_range
+from falsify.cli.common import DEFAULT_CONFIG, UsageError, emit, given_options
+from falsify.paths import CONFIGS
+
+# Held-out frames `bench model` compares the variants on unless --samples says otherwise (each
+# variant is timed on the first TIMED_FRAMES of them). Each is on a street of its own, built
+# first (about 1 s a street): 1,000 frames spent some 12 minutes there alone. 8 frames are one
+# batch of onnx-fp32-batch8. Every variant runs a warm-up frame, --repeats timed runs of them
+# (default 1) and one for agreement: 17 frames, where torch-bf16 on a CPU without bf16 units is
+# emulated at 1.5-3 s a frame on a 2-core EPYC.
+MODEL_BENCH_FRAMES = 8
+# Each benchmark's space without --config: default runs finish within 2 minutes on a 2-core
+# machine (docs/benchmarks.md, "Default runs"); give --config configs/paper.toml for the
+# paper's whole space. `bench model` measures held-out frames, not a space.
+BENCH_CONFIGS = {"scan": "bench.toml", "pipeline": "bench.toml", "nodes": "bench.toml",
+                 "memory": "ci.toml", "search": "yaw.toml", "camera": "paper.toml",
+                 "map": "weather.toml"}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("what", choices=["scan", "model", "pipeline", "search", "map", "camera",
+                                     "memory", "nodes"],
+                   help="memory: peak memory of a whole `falsify grid --config ... --workers N` "
+                   "run, all processes together; nodes: Ray on local clusters of 1..--nodes "
+                   "one-CPU nodes; map: the level-set sampler's map against the full grid's "
+                   "at each --budgets")
+    p.add_argument("--config", default=None,
+                   help="the space (default: each benchmark's own: configs/bench.toml for scan, "
+                   "pipeline and nodes, configs/ci.toml for memory, configs/yaw.toml for "
+                   "search, configs/weather.toml for map, configs/paper.toml for camera)")
+    p.add_argument("--samples", type=int, default=None,
+                   help="how many samples (default: each benchmark's own)")
+    p.add_argument("--naive-samples", type=int, default=None,
+                   help="samples through the naive path (default: each benchmark's own)")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--executor", choices=["process", "ray"], default="process",
+                   help="bench pipeline: also measure Ray actors against the processes")
+    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                   help="bench pipeline: where the network runs (cuda: one shared inference "
+                   "process on the GPU, against the network alone there and the workers' "
+                   "scan rate)")
+    p.add_argument("--inference", choices=["auto", "shared"], default="auto",
+                   help="bench pipeline: shared measures one inference process fed by the "
+                   "workers (the default on cuda)")
+    p.add_argument("--model", default=None,
+                   help="bench model, pipeline, memory: an ONNX model (default bundled)")
+    p.add_argument("--scans", default=None,
+                   help="bench model: a folder of labelled .npy scans (default: generated)")
+    p.add_argument("--repeats", type=int, default=1,
+                   help="bench model: timed runs of each variant over its frames, the best kept "
+                   "(default 1)")
+    p.add_argument("--calibration-scans", type=int, default=None, choices=range(1, 1025),
+                   metavar="N", help="bench model: synthetic scenes to calibrate int8 on "
+                   "(default: the export's 64; the bundled network's shipped int8 copy is "
+                   "measured unless this is given)")
+    p.add_argument("--threads", type=int, default=2, choices=range(1, 65), metavar="N",
+                   help="bench model: inference threads (a grid worker uses 1)")
+    p.add_argument("--out", default=None, help="bench search, map: where their runs go")
+    p.add_argument("--budgets", default=None, metavar="F,F,...",
+                   help="bench map: budgets as shares of the grid's evaluations (default "
+                   "0.1,0.2,0.3; a run without a budget is always added)")
+    p.add_argument("--threshold", type=float, default=None, metavar="T",
+                   help="bench map: the blind-cell threshold (default the config's)")
+    p.add_argument("--confidence", type=float, default=None, metavar="P",
+                   help="bench map: the level-set sampler's confidence (default 0.95)")
+    p.add_argument("--timed", action="store_true",
+                   help="bench map: also run the level-set search for real and time it "
+                   "against the grid")
+    p.add_argument("--fraction", type=float, default=0.2,
+                   help="bench search: budget as a fraction of the dense grid")
+    p.add_argument("--seeds", type=int, default=3,
+                   help="bench search, map: runs of each algorithm, from the config's seed on")
+    p.add_argument("--nodes", type=int, default=2, choices=range(1, 17), metavar="N",
+                   help="bench nodes: the largest local cluster, in one-CPU worker nodes "
+                   "(default 2)")
+    p.add_argument("--camera-preset", default="kitti-centre",
+                   help="bench camera: the camera preset")
+    p.add_argument("--json", action="store_true")
+
+
+def run(args) -> int:
+    _check_options(args)
+    if args.config is None:
+        args.config = str(CONFIGS / BENCH_CONFIGS.get(args.what, DEFAULT_CONFIG.name))
+    result, text = _benchmark(args)(args)
+    emit(args, result, text)
+    return 0
+
+
+def _check_options(args) -> None:
+    """The option values every benchmark refuses, before any work."""
+    check_range(args.samples, "--samples", 1, MAX_SAMPLES)
+    check_range(args.workers, "--workers", 1, 64)
+    check_range(args.naive_samples, "--naive-samples", 1)
+    check_range(args.repeats, "--repeats", 1)
+    if not 0 < args.fraction <= 1:
+        raise UsageError(f"--fraction: {args.fraction} must be in (0, 1]")
+    if args.out:
+        check_out_dir(args.out)
+
+
+def _benchmark(args):
+    """The function that runs `bench WHAT` and returns its result and its text."""
+    if args.what == "pipeline" and (args.device == "cuda" or args.inference == "shared"):
+        return _bench_shared
+    bench = BENCHMARKS.get(args.what)
+    if bench is None:
+        raise UsageError(f"bench {args.what}: not available")
+    return bench
+
+
+def _bench_model(args) -> tuple[dict, str]:
+    import numpy as np
+
+    from falsify.bench.machine import machine
+    from falsify.bench.model import add_shares, model_bench_rates
+    from falsify.data.scansets import npy_files, read_set
+    from falsify.data.training import calibration_scans, held_out_scans
+    from falsify.models.flops import count_flops
+    from falsify.models.runner import BUNDLED_ONNX, WEIGHTS_DIR
+    from falsify.models.variants import bench_models
+    from falsify.sensor.lidar import load_sensor
+    sensor = load_sensor("kitti-hdl64e-front")
+    progress = (lambda line: None) if args.json else _stderr
+
+    frames = MODEL_BENCH_FRAMES if args.samples is None else args.samples
+    files = npy_files(Path(args.scans))[:frames] if args.scans else []
+    if args.scans and not files:
+        raise UsageError(f"--scans {args.scans}: no .npy scans there")
+    scans = (read_set(args.scans, files, sensor).images if files
+             else held_out_scans(sensor, frames))
+    onnx = Path(args.model) if args.model else BUNDLED_ONNX
+    rates = model_bench_rates(progress)
+    # the bundled network's int8 is its shipped copy (calibrating one anew takes minutes)
+    shipped = (onnx.resolve() == BUNDLED_ONNX.resolve()
+               and args.calibration_scans is None)
+    rows = bench_models(np.asarray(scans), onnx, repeats=args.repeats,
+                        threads=args.threads, on_progress=progress,
+                        calibration=None if shipped else calibration_scans(
+                            sensor, args.calibration_scans),
+                        int8_path=WEIGHTS_DIR / "squeezeseg-int8.onnx" if shipped else None)
+    add_shares(rows, count_flops(onnx).total, rates)
+    result = {"benchmark": "model", "model": str(onnx), "frames": len(scans),
+              "repeats": args.repeats, "machine": machine(), "matrix_rates": rates,
+              "variants": rows}
+    text = "\n".join([model_rates_text(rates), *(
+        f"{r['variant']:16s} {r['ms_per_frame']:8.1f} ms/frame {r['fps']:6.1f} fps  car "
+        f"IoU diff {r['car_iou_diff']:+.4f}" + ("" if r.get("share_of_matrix_rate") is None
+                                               else f"  {r['share_of_matrix_rate']:.0%} of "
+                                               f"the {r['precision']} matrix rate")
+        if "error" not in r else f"{r['variant']:16s} did not run: {r['error']}"
+        for r in rows)])
+    return result, text
+
+
+def _bench_shared(args) -> tuple[dict, str]:
+    """`bench pipeline` with --device cuda or --inference shared."""
+    from falsify.bench.shared import bench_shared
+    if args.executor == "ray":
+        raise UsageError("--inference shared runs beside local workers, not on Ray")
+    result = bench_shared(args.config, workers=args.workers, model=args.model,
+                          device=args.device, **given_options(args, "samples"))
+    text = (f"shared inference on {args.device}: {result['e2e_samples_per_s']} samples/s "
+            f"end to end on {args.workers} workers; the network alone "
+            f"{result['network_alone_frames_per_s']} frames/s, the workers' scans alone "
+            f"{result['scan_only_samples_per_s']} samples/s: "
+            f"{result['e2e_over_lower_ceiling']:.2f} of the lower (goal {result['goal']})")
+    return result, text
+
+
+def _bench_pipeline(args) -> tuple[dict, str]:
+    from falsify.bench.pipeline import bench_pipeline
+
+    if args.executor == "ray":
+        from falsify.executors.ray import import_ray
+        import_ray()
+    pipe = bench_pipeline(args.config, workers=args.workers, model=args.model,
+                          executor=args.executor, **given_options(args, "samples"))
+    result = pipe.to_json()
+    one = result["one_process"]
+    text = (f"pipeline: {pipe.samples_per_s} samples/s on {pipe.workers} workers; one "
+            f"process {one['samples_per_s']} samples/s against "
+            f"{one['inference_only_samples_per_s']} for inference alone (overhead "
+            f"{pipe.overhead:.1%}); store {result['driver_store_rows_per_s']} rows/s")
+    if result["network"] is not None:   # a plug-in has no ONNX graph to rate
+        text += "\n" + pipeline_figures_text(result)
+    else:
+        text += (f"\nend to end {result['rates']['e2e_1_worker']} samples/s on 1 worker, "
+                 f"{result['rates']['e2e_n_workers']} on {pipe.workers}")
+    if pipe.ray is not None:
+        r = pipe.ray
+        text += (f"\nray: {r['samples_per_s']} samples/s on {r['actors']} actors "
+                 f"({r['against_processes']:.2f}x the processes); per task "
+                 f"{r['task_round_trip_ms']} ms round trip, {r['driver_ms_per_task']} ms "
+                 "pipelined")
+    return result, text
+
+
+def _bench_memory(args) -> tuple[dict, str]:
+    from falsify.bench.memory import bench_memory
+
+    if args.samples is not None:
+        raise UsageError("--samples: bench memory runs the config's whole grid, as "
+                         "`falsify grid` does")
+    result = bench_memory(args.config, workers=args.workers, model=args.model).to_json()
+    m = result["memory"]
+    text = (f"{result['command']}: {result['samples']} samples in {result['seconds']} s; "
+            + f"all processes together: {_memory_text(m)}")
+    return result, text
+
+
+def _bench_nodes(args) -> tuple[dict, str]:
+    from falsify.bench.nodes import bench_nodes
+
+    result = bench_nodes(args.config, nodes=args.nodes, model=args.model,
+                         on_progress=None if args.json else _stderr,
+                         **given_options(args, "samples")).to_json()
+    text = "\n".join(f"{r['nodes']} node(s): {r['samples_per_s']} samples/s, "
+                     f"{r['over_1_node']}x one node (ideal here {r['ideal_on_this_machine']})"
+                     for r in result["nodes"]) + "\n" + result["note"]
+    return result, text
+
+
+def _bench_search(args) -> tuple[dict, str]:
+    from falsify.bench.search import bench_search, over_seeds_text
+
+    if not args.out:
+        raise UsageError("bench search needs --out DIR (its runs are resumable there)")
+    result = bench_search(args.config, args.out, workers=args.workers,
+                          model=args.model, fraction=args.fraction, seeds=args.seeds)
+    text = "\n".join(
+        f"{r['algorithm']:12s} lowest {r['lowest']} after {r['evaluations']} evaluations; "
+        f"within 0.02 of the grid's {result['grid_lowest']} after "
+        f"{r['evaluations_to_target']}; {_search_timing(r)}" for r in result["algorithms"])
+    text += f"\n{result['per_evaluation_goal']}; on {args.workers} workers"
+    text += "\n" + over_seeds_text(result)
+    return result, text
+
+
+def _bench_map(args) -> tuple[dict, str]:
+    from falsify.bench.map import BUDGETS, bench_map, map_text
+    if not args.out:
+        raise UsageError("bench map needs --out DIR (its grid run is resumable there)")
+    try:
+        budgets = BUDGETS if args.budgets is None else tuple(
+            float(b) for b in args.budgets.split(",") if b.strip())
+    except ValueError:
+        raise UsageError(f"--budgets {args.budgets!r}: shares of the grid such as "
+                         "0.1,0.2,0.3") from None
+    result = bench_map(args.config, args.out, budgets, seeds=args.seeds, model=args.model,
+                       threshold=args.threshold, confidence=args.confidence,
+                       workers=args.workers, timed=args.timed)
+    text = map_text(result)
+    return result, text
+
+
+def _bench_scan(args) -> tuple[dict, str]:
+    from falsify.bench.scan import bench_scan
+
+    sb = bench_scan(args.config, workers=args.workers,
+                          **given_options(args, "samples", "naive_samples"))
+    result = sb.to_json()
+    text = (f"scan: {round(sb.fast_n, 1)} scans/s on {sb.workers} processes "
+            f"({round(sb.fast_1, 1)} on 1), naive {round(sb.naive, 3)} scans/s: "
+            f"{round(sb.fast_n / sb.naive, 1)}x")
+    return result, text
+
+
+def _bench_camera(args) -> tuple[dict, str]:
+    from falsify.cli.camera import bench_camera_text
+    result, text = bench_camera_text(args.config, args.camera_preset,
+                                     **given_options(args, "samples", "naive_samples"))
+    return result, text
+
+
+BENCHMARKS = {"model": _bench_model, "pipeline": _bench_pipeline, "memory": _bench_memory,
+              "nodes": _bench_nodes, "search": _bench_search, "map": _bench_map,
+              "scan": _bench_scan, "camera": _bench_camera}
+
+
+def pipeline_figures_text(r: dict) -> str:
+    """The machine-relative lines of `bench pipeline`: rates, MatMul, FLOPs, ratios, memory."""
+    w, rates, mm, net, q = r["rates"]["workers"], r["rates"], r["matmul"], r["network"], r["ratios"]
+    crf = "" if net["crf_share"] is None else f" (CRF {net['crf_share']:.1%})"
+    mem = r["memory"]
+    return "\n".join([
+        f"1 thread a worker: inference alone {rates['inference_only_1_worker']} samples/s on 1 "
+        f"worker, {rates['inference_only_n_workers']} on {w} at once; end to end "
+        f"{rates['e2e_1_worker']} on 1, {rates['e2e_n_workers']} on {w}",
+        f"machine: fp32 MatMul {mm['shape']} ({mm['library']}, 1 thread) "
+        f"{mm['gflops_1_core']} GFLOP/s on 1 core, {mm['gflops_per_core_all_at_once']} per "
+        f"core with {mm['processes']} at once",
+        f"network: {net['gflop_per_frame']} GFLOP/frame{crf}, {net['achieved_gflops_1_thread']} "
+        f"GFLOP/s on 1 thread",
+        f"ratios: end to end {w}/1 workers {q['e2e_n_over_e2e_1']} (goal >= 1.8 for 2), end "
+        f"to end / inference alone on {w} {q['e2e_n_over_inference_only_n']} (goal >= 0.9), "
+        f"network / MatMul {q['achieved_over_matmul_1_core']} (goal >= 0.5)",
+        f"memory of the {w}-worker run, all processes: {_memory_text(mem)}",
+        f"streets: {r['streets']['count']}, built in every worker before the clock starts "
+        f"(the steady state); each costs a worker {r['streets']['build_ms_each']} ms once",
+    ])
+
+
+def _memory_text(m: dict | None) -> str:
+    """Peak RSS (and PSS) of a process tree, and its early and late means when measured."""
+    if m is None:
+        return "not measured (no /proc)"
+    pss = "" if m["peak_pss_mb"] is None else f" ({m['peak_pss_mb']} MB PSS)"
+    if m["early_rss_mb"] is None:
+        return f"peak {m['peak_rss_mb']} MB RSS{pss}; too short for early and late means"
+    return (f"peak {m['peak_rss_mb']} MB RSS{pss}; mean early {m['early_rss_mb']} MB, late "
+            f"{m['late_rss_mb']} MB")
+
+
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def model_rates_text(rates: dict) -> str:
+    bf16 = rates["bf16"]
+    return (f"machine, 1 thread: fp32 {rates['fp32']['gflops_1_core']} GFLOP/s, int8 "
+            f"{rates['int8']['gops_1_core']} GOP/s (units: "
+            f"{', '.join(rates['cpu_units']['int8']) or 'none'}), bf16 "
+            + (f"{bf16['gflops_1_core']} GFLOP/s" if bf16["gflops_1_core"] is not None
+               else bf16["note"]))
+
+
+def _search_timing(r: dict) -> str:
+    """A `bench search` row's time: wall seconds, per evaluation, against random's."""
+    if r["s_per_evaluation"] is None:
+        return "not timed (resumed from an earlier invocation)"
+    vs = r["s_per_evaluation_vs_random"]
+    return (f"{r['wall_s']:.1f} s, {r['s_per_evaluation'] * 1e3:.1f} ms/evaluation"
+            + ("" if vs is None else f" ({vs:.2f}x random)"))

@@ -1,0 +1,108 @@
+"""`falsify dataset`: write training scans from random auto-driving scenes."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from falsify.checks import check_out_dir, check_seed
+from falsify.cli.common import UsageError, emit
+
+# `dataset`'s drop for sensors without a fitted return model: real sensors lose some returns.
+UNIFORM_RAY_DROP = 0.05
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", help="a space config: its sensor is used, not its dims")
+    p.add_argument("--scans", type=int, required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--first-background", type=int, default=1000)
+    p.add_argument("--backgrounds", type=int, default=1000)
+    p.add_argument("--max-cars", type=int, default=12)
+    p.add_argument("--ray-drop", type=float, default=None,
+                   help="extra probability that a return is dropped, on top of the sensor's "
+                   f"return model (default: 0 with a fitted return model, else {UNIFORM_RAY_DROP})")
+    p.add_argument("--range-noise", type=float, default=0.02, help="range noise sigma, m")
+    from falsify.data.training import TRAFFIC_KINDS
+    p.add_argument("--traffic", choices=TRAFFIC_KINDS, default="scattered",
+                   help="scattered: cars anywhere on the road; drive: lane-following traffic "
+                   "like a driving log")
+    p.add_argument("--world", default=None, metavar="PROFILE",
+                   help="draw each scene's sensor pitch, height and car count from a world "
+                   "profile (`falsify fit-world`); scattered traffic only")
+    p.add_argument("--labels", choices=["kitti4", "semantickitti"], default="kitti4",
+                   help="npy label channel: our four classes or SemanticKITTI's train ids")
+    p.add_argument("--workers", type=int, default=1, help="processes writing scans (npy)")
+    p.add_argument("--format", choices=["npy", "kitti-object", "semantickitti"], default="npy",
+                   help="npy: range images; kitti-object: velodyne, image_2, calib, label_2; "
+                   "semantickitti: sequences/00/velodyne/*.bin, labels/*.label (raw ids)")
+    p.add_argument("--camera", default="kitti-centre", metavar="PRESET",
+                   help="kitti-object: the camera preset (kitti-centre or kitti-rig)")
+    p.add_argument("--json", action="store_true")
+
+
+def run(args) -> int:
+    from falsify.data.training import TrafficOptions, write_dataset, write_dataset_parallel
+    from falsify.sensor.lidar import load_sensor
+    from falsify.world.space import load_space
+
+    check_out_dir(args.out)
+    check_seed(args.seed)
+    space = load_space(args.config)
+    if args.scans <= 0:
+        raise UsageError(f"--scans: {args.scans} must be > 0")
+    if not 0 <= args.first_background <= 999_000:
+        raise UsageError(f"--first-background: {args.first_background} must be in 0..999000")
+    if not 0 <= args.max_cars <= 40:
+        raise UsageError(f"--max-cars: {args.max_cars} must be in 0..40")
+    if args.backgrounds < 1:
+        raise UsageError(f"--backgrounds: {args.backgrounds} must be >= 1")
+    if args.ray_drop is None:
+        # A fitted return model already drops returns as the real sensor does.
+        args.ray_drop = 0.0 if load_sensor(space.sensor).returns else UNIFORM_RAY_DROP
+    if not 0 <= args.ray_drop < 1 or not 0 <= args.range_noise <= 1:
+        raise UsageError("--ray-drop must be in [0, 1) and --range-noise in [0, 1] m")
+    used = {int(b) for b in space.dims["background"].grid()}
+    span = set(range(args.first_background, args.first_background + args.backgrounds))
+    if used & span:
+        raise UsageError(f"--first-background {args.first_background}: training backgrounds "
+                         f"overlap the config's test backgrounds {sorted(used & span)[:5]}; "
+                         "choose ids disjoint from the falsification space")
+    sensor = load_sensor(space.sensor, ray_drop=args.ray_drop, range_noise=args.range_noise)
+    world = None
+    if args.world is not None:
+        from falsify.world.profile import load_profile
+        if args.traffic != "scattered":
+            raise UsageError(f"--world with --traffic {args.traffic}: a profile draws scattered "
+                             "scenes only (--traffic scattered)")
+        world = load_profile(args.world)
+    opts = TrafficOptions(max_cars=args.max_cars, backgrounds=args.backgrounds,
+                          first_background=args.first_background, traffic=args.traffic,
+                          world=world)
+    if args.format == "kitti-object":
+        from falsify.cli.camera import dataset_kitti_object
+        summary, text = dataset_kitti_object(sensor, args.camera, Path(args.out), args.scans,
+                                             args.seed, opts)
+        emit(args, summary, text)
+        return 0
+    def progress(done: int, total: int) -> None:
+        print(f"  {done}/{total} scans", flush=True)
+
+    if args.workers < 1 or args.workers > 64:
+        raise UsageError(f"--workers: {args.workers} must be in 1..64")
+    if args.workers > 1 and args.format != "npy":
+        raise UsageError(f"--workers {args.workers}: only --format npy writes in parallel")
+    if args.labels != "kitti4" and args.format != "npy":
+        raise UsageError(f"--labels {args.labels}: only --format npy holds labels in channel 5 "
+                         "(semantickitti files carry SemanticKITTI's ids anyway)")
+    kwargs = dict(seed=args.seed, opts=opts, weather=space, fmt=args.format, labels=args.labels)
+    if args.workers > 1:
+        summary = write_dataset_parallel(args.workers, sensor, Path(args.out), args.scans,
+                                         **kwargs)
+    else:
+        summary = write_dataset(sensor, Path(args.out), args.scans,
+                                on_progress=None if args.json else progress, **kwargs)
+    emit(args, summary, f"wrote {summary['written']} scans to {args.out} "
+         f"({summary['scans']} in the set); points per class {summary['points_per_class']}")
+    return 0

@@ -1,0 +1,33 @@
+"""`falsify gate`: fail (exit 1) when a run has too many blind spots."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", help="run directory (holding results.sqlite)")
+    lim = p.add_mutually_exclusive_group()
+    lim.add_argument("--max-blind-spots", type=int, metavar="N",
+                     help="allowed number of blind spots (default 0)")
+    lim.add_argument("--baseline", metavar="RUN_OR_JSON",
+                     help="fail only on blind spots not in this run or `gate --json` file")
+    p.add_argument("--threshold", type=float, metavar="T",
+                   help="mIoU threshold in (0, 1] (default: the run's, else 0.65)")
+    p.add_argument("--junit", metavar="FILE", help="also write JUnit XML, one testcase per cell")
+    p.add_argument("--json", action="store_true", help="print the verdict as JSON")
+
+
+def run(args) -> int:
+    from falsify.jobs.gate import format_text, judge, write_junit
+
+    result = judge(args.run, threshold=args.threshold,
+                   max_blind_spots=args.max_blind_spots, baseline=args.baseline)
+    if args.junit:
+        write_junit(result, args.junit)
+    if args.json:
+        print(json.dumps(result.to_json(), indent=2))
+    else:
+        print(format_text(result))
+    return result.exit_code

@@ -1,0 +1,150 @@
+"""What grid and search share: their options, the run job's call and summary, what a stopped
+run keeps, and the run folder's lock taken before the parser is built."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import shlex
+import sys
+from pathlib import Path
+
+from falsify.checks import MAX_SAMPLES
+from falsify.cli.common import BACKEND_HELP, DEVICE_HELP, MODEL_HELP, camera_option, emit
+from falsify.cli.progress import ProgressBar
+from falsify.errors import FalsifyError
+
+
+def run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config")
+    p.add_argument("--out", required=True, help="run directory (results.sqlite, maps, report)")
+    p.add_argument("--model", default=None, help=MODEL_HELP)
+    p.add_argument("--backend", choices=["onnx", "torch", "python"], default="onnx",
+                   help=BACKEND_HELP)
+    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help=DEVICE_HELP)
+    p.add_argument("--inference", choices=["auto", "worker", "shared"], default="auto",
+                   help="where the network runs with several --workers: in each worker, or "
+                   "in one shared process that batches all workers' scans (auto: shared on "
+                   "cuda, else in each worker)")
+    p.add_argument("--objective", default=None, metavar="CLASS",
+                   help="what the samplers minimise and the maps show: a class the model "
+                        "predicts (car, person, ... SemanticKITTI's names) or miou (default: "
+                        "the placed actors' class)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="local worker processes, or Ray actors with --executor ray")
+    p.add_argument("--executor", choices=["process", "ray"], default="process",
+                   help="process: worker processes on this machine; ray: warm actors on a Ray "
+                   'cluster (pip install "falsify[ray]")')
+    p.add_argument("--address", default=None, metavar="HOST:PORT",
+                   help="with --executor ray: the head of an existing Ray cluster (HOST:PORT, "
+                   "ray://HOST:PORT or auto); default: start a local Ray instance")
+    p.add_argument("--seed", type=int, default=None, help="default: the config's seed")
+    p.add_argument("--resume", action="store_true", help="continue a killed run")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="mIoU below which a cell is a blind spot (default: config, 0.65)")
+    p.add_argument("--fidelity", default="exact",
+                   choices=["fastest", "fast", "balanced", "exact"])
+    p.add_argument("--no-report", action="store_true")
+    p.add_argument("--max-samples", type=int, default=MAX_SAMPLES,
+                   help=f"refuse a grid or budget larger than this (default {MAX_SAMPLES:,})")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    camera_option(p, "also store the camera images of the retraining set beside its scans")
+    p.add_argument("--json", action="store_true")
+
+
+def summary_text(s) -> str:
+    """A run's summary (RunSummary) in a few lines."""
+    low = s.lowest
+    what = "car IoU" if s.objective is None else (
+        "mIoU" if s.objective == "miou" else f"{s.objective} IoU")
+    key = next((k for k in low if k != "sample"), "car_iou") if low else "car_iou"
+    where = "" if low is None else ", ".join(f"{k}={v}" for k, v in low["sample"].items()
+                                             if k in ("x", "y", "yaw", "background",
+                                                      "car_model", "actor"))
+    lines = [
+        f"{s.samples} samples ({s.computed_this_time} computed now, {s.invalid} invalid, "
+        f"{s.undefined} undefined) in {s.elapsed_s:.1f} s",
+        f"blind spots: {s.blind_spots} of {s.cells} cells below mIoU {s.threshold}",
+        f"lowest {what}: {'-' if low is None else low[key]} at {where}",
+        f"mean {what}: {s.mean_car_iou if s.objective is None else s.mean_objective}",
+        f"retraining set: {s.retraining_samples} scans in {Path(s.run) / 'retrain'}",
+    ]
+    if s.estimated:
+        e = s.estimated
+        lines.insert(2, f"estimated map (level-set): {e['scored']} of the grid's "
+                     f"{e['grid_samples']} samples scored ({e['scored'] / e['grid_samples']:.0%});"
+                     f" {e['undecided_cells']} cells undecided at {e['confidence']:.0%}")
+    if s.executors:
+        lines.append(f"computed on executors {', then '.join(s.executors)} (resumed on another; "
+                     "the rows do not depend on the executor)")
+    if s.report:
+        lines.append(f"report: {s.report}")
+    return "\n".join(lines)
+
+
+def _stopped_text(argv: list[str], out: Path, stored: int | None, advice: str = "") -> str:
+    """What a stopped run keeps (`stored` samples; None: not counted) and the command that goes
+    on: the same with --resume where a store is left, else the same again (a fresh run that
+    stored nothing is removed)."""
+    from falsify.results.store import STORE_NAME
+    then = f"{advice}, then " if advice else ""
+    if not (out / STORE_NAME).exists():
+        again = [a for a in argv if a != "--resume"]
+        return (f"nothing was stored in {out}; {then}run it again with: "
+                f"{shlex.join(['falsify', *again])}")
+    kept = "the finished samples are" if stored is None else f"{stored} samples are"
+    again = argv if "--resume" in argv else [*argv, "--resume"]
+    return (f"{kept} stored safely in {out}; {then}continue with: "
+            f"{shlex.join(['falsify', *again])}")
+
+
+def interrupted_text(argv: list[str], out: Path) -> str:
+    """`_stopped_text` of a run stopped by a signal, its rows counted in its store."""
+    from falsify.results.store import stored_samples
+    try:
+        stored: int | None = stored_samples(out)
+    except FalsifyError:
+        stored = None
+    return _stopped_text(argv, out, stored)
+
+
+def run_folder(argv: list[str]) -> Path | None:
+    """The run folder of a grid or search command line, read before the parser is built: its
+    --out given as `--out DIR` or `--out=DIR` (None for any other spelling, or command)."""
+    if argv[:1] not in (["grid"], ["search"]):
+        return None
+    out = next((a[len("--out="):] for a in argv if a.startswith("--out=")), None)
+    if "--out" in argv[:-1]:
+        out = argv[argv.index("--out") + 1]
+    return Path(out) if out else None
+
+
+def lock_early(out: Path | None, argv: list[str]) -> contextlib.AbstractContextManager:
+    """Lock a run folder before the parser is built (its choices import the samplers: seconds),
+    so that a second run on a busy folder is refused at once; the run job holds it too."""
+    if out is None:
+        return contextlib.nullcontext()
+    from falsify.results.runlock import RunLock
+    return RunLock(out, command=shlex.join(["falsify", *argv]))
+
+
+def run_job(args, command: str, algorithm: str) -> int:
+    from falsify.jobs.run import RunRequest, RunStopped, execute
+
+    req = RunRequest(
+        config=Path(args.config), out=Path(args.out), command=command, algorithm=algorithm,
+        budget=getattr(args, "budget", None), seed=args.seed, model=args.model,
+        backend=args.backend, device=args.device, objective=args.objective,
+        workers=args.workers, resume=args.resume,
+        threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
+        camera=args.camera, max_samples=args.max_samples, executor=args.executor,
+        address=args.address, confidence=getattr(args, "confidence", None),
+        inference=args.inference)
+    try:
+        summary = execute(req, on_progress=None if args.quiet else ProgressBar())
+    except RunStopped as exc:
+        argv = getattr(args, "argv", sys.argv[1:])
+        raise FalsifyError(f"{exc.reason}: {_stopped_text(argv, req.out, exc.stored, exc.advice)}"
+                           ) from None
+    emit(args, summary.to_json(), summary_text(summary))
+    return 0

@@ -1,0 +1,79 @@
+"""`falsify scan`: ray-cast one sample of a space into a labelled scan."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from falsify.checks import check_out_dir
+from falsify.cli.common import UsageError, camera_option, emit
+from falsify.errors import FalsifyError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config")
+    p.add_argument("--out", required=True)
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="fix a dimension (repeatable); other dims take their first value")
+    camera_option(p, "also render the camera: image.png, class.png/.npy, instance.npy, "
+                  "depth.npy and overlay.png")
+    p.add_argument("--json", action="store_true")
+
+
+def _set_pairs(pairs: list[str]) -> dict[str, str]:
+    out = {}
+    for item in pairs:
+        if "=" not in item:
+            raise UsageError(f"--set {item!r}: expected KEY=VALUE, e.g. --set x=2.5")
+        key, value = item.split("=", 1)
+        out[key.strip()] = value.strip()
+    return out
+
+
+def run(args) -> int:
+    from falsify.data.real_backgrounds import scanner_for
+    from falsify.data.velodyne import kitti_arrays
+    from falsify.fileio import write_bytes, write_npy
+    from falsify.images.png import encode_png
+    from falsify.images.scan_pictures import scan_picture
+    from falsify.sensor.lidar import load_sensor
+    from falsify.sensor.simulator import InvalidSample
+    from falsify.world.space import load_space
+
+    check_out_dir(args.out)
+    space = load_space(args.config)
+    sample = space.make(_set_pairs(args.set or []))
+    sensor = load_sensor(space.sensor)
+    sim = scanner_for(space, sensor)
+    camera = None
+    if args.camera is not None:
+        space.require_streets("--camera")
+        from falsify.sensor.camera import camera_preset
+        from falsify.sensor.look import look_of
+        camera = camera_preset(args.camera)
+        look_of(sample)  # a value the camera cannot render fails before anything is written
+    try:
+        scan = sim.scan(sample)
+    except InvalidSample as exc:
+        raise FalsifyError(f"invalid sample: {exc}") from None
+    out = Path(args.out)
+    summary = {
+        "sample": sample.as_dict(), "sensor": sensor.name, "shape": list(scan.image.shape),
+        "points": int(scan.valid.sum()), "car_points": scan.count(1),
+        "files": [str(out / f"scan.{e}") for e in ("npy", "png", "bin", "label")],
+    }
+    extra: dict[str, bytes] = {}
+    if camera is not None:
+        from falsify.cli.camera import scan_camera_files
+        extra, summary["camera"] = scan_camera_files(sim, camera, sample, scan)
+    write_npy(out / "scan.npy", scan.image)
+    write_bytes(out / "scan.png", encode_png(scan_picture(scan.image)))
+    points, labels = kitti_arrays(scan)   # SemanticKITTI's own files: x, y, z, remission; labels
+    write_bytes(out / "scan.bin", points.tobytes())
+    write_bytes(out / "scan.label", labels.tobytes())
+    for name, data in extra.items():
+        write_bytes(out / name, data)
+        summary["files"].append(str(out / name))
+    emit(args, summary, f"wrote {out / 'scan.npy'}, .png, .bin and .label: "
+         f"{summary['points']} points, {summary['car_points']} on cars")
+    return 0

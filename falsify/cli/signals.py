@@ -1,0 +1,41 @@
+"""Stopping a command cleanly: SIGTERM and SIGINT raise, once, in the main thread."""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+from collections.abc import Iterator
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C's KeyboardInterrupt so that a run stops the same clean way."""
+
+
+@contextlib.contextmanager
+def stop_signals() -> Iterator[None]:
+    """For the block: SIGTERM raises Terminated and SIGINT KeyboardInterrupt (each where not
+    ignored), once; a second signal during the clean-up that follows is ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum: int, frame) -> None:
+        for sig in old:
+            signal.signal(sig, signal.SIG_IGN)
+        raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    old = {sig: h for sig, h in old.items() if h in (signal.SIG_DFL, signal.default_int_handler)}
+    for sig in old:
+        signal.signal(sig, stop)
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
+def stop_name(exc: KeyboardInterrupt) -> tuple[str, int]:
+    """What stopped the command, and its exit status (128 + the signal's number)."""
+    return ("terminated", 143) if isinstance(exc, Terminated) else ("interrupted", 130)

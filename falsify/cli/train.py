@@ -1,0 +1,58 @@
+"""`falsify train`: train SqueezeSeg on a folder of ``*.npy`` scans (H, W, 6), resumable exactly
+(falsify.models.train says what it writes)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from falsify.models.spec import ALL_CHANNELS, DEFAULT_CHANNELS
+    from falsify.models.train import CLASS_SETS
+
+    p.add_argument("--data", required=True, help="folder of *.npy scans (H, W, 6)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--epochs", type=int, default=30)
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--time-limit-min", type=float, default=None)
+    p.add_argument("--val-data", default=None, help="folder of *.npy scans for car IoU")
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--lr-decay", type=float, default=0.95)
+    p.add_argument("--crf-iterations", type=int, default=3, choices=range(4))
+    p.add_argument("--channels", default=",".join(DEFAULT_CHANNELS),
+                   help=f"comma list from {','.join(ALL_CHANNELS)}")
+    p.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp32"])
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--max-steps", type=int, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--no-export", action="store_true", help="skip the ONNX export at the end")
+    p.add_argument("--loss-on", default="backbone", choices=["backbone", "crf"],
+                   help="train on the pre-CRF logits (default) or on the CRF's energies")
+    p.add_argument("--init", default=None, help="start from these weights (fresh optimiser)")
+    p.add_argument("--crf-only", action="store_true",
+                   help="train only the CRF compatibility matrices, the backbone frozen")
+    p.add_argument("--classes", default="kitti4", choices=CLASS_SETS,
+                   help="what channel 5 holds: our four classes or SemanticKITTI's train ids")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--holdout", action="append", default=[], metavar="SPLITS_TOML",
+                   help="a split manifest whose held-out scans --data and --val-data may not "
+                   "hold (also $FALSIFY_HOLDOUT and a splits.toml beside the data)")
+
+
+def run(args) -> int:
+    """Train (or resume) with the options given; print the run's summary as JSON."""
+    from falsify.models.train import TrainConfig, train
+
+    summary = train(TrainConfig(
+        data=args.data, out=args.out, epochs=args.epochs, batch=args.batch, seed=args.seed,
+        lr=args.lr, lr_decay=args.lr_decay, crf_iterations=args.crf_iterations,
+        channels=tuple(c.strip() for c in args.channels.split(",") if c.strip()),
+        precision=args.precision, threads=args.threads, time_limit_min=args.time_limit_min,
+        val_data=args.val_data, resume=args.resume, max_steps=args.max_steps,
+        export=not args.no_export, loss_on=args.loss_on, init=args.init,
+        crf_only=args.crf_only, classes=args.classes, device=args.device,
+        holdout=tuple(args.holdout)))
+    print(json.dumps(summary))
+    return 0
