@@ -134,7 +134,7 @@ def factory(weights: str | PathLike | None = None, device: str = "cpu",
 def reference(device: str = "cpu", threads: int | None = None) -> PointNetPlugin:
     """The shipped PointNet trained on the world's scans (models/weights/pointnet20.pt; its
     card: models/cards/pointnet20.md): ``--model falsify.models.pointnet:reference``."""
-    from falsify.models.runner import WEIGHTS_DIR
+    from falsify.models.runners import WEIGHTS_DIR
 
     return factory(WEIGHTS_DIR / "pointnet20.pt", device=device, threads=threads)
 
@@ -170,7 +170,7 @@ def train(data: str | PathLike, out: str | PathLike, epochs: int = 20, batch: in
     import json
     import time
 
-    from falsify.models.runner import points_of
+    from falsify.models.runners import points_of
     from falsify.models.train import list_scans, load_scan, semantic_weights
 
     t0 = time.monotonic()
@@ -226,7 +226,7 @@ def train(data: str | PathLike, out: str | PathLike, epochs: int = 20, batch: in
 def _validate(model: PointNetSeg, files: list[Path], spec: ModelSpec, device: str) -> dict:
     """Pooled per-class IoU over every valid point of the validation scans (unlabeled
     ignored): val_car_iou and val_miou over the classes present."""
-    from falsify.models.runner import points_of
+    from falsify.models.runners import points_of
     from falsify.models.train import load_scan
 
     n = len(TRAIN_CLASSES)

@@ -61,3 +61,30 @@ def test_a_file_that_is_not_a_result_is_named(tmp_path: Path):
     broken.write_text("{")
     with pytest.raises(FalsifyError, match="broken.json: not a benchmark result"):
         load([broken])
+
+
+def test_the_command_prints_or_splices_and_refuses_stray_files(tmp_path: Path, capsys):
+    from falsify.cli import main
+
+    result = tmp_path / "scan.json"
+    result.write_text(json.dumps(scan(EPYC, 10.0)))
+    assert main(["bench", "table", str(result)]) == 0
+    assert capsys.readouterr().out.startswith(BEGIN)
+    doc = tmp_path / "benchmarks.md"
+    doc.write_text("# Benchmarks\n")
+    assert main(["bench", "table", str(result), "--write", str(doc)]) == 0
+    assert "10.0 scans/s on 2 processes" in doc.read_text()
+    assert main(["bench", "scan", str(result)]) == 2
+    assert "RESULTS: only bench table takes result files" in capsys.readouterr().err
+    assert main(["bench", "table"]) == 2
+    assert main(["bench", "table", str(result), "--write", str(tmp_path / "none.md")]) == 2
+    assert "--write:" in capsys.readouterr().err
+
+
+def test_bench_effects_times_a_scan_with_and_without_its_effects(capsys):
+    from falsify.cli import main
+
+    assert main(["bench", "effects", "--samples", "2", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["benchmark"] == "scan effects" and doc["samples"] == 2
+    assert doc["ms_per_scan_clear"] > 0 and doc["ms_per_scan_all_effects"] > 0

@@ -1,7 +1,7 @@
 """`falsify bench scan`: scans per second of the composed fast path beside the naive path (a
 merged scene re-cast with trimesh), in one run; and what scene size and image-only dims cost.
 On a space of real backgrounds it times insertion, beside the same positions on our streets.
-`bench_effects` (also `python -m falsify.bench.scan CONFIG`) times the same samples with their
+`bench_effects` (`falsify bench effects`) times the same samples with their
 weather and faults on and off in one process.
 """
 
@@ -413,10 +413,3 @@ def bench_effects(config: str | Path, samples: int | None = None,
     return EffectsBench(str(config), len(picked),
                         sum(not effects_of(s).clear for s in picked), machine(), *best)
 
-
-if __name__ == "__main__":   # python -m falsify.bench.scan CONFIG [SAMPLES]
-    import json
-    import sys
-
-    result = bench_effects(sys.argv[1], int(sys.argv[2]) if len(sys.argv) > 2 else None)
-    print(json.dumps(result.to_json(), indent=1))

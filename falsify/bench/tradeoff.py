@@ -439,7 +439,7 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
     onnx = Path(model) if model else BUNDLED_ONNX
     if onnx.suffix != ".onnx" or not onnx.is_file():
         raise FalsifyError(f"--model {onnx}: not an existing .onnx file (with its .json spec "
-                           "beside it); train one with `python -m falsify.models.train`")
+                           "beside it); train one with `falsify train`")
     space = load_space(config)
     space.require_streets("tradeoff")
     for d in ("x", "y"):

@@ -22,16 +22,23 @@ MODEL_BENCH_FRAMES = 8
 # paper's whole space. `bench model` measures held-out frames, not a space.
 BENCH_CONFIGS = {"scan": "bench.toml", "pipeline": "bench.toml", "nodes": "bench.toml",
                  "memory": "ci.toml", "search": "yaw.toml", "camera": "paper.toml",
-                 "map": "weather.toml"}
+                 "map": "weather.toml", "effects": "weather.toml"}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("what", choices=["scan", "model", "pipeline", "search", "map", "camera",
-                                     "memory", "nodes"],
+                                     "memory", "nodes", "effects", "table"],
                    help="memory: peak memory of a whole `falsify grid --config ... --workers N` "
                    "run, all processes together; nodes: Ray on local clusters of 1..--nodes "
                    "one-CPU nodes; map: the level-set sampler's map against the full grid's "
-                   "at each --budgets")
+                   "at each --budgets; effects: a scan with its weather and sensor effects "
+                   "against the same scan clear; table: saved --json results (RESULTS) as "
+                   "one markdown table per CPU")
+    p.add_argument("results", nargs="*", metavar="RESULTS",
+                   help="bench table: the JSON files `falsify bench WHAT --json` wrote")
+    p.add_argument("--write", default=None, metavar="DOC",
+                   help="bench table: replace the generated section of this markdown file "
+                   "(appended when it has none) instead of printing the tables")
     p.add_argument("--config", default=None,
                    help="the space (default: each benchmark's own: configs/bench.toml for scan, "
                    "pipeline and nodes, configs/ci.toml for memory, configs/yaw.toml for "
@@ -88,6 +95,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     _check_options(args)
+    if args.what == "table":
+        return _table(args)
     if args.config is None:
         args.config = str(CONFIGS / BENCH_CONFIGS.get(args.what, DEFAULT_CONFIG.name))
     result, text = _benchmark(args)(args)
@@ -101,6 +110,11 @@ def _check_options(args) -> None:
     check_range(args.workers, "--workers", 1, 64)
     check_range(args.naive_samples, "--naive-samples", 1)
     check_range(args.repeats, "--repeats", 1)
+    if (args.what == "table") != bool(args.results):
+        raise UsageError("RESULTS: only bench table takes result files, and it needs at least "
+                         "one" if args.results else "bench table: give the JSON result files")
+    if args.write and args.what != "table":
+        raise UsageError("--write: only bench table writes a document")
     if not 0 < args.fraction <= 1:
         raise UsageError(f"--fraction: {args.fraction} must be in (0, 1]")
     if args.out:
@@ -125,7 +139,7 @@ def _bench_model(args) -> tuple[dict, str]:
     from falsify.data.scansets import npy_files, read_set
     from falsify.data.training import calibration_scans, held_out_scans
     from falsify.models.flops import count_flops
-    from falsify.models.runner import BUNDLED_ONNX, WEIGHTS_DIR
+    from falsify.models.runners import BUNDLED_ONNX, WEIGHTS_DIR
     from falsify.models.variants import bench_models
     from falsify.sensor.lidar import load_sensor
     sensor = load_sensor("kitti-hdl64e-front")
@@ -281,9 +295,37 @@ def _bench_camera(args) -> tuple[dict, str]:
     return result, text
 
 
+def _bench_effects(args) -> tuple[dict, str]:
+    from falsify.bench.scan import bench_effects
+
+    result = bench_effects(args.config, **given_options(args, "samples")).to_json()
+    text = (f"effects: {result['ms_per_scan_clear']} ms a scan clear, "
+            f"{result['ms_per_scan_effects']} with its effects, "
+            f"{result['ms_per_scan_all_effects']} with every effect at once "
+            f"({result['samples_with_effects']} of {result['samples']} samples have effects)")
+    return result, text
+
+
+def _table(args) -> int:
+    """`bench table`: the saved results as tables, printed or spliced into --write."""
+    from falsify.bench.tables import load, render, splice
+
+    tables = render(load(Path(f) for f in args.results))
+    if args.write is None:
+        print(tables)
+        return 0
+    doc = Path(args.write)
+    if not doc.is_file():
+        raise UsageError(f"--write: {doc} is not a file")
+    from falsify.fileio import write_text
+
+    write_text(doc, splice(doc.read_text(), tables))
+    return 0
+
+
 BENCHMARKS = {"model": _bench_model, "pipeline": _bench_pipeline, "memory": _bench_memory,
               "nodes": _bench_nodes, "search": _bench_search, "map": _bench_map,
-              "scan": _bench_scan, "camera": _bench_camera}
+              "scan": _bench_scan, "camera": _bench_camera, "effects": _bench_effects}
 
 
 def pipeline_figures_text(r: dict) -> str:

@@ -31,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from falsify.fileio import write_json
     from falsify.jobs.faithfulness import run_faithfulness
-    from falsify.models.runner import load_segmenter
+    from falsify.models.runners import load_segmenter
     from falsify.paths import expand_data_path
     from falsify.sensor.lidar import load_sensor
 
@@ -58,7 +58,7 @@ def _instance_faithfulness(args) -> int:
     built-in actor of its class inserted in its place."""
     from falsify.fileio import write_json
     from falsify.jobs.instance_faithfulness import MIN_POINTS, run_instance_faithfulness
-    from falsify.models.runner import load_segmenter
+    from falsify.models.runners import load_segmenter
     from falsify.paths import expand_data_path
     from falsify.sensor.lidar import load_sensor
 

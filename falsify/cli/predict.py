@@ -36,7 +36,7 @@ def run(args) -> int:
     from falsify.images.png import encode_png
     from falsify.images.scan_pictures import prediction_picture
     from falsify.jobs.predict import evaluate
-    from falsify.models.runner import backend_for, load_segmenter
+    from falsify.models.runners import backend_for, load_segmenter
     from falsify.sensor.lidar import load_sensor
 
     check_out_dir(args.out)

@@ -49,7 +49,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from falsify.jobs.retrain import RetrainJob, RetrainRequest, parse_ids, result_text
-    from falsify.models.runner import resolve_model
+    from falsify.models.runners import resolve_model
 
     model = resolve_model(args.model)   # a path, or a bundled name such as squeezeseg-drive
     req = RetrainRequest(

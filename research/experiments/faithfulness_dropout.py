@@ -3,7 +3,8 @@ insertion_faithfulness.md with the return model's return probability scaled by K
 objects only (the real scans are read as recorded), for the bundled network on the fit split.
 A diagnosis, not a fit: K is one number for every material and range.
 
-    SEMANTICKITTI=DIR python research/experiments/faithfulness_dropout.py [K ...]   (default 1 0.8 0.6)
+    SEMANTICKITTI=DIR python research/experiments/faithfulness_dropout.py [K ...]
+    (K defaults to 1 0.8 0.6)
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """Per-class IoU of the 20-class reference networks on SemanticKITTI's evaluation split.
 
-    python research/experiments/reference_eval.py [--split evaluation|fit] [--model NAME=REF:BACKEND]
+    python research/experiments/reference_eval.py [--split evaluation|fit]
+        [--model NAME=REF:BACKEND]
         [--root ROOT] > research/experiments/reference-networks/eval.json
 
 ROOT defaults to ../shared/data/kitti/semantickitti-mini. Its evaluation split (sequences 00, 03,

@@ -26,11 +26,11 @@ falsify dataset configs/paper.toml --scans 400 --seed 2 \
   git show 4b0904f:$W/squeezeseg-drive.pt > "$DATA/old-drive/squeezeseg-drive.pt"; }
 RESUME="--init $DATA/old-drive/squeezeseg-drive.pt"
 [ -f "$DATA/train-drive-new/checkpoint.pt" ] && RESUME="--resume"
-[ -f "$DATA/train-drive-new/squeezeseg.pt" ] || nice -n 5 python -m falsify.models.train \
+[ -f "$DATA/train-drive-new/squeezeseg.pt" ] || nice -n 5 falsify train \
   --data "$DATA/drive-train-new" --out "$DATA/train-drive-new" --epochs 2 \
   --val-data "$DATA/world-val" $RESUME
 cp "$DATA/train-drive-new/squeezeseg.pt" $W/squeezeseg-drive.pt
-python -m falsify.models.export $W/squeezeseg-drive.pt --out $W/squeezeseg-drive.onnx \
+falsify export $W/squeezeseg-drive.pt --out $W/squeezeseg-drive.onnx \
   --note data=falsify-dataset-new-world-drive-5000-seed1-bg1000-1624 \
   --note epochs=1+2 --note val_car_iou_400_scattered=0.630
 
@@ -53,7 +53,7 @@ falsify gate "$RUNS/blind/after" --baseline "$RUNS/blind/before"
 
 # 4. ship the targeted run's weights, and check that a plain grid with them gives the map
 cp "$RUNS/blind/finetune/squeezeseg.pt" $W/squeezeseg-drive-retrained.pt
-python -m falsify.models.export $W/squeezeseg-drive-retrained.pt \
+falsify export $W/squeezeseg-drive-retrained.pt \
   --out $W/squeezeseg-drive-retrained.onnx \
   --note data=squeezeseg-drive-plus-R-scans-at-33-blind-cells-x5-plus-1000-drive-train \
   --note epochs=4 --note command="falsify retrain configs/paper.toml --model squeezeseg-drive \
