@@ -323,7 +323,7 @@ def reported_table(doc: dict) -> str:
 
 
 def render_realism(doc: dict) -> str:
-    """The page for a realism JSON document (as `Realism.as_dict()` makes it)."""
+    """The page for a realism JSON document (as `Realism.to_json()` makes it)."""
     feat = doc["feature"]
     meta = (f'model {esc(doc["model"])} ({esc(str(doc["model_hash"])[:12])}); features: '
             f'{esc(feat["tensor"])}, {esc(feat["estimator"])}: {esc(feat["samples"])} '

@@ -49,7 +49,8 @@ def _scan(doc: dict) -> Row:
     return Row("scan" + where,
                f"{_num(fast)} scans/s on {n} processes, {_num(doc['fast_scans_per_s_1_process'])}"
                f" on 1", f"{_num(speedup)}x the naive path ({doc['naive_scans_per_s']} scans/s)",
-               NO_NETWORK, f"falsify bench scan --config {doc['config']} --json")
+               NO_NETWORK, f"falsify bench scan --config {doc['config']} --samples "
+               f"{doc['samples']} --json")
 
 
 def _pipeline(doc: dict) -> Row:
@@ -108,9 +109,17 @@ def _camera(doc: dict) -> Row:
                f"falsify bench camera --config {doc['config']} --json")
 
 
+def _effects(doc: dict) -> Row:
+    return Row("scan with effects", f"{doc['ms_per_scan_clear']} ms a scan clear, "
+               f"{doc['ms_per_scan_effects']} with its effects, {doc['ms_per_scan_all_effects']}"
+               " with every effect at once",
+               f"{doc['rate_effects_vs_clear']}x / {doc['rate_all_effects_vs_clear']}x the clear "
+               "rate", NO_NETWORK, f"falsify bench effects --config {doc['config']} --json")
+
+
 ROWS: dict[str, Callable[[dict], Row]] = {
-    "scan": _scan, "pipeline": _pipeline, "memory": _memory, "nodes": _nodes, "model": _model,
-    "camera": _camera}
+    "scan": _scan, "scan effects": _effects, "pipeline": _pipeline, "memory": _memory,
+    "nodes": _nodes, "model": _model, "camera": _camera}
 
 
 def load(paths: Iterable[Path]) -> list[dict]:

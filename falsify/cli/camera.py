@@ -77,7 +77,7 @@ def run(args) -> int:
         raise FalsifyError("calib: give a KITTI object DIRECTORY or --scenes CONFIG (not both)")
     if args.scenes is not None:
         res = scene_agreement(args.scenes, samples=args.samples, camera=args.camera)
-        summary = res.as_dict()
+        summary = res.to_json()
         text = (f"car points on car pixels ({res.camera}, {res.scored} of {res.samples} samples "
                 f"scored): median {res.median}, minimum {res.minimum}, pooled {res.pooled}")
     else:
@@ -86,7 +86,7 @@ def run(args) -> int:
         if args.out is not None:
             check_out_dir(args.out)
         report = check_kitti_dir(args.directory, args.out)
-        summary = report.as_dict()
+        summary = report.to_json()
         p = summary["pooled"]
         lines = [f"{p['inside_2d']} of {p['points_in_boxes']} in-box points inside their 2D boxes "
                  f"({p['fraction']}) over {p['objects']} objects in {len(report.frames)} frames"]

@@ -23,5 +23,5 @@ def run(args) -> int:
 
     result = explain_run(args.run, threshold=args.threshold, depth=args.depth,
                          rules=args.rules, clusters=args.clusters, seed=args.seed)
-    emit(args, result.as_dict(), format_text(result))
+    emit(args, result.to_json(), format_text(result))
     return 0

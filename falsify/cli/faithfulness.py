@@ -46,7 +46,7 @@ def run(args) -> int:
         Path(expand_data_path("${KITTI_OBJECT}", "faithfulness (no DIR given)"))]
     sensor = load_sensor(args.sensor)
     result = run_faithfulness(paths, sensor, load_segmenter(args.model))
-    summary = result.as_dict()
+    summary = result.to_json()
     if args.out:
         write_json(args.out, summary)
     emit(args, summary, _faithfulness_text(summary, args.out))
@@ -70,7 +70,7 @@ def _instance_faithfulness(args) -> int:
     root = Path(expand_data_path(args.instances, "--instances"))
     result = run_instance_faithfulness([root], args.sequences, load_sensor(args.sensor),
                                        load_segmenter(args.model), min_points)
-    summary = result.as_dict()
+    summary = result.to_json()
     if args.out:
         write_json(args.out, summary)
     emit(args, summary, _instance_text(summary, args.out))

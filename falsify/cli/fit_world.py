@@ -64,7 +64,7 @@ def run(args) -> int:
             stats = describe([path], None if q is None else [q])
             key = path if q is None else f"{path}:{q}"
             compare[key] = {**summarise(stats), "distance_to_fit": distances(stats, fit.fit)}
-    doc = {**fit.as_dict(), "compare": compare, "out": str(out)}
+    doc = {**fit.to_json(), "compare": compare, "out": str(out)}
     write_json(out, fit.profile.to_json())
     emit(args, doc, _fit_world_text(doc))
     return 0

@@ -57,7 +57,7 @@ def run(args) -> int:
             write_npy(folder / f"{Path(source).stem}.pred.npy", cls)
             picture = prediction_picture(scans.images[k], cls, labelled=bool(labelled[k]))
             write_bytes(folder / f"{Path(source).stem}.png", encode_png(picture))
-    summary = {**result.as_dict(), "backend": args.backend, "out": str(out)}
+    summary = {**result.to_json(), "backend": args.backend, "out": str(out)}
     labelled = result.labelled_sets > 0
     if not labelled:
         summary = {k: v for k, v in summary.items() if k not in ("pooled", "bands", "sets")}

@@ -72,7 +72,7 @@ def run(args) -> int:
                 if args.evaluation else [])
     result = compare(synthetic, real, EncoderFeatures(args.model),
                      bootstrap_draws=args.bootstrap, labels=labels, reported=reported)
-    doc = result.as_dict()
+    doc = result.to_json()
     page = render_realism(doc)
     out = Path(args.out)
     write_json(out / "realism.json", doc)

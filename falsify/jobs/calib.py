@@ -64,7 +64,7 @@ class CalibReport:
                 "outside_image": sum(o.outside_image for o in objs),
                 "fraction": None if n == 0 else round(k / n, 5)}
 
-    def as_dict(self) -> dict:
+    def to_json(self) -> dict:
         types = sorted({o.type for o in self.objects})
         return {"directory": self.directory, "frames": self.frames,
                 "pooled": self.pooled(), "by_type": {t: self.pooled((t,)) for t in types},
@@ -147,7 +147,7 @@ class SceneAgreement:
     pooled: float | None
     per_sample: list[dict]
 
-    def as_dict(self) -> dict:
+    def to_json(self) -> dict:
         return {"config": self.config, "camera": self.camera, "samples": self.samples,
                 "scored": self.scored, "median": self.median, "minimum": self.minimum,
                 "pooled": self.pooled, "per_sample": self.per_sample}

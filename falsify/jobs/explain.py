@@ -27,8 +27,8 @@ class ExplainResult:
     algorithm: str
     explanation: Explanation
 
-    def as_dict(self) -> dict:
-        return {"run": self.run, "algorithm": self.algorithm, **self.explanation.as_dict()}
+    def to_json(self) -> dict:
+        return {"run": self.run, "algorithm": self.algorithm, **self.explanation.to_json()}
 
 
 def explain_run(run: str | Path, threshold: float | None = None, depth: int = 2,

@@ -148,7 +148,7 @@ class FaithfulnessResult:
     rows: tuple[CarRow, ...]
     pooled: Pooled
 
-    def as_dict(self) -> dict:
+    def to_json(self) -> dict:
         """Plain JSON-ready data: every row (with its IoU difference) and the pooled summary."""
         out = asdict(self)
         for row, d in zip(self.rows, out["rows"], strict=True):

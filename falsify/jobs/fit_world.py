@@ -215,7 +215,7 @@ class WorldFit:
     profiled: list[SceneStats]
     parked_tries: list[dict]
 
-    def as_dict(self) -> dict:
+    def to_json(self) -> dict:
         return {"profile": self.profile.to_json(),
                 "fit": summarise(self.fit), "world": summarise(self.base),
                 "profiled_world": summarise(self.profiled),

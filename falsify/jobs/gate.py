@@ -43,7 +43,7 @@ class GateCell:
     def name(self) -> str:
         return cell_name(self.x, self.y)
 
-    def as_dict(self, threshold: float) -> dict:
+    def to_json(self, threshold: float) -> dict:
         d = {"x": self.x, "y": self.y,
              "miou": None if self.miou is None else round(self.miou, 6),
              "samples": self.samples, "blind": self.blind}
@@ -77,9 +77,9 @@ class GateResult:
     def to_json(self) -> dict:
         t = self.threshold
         return {"run": self.run, "threshold": t, "limit": self.limit, "baseline": self.baseline,
-                "cells": [c.as_dict(t) for c in self.cells],
-                "blind_spots": [c.as_dict(t) for c in self.blind_spots],
-                "new_blind_spots": [c.as_dict(t) for c in self.new_blind_spots],
+                "cells": [c.to_json(t) for c in self.cells],
+                "blind_spots": [c.to_json(t) for c in self.blind_spots],
+                "new_blind_spots": [c.to_json(t) for c in self.new_blind_spots],
                 "passed": self.passed, "exit_code": self.exit_code}
 
 

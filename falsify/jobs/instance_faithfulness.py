@@ -103,7 +103,7 @@ class InstanceFaithfulness:
     classes: dict[str, ClassSummary]
     skipped: tuple[tuple[str, str, int, str], ...]   # (scan, class, instance, why)
 
-    def as_dict(self) -> dict:
+    def to_json(self) -> dict:
         out = asdict(self)
         for row, d in zip(self.rows, out["rows"], strict=True):
             d["iou_difference"] = row.iou_difference

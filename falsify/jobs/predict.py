@@ -54,7 +54,7 @@ class Scores:
         ious = [c.iou for c in self.classes[1:] if c.tp + c.fn > 0 and c.iou is not None]
         return float(np.mean(ious)) if ious else None
 
-    def as_dict(self) -> dict:
+    def to_json(self) -> dict:
         out = {s.name: {"iou": s.iou, "precision": s.precision, "recall": s.recall,
                         "tp": s.tp, "fp": s.fp, "fn": s.fn, "note": s.note}
                for s in self.classes}
@@ -85,11 +85,11 @@ class SetEvaluation:
         """How many scans the scores count."""
         return len(self.sources) - len(self.unlabelled)
 
-    def as_dict(self) -> dict:
+    def to_json(self) -> dict:
         missing = set(self.unlabelled)
         return {"name": self.name, "scans": len(self.sources), "scored_scans": self.scored,
-                "unlabelled": list(self.unlabelled), "pooled": self.pooled.as_dict(),
-                "bands": {b: s.as_dict() for b, s in self.bands},
+                "unlabelled": list(self.unlabelled), "pooled": self.pooled.to_json(),
+                "bands": {b: s.to_json() for b, s in self.bands},
                 "ignored_pixels": self.ignored_pixels,
                 "per_scan": [{"scan": s, "car_iou": v, "labelled": s not in missing}
                              for s, v in zip(self.sources, self.scan_car_iou, strict=True)]}
@@ -115,14 +115,14 @@ class Evaluation:
         """How many sets have at least one scored scan."""
         return sum(1 for s in self.sets if s.scored)
 
-    def as_dict(self) -> dict:
+    def to_json(self) -> dict:
         return {"model": self.model, "model_hash": self.model_hash,
                 "scans": sum(len(s.sources) for s in self.sets),
                 "scored_scans": sum(s.scored for s in self.sets),
                 "unlabelled": list(self.unlabelled),
-                "pooled": self.pooled.as_dict(),
-                "bands": {b: s.as_dict() for b, s in self.bands},
-                "sets": [s.as_dict() for s in self.sets]}
+                "pooled": self.pooled.to_json(),
+                "bands": {b: s.to_json() for b, s in self.bands},
+                "sets": [s.to_json() for s in self.sets]}
 
 
 def band_counts(pred: np.ndarray, label: np.ndarray, rng: np.ndarray, ignore: np.ndarray,

@@ -185,7 +185,7 @@ class Realism:
                                          "real_scans": len(self.per_scan)}
         return out
 
-    def as_dict(self) -> dict:
+    def to_json(self) -> dict:
         return {
             "model": self.model, "model_hash": self.model_hash,
             "feature": {
@@ -208,10 +208,10 @@ class Realism:
             **({"diagnostic_statistics": {k: {"what": w, "unit": u} for k, w, u in DIAGNOSTIC}}
                if any(k in d for rs in self.distances.values() for d in rs.values()
                       for k, _, _ in DIAGNOSTIC) else {}),
-            "synthetic": [s.as_dict() for s in self.synthetic],
-            "real": [s.as_dict() for s in self.real],
+            "synthetic": [s.to_json() for s in self.synthetic],
+            "real": [s.to_json() for s in self.real],
             "real_pooled": self.pooled_real.name,
-            "reported": [s.as_dict() for s in self.reported],
+            "reported": [s.to_json() for s in self.reported],
             # 6 decimals: bytes that do not move with the BLAS's last-bit rounding
             "distances": {s: {r: {k: round(v, 6) for k, v in d.items()} for r, d in rs.items()}
                           for s, rs in self.distances.items()},

@@ -110,7 +110,7 @@ class Check:
         c = self.change
         return None if c is None else c >= -MAX_CAR_IOU_DROP - 1e-12
 
-    def as_dict(self) -> dict:
+    def to_json(self) -> dict:
         return {**asdict(self), "change": rounded(self.change), "passed": self.passed}
 
 
@@ -121,7 +121,7 @@ class CellChange:
     before: float
     after: float | None
 
-    def as_dict(self) -> dict:
+    def to_json(self) -> dict:
         return {"x": self.x, "y": self.y, "miou_before": rounded(self.before),
                 "miou_after": rounded(self.after)}
 
@@ -153,8 +153,8 @@ class RetrainResult:
 
     def to_json(self) -> dict:
         d = asdict(self)
-        d["blind_before"] = [c.as_dict() for c in self.blind_before]
-        d["checks"] = [c.as_dict() for c in self.checks]
+        d["blind_before"] = [c.to_json() for c in self.blind_before]
+        d["checks"] = [c.to_json() for c in self.checks]
         d["computed"], d["reused"] = list(self.computed), list(self.reused)
         return d
 

@@ -73,7 +73,7 @@ class Rule:
     def text(self) -> str:
         return " and ".join(c.text() for c in self.conditions)
 
-    def as_dict(self) -> dict:
+    def to_json(self) -> dict:
         return {"rule": self.text(), "support": self.support, "failing": self.failing,
                 "precision": round(self.precision, 4), "recall": round(self.recall, 4),
                 "mean_iou": round(self.mean_iou, 4), "wracc": round(self.wracc, 5),
@@ -89,7 +89,7 @@ class Cluster:
     size: int
     mean_iou: float
 
-    def as_dict(self) -> dict:
+    def to_json(self) -> dict:
         return {"centre": self.centre, "size": self.size, "mean_iou": round(self.mean_iou, 4)}
 
 
@@ -105,12 +105,12 @@ class Explanation:
     clusters: tuple[Cluster, ...]
     score: str = "car_iou"   # the column explained: the run's objective
 
-    def as_dict(self) -> dict:
+    def to_json(self) -> dict:
         return {"score": self.score, "threshold": self.threshold, "samples": self.samples,
                 "failing": self.failing,
-                "rules": [r.as_dict() for r in self.rules],
+                "rules": [r.to_json() for r in self.rules],
                 "sensitivity": {k: round(v, 4) for k, v in self.sensitivity.items()},
-                "clusters": [c.as_dict() for c in self.clusters]}
+                "clusters": [c.to_json() for c in self.clusters]}
 
 
 def score_name(column: str) -> str:

@@ -139,7 +139,7 @@ class SetStats:
             self._joined = ScanFeatures.concat(self.features)
         return self._joined
 
-    def as_dict(self) -> dict:
+    def to_json(self) -> dict:
         feats = self.all_features
         _, cov, cells = pooled_moments(feats)
         semantic = {}

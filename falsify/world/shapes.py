@@ -167,7 +167,7 @@ def icosphere(center, radii, subdivisions: int = 1) -> Mesh:
 
 _ICO_CACHE: dict[int, Mesh] = {}
 # trimesh.creation.icosphere(subdivisions=s) for s = 0..3, stored so that building a street never
-# imports trimesh (with scipy, some 65 MB in every worker); tests/test_shapes.py holds them to
+# imports trimesh (with scipy, some 65 MB in every worker); tests/world/test_shapes.py holds them to
 # trimesh's own.
 ICOSPHERES = Path(__file__).with_name("icospheres.npz")
 

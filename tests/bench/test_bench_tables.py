@@ -1,0 +1,102 @@
+"""`falsify bench table`: saved benchmark results as one markdown table per CPU."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from falsify.bench.tables import BEGIN, END, load, render, splice
+from falsify.errors import FalsifyError
+
+EPYC = {"cpu": "AMD EPYC (family 25, model 1)", "cpus": 2}
+XEON = {"cpu": "Intel Xeon", "cpus": 4}
+
+
+def scan(machine: dict, fast: float) -> dict:
+    return {"benchmark": "scan", "config": "configs/bench.toml", "machine": machine,
+            "samples": 1000,
+            "fast_scans_per_s_1_process": fast / 2, "fast_scans_per_s_2_processes": fast,
+            "naive_scans_per_s": 3.0, "speedup_1_process": fast / 6,
+            "speedup_2_processes": fast / 3}
+
+
+def camera(machine: dict) -> dict:
+    return {"benchmark": "camera", "config": "configs/paper.toml", "machine": machine,
+            "image": "1242x375", "ms_per_image_cold": 245.0, "ms_per_image_warm": 30.1,
+            "speedup_cold": 2.26, "speedup_warm": 18.4}
+
+
+def test_one_table_per_cpu_with_figure_ratio_network_and_command():
+    text = render([camera(EPYC), scan(XEON, 900.0), scan(EPYC, 600.0)])
+    assert text.startswith(BEGIN) and text.endswith(END)
+    assert text.index("### AMD EPYC (family 25, model 1), 2 cores") < text.index("### Intel Xeon")
+    epyc = text.split("### Intel Xeon")[0]
+    assert epyc.index("| scan |") < epyc.index("| camera |")   # rows in benchmark order
+    assert "600.0 scans/s on 2 processes, 300.0 on 1" in epyc
+    assert "200.0x the naive path" in epyc
+    assert "`falsify bench scan --config configs/bench.toml --samples 1000 --json`" in epyc
+    assert "900.0 scans/s" in text.split("### Intel Xeon")[1]
+
+
+def test_splice_replaces_only_the_generated_section():
+    doc = f"# Benchmarks\n\nprose\n\n{BEGIN}\nold\n{END}\n\nmore prose\n"
+    new = splice(doc, render([scan(EPYC, 10.0)]))
+    assert new.startswith("# Benchmarks\n\nprose\n\n") and new.endswith("\n\nmore prose\n")
+    assert "old" not in new and new.count(BEGIN) == 1
+    assert splice(new, render([scan(EPYC, 10.0)])) == new
+    assert BEGIN in splice("# none yet\n", render([scan(EPYC, 10.0)]))
+
+
+def test_a_file_that_is_not_a_result_is_named(tmp_path: Path):
+    good = tmp_path / "scan.json"
+    good.write_text(json.dumps(scan(EPYC, 10.0)))
+    bad = tmp_path / "summary.json"
+    bad.write_text(json.dumps({"benchmark": "search"}))
+    assert load([good])[0]["benchmark"] == "scan"
+    with pytest.raises(FalsifyError, match=r"summary\.json: benchmark 'search' has no table; "
+                                           r"known: scan, scan effects, pipeline"):
+        load([good, bad])
+    broken = tmp_path / "broken.json"
+    broken.write_text("{")
+    with pytest.raises(FalsifyError, match="broken.json: not a benchmark result"):
+        load([broken])
+
+
+def test_the_command_prints_or_splices_and_refuses_stray_files(tmp_path: Path, capsys):
+    from falsify.cli import main
+
+    result = tmp_path / "scan.json"
+    result.write_text(json.dumps(scan(EPYC, 10.0)))
+    assert main(["bench", "table", str(result)]) == 0
+    assert capsys.readouterr().out.startswith(BEGIN)
+    doc = tmp_path / "benchmarks.md"
+    doc.write_text("# Benchmarks\n")
+    assert main(["bench", "table", str(result), "--write", str(doc)]) == 0
+    assert "10.0 scans/s on 2 processes" in doc.read_text()
+    assert main(["bench", "scan", str(result)]) == 2
+    assert "RESULTS: only bench table takes result files" in capsys.readouterr().err
+    assert main(["bench", "table"]) == 2
+    assert main(["bench", "table", str(result), "--write", str(tmp_path / "none.md")]) == 2
+    assert "--write:" in capsys.readouterr().err
+
+
+def test_bench_effects_times_a_scan_with_and_without_its_effects(capsys):
+    from falsify.cli import main
+
+    assert main(["bench", "effects", "--samples", "2", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["benchmark"] == "scan effects" and doc["samples"] == 2
+    assert doc["ms_per_scan_clear"] > 0 and doc["ms_per_scan_all_effects"] > 0
+
+
+def test_the_benchmarks_page_holds_the_tables_of_the_committed_results():
+    """docs/benchmarks.md's figures are the committed JSON's, regenerated, not copied."""
+    root = Path(__file__).resolve().parents[2]
+    results = sorted((root / "research" / "benchmarks").glob("*/*.json"))
+    assert results, "research/benchmarks/CPU/*.json: no committed results"
+    page = (root / "docs" / "benchmarks.md").read_text()
+    assert splice(page, render(load(results))) == page, (
+        "docs/benchmarks.md is stale: falsify bench table research/benchmarks/*/*.json "
+        "--write docs/benchmarks.md")

@@ -1,0 +1,115 @@
+"""`falsify scan` and `falsify dataset`: outputs, determinism, exit code 2 with nothing written."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from falsify.cli import main
+from tests.conftest import CONFIGS
+
+
+def test_scan_writes_npy_and_png(tmp_path, capsys):
+    out = tmp_path / "s"
+    assert main(["scan", str(CONFIGS / "smoke.toml"), "--out", str(out), "--set", "x=2",
+                 "--set", "background=1", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["sample"]["x"] == 2.0 and summary["sample"]["background"] == 1
+    img = np.load(out / "scan.npy")
+    assert img.shape == (64, 512, 6) and img.dtype == np.float32
+    assert (out / "scan.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert summary["car_points"] == int((img[..., 5] == 1).sum()) or summary["car_points"] > 0
+
+
+def test_scan_is_deterministic(tmp_path):
+    for name in ("a", "b"):
+        assert main(["scan", str(CONFIGS / "smoke.toml"), "--out", str(tmp_path / name)]) == 0
+    assert (tmp_path / "a" / "scan.npy").read_bytes() == (tmp_path / "b" / "scan.npy").read_bytes()
+    assert (tmp_path / "a" / "scan.png").read_bytes() == (tmp_path / "b" / "scan.png").read_bytes()
+
+
+@pytest.mark.parametrize(("toml", "sets", "message"), [
+    ("", ["x=9"], "x: '9' is outside [-2, 2]"),
+    ("", ["car_model=tank"], "car_model: 'tank' is not one of sedan"),
+    ("", ["colour=red"], "unknown dim 'colour'"),
+    ("", ["x"], "expected KEY=VALUE"),
+    ("", ["y=1.0"], "outside"),
+    ("BROKEN", [], "not valid TOML"),
+    ("step0", [], "dims.x.step: 0 must be > 0"),
+    ("fov", [], "unknown preset 'wide'"),
+])
+def test_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, toml, sets, message):
+    config = CONFIGS / "smoke.toml"
+    if toml:
+        text = config.read_text()
+        text = {"BROKEN": "name = [", "step0": text.replace("step = 4.0", "step = 0.0"),
+                "fov": text.replace('sensor = "kitti-hdl64e-front"', 'sensor = "wide"')}[toml]
+        config = tmp_path / "c.toml"
+        config.write_text(text)
+    out = tmp_path / "out"
+    args = ["scan", str(config), "--out", str(out)]
+    for s in sets:
+        args += ["--set", s]
+    assert main(args) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_sensor_with_180_degree_vertical_fov_is_rejected(tmp_path, capsys):
+    sensor = tmp_path / "wide.toml"
+    sensor.write_text('elevations_deg = [90.0, 0.0, -30.0]\nh_fov_deg = [45.0, -45.0]\n'
+                      'columns = 512\n')
+    config = tmp_path / "c.toml"
+    config.write_text((CONFIGS / "smoke.toml").read_text().replace(
+        'sensor = "kitti-hdl64e-front"', f'sensor = "{sensor}"'))
+    assert main(["scan", str(config), "--out", str(tmp_path / "o")]) == 2
+    assert "FOV < 180" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_invalid_sample_is_a_clear_error(tmp_path, capsys):
+    config = tmp_path / "c.toml"
+    config.write_text((CONFIGS / "smoke.toml").read_text().replace("min = 8.0", "min = 2.0"))
+    assert main(["scan", str(config), "--out", str(tmp_path / "o"), "--set", "y=2",
+                 "--set", "x=0"]) == 2
+    assert "intersects the ego vehicle" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_console_script_exit_code(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "falsify", "scan", "nope.toml", "--out",
+                        str(tmp_path / "o")], capture_output=True, text=True)
+    assert r.returncode == 2 and "nope.toml: cannot read config" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "falsify", "scan"], capture_output=True,
+                       text=True)
+    assert r.returncode == 2
+
+
+def test_dataset_writes_resumable_scans(tmp_path, capsys):
+    out = tmp_path / "ds"
+    args = ["dataset", str(CONFIGS / "smoke.toml"), "--scans", "3", "--out", str(out), "--json"]
+    assert main(args) == 0
+    first = {p.name: p.read_bytes() for p in out.glob("*.npy")}
+    assert len(first) == 3
+    (out / "000001.npy").unlink()
+    assert main(args) == 0
+    assert json.loads(capsys.readouterr().out.split("\n}\n")[-1] or "{}") is not None
+    assert {p.name: p.read_bytes() for p in out.glob("*.npy")} == first
+    assert main(["dataset", str(CONFIGS / "smoke.toml"), "--scans", "3", "--out",
+                 str(tmp_path / "x"), "--first-background", "0"]) == 2
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize(("option", "message"), [
+    (["--max-cars", "-1"], "--max-cars: -1"), (["--backgrounds", "0"], "--backgrounds: 0"),
+    (["--ray-drop", "1.5"], "--ray-drop"), (["--scans", "0"], "--scans: 0"),
+])
+def test_dataset_bad_options_exit_2(tmp_path, capsys, option, message):
+    args = ["dataset", str(CONFIGS / "smoke.toml"), "--scans", "2", "--out", str(tmp_path / "d")]
+    assert main(args + option) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()

@@ -1,0 +1,279 @@
+"""`falsify agreement`: a world run against a real-scan run of the same positions. The statistics
+on hand-computed cases, the comparison on written runs whose answer is known, the refusals and
+exit codes, and (where the SemanticKITTI mini scans are) two small real runs end to end."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from falsify.cli import main
+from falsify.jobs.agreement import (
+    Distribution,
+    fp_classes,
+    map_agreement,
+    run_agreement,
+    spread_rows,
+    wasserstein1,
+)
+from falsify.results.miou_maps import CellMap
+from tests.runfixture import write_run
+
+ROOT = Path(__file__).resolve().parents[2]
+SMALL_GRID = ROOT / "tests" / "data" / "small-grid.toml"
+
+
+# -- the statistics --------------------------------------------------------------------------
+@pytest.mark.parametrize(("u", "v", "want"), [
+    ([0.0], [1.0], 1.0),
+    ([0.0, 1.0], [1.0, 0.0], 0.0),
+    ([1.0, 2.0, 3.0], [4.0, 5.0, 6.0], 3.0),          # a shift moves every unit of mass by 3
+    ([0.0, 2.0], [1.0], 1.0),                         # each half travels 1
+    ([0.0, 0.0, 1.0], [0.0, 1.0, 1.0], 1.0 / 3.0),    # CDFs 2/3 and 1/3 on [0, 1)
+    ([0.0, 1.0, 3.0], [0.5], (0.5 + 0.5 + 2.5) / 3.0),
+])
+def test_wasserstein1_hand_cases(u, v, want):
+    assert wasserstein1(u, v) == pytest.approx(want)
+    assert wasserstein1(v, u) == pytest.approx(want)
+
+
+def test_wasserstein1_of_nothing_is_none():
+    assert wasserstein1([], [1.0]) is None and wasserstein1([1.0], []) is None
+
+
+def test_wasserstein1_agrees_with_scipy():
+    stats = pytest.importorskip("scipy.stats")
+    rng = np.random.default_rng(3)
+    for n, m in ((1, 1), (5, 9), (21, 7), (40, 40)):
+        u, v = rng.uniform(size=n), rng.normal(0.5, 0.2, size=m)
+        assert wasserstein1(u, v) == pytest.approx(stats.wasserstein_distance(u, v), abs=1e-12)
+
+
+def test_distribution_quantiles_and_empty():
+    d = Distribution.of([float(v) for v in range(1, 12)] + [float("nan")])
+    assert (d.count, d.mean, d.min, d.max) == (11, 6.0, 1.0, 11.0)
+    assert (d.p10, d.p50, d.p90) == pytest.approx((2.0, 6.0, 10.0))
+    assert Distribution.of([0.0, 1.0]).p10 == pytest.approx(0.1)   # linear interpolation
+    e = Distribution.of([])
+    assert e.count == 0 and e.mean is None and e.to_json()["p90"] is None
+
+
+def cell_map(values: list[list[float]]) -> CellMap:
+    miou = np.array(values, float)
+    zeros = np.zeros(miou.shape, np.int64)
+    return CellMap("x", "y", (0.0, 2.0, 4.0), (5.0, 10.0), miou, zeros, zeros, zeros)
+
+
+def test_map_agreement_on_a_constructed_case():
+    nan = float("nan")
+    world = cell_map([[0.5, 0.9, 0.9], [0.9, 0.6, nan]])
+    real = cell_map([[0.6, 0.8, 0.5], [0.8, 0.9, 0.3]])
+    a = map_agreement(world, real, 0.65)
+    assert (a.cells_world, a.cells_real, a.cells_both) == (5, 6, 5)
+    assert (a.blind_world, a.blind_real) == (2, 2)   # (4, 10), the world's hole, not counted
+    assert a.world_misses == ((4.0, 5.0),)
+    assert a.false_alarms == ((2.0, 10.0),)
+    assert a.agreement == pytest.approx(3 / 5)
+    assert a.jaccard == pytest.approx(1 / 3)
+    assert a.mae == pytest.approx((0.1 + 0.1 + 0.4 + 0.1 + 0.3) / 5)
+    w = np.array([0.5, 0.9, 0.9, 0.9, 0.6])
+    r = np.array([0.6, 0.8, 0.5, 0.8, 0.9])
+    assert a.pearson == pytest.approx(np.corrcoef(w, r)[0, 1])
+    flat = map_agreement(cell_map([[0.7] * 3] * 2), real, 0.65)
+    assert flat.pearson is None and flat.blind_world == 0 and flat.jaccard == 0.0
+    same = map_agreement(real, real, 0.65)
+    assert (same.agreement, same.jaccard, same.mae) == (1.0, 1.0, 0.0)
+    assert json.dumps(a.to_json())
+
+
+def test_fp_classes_counts_predicted_car_off_cars_by_what_lies_there():
+    from falsify.semantic import RAW_ID
+    label = np.array([[1, 0, 0, 0, 0, 2]], np.uint8)
+    pred = np.array([[1, 1, 1, 1, 0, 1]], np.uint8)
+    valid = np.array([[True, True, True, False, True, True]])
+    sem = np.array([[RAW_ID["car"], RAW_ID["vegetation"], RAW_ID["moving-truck"],
+                     RAW_ID["road"], RAW_ID["road"], RAW_ID["person"]]], np.uint16)
+    assert fp_classes(pred, label, valid, sem) == {"vegetation": 1, "truck": 1, "person": 1}
+    assert fp_classes(pred, label, valid, None) == {"unknown": 2, "pedestrian": 1}
+
+
+def test_spread_rows_are_evenly_spaced_in_evaluation_order():
+    import pandas as pd
+    frame = pd.DataFrame({"eval_index": list(range(9, -1, -1))})
+    assert spread_rows(frame, 3)["eval_index"].tolist() == [0, 4, 9]
+    assert len(spread_rows(frame, 50)) == 10
+
+
+# -- written runs with a known answer --------------------------------------------------------
+CONFIG = """name = "agreement"
+sensor = "kitti-hdl64e-front"
+seed = 0
+threshold = 0.65
+[dims.car_model]
+values = ["sedan"]
+[dims.x]
+values = [{xs}]
+[dims.y]
+values = [5.0, 10.0]
+[dims.yaw]
+values = [0.0]
+[dims.count]
+values = [1]
+[dims.background]
+values = [0, 5]
+"""
+
+
+def iou_fn(cells: dict[tuple[float, float], float], default: float, spread: float):
+    """IoU of each cell (`default` elsewhere), background 5 above it and 0 below by `spread`."""
+    def fn(sample):
+        base = cells.get((float(sample["x"]), float(sample["y"])), default)
+        return base + (spread if int(sample["background"]) == 5 else -spread)
+    return fn
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory) -> dict[str, Path]:
+    tmp = tmp_path_factory.mktemp("agreement")
+    cfg = CONFIG.format(xs="0.0, 2.0, 4.0")
+    return {
+        "world": write_run(tmp / "world", cfg, iou=iou_fn({(0.0, 5.0): 0.5}, 0.9, 0.01)),
+        "real": write_run(tmp / "real", cfg,
+                          iou=iou_fn({(0.0, 5.0): 0.6, (4.0, 10.0): 0.6}, 0.8, 0.05)),
+        "other": write_run(tmp / "other", CONFIG.format(xs="0.0, 3.0, 4.0")),
+    }
+
+
+def agreement_json(capsys, *argv: str) -> dict:
+    assert main(["agreement", *argv, "--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_written_runs_compare_as_constructed(written, capsys):
+    out = agreement_json(capsys, str(written["world"]), str(written["real"]))
+    m = out["map"]
+    assert (m["cells_both"], m["threshold"], m["blind_world"], m["blind_real"]) == (6, 0.65, 1, 2)
+    assert m["world_misses"] == [[4.0, 10.0]] and m["false_alarms"] == []
+    assert m["agreement"] == pytest.approx(5 / 6) and m["jaccard"] == pytest.approx(0.5)
+    assert m["mae"] == pytest.approx((0.1 + 0.3 + 4 * 0.1) / 6, abs=1e-3)
+    iou = out["metrics"][0]
+    assert (iou["metric"], iou["world_column"], iou["real_column"]) == ("iou", "car_iou",
+                                                                         "car_iou")
+    assert iou["world"]["count"] == iou["real"]["count"] == 2
+    assert iou["world"]["mean"] == pytest.approx(5.0 / 6, abs=1e-3)
+    assert iou["real"]["min"] == pytest.approx(4.4 / 6 - 0.05, abs=1e-3)
+    assert iou["w1"] == pytest.approx(0.10, abs=1e-3)
+    assert set(iou["world_per_background"]) == {"street 0", "street 5"}
+    assert [x["metric"] for x in out["metrics"]] == ["iou", "precision", "recall"]
+    assert out["false_positives"] == [] and "skipped" in out["false_positives_note"]
+    assert out["world"]["backgrounds_are"] == "streets" and out["real"]["ok_rows"] == 12
+
+
+def test_threshold_option_and_text_output(written, capsys):
+    out = agreement_json(capsys, str(written["world"]), str(written["real"]),
+                         "--threshold", "0.55")
+    assert (out["map"]["blind_world"], out["map"]["blind_real"]) == (1, 0)
+    assert out["map"]["false_alarms"] == [[0.0, 5.0]]
+    assert main(["agreement", str(written["world"]), str(written["real"])]) == 0
+    text = capsys.readouterr().out
+    assert "W1" in text and "car_precision" in text and "real cars" in text
+    assert "world misses 1" in text and "--fp-samples 0" in text
+
+
+def test_a_run_against_itself_agrees_fully(written, capsys):
+    out = agreement_json(capsys, str(written["real"]), str(written["real"]))
+    assert out["map"]["agreement"] == 1.0 and out["map"]["mae"] == 0.0
+    assert all(x["w1"] == 0.0 for x in out["metrics"])
+
+
+def test_different_grids_are_refused_naming_runs_and_dims(written, capsys):
+    assert main(["agreement", str(written["world"]), str(written["other"])]) == 2
+    err = capsys.readouterr().err
+    assert str(written["world"]) in err and str(written["other"]) in err
+    assert "x: [0, 2, 4] against [0, 3, 4]" in err and "y: [" not in err
+
+
+@pytest.mark.parametrize(("extra", "says"), [
+    (["--threshold", "1.5"], "--threshold"),
+    (["--fp-samples", "-1"], "--fp-samples"),
+])
+def test_bad_options_exit_2(written, capsys, extra, says):
+    assert main(["agreement", str(written["world"]), str(written["real"]), *extra]) == 2
+    assert says in capsys.readouterr().err
+
+
+def test_a_missing_run_exits_2_naming_it(written, tmp_path, capsys):
+    missing = tmp_path / "no-such-run"
+    assert main(["agreement", str(written["world"]), str(missing)]) == 2
+    assert str(missing) in capsys.readouterr().err
+    assert main(["agreement", str(missing), str(written["real"])]) == 2
+    assert str(missing) in capsys.readouterr().err
+
+
+# -- two small runs of the pipeline, on our streets and on real scans -------------------------
+REAL = """name = "small-real"
+sensor = "kitti-hdl64e-front"
+seed = 0
+threshold = 0.65
+[dims.car_model]
+values = ["sedan"]
+[dims.x]
+min = -5.0
+max = 3.0
+step = 4.0
+[dims.y]
+min = 5.0
+max = 17.0
+step = 4.0
+[dims.yaw]
+values = [0.0]
+[dims.count]
+values = [1]
+[dims.background]
+real = ["${SEMANTICKITTI}"]
+sequences = ["01"]
+per_sequence = 2
+"""
+
+
+@pytest.fixture(scope="module")
+def pipeline_runs(tmp_path_factory) -> tuple[Path, Path]:
+    """small-grid.toml on our streets and its 12 positions on 2 scans of sequence 01 (a fitting
+    sequence of semantickitti-mini)."""
+    data = os.environ.get("SEMANTICKITTI")
+    if not data or not (Path(data) / "sequences" / "01").is_dir():
+        pytest.skip("SemanticKITTI mini scans not found (shared/data/ beside the repo)")
+    from falsify.jobs.run import RunRequest, execute
+    tmp = tmp_path_factory.mktemp("pipeline")
+    (tmp / "real.toml").write_text(REAL)
+    for name, cfg in (("world", SMALL_GRID), ("real", tmp / "real.toml")):
+        execute(RunRequest(config=cfg, out=tmp / name, command="grid", report=False))
+    return tmp / "world", tmp / "real"
+
+
+def test_real_run_is_scored_on_the_inserted_car(pipeline_runs, capsys):
+    world, real = pipeline_runs
+    out = agreement_json(capsys, str(world), str(real))
+    assert out["real"]["backgrounds_are"] == "real scans"
+    assert (out["real"]["iou_column"], out["real"]["recall_column"]) == ("inserted_iou",
+                                                                         "inserted_recall")
+    assert out["world"]["iou_column"] == "car_iou" and out["map"]["cells_both"] == 12
+    assert {x["metric"]: x["real_column"] for x in out["metrics"]}["precision"] == \
+        "car_precision"
+    assert out["metrics"][0]["real"]["count"] == 2
+    assert all(k.startswith("01/") for k in out["metrics"][0]["real_per_background"])
+
+
+def test_replayed_false_positives_match_the_stored_counts(pipeline_runs):
+    world, real = pipeline_runs
+    result = run_agreement(world, real, fp_samples=2)
+    assert len(result.false_positives) == 2
+    for fp in result.false_positives:
+        assert fp.samples == 2 and not fp.note, fp.note
+        assert fp.points == fp.stored_fp == sum(fp.by_class.values())
+        assert "car" not in fp.by_class
+    assert json.dumps(result.to_json())

@@ -1,0 +1,127 @@
+"""A clean install: the wheel puts sampler, models, reports and configs under falsify/ (no
+generic top-level package), ships the default network, sensor presets, world profiles and
+bundled configs and no other network, and works from a directory outside the checkout.
+Slow: it builds a wheel and a venv."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+import venv
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+GENERIC = ("models", "reports", "sampler", "configs")
+# The wheel ships the default network and its int8 variants, not the other networks.
+LEFT_OUT = ("squeezeseg-v1", "squeezeseg-v2", "squeezeseg-drive", "squeezeseg-drive-retrained",
+            "squeezeseg20", "pointnet20")
+MAX_WHEEL_MB = 16
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("dist")
+    # setuptools' build/ keeps files of earlier builds (weights since left out): start clean
+    shutil.rmtree(ROOT / "build", ignore_errors=True)
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
+                        "-q", "-w", str(out), str(ROOT)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    (found,) = out.glob("falsify-*.whl")
+    return found
+
+
+def test_wheel_holds_only_the_falsify_package_and_its_data(wheel):
+    names = zipfile.ZipFile(wheel).namelist()
+    tops = {n.split("/")[0] for n in names}
+    assert not tops & set(GENERIC), sorted(tops)
+    assert {t for t in tops if not t.endswith(".dist-info")} == {"falsify"}
+    weights = "falsify/models/weights/"
+    for need in (weights + "squeezeseg.onnx", weights + "squeezeseg.json",
+                 weights + "squeezeseg-int8.onnx", weights + "squeezeseg.pt",
+                 "falsify/configs/sensors/kitti-hdl64e-front.toml", "falsify/configs/ci.toml",
+                 "falsify/configs/paper.toml",
+                 "falsify/sampler/nlopt.py", "falsify/reports/run/report.py",
+                 "falsify/reports/assets/run.css", "falsify/reports/assets/run.js",
+                 "falsify/configs/worlds/semantickitti-fit-parked.json",
+                 "falsify/configs/worlds/semantickitti-fit.json",
+                 "falsify/models/cards/squeezeseg-drive.md"):
+        assert need in names, need
+    weights = {n.rsplit("/", 1)[1].split(".")[0] for n in names if n.startswith(weights)}
+    assert weights == {"squeezeseg", "squeezeseg-int8", "squeezeseg-int8-crf0",
+                       "squeezeseg-int8-crf1"}, sorted(weights)
+    assert wheel.stat().st_size < MAX_WHEEL_MB * 2**20, wheel.stat().st_size
+    # Every source module is in the wheel: a subpackage missing from pyproject's list fails here.
+    sources = [f.relative_to(ROOT).as_posix() for f in (ROOT / "falsify").rglob("*.py")]
+    for top in ("models", "reports", "sampler"):
+        sources += [f"falsify/{f.relative_to(ROOT).as_posix()}" for f in (ROOT / top).rglob("*.py")]
+    missing = sorted(n for n in sources if "__pycache__" not in n and n not in names)
+    assert not missing, missing
+
+
+def test_installed_wheel_runs_outside_the_checkout(wheel, tmp_path):
+    env_dir = tmp_path / "venv"
+    # The running interpreter's packages (numpy, onnxruntime, ...) without a download: its
+    # system site-packages, and, when the tests run inside a venv, that venv's site-packages by a
+    # .pth line (which adds the folder but runs none of its .pth files, so the checkout's editable
+    # install stays out). The wheel goes into the new venv itself, first on sys.path (checked).
+    venv.EnvBuilder(system_site_packages=True, with_pip=False).create(env_dir)
+    py = env_dir / "bin" / "python"
+    site = env_dir / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / \
+        "site-packages"
+    parent = {sysconfig.get_paths()[k] for k in ("purelib", "platlib")}
+    (site / "_falsify_test_parent.pth").write_text("".join(f"{p}\n" for p in sorted(parent)))
+    r = subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps", "--no-index",
+                        "--force-reinstall", str(wheel)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+
+    def run(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([str(py), *args], cwd=work, env=env, capture_output=True,
+                              text=True, timeout=600)
+
+    where = run("-c", "import json, falsify, falsify.models, falsify.sampler, falsify.reports; "
+                "print(json.dumps([m.__file__ for m in (falsify, falsify.models, "
+                "falsify.sampler, falsify.reports)]))")
+    assert where.returncode == 0, where.stderr
+    for f in json.loads(where.stdout):
+        assert Path(f).is_relative_to(site), f"{f} is not the installed wheel"
+    assert not [g for g in GENERIC if (site / g).exists()]
+    module = run("-m", "falsify", "--help")
+    assert module.returncode == 0 and "grid" in module.stdout, module.stderr
+    falsify_cmd = str(env_dir / "bin" / "falsify")
+    scan = subprocess.run([falsify_cmd, "scan", "configs/smoke.toml", "--out", "scan", "--json"],
+                          cwd=work, env=env, capture_output=True, text=True, timeout=600)
+    assert scan.returncode == 0, scan.stderr
+    assert json.loads(scan.stdout)["car_points"] > 0 and (work / "scan" / "scan.png").exists()
+    grid = subprocess.run([falsify_cmd, "grid", "configs/ci.toml", "--out", "run", "--workers",
+                           "2", "--quiet", "--json"], cwd=work, env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert grid.returncode == 0, grid.stderr
+    summary = json.loads(grid.stdout)
+    assert summary["samples"] == 75 and summary["ok"] == 75, summary
+    assert (work / "run" / "report.html").stat().st_size > 10_000
+    assert (work / "run" / "maps" / "miou_x_y.csv").exists()
+    # the world profiles ship: by their path in the checkout, and by name
+    for world in ("configs/worlds/semantickitti-fit-parked.json", "semantickitti-fit"):
+        data = subprocess.run([falsify_cmd, "dataset", "configs/smoke.toml", "--scans", "2",
+                               "--world", world, "--out", f"data-{Path(world).stem}", "--json"],
+                              cwd=work, env=env, capture_output=True, text=True, timeout=600)
+        assert data.returncode == 0, data.stderr
+        assert len(list((work / f"data-{Path(world).stem}").glob("*.npy"))) == 2
+    # a network left out of the wheel is named, with where to get it
+    left = subprocess.run([falsify_cmd, "grid", "configs/smoke.toml", "--out", "r2", "--model",
+                           "squeezeseg-drive"], cwd=work, env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert left.returncode == 2 and "--model squeezeseg-drive: not installed" in left.stderr
+    assert "squeezeseg-drive.md" in left.stderr and not (work / "r2").exists()
