@@ -20,10 +20,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from falsify.models.train import CLASS_WEIGHTS, batch_tensors, list_scans, load_scan
 
 from falsify.classes import CAR
 from falsify.errors import FalsifyError
+from falsify.models.train import CLASS_WEIGHTS, batch_tensors, list_scans, load_scan
 from falsify.results.metrics import class_scores, confusion
 
 DEFAULT_ALPHAS = tuple(round(0.05 * i, 2) for i in range(21))
@@ -79,6 +79,7 @@ def choose_alpha(state: dict, val: str | Path, alphas: Sequence[float] = DEFAULT
     """Score every alpha on the scans of `val` (the backbone runs once a batch, the CRF once
     per alpha; fp32) and choose the highest pooled car IoU, the smaller alpha on a tie."""
     import torch
+
     from falsify.models.spec import DEFAULT_CHANNELS
     from falsify.models.squeezeseg import SqueezeSeg
 
@@ -125,17 +126,12 @@ def adjust_weights(weights: str | Path, val: str | Path, out: str | Path,
     FalsifyError, with nothing written, on bad input."""
     import torch
 
+    from falsify.models.squeezeseg import load_state
+
     out = Path(out)
     if out.suffix != ".pt":
         raise FalsifyError(f"--out {out}: must end in .pt")
-    try:
-        state = torch.load(weights, map_location="cpu", weights_only=True)
-    except Exception as exc:  # OSError, RuntimeError, pickle.UnpicklingError, ...
-        raise FalsifyError(f"{weights}: cannot load weights "
-                           f"({str(exc).splitlines()[0]})") from None
-    if not isinstance(state, dict):
-        raise FalsifyError(f"{weights}: not a state dict or training checkpoint")
-    state = state.get("model", state)
+    state = load_state(weights)
     result = choose_alpha(state, val, alphas)
     adjusted = adjust_state(state, result.chosen)
     out.parent.mkdir(parents=True, exist_ok=True)

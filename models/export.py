@@ -10,6 +10,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from falsify.errors import FalsifyError
 from falsify.models.spec import (
     ModelSpec,
     default_spec,
@@ -18,8 +20,6 @@ from falsify.models.spec import (
     save_spec,
     spec_path_for,
 )
-
-from falsify.errors import FalsifyError
 
 if TYPE_CHECKING:
     from falsify.models.squeezeseg import SqueezeSeg
@@ -46,6 +46,7 @@ def export_onnx(model: SqueezeSeg, path: str | Path, H: int = 64, W: int = 512,
     TorchScript exporter (opset 17): same weights give the same bytes.
     """
     import torch
+
     from falsify.models.inference import for_export
 
     path = Path(path)
@@ -291,15 +292,9 @@ def export_weights(weights: str | Path, out: str | Path, crf_iterations: int = 3
     if bad:
         raise FalsifyError(f"--note {bad[0]!r}: write KEY=VALUE")
     import torch
-    from falsify.models.squeezeseg import SqueezeSeg
-    try:
-        state = torch.load(weights, map_location="cpu", weights_only=True)
-    except Exception as exc:  # OSError, RuntimeError, pickle.UnpicklingError, ...
-        raise FalsifyError(f"{weights}: cannot load weights "
-                           f"({str(exc).splitlines()[0]})") from None
-    if not isinstance(state, dict):
-        raise FalsifyError(f"{weights}: not a state dict or training checkpoint")
-    state = state.get("model", state)
+
+    from falsify.models.squeezeseg import SqueezeSeg, load_state
+    state = load_state(weights)
     model = SqueezeSeg(crf_iterations=crf_iterations)
     try:
         model.load_state_dict(state)

@@ -18,8 +18,9 @@ from __future__ import annotations
 import copy
 
 import torch
-from falsify.models.squeezeseg import SqueezeSeg
 from torch import nn
+
+from falsify.models.squeezeseg import SqueezeSeg
 
 
 class TapConv(nn.Module):

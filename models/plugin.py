@@ -31,9 +31,9 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
-from falsify.models.spec import ALL_CHANNELS, ModelSpec, spec_from_dict
 
 from falsify.errors import FalsifyError
+from falsify.models.spec import ALL_CHANNELS, ModelSpec, spec_from_dict
 
 DEVICES = ("cpu", "cuda")
 _DRIVE = re.compile(r"^[A-Za-z]:[\\/]")

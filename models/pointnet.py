@@ -26,6 +26,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
+
+from falsify.errors import FalsifyError
 from falsify.models.plugin import torch_device
 from falsify.models.spec import (
     INPUT_MEAN,
@@ -36,9 +39,6 @@ from falsify.models.spec import (
     save_spec,
     spec_path_for,
 )
-from torch import nn
-
-from falsify.errors import FalsifyError
 from falsify.semantic import TRAIN_CLASSES
 
 OPSET = 17

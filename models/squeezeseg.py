@@ -11,9 +11,10 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import nn
+
 from falsify.models.crf import NUM_CLASSES, THETA_A, THETA_R, RecurrentCRF
 from falsify.models.spec import ALL_CHANNELS, DEFAULT_CHANNELS
-from torch import nn
 
 
 def _same_pad_w(width: int, kernel: int, stride: int) -> tuple[int, int]:
@@ -171,6 +172,21 @@ class SqueezeSeg(nn.Module):
         if xyz is None:
             raise ValueError("the CRF needs the raw xyz input")
         return self.crf(logits, xyz, mask)
+
+
+def load_state(weights) -> dict:
+    """The model state of a weights file: a state dict, or a training checkpoint's `model`;
+    FalsifyError naming the file when it is neither."""
+    from falsify.errors import FalsifyError
+
+    try:
+        state = torch.load(weights, map_location="cpu", weights_only=True)
+    except Exception as exc:  # OSError, RuntimeError, pickle.UnpicklingError, ...
+        raise FalsifyError(f"{weights}: cannot load weights "
+                           f"({str(exc).splitlines()[0]})") from None
+    if not isinstance(state, dict):
+        raise FalsifyError(f"{weights}: not a state dict or training checkpoint")
+    return state.get("model", state)
 
 
 def count_parameters(model: nn.Module, include_crf: bool = False) -> int:

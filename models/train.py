@@ -24,9 +24,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from falsify.models.spec import ALL_CHANNELS, DEFAULT_CHANNELS, normalise
 
 from falsify.errors import FalsifyError
+from falsify.models.spec import ALL_CHANNELS, DEFAULT_CHANNELS, normalise
 
 CLASS_WEIGHTS = (1.0 / 15.0, 1.0, 10.0, 10.0)
 CLASS_SETS = ("kitti4", "semantickitti")
@@ -114,6 +114,7 @@ def bf16_supported() -> bool:
 def batch_tensors(scans: np.ndarray, channels: Sequence[str]):
     """Scans (B,H,W,6) -> x, xyz, mask, labels (torch), with the spec's normalisation."""
     import torch
+
     from falsify.models.spec import INPUT_MEAN, INPUT_STD, SCAN_INDEX
 
     names = (*channels, "mask")

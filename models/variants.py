@@ -7,10 +7,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from falsify.models.runners import OnnxSegmenter, Prediction, TorchSegmenter
-from falsify.models.spec import spec_path_for
 
 from falsify.errors import FalsifyError
+from falsify.models.runners import OnnxSegmenter, Prediction, TorchSegmenter
+from falsify.models.spec import spec_path_for
 
 
 def car_iou(pred: np.ndarray, truth: np.ndarray) -> float:

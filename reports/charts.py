@@ -8,8 +8,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from falsify.reports.page import esc
 
+from falsify.reports.page import esc
 from falsify.results.miou_maps import fmt_value
 
 # viridis at 0, 0.1, ..., 1 (matplotlib): perceptually uniform and colour-blind safe.

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from falsify.reports.charts import f3
 from falsify.reports.page import esc
-
 from falsify.results.explain import Condition, Explanation, score_name
 from falsify.results.store import RunData
 

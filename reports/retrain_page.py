@@ -4,9 +4,9 @@ the selected cells, the regression checks and the issue's criteria (from `falsif
 from __future__ import annotations
 
 import numpy as np
+
 from falsify.reports.charts import Grid, axes_svg, cells_svg, f3, legend_svg, svg_element, viridis
 from falsify.reports.page import esc
-
 from falsify.results.miou_maps import CellMap, fmt_value
 from falsify.results.store import RunData
 

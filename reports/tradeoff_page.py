@@ -10,9 +10,8 @@ import math
 from collections.abc import Sequence
 from pathlib import Path
 
-from falsify.reports.page import esc, head
-
 from falsify.fileio import write_text
+from falsify.reports.page import esc, head
 
 # Okabe-Ito: distinguishable with the common colour-vision deficiencies.
 COLOURS = ("#0072b2", "#e69f00", "#009e73", "#cc79a7", "#d55e00", "#56b4e9", "#000000")

@@ -7,6 +7,7 @@ store without recomputing.
 
 import dataclasses
 
+from falsify.errors import ConfigError
 from falsify.sampler.base import (
     ALGORITHMS,
     NLOPT_ALGORITHMS,
@@ -24,8 +25,6 @@ from falsify.sampler.level_set import LevelSetSampler
 from falsify.sampler.nlopt import NloptSampler
 from falsify.sampler.random import RandomSampler
 from falsify.sampler.sobol import SobolSampler
-
-from falsify.errors import ConfigError
 
 
 def make_sampler(name: str, **options: object) -> Sampler:

@@ -30,9 +30,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from falsify.sampler.base import Evaluate, Recorder, SearchResult, check_batch, check_budget
-
 from falsify.errors import ConfigError, FalsifyError
+from falsify.sampler.base import Evaluate, Recorder, SearchResult, check_batch, check_budget
 from falsify.world.space import Categorical, Sample, Space
 
 INSTALL = 'pip install "falsify[bo]"'

@@ -16,9 +16,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from falsify.sampler.base import Evaluate, Recorder, SearchResult, check_batch, check_budget
 
 from falsify.errors import ConfigError
+from falsify.sampler.base import Evaluate, Recorder, SearchResult, check_batch, check_budget
 from falsify.world.space import Categorical, Sample, Space
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from falsify.sampler.base import BATCH, Evaluate, SearchResult, check_budget, evaluate_all
-
 from falsify.world.space import Space
 
 

@@ -46,9 +46,9 @@ from dataclasses import dataclass, field
 from statistics import NormalDist
 
 import numpy as np
-from falsify.sampler.base import CellEstimate, Evaluate, Recorder, SearchResult, check_budget
 
 from falsify.errors import ConfigError
+from falsify.sampler.base import CellEstimate, Evaluate, Recorder, SearchResult, check_budget
 from falsify.world.space import Sample, Space
 
 LENGTH_SCALES = (0.5, 1.0, 2.0, 3.0, 5.0)   # in cells; 0.5 leaves cells almost independent

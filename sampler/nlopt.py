@@ -41,6 +41,8 @@ from dataclasses import dataclass
 
 import nlopt
 import numpy as np
+
+from falsify.errors import ConfigError
 from falsify.sampler.base import (
     NLOPT_ALGORITHMS,
     Evaluate,
@@ -49,8 +51,6 @@ from falsify.sampler.base import (
     check_budget,
     part_of,
 )
-
-from falsify.errors import ConfigError
 from falsify.world.space import Categorical, Continuous, Sample, Space, Value
 
 LOCAL_SUBOPTIMISERS = ("LN_BOBYQA", "LN_COBYLA")

@@ -6,8 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from falsify.sampler.base import BATCH, Evaluate, SearchResult, check_budget, evaluate_all
 
+from falsify.sampler.base import BATCH, Evaluate, SearchResult, check_budget, evaluate_all
 from falsify.world.space import Categorical, Sample, Space
 
 

@@ -7,9 +7,9 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-from falsify.sampler.base import BATCH, Evaluate, SearchResult, check_budget, evaluate_all
 from scipy.stats import qmc
 
+from falsify.sampler.base import BATCH, Evaluate, SearchResult, check_budget, evaluate_all
 from falsify.world.space import Categorical, Continuous, Sample, Space
 
 

@@ -75,6 +75,24 @@ def assert_offline(browser) -> None:
     assert not errors, errors
 
 
+class Scorer:
+    """An evaluate callback: scores with `fn`, keeps every sample and each batch's size."""
+
+    def __init__(self, fn=lambda s: 0.5):
+        self.fn = fn
+        self.samples: list = []
+        self.batches: list[int] = []
+
+    def __call__(self, batch):
+        self.batches.append(len(batch))
+        self.samples.extend(batch)
+        return [self.fn(s) for s in batch]
+
+    @property
+    def scores(self) -> list:
+        return [self.fn(s) for s in self.samples]
+
+
 def scored(fn):
     """An evaluate callback scoring each sample with `fn`, and the batch sizes it was called
     with (what a sampler test reads)."""

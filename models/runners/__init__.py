@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from falsify.errors import FalsifyError
 from falsify.models.plugin import check_device, is_plugin
 from falsify.models.runners.base import (
     BACKENDS,
@@ -29,8 +30,6 @@ from falsify.models.runners.base import (
 from falsify.models.runners.onnx import OnnxSegmenter, cpu_session, onnx_session
 from falsify.models.runners.plugin import PluginSegmenter
 from falsify.models.runners.torch import TorchSegmenter
-
-from falsify.errors import FalsifyError
 
 __all__ = [
     "BACKENDS", "BATCH", "BUNDLED_ONNX", "BUNDLED_PT", "CARDS_DIR", "WEIGHTS_DIR",

@@ -13,6 +13,9 @@ from pathlib import Path
 from typing import Protocol
 
 import numpy as np
+
+from falsify.classes import CLASSES
+from falsify.errors import FalsifyError
 from falsify.models.spec import (
     POINT_CHANNELS,
     SCAN_INDEX,
@@ -22,9 +25,6 @@ from falsify.models.spec import (
     normalise,
     spec_path_for,
 )
-
-from falsify.classes import CLASSES
-from falsify.errors import FalsifyError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 CARDS_DIR = Path(__file__).resolve().parent.parent / "cards"   # one model card per network, shipped

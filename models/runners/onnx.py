@@ -7,6 +7,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from falsify.errors import FalsifyError
 from falsify.models.plugin import check_device
 from falsify.models.runners.base import (
     BATCH,
@@ -18,8 +20,6 @@ from falsify.models.runners.base import (
     scatter,
     to_prediction,
 )
-
-from falsify.errors import FalsifyError
 
 
 def cpu_session(model: str | bytes, threads: int | None = None):

@@ -8,11 +8,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from falsify.errors import FalsifyError
 from falsify.models.plugin import open_plugin
 from falsify.models.runners.base import Prediction, check_scans, points_of, scatter, to_prediction
 from falsify.models.spec import ModelSpec
-
-from falsify.errors import FalsifyError
 
 
 class PluginSegmenter:

@@ -7,6 +7,8 @@ import hashlib
 from pathlib import Path
 
 import numpy as np
+
+from falsify.errors import FalsifyError
 from falsify.models.plugin import torch_device
 from falsify.models.runners.base import (
     BATCH,
@@ -16,8 +18,6 @@ from falsify.models.runners.base import (
     open_model,
     to_prediction,
 )
-
-from falsify.errors import FalsifyError
 
 
 class TorchSegmenter:
@@ -45,6 +45,7 @@ class TorchSegmenter:
                                f"architecture {self.spec.architecture!r}")
         self.device = torch_device(device)
         import torch
+
         from falsify.models.squeezeseg import SqueezeSeg
 
         if threads:

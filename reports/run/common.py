@@ -6,8 +6,8 @@ from __future__ import annotations
 import math
 
 import pandas as pd
-from falsify.reports.page import esc
 
+from falsify.reports.page import esc
 from falsify.results.miou_maps import fmt_value
 from falsify.results.store import RunData
 

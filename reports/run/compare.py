@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pandas as pd
+
 from falsify.reports.charts import (
     PUOR,
     Grid,
@@ -19,7 +20,6 @@ from falsify.reports.charts import (
 )
 from falsify.reports.page import esc
 from falsify.reports.run.common import cell_key
-
 from falsify.results.miou_maps import CellMap, fmt_value
 from falsify.results.miou_maps import compare as compare_maps
 from falsify.results.store import RunData

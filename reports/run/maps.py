@@ -6,10 +6,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
 from falsify.reports.charts import Grid, axes_svg, cells_svg, f3, legend_svg, svg_element, viridis
 from falsify.reports.page import esc
 from falsify.reports.run.common import bg_values, model_heading, objective_name, objective_title
-
 from falsify.results.metrics import Status, column
 from falsify.results.miou_maps import CellMap, fmt_value
 from falsify.results.store import RunData

@@ -8,6 +8,7 @@ from collections.abc import Callable
 
 import numpy as np
 import pandas as pd
+
 from falsify.reports.charts import (
     Grid,
     axes_svg,
@@ -20,7 +21,6 @@ from falsify.reports.charts import (
 )
 from falsify.reports.page import esc
 from falsify.reports.run.common import objective_name
-
 from falsify.results.miou_maps import CellMap
 from falsify.results.store import RunData
 

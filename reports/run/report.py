@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+import falsify
 from falsify.reports.charts import BLIND_STROKE, FONT, VIRIDIS
 from falsify.reports.explain_page import explain_section
 from falsify.reports.page import esc, head
@@ -25,8 +27,6 @@ from falsify.reports.run.maps import class_maps_section, heatmap_section, insert
 from falsify.reports.run.plots import distance_section, search_section
 from falsify.reports.run.summary import summary_section
 from falsify.reports.run.worst import ReplayedScan, worst_section
-
-import falsify
 from falsify.results.explain import Explanation
 from falsify.results.miou_maps import fmt_value
 from falsify.results.store import RunData

@@ -4,10 +4,10 @@ worst cell and sample, and the run's time."""
 from __future__ import annotations
 
 import numpy as np
+
 from falsify.reports.charts import f3
 from falsify.reports.page import esc
 from falsify.reports.run.common import bg_text, dim_text
-
 from falsify.results.metrics import Status
 from falsify.results.miou_maps import CellMap, fmt_value
 from falsify.results.store import RunData

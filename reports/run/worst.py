@@ -10,10 +10,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
+
 from falsify.reports.charts import f3
 from falsify.reports.page import esc
 from falsify.reports.run.common import bg_text, dim_text, model_heading, objective_name
-
 from falsify.results.store import RunData
 
 

@@ -50,6 +50,7 @@ def car_iou(pred: np.ndarray, images: np.ndarray) -> dict:
 def run_one(arm: str, channels_name: str, seed: int, args: dict) -> dict:
     """Train one network and score it on the evaluation scans."""
     import torch
+
     from falsify.models.squeezeseg import SqueezeSeg
     from falsify.models.train import CLASS_WEIGHTS, batch_tensors, flip, masked_loss
 

@@ -14,9 +14,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from falsify.models.runners import load_segmenter
 
 from falsify.jobs.instance_faithfulness import run_instance_faithfulness
+from falsify.models.runners import load_segmenter
 from falsify.sensor.lidar import load_sensor
 from falsify.sensor.returns import ReturnModel
 

@@ -19,9 +19,9 @@ import json
 from pathlib import Path
 
 import numpy as np
-from falsify.models.runners import load_segmenter
 
 from falsify.data.velodyne import read_kitti
+from falsify.models.runners import load_segmenter
 from falsify.semantic import TRAIN_CLASSES, train_ids
 from falsify.sensor.lidar import load_sensor
 from falsify.world.real_scans import label_file

@@ -27,9 +27,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from falsify.sampler import make_sampler
 
 from falsify.executors.evaluator import EvalSettings, Evaluator
+from falsify.sampler import make_sampler
 from falsify.world.space import Space, load_space
 
 HERE = Path(__file__).resolve().parent

@@ -27,9 +27,8 @@ def test_flags_are_read_and_bf16_units_recognised(tmp_path):
 def test_auto_precision_trains_in_fp32_without_bf16_units(monkeypatch):
     """oneDNN emulates bf16 on plain AVX-512 (slower than fp32): such a CPU trains in fp32."""
     pytest.importorskip("torch")
-    from falsify.models.train import bf16_supported
-
     import falsify.cpu
+    from falsify.models.train import bf16_supported
 
     monkeypatch.setattr(falsify.cpu, "cpu_flags", lambda: {"avx512f", "avx512_vnni"})
     assert bf16_supported() is False

@@ -117,9 +117,9 @@ def test_int8_matrix_rate_multiplies_integers_exactly():
     """The int8 product timed is a real u8 x s8 -> s32 product (checked against numpy), so its
     rate is of the integer path, not of a graph ONNX Runtime folded away."""
     import numpy as np
-    from falsify.models.runners import cpu_session
 
     from falsify.bench.machine import matmul_graph
+    from falsify.models.runners import cpu_session
 
     model, a, b = matmul_graph(16, 32, 8, kind="int8")
     y = cpu_session(model, threads=1).run(None, {"A": a})[0]

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from falsify.reports.tradeoff_page import pareto
 
 from falsify.bench.tradeoff import (
     BUDGET_FRACTIONS,
@@ -24,6 +23,7 @@ from falsify.bench.tradeoff import (
     STEPS,
 )
 from falsify.cli import main
+from falsify.reports.tradeoff_page import pareto
 from falsify.results.miou_maps import CellMap, fill_nearest, jaccard, map_error
 
 pytestmark = pytest.mark.slow   # the heavy tier: whole trade-off runs

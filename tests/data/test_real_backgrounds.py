@@ -343,10 +343,9 @@ def test_real_semantickitti_scans_keep_their_bytes_out_of_the_cars_reach(tmp_pat
 
 
 def test_retrain_runs_on_real_backgrounds_and_refuses_evaluation_scans(tmp_path):
-    from falsify.models.runners import BUNDLED_ONNX
-
     from falsify.data.training import TrafficOptions, write_dataset
     from falsify.jobs.retrain import RetrainJob, RetrainRequest
+    from falsify.models.runners import BUNDLED_ONNX
 
     v = write_scan(tmp_path / "v", *street_cloud())
     r = write_scan(tmp_path / "r", *street_cloud(slope=0.02))

@@ -17,9 +17,6 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from falsify.models.runners import load_segmenter
-from falsify.models.spec import spec_path_for
-from falsify.sampler import make_sampler
 
 from falsify.cli import main
 from falsify.errors import FalsifyError
@@ -27,8 +24,11 @@ from falsify.executors.driver import Driver, Progress
 from falsify.executors.evaluator import EvalSettings, Evaluator
 from falsify.executors.ray import ActorCrash, EvalActor, RayExecutor, Shipment, import_ray
 from falsify.jobs.run import RunRequest, execute, executors_of
+from falsify.models.runners import load_segmenter
+from falsify.models.spec import spec_path_for
 from falsify.results.samples import sample_key
 from falsify.results.store import STORE_NAME, TIMING_COLUMNS, Store, read_frame, read_meta
+from falsify.sampler import make_sampler
 from falsify.world.space import load_space
 from tests.cli.test_bad_input import snapshot
 

@@ -9,12 +9,12 @@ import threading
 from pathlib import Path
 
 import pytest
-from falsify.sampler import make_sampler
 
 from falsify.executors.driver import Driver, Progress
 from falsify.executors.evaluator import EvalSettings
 from falsify.jobs.run import RunRequest, execute
 from falsify.results.store import STORE_NAME, TIMING_COLUMNS, Store, read_frame
+from falsify.sampler import make_sampler
 from falsify.world.space import load_space
 
 pytestmark = pytest.mark.slow   # the heavy tier: real multi-node Ray clusters

@@ -11,7 +11,6 @@ import math
 
 import numpy as np
 import pytest
-from falsify.models.runners import load_segmenter
 
 from falsify.cli import main
 from falsify.data.real_backgrounds import INSERTED_INSTANCE, RealScanner
@@ -21,6 +20,7 @@ from falsify.jobs.instance_faithfulness import (
     interval95,
     run_instance_faithfulness,
 )
+from falsify.models.runners import load_segmenter
 from falsify.semantic import RAW_ID, join_label
 from falsify.sensor.lidar import load_sensor
 from falsify.sensor.simulator import FIRST_CAR_INSTANCE, PlacedCar

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from falsify.reports.realism_page import render_realism
 from scipy.linalg import sqrtm
 
 from falsify.cli import main
 from falsify.jobs.realism import REFERENCE
+from falsify.reports.realism_page import render_realism
 from falsify.results.distances import frechet_distance, frechet_from_samples, wasserstein_hist
 from falsify.results.feature_moments import (
     ScanFeatures,

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from falsify.reports.realism_page import render_realism
 
 from falsify.cli import main
 from falsify.cli.realism import realism_text
 from falsify.data.scansets import load_sets
+from falsify.reports.realism_page import render_realism
 from falsify.results.scan_statistics import SetStats
 from falsify.semantic import TRAIN_CLASSES, kitti4, kitti4_of_train, train_ids
 from falsify.sensor.lidar import load_sensor

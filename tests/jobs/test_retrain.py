@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from falsify.models.runners import BUNDLED_ONNX
 
 from falsify.cli import main
 from falsify.data.training import TrafficOptions, write_dataset
@@ -20,6 +19,7 @@ from falsify.errors import FalsifyError
 from falsify.jobs.retrain import STAGES, RetrainJob, RetrainRequest
 from falsify.jobs.retrain_config import parse_ids, subset_config
 from falsify.jobs.retrain_selection import control_cells
+from falsify.models.runners import BUNDLED_ONNX
 from falsify.results.miou_maps import CellMap
 from falsify.results.samples import sample_seed
 from falsify.sensor.lidar import load_sensor

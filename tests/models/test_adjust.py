@@ -10,13 +10,12 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from falsify.cli import main as falsify_main  # noqa: E402
 from falsify.models.adjust import adjust_state, choose_alpha, logit_offsets  # noqa: E402
 from falsify.models.plausible import plausible_scans  # noqa: E402
 from falsify.models.spec import DEFAULT_CHANNELS  # noqa: E402
 from falsify.models.squeezeseg import SqueezeSeg  # noqa: E402
 from falsify.models.train import CLASS_WEIGHTS, batch_tensors  # noqa: E402
-
-from falsify.cli import main as falsify_main  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import onnx
 import pytest
-from falsify.models.flops import count_flops, static_shapes
 from onnx import TensorProto, helper, numpy_helper
 
+from falsify.models.flops import count_flops, static_shapes
 from tests.conftest import ROOT
 
 BUNDLED = ROOT / "models" / "weights" / "squeezeseg.onnx"

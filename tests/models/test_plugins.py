@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+
+from falsify.cli import main
+from falsify.errors import FalsifyError
 from falsify.models.plausible import plausible_scans
 from falsify.models.plugin import is_plugin
 from falsify.models.runners import BUNDLED_ONNX, PluginSegmenter, load_segmenter
 from falsify.models.spec import SPEC_CLASSES, four_class_of, load_spec, spec_path_for, train_id_of
-
-from falsify.cli import main
-from falsify.errors import FalsifyError
 from falsify.results.metrics import class_scores, confusion
 from falsify.results.replay import row_sample
 from falsify.results.samples import sample_seed

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from falsify.errors import FalsifyError
 from falsify.models.plausible import plausible_scans
 from falsify.models.runners import (
     BUNDLED_ONNX,
@@ -18,8 +20,6 @@ from falsify.models.runners import (
     to_prediction,
 )
 from falsify.models.spec import load_spec, model_hash, spec_path_for
-
-from falsify.errors import FalsifyError
 
 KITTI = Path(__file__).resolve().parents[3] / "shared" / "data" / "kitti" / "squeezeseg"
 ROOT = Path(__file__).resolve().parents[2]
@@ -80,6 +80,7 @@ def test_single_scan_and_hash(exported):
 
 def test_export_is_deterministic(exported, tmp_path):
     import torch
+
     from falsify.models.export import export_onnx
     from falsify.models.squeezeseg import SqueezeSeg
 

@@ -9,11 +9,10 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from falsify.models.plausible import plausible_scans  # noqa: E402
-from falsify.models.train import flip  # noqa: E402
-
 from falsify.cli import main as falsify_main  # noqa: E402
 from falsify.errors import FalsifyError  # noqa: E402
+from falsify.models.plausible import plausible_scans  # noqa: E402
+from falsify.models.train import flip  # noqa: E402
 
 
 @pytest.fixture(scope="module")

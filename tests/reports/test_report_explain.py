@@ -8,11 +8,11 @@ import re
 from pathlib import Path
 
 import pytest
-from falsify.reports.run import ReportInput, render
 
 from falsify.errors import FalsifyError
 from falsify.jobs.explain import explain_run
 from falsify.jobs.report import explain_report, render_report
+from falsify.reports.run import ReportInput, render
 from falsify.results.explain import Explanation
 from falsify.results.store import open_run
 from falsify.world.space import load_space
@@ -165,7 +165,6 @@ def test_real_background_names_are_escaped() -> None:
     from types import SimpleNamespace
 
     from falsify.reports.explain_page import explain_section
-
     from falsify.results.explain import Cluster, Condition, Rule
 
     names = ["scan-a", '<b>&"scan']

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from falsify.models.runners import load_segmenter
 
 from falsify.cli import main
 from falsify.data.velodyne import read_kitti
+from falsify.models.runners import load_segmenter
 from falsify.results.metrics import Scoring
 from falsify.semantic import TRAIN_CLASSES, train_ids
 from falsify.sensor.lidar import load_sensor

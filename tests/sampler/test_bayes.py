@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from falsify.sampler import ALGORITHMS, make_sampler
 
 from falsify.errors import ConfigError, FalsifyError
+from falsify.sampler import ALGORITHMS, make_sampler
 from falsify.world.space import Categorical, Continuous, Space, parse_space
 from tests.conftest import scored
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from falsify.sampler import make_sampler
 
 from falsify.errors import ConfigError
+from falsify.sampler import make_sampler
 from falsify.world.space import parse_space
 from tests.conftest import scored
 

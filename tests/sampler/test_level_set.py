@@ -19,14 +19,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from falsify.sampler import make_sampler
-from falsify.sampler.level_set import LevelSetSampler, blind_cells
 
 from falsify.cli import main
 from falsify.errors import ConfigError
 from falsify.jobs.run import finish
 from falsify.results.store import open_run
+from falsify.sampler import make_sampler
+from falsify.sampler.level_set import LevelSetSampler, blind_cells
 from falsify.world.space import Sample, Space, load_space
+from tests.conftest import Scorer
 from tests.runfixture import write_run
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -78,20 +79,6 @@ def noisy(s: Sample, amplitude: float = 0.02) -> float:
     x, y, bg = float(s["x"]), float(s["y"]), int(s["background"])
     u = zlib.crc32(f"{x}:{y}:{bg}".encode()) / 2 ** 32 - 0.5   # seeded, uniform in [-0.5, 0.5)
     return smooth(x, y) + OFFSET[bg] + 2 * amplitude * u
-
-
-class Scorer:
-    """An evaluate callback: scores with `fn`, keeps every sample and each batch's size."""
-
-    def __init__(self, fn: Fn = noisy):
-        self.fn = fn
-        self.samples: list[Sample] = []
-        self.batches: list[int] = []
-
-    def __call__(self, batch):
-        self.batches.append(len(batch))
-        self.samples.extend(batch)
-        return [self.fn(s) for s in batch]
 
 
 def run(space: Space, fn: Fn = noisy, budget: int | None = None, seed: int = 0, **options):
@@ -260,7 +247,7 @@ def test_unknown_option_is_refused():
 
 def test_a_space_without_x_is_refused_before_scoring(space):
     no_x = dataclasses.replace(space, dims={k: v for k, v in space.dims.items() if k != "x"})
-    scorer = Scorer()
+    scorer = Scorer(noisy)
     with pytest.raises(ConfigError, match="'x'"):
         LevelSetSampler().run(no_x, scorer, None, 0)
     assert scorer.samples == []
@@ -268,7 +255,7 @@ def test_a_space_without_x_is_refused_before_scoring(space):
 
 def test_negative_budget_is_refused(space):
     with pytest.raises(ConfigError, match="budget"):
-        LevelSetSampler().run(space, Scorer(), -1, 0)
+        LevelSetSampler().run(space, Scorer(noisy), -1, 0)
 
 
 def test_own_threshold_overrides_the_space(space):

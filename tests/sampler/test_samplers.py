@@ -13,12 +13,13 @@ import types
 from unittest import mock
 
 import pytest
+
+from falsify.errors import ConfigError
 from falsify.sampler import ALGORITHMS, NLOPT_ALGORITHMS, lowest_so_far, make_sampler
 from falsify.sampler.base import Recorder as BaseRecorder
 from falsify.sampler.nlopt import NloptSampler, discrete_combos
-
-from falsify.errors import ConfigError
 from falsify.world.space import Categorical, Continuous, Sample, Space, parse_space
+from tests.conftest import Scorer
 
 CARS = ("sedan", "suv")
 
@@ -50,32 +51,14 @@ def small_space() -> Space:
                      "background": {"values": [3, 4]}, "weather": {"values": ["sun", "rain"]}})
 
 
-class Recorder:
-    """An `evaluate` that scores with `fn`, records every sample and the batch sizes."""
-
-    def __init__(self, fn=lambda s: 0.5):
-        self.fn = fn
-        self.samples: list[Sample] = []
-        self.batches: list[int] = []
-
-    def __call__(self, batch):
-        self.batches.append(len(batch))
-        self.samples.extend(batch)
-        return [self.fn(s) for s in batch]
-
-    @property
-    def scores(self) -> list:
-        return [self.fn(s) for s in self.samples]
-
-
 def in_bounds(space: Space, sample: Sample) -> bool:
     return all(d.contains(sample[name]) if isinstance(d, Categorical)
                else d.lo <= sample[name] <= d.hi for name, d in space.dims.items())
 
 
 def run(name: str, space: Space, budget: int | None, seed: int = 0, fn=lambda s: 0.5,
-        **options) -> Recorder:
-    rec = Recorder(fn)
+        **options) -> Scorer:
+    rec = Scorer(fn)
     make_sampler(name, **options).run(space, rec, budget, seed)
     return rec
 
@@ -214,7 +197,7 @@ def test_nlopt_local_restarts_use_the_whole_budget_and_stay_in_bounds():
     space = paper_space()
     corner = lambda s: (s["x"] - 4) ** 2 + (s["y"] - 5) ** 2  # noqa: E731 (minimum on a corner)
     for name in ("LN_BOBYQA", "LN_COBYLA", "LN_NELDERMEAD", "LN_SBPLX"):
-        res = NloptSampler(name).optimise(space, Recorder(corner), 120, seed=0)
+        res = NloptSampler(name).optimise(space, Scorer(corner), 120, seed=0)
         assert res[0].evaluations == 120 and res[0].runs > 1
         assert res[0].best_score < 1e-3
         assert in_bounds(space, res[0].best_sample)
@@ -229,7 +212,7 @@ def test_nlopt_none_scores_become_a_penalty():
     rec = run("LN_NELDERMEAD", space, 100, fn=fn)
     assert None in rec.scores and len(rec.samples) <= 100
     assert min(v for v in rec.scores if v is not None) <= 0.22
-    res = NloptSampler("GN_DIRECT_L").optimise(space, Recorder(lambda s: None), 30, seed=0)
+    res = NloptSampler("GN_DIRECT_L").optimise(space, Scorer(lambda s: None), 30, seed=0)
     assert res[0].evaluations == 30 and res[0].best_score is None
 
 
@@ -260,7 +243,7 @@ def test_nlopt_outer_loop_covers_every_combination_and_splits_the_budget():
     # count 1: car_model x background x weather; count 2 adds car_model_2.
     assert len(combos) == 2 * 2 * 2 + 2 * 2 * 2 * 2
     assert all(c["count"] == 1 and "car_model_2" not in c for c in combos[:8])
-    rec = Recorder(planted)
+    rec = Scorer(planted)
     res = NloptSampler("LN_COBYLA").optimise(space, rec, 24 * 5 + 3, seed=0)
     assert [dict(r.combo) for r in res] == combos
     assert [r.evaluations for r in res] == [6, 6, 6] + [5] * 21
@@ -328,9 +311,9 @@ def test_concurrent_combinations_give_the_sequential_result(name):
     loop (GN_CRS2_LM draws from NLopt's generator, which is per thread; LN_BOBYQA does not)."""
     space = small_space()        # 24 combinations
     budget = 24 * 5 + 3
-    seq_rec = Recorder(planted)
+    seq_rec = Scorer(planted)
     seq = NloptSampler(name).optimise(space, seq_rec, budget, seed=5)
-    want = make_sampler(name).run(space, Recorder(planted), budget, 5)
+    want = make_sampler(name).run(space, Scorer(planted), budget, 5)
     assert list(want.samples) == seq_rec.samples and want.evaluations == budget
     combos = discrete_combos(space)
     where = [next(i for i, c in enumerate(combos) if all(s[k] == v for k, v in c.items()))

@@ -6,6 +6,7 @@ for `squeezeseg-drive`)."""
 import time
 
 import numpy as np
+
 from falsify.models.runners import load_segmenter
 
 DELAY_S = 0.25   # seconds a frame: a heavy network's cost on a CPU, or a busy GPU's share

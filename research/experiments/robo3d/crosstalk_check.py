@@ -8,9 +8,9 @@ crosstalk, predicted side by side (robustness.md).
 from __future__ import annotations
 
 import numpy as np
-from falsify.models.runners import load_segmenter
 
 from falsify.data.real_backgrounds import scanner_for
+from falsify.models.runners import load_segmenter
 from falsify.world.space import load_space
 
 space = load_space("research/experiments/robo3d/crosstalk.toml")
