@@ -32,10 +32,9 @@ def naive_image(space: Space, sample: Sample, renderer: CameraRenderer
     scene built for this image."""
     import trimesh
 
-    from falsify.world.streets import build_background
 
     sim = renderer.sim
-    bg = build_background(sample.background)
+    bg = space.street(sample.background)
     placed = sim.placed_cars(sample)
     meshes = [trimesh.Trimesh(bg.vertices, bg.faces, process=False)]
     offsets = [len(bg.faces)]
@@ -99,7 +98,8 @@ def bench_camera(config: str | Path, camera: str = "kitti-centre", samples: int 
     cam = camera_preset(camera)
     grid = space.grid()
     picked = [grid[i * len(grid) // samples + i] for i in range(min(samples, len(grid) // 2))]
-    sim = Simulator(load_sensor(space.sensor), space.user_cars, max_bvh=64)
+    sim = Simulator(load_sensor(space.sensor), space.user_cars, max_bvh=64,
+                    background_source=space.background_source())
     renderer = CameraRenderer(sim, cam, max_cached=1)  # each image on a new background: cold
     for s in picked:  # build every BVH before the clock starts
         sim.background(s.background)

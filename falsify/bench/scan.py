@@ -130,11 +130,10 @@ def naive_scan(space: Space, sample: Sample):
 
     from falsify.sensor.simulator import porosity_seed
     from falsify.world.materials import PASS_PROB
-    from falsify.world.streets import build_background
 
     sensor = load_sensor(space.sensor)
-    sim = Simulator(sensor, space.user_cars)
-    bg = build_background(sample.background)
+    sim = Simulator(sensor, space.user_cars, background_source=space.background_source())
+    bg = space.street(sample.background)
     meshes = [trimesh.Trimesh(bg.vertices, bg.faces, process=False)]
     mats = [bg.materials()]
     for pc in sim.placed_cars(sample):
@@ -247,7 +246,6 @@ def bench_scan(config: str | Path, samples: int = 1000, naive_samples: int = 5,
 def scene_size_effect(space: Space, samples: list[Sample]) -> dict:
     """Per-scan time with the street as built, with every triangle split in 4 twice (16× the
     triangles), and with 10× the objects far beyond max range, and with image-only dims varied."""
-    from falsify.world.streets import build_background
 
     def warmed(transform) -> tuple[Simulator, int]:
         """A simulator over the transformed streets, every street built and cast before the
@@ -256,7 +254,7 @@ def scene_size_effect(space: Space, samples: list[Sample]) -> dict:
         tri = {}
 
         def source(bg_id):
-            bg = transform(build_background(bg_id))
+            bg = transform(space.street(bg_id))
             tri[bg_id] = len(bg.faces)
             return bg
         sim = Simulator(load_sensor(space.sensor), space.user_cars, max_bvh=1,
@@ -320,7 +318,8 @@ def _image_dims_scans(space: Space, samples: list[Sample]) -> tuple[Simulator, l
         d.update(colour=("red", "white", "black")[i % 3], weather=("sun", "rain", "fog")[i % 3],
                  time_of_day=("noon", "dusk", "night")[(i // 3) % 3])
         varied.append(wide.make(d))
-    sim = Simulator(load_sensor(space.sensor), space.user_cars)
+    sim = Simulator(load_sensor(space.sensor), space.user_cars,
+                    background_source=space.background_source())
     warm(sim, varied)
     return sim, varied
 
@@ -383,7 +382,8 @@ def bench_effects(config: str | Path, samples: int | None = None,
     space = load_space(config)
     grid = space.grid()
     picked = grid if samples is None else [grid[i % len(grid)] for i in range(samples)]
-    sim = Simulator(load_sensor(space.sensor), space.user_cars)
+    sim = Simulator(load_sensor(space.sensor), space.user_cars,
+                    background_source=space.background_source())
     warm(sim, picked)
     seeds = [sample_seed(space, s) for s in picked]
     clear = [without_effects(s) for s in picked]

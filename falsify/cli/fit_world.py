@@ -89,4 +89,14 @@ def _fit_world_text(doc: dict) -> str:
             s = summ[k]
             d = "" if dist is None else f"   W1 {dist[k]:.4f}"
             lines.append(f"  {k:12s} {s['p50']:8.3f} [{s['p5']:7.3f} .. {s['p95']:7.3f}]{d}")
+    lines.append("places: share of front points per class group and range band, median "
+                 "[10-90 %] over scans; W1 to the fit scans")
+    lines.append(f"  {'group, band':24s} {'fit':>22s} {'world':>30s} {'profiled world':>30s}")
+    fit, base, prof = doc["places_fit"], doc["places_world"], doc["places_profiled_world"]
+    for key, f in fit.items():
+        cells = [f"{f['p50']:.3f} [{f['p10']:.3f}..{f['p90']:.3f}]"]
+        for side in (base[key], prof[key]):
+            cells.append(f"{side['p50']:.3f} [{side['p10']:.3f}..{side['p90']:.3f}] "
+                         f"W1 {side['w1']:.3f}")
+        lines.append(f"  {key:24s} {cells[0]:>22s} {cells[1]:>30s} {cells[2]:>30s}")
     return "\n".join(lines)

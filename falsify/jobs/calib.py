@@ -168,7 +168,8 @@ def scene_agreement(config: str | Path, samples: int = 100, camera: str = "kitti
     space = load_space(config)
     space.require_streets("calib on our scenes")
     cam = camera_preset(camera)
-    sim = Simulator(load_sensor(space.sensor), space.user_cars)
+    sim = Simulator(load_sensor(space.sensor), space.user_cars,
+                    background_source=space.background_source())
     renderer = CameraRenderer(sim, cam)
     grid = space.grid()
     picked = [grid[i * len(grid) // samples] for i in range(min(samples, len(grid)))]

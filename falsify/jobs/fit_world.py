@@ -29,6 +29,7 @@ from falsify.data.holdout import check_not_held_out
 from falsify.data.velodyne import read_bin
 from falsify.errors import FalsifyError
 from falsify.semantic import RAW_ID, split_label
+from falsify.world.places import BANDS_M, GROUPS, Place
 from falsify.world.profile import PARKED_KEEP_GRID, WorldProfile
 from falsify.world.real_scans import real_scans
 
@@ -103,6 +104,52 @@ def scene_stats(name: str, points: np.ndarray, labels: np.ndarray) -> SceneStats
     )
 
 
+# SemanticKITTI's classes in each of the place's groups (falsify.world.places.GROUPS).
+GROUP_IDS: dict[str, tuple[int, ...]] = {
+    "road": ("road", "parking", "lane-marking"), "sidewalk": ("sidewalk", "other-ground"),
+    "terrain": ("terrain",), "vegetation": ("vegetation", "trunk"),
+    "building": ("building", "other-structure"), "fence": ("fence",),
+    "pole": ("pole", "traffic-sign"), "car": ("car", "moving-car"),
+    "other_vehicle": ("truck", "other-vehicle", "bus", "motorcycle", "bicycle", "moving-truck",
+                      "moving-other-vehicle", "moving-bus"),
+    "unlabeled": ("unlabeled", "outlier", "other-object"),
+}
+CLUTTER_GROUPS = ("vegetation", "building", "fence", "pole", "unlabeled")
+CLUTTER_X = (5.0, 30.0)   # m ahead: the strip whose clutter's lateral distance a place keeps
+FAR_CLUTTER_M = 30.0      # a side with no clutter in the strip
+
+
+def place_of(name: str, points: np.ndarray, labels: np.ndarray,
+             stats: SceneStats) -> Place:
+    """The place one labelled scan shows (falsify.world.places.Place): its pose from `stats`,
+    its front-90-degree points' share per class group in each range band, and the 5th
+    percentile of |y| of the clutter in the strip CLUTTER_X ahead on each side."""
+    sem = split_label(labels)[0]
+    x, y = points[:, 0].astype(np.float64), points[:, 1].astype(np.float64)
+    ok = np.isfinite(x) & np.isfinite(y)
+    front = ok & (x > 0) & (np.abs(y) <= x)
+    dist = np.hypot(x, y)
+    ids = {g: np.array([RAW_ID[c] for c in GROUP_IDS[g] if c in RAW_ID]) for g in GROUPS}
+    shares = []
+    for g in GROUPS:
+        member = np.isin(sem, ids[g])
+        row = []
+        for lo, hi in zip(BANDS_M[:-1], BANDS_M[1:], strict=True):
+            band = front & (dist >= lo) & (dist < hi)
+            row.append(round(float((member & band).sum() / max(int(band.sum()), 1)), 5))
+        shares.append(tuple(row))
+    strip = front & (x > CLUTTER_X[0]) & (x < CLUTTER_X[1])
+    clutter = strip & np.isin(sem, np.concatenate([ids[g] for g in CLUTTER_GROUPS]))
+    near = []
+    for sign in (1, -1):
+        on = clutter & (sign * y > 0)
+        near.append(round(float(np.percentile(np.abs(y[on]), 5)), 3)
+                    if on.sum() >= MIN_CAR_POINTS else FAR_CLUTTER_M)
+    return Place(name=name, pitch_deg=round(stats.pitch_deg, 4),
+                 height_m=round(stats.height_m, 4), shares=tuple(shares),
+                 clutter_left_m=near[0], clutter_right_m=near[1])
+
+
 def silverman_bandwidth(values: np.ndarray) -> float:
     """Silverman's rule-of-thumb bandwidth of a Gaussian kernel density estimate,
     0.9 min(sigma, IQR / 1.34) n^(-1/5) (Silverman, Density Estimation, 1986, eq. 3.31)."""
@@ -154,6 +201,19 @@ def describe(paths: list[str], sequences: list[str] | None = None) -> list[Scene
     return out
 
 
+def describe_places(paths: list[str], sequences: list[str] | None = None) -> list[Place]:
+    """The place (place_of) of every labelled scan the paths name."""
+    out = []
+    for name, path, label, kind in real_scans(paths, sequences):
+        if kind != "semantickitti" or label is None:
+            raise FalsifyError(f"{path}: no SemanticKITTI .label beside it or in ../labels/ "
+                               "(its places cannot be measured)")
+        labels = np.fromfile(label, np.uint32)
+        points = read_bin(path)
+        out.append(place_of(name, points, labels, scene_stats(name, points, labels)))
+    return out
+
+
 def check_fit_data(paths: list[str], sequences: list[str] | None,
                    holdout: Sequence[str | Path] = ()) -> None:
     """FalsifyError naming the first scan that is held out (never fitted to): by the split
@@ -163,10 +223,12 @@ def check_fit_data(paths: list[str], sequences: list[str] | None,
 
 
 def world_scenes(sensor, scans: int = BASE_SCANS, seed: int = BASE_SEED,
-                 profiles: tuple[WorldProfile | None, ...] = (None,)) -> list[list[SceneStats]]:
+                 profiles: tuple[WorldProfile | None, ...] = (None,),
+                 places_out: list[list[Place]] | None = None) -> list[list[SceneStats]]:
     """The statistics of `scans` training scenes of the world, one list per profile (None: the
-    world as built); the scenes stand on as many streets (every SCANS_PER_BACKGROUND-th scene),
-    so the world is measured across streets, not on a few."""
+    world as built), and their places into `places_out` (one list per profile) when given; the
+    scenes stand on as many streets (every SCANS_PER_BACKGROUND-th scene), so the world is
+    measured across streets, not on a few."""
     from falsify.data.training import (
         SCANS_PER_BACKGROUND,
         TRAIN_BACKGROUND_FIRST,
@@ -186,7 +248,10 @@ def world_scenes(sensor, scans: int = BASE_SCANS, seed: int = BASE_SEED,
             bg_id, pose, placed = scene_for(index, seed, sim, o)
             scan = sim.render(bg_id, placed, pose, np.random.default_rng([seed, index, 1]))
             points, labels = kitti_arrays(scan)
-            out[k].append(scene_stats(f"world/{index:06d}", points, labels))
+            stats = scene_stats(f"world/{index:06d}", points, labels)
+            if places_out is not None:
+                places_out[k].append(place_of(stats.name, points, labels, stats))
+            out[k].append(stats)
     return out
 
 
@@ -204,16 +269,34 @@ def parked_score(world: list[SceneStats], fit: list[SceneStats]) -> float:
             + d["car_share"] / _spread([s.car_share for s in fit]))
 
 
+def place_summary(places: list[Place], reference: list[Place] | None = None) -> dict:
+    """Per class group and range band: the 10th, 50th and 90th percentile of the places'
+    shares (the spread over scans, not just the median) and, against `reference`, the
+    1-Wasserstein distance of the per-scan shares."""
+    out: dict = {}
+    for g in GROUPS:
+        for b, (lo, hi) in enumerate(zip(BANDS_M[:-1], BANDS_M[1:], strict=True)):
+            v = np.array([p.share(g)[b] for p in places], np.float64)
+            row = {f"p{q}": round(float(np.percentile(v, q)), 5) for q in (10, 50, 90)}
+            if reference is not None:
+                ref = np.array([p.share(g)[b] for p in reference], np.float64)
+                row["w1"] = round(wasserstein_1d(v, ref), 5)
+            out[f"{g} {lo:g}-{hi:g} m"] = row
+    return out
+
+
 @dataclass(frozen=True)
 class WorldFit:
     """`fit-world`'s result: the profile, the fit scans', the world's and the profiled world's
-    statistics, and the parked-car share tried at each PARKED_KEEP_GRID value."""
+    statistics and places, and the parked-car share tried at each PARKED_KEEP_GRID value."""
 
     profile: WorldProfile
     fit: list[SceneStats]
     base: list[SceneStats]
     profiled: list[SceneStats]
     parked_tries: list[dict]
+    base_places: list[Place]
+    profiled_places: list[Place]
 
     def to_json(self) -> dict:
         return {"profile": self.profile.to_json(),
@@ -221,6 +304,10 @@ class WorldFit:
                 "profiled_world": summarise(self.profiled),
                 "distance_world_to_fit": distances(self.base, self.fit),
                 "distance_profiled_to_fit": distances(self.profiled, self.fit),
+                "places_fit": place_summary(list(self.profile.places)),
+                "places_world": place_summary(self.base_places, list(self.profile.places)),
+                "places_profiled_world": place_summary(self.profiled_places,
+                                                       list(self.profile.places)),
                 "parked_keep_tries": self.parked_tries,
                 "fit_scans": [asdict(s) for s in self.fit]}
 
@@ -228,14 +315,17 @@ class WorldFit:
 def fit_world(paths: list[str], sequences: list[str] | None, sensor, name: str,
               holdout: Sequence[str | Path] = (), base_scans: int = BASE_SCANS,
               keep_grid: tuple[float, ...] = PARKED_KEEP_GRID) -> WorldFit:
-    """Fit a profile on the fit scans the paths name: each scan's road pitch, sensor height and
-    car count, with the world's own median pitch and height as the base the draws add to, and
-    Silverman's bandwidth as the draws' jitter (a kernel density estimate of the fit scans);
-    then the share of parked cars kept, the `keep_grid` value whose profiled world's cars come
-    nearest the fit scans' (parked_score; a tie keeps more)."""
+    """Fit a profile on the fit scans the paths name: each scan's road pitch, sensor height,
+    car count and place (place_of: class shares per range band, the roadside's nearness), with
+    the world's own median pitch and height as the base the draws add to, and Silverman's
+    bandwidth as the draws' jitter (a kernel density estimate of the fit scans); then the share
+    of parked cars kept, the `keep_grid` value whose profiled world's cars come nearest the fit
+    scans' (parked_score; a tie keeps more), measured on streets standing for the places."""
     check_fit_data(paths, sequences, holdout)
     fit = describe(paths, sequences)
-    base = world_scenes(sensor, base_scans)[0]
+    places = describe_places(paths, sequences)
+    base_places: list[list[Place]] = [[]]
+    base = world_scenes(sensor, base_scans, places_out=base_places)[0]
     profile = WorldProfile(
         name=name, scans=tuple(s.name for s in fit),
         pitch_deg=tuple(round(s.pitch_deg, 4) for s in fit),
@@ -244,10 +334,13 @@ def fit_world(paths: list[str], sequences: list[str] | None, sensor, name: str,
         base_pitch_deg=round(float(np.median([s.pitch_deg for s in base])), 4),
         base_height_m=round(float(np.median([s.height_m for s in base])), 4),
         pitch_jitter_deg=round(silverman_bandwidth([s.pitch_deg for s in fit]), 4),
-        height_jitter_m=round(silverman_bandwidth([s.height_m for s in fit]), 4))
+        height_jitter_m=round(silverman_bandwidth([s.height_m for s in fit]), 4),
+        places=tuple(places))
     keeps = tuple(sorted(set(keep_grid), reverse=True))
+    tried_places: list[list[Place]] = [[] for _ in keeps]
     worlds = world_scenes(sensor, base_scans,
-                          profiles=tuple(replace(profile, parked_keep=k) for k in keeps))
+                          profiles=tuple(replace(profile, parked_keep=k) for k in keeps),
+                          places_out=tried_places)
     tries = [{"keep": k, "score": round(parked_score(w, fit), 6),
               **{f"w1_{key}": round(d, 6) for key, d in distances(w, fit).items()
                  if key in ("cars_front", "car_share")},
@@ -255,4 +348,5 @@ def fit_world(paths: list[str], sequences: list[str] | None, sensor, name: str,
               "car_share_mean": float(np.mean([s.car_share for s in w]))}
              for k, w in zip(keeps, worlds, strict=True)]
     best = min(range(len(keeps)), key=lambda j: (tries[j]["score"], j))
-    return WorldFit(replace(profile, parked_keep=keeps[best]), fit, base, worlds[best], tries)
+    return WorldFit(replace(profile, parked_keep=keeps[best]), fit, base, worlds[best], tries,
+                    base_places[0], tried_places[best])

@@ -104,6 +104,7 @@ class Simulator:
         self._cars: dict[str, tuple[Caster, np.ndarray]] = {}
         self._obstacles: dict[int, Obstacles] = {}
         self._terrain: dict[int, Terrain | None] = {}
+        self._ego_offset: dict[int, tuple[float, float]] = {}
         self._max_bvh, self._max_hits = max_bvh, max_hits
         self.background_source = background_source or streets.build_background
         self.returns = load_return_model(sensor.returns) if sensor.returns else None
@@ -183,6 +184,8 @@ class Simulator:
         entry = (Caster.of(bg.vertices, bg.faces, bg.materials()), bg)
         self._obstacles[bg_id] = Obstacles.of(bg.obstacles)
         self._terrain[bg_id] = bg.terrain
+        self._ego_offset[bg_id] = (float(getattr(bg, "ego_pitch_deg", 0.0)),
+                                   float(getattr(bg, "ego_dz", 0.0)))
         self._bvh[bg_id] = entry
         while len(self._bvh) > self._max_bvh:
             self._bvh.popitem(last=False)
@@ -412,9 +415,11 @@ class Simulator:
         return replace(car, z=z, pitch_deg=pitch, roll_deg=roll)
 
     def ego_pose(self, bg_id: int, pose: SensorPose = SensorPose()) -> SensorPose:
-        """The ego vehicle standing on the background's ground at the pose's x, y, heading."""
+        """The ego vehicle standing on the background's ground at the pose's x, y, heading,
+        pitched and raised by the street's own ego offsets (a street fitted to a real place)."""
         z, pitch, roll = self.pose_on(bg_id, pose.x, pose.y, pose.heading_deg)
-        return replace(pose, z=z, pitch_deg=pitch, roll_deg=roll)
+        dpitch, dz = self._ego_offset.get(bg_id, (0.0, 0.0))
+        return replace(pose, z=z + dz, pitch_deg=pitch + dpitch, roll_deg=roll)
 
     def pose_on(self, bg_id: int, x: float, y: float, heading_deg: float,
                 half_length: float = 1.4, half_width: float = 0.8) -> tuple[float, float, float]:

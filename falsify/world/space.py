@@ -138,6 +138,27 @@ class Space:
     real_backgrounds: tuple[RealScan, ...] = ()
     # Where object k must stand ("any", "road", "sidewalk"), for k = 1..max count; () is any.
     surfaces: tuple[str, ...] = ()
+    # The world profile our streets are built from (`[dims.background] world = "NAME"`, a
+    # profile written by `falsify fit-world`, or its path); "" is the streets as built.
+    world: str = ""
+
+    def background_source(self):
+        """What a Simulator builds this space's streets with (None: the streets as built);
+        ConfigError names the world key when its profile cannot be read."""
+        if not self.world:
+            return None
+        from falsify.world.profile import load_profile
+
+        try:
+            return load_profile(self.world).background_source()
+        except ConfigError as exc:
+            raise ConfigError(f"{self.source}: dims.background.world: {exc}") from None
+
+    def street(self, bg_id: int):
+        """Street `bg_id` as this space builds it (its world's, or as built)."""
+        from falsify.world.streets import build_background
+
+        return (self.background_source() or build_background)(int(bg_id))
 
     @property
     def model_dim(self) -> str:
@@ -276,6 +297,13 @@ def load_space(path: str | Path, builtin_cars: tuple[str, ...] | None = None) ->
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
     space = parse_space(raw, source=str(path), base_dir=path.parent,
                         config_hash=hashlib.sha256(text).hexdigest(), builtin_cars=builtin_cars)
+    if space.world:   # a changed profile builds other streets: another space
+        from falsify.world.profile import profile_file
+
+        space.background_source()
+        digest = hashlib.sha256(space.config_hash.encode())
+        digest.update(read_bytes(profile_file(space.world), "world profile", ConfigError))
+        return replace(space, config_hash=digest.hexdigest())
     if not space.real_backgrounds:
         return space
     digest = hashlib.sha256(space.config_hash.encode())   # changed scans: another space
@@ -314,7 +342,7 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
 
     dims, surfaces = _object_dims(dims_raw, model_dim, max_count, models, where)
     dims["count"] = count
-    bg, real = _background_dim(dims_raw["background"], where, base_dir, real_backgrounds)
+    bg, real, world = _background_dim(dims_raw["background"], where, base_dir, real_backgrounds)
     dims["background"] = bg
     for image_dim in IMAGE_ONLY:
         if image_dim in dims_raw:
@@ -325,7 +353,7 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
     _check_labelled(surfaces, real, model_dim, where)
     return Space(name=name, sensor=sensor, seed=seed, threshold=threshold, dims=dims,
                  user_cars=user_cars, source=source, config_hash=config_hash,
-                 real_backgrounds=real,
+                 real_backgrounds=real, world=world,
                  surfaces=tuple(surfaces) if any(on != "any" for on in surfaces) else ())
 
 
@@ -406,22 +434,37 @@ def _object_dims(dims_raw: dict[str, Any], model_dim: str, max_count: int,
 
 def _background_dim(bg_raw: Any, where: str, base_dir: Path | None,
                     real_backgrounds: tuple[RealScan, ...] | None
-                    ) -> tuple[Categorical, tuple[RealScan, ...]]:
-    """The background dim and its real scans: indices into `real = [...]` (or into the
-    `real_backgrounds` a run recorded), else street ids with no scans."""
+                    ) -> tuple[Categorical, tuple[RealScan, ...], str]:
+    """The background dim, its real scans and its world: indices into `real = [...]` (or into
+    the `real_backgrounds` a run recorded), else street ids with no scans, built from the
+    world profile `world = "NAME"` names (its path resolved against the config's folder)."""
     from falsify.world.streets import MAX_BACKGROUND_ID
 
     if isinstance(bg_raw, dict) and "real" in bg_raw:
+        if "world" in bg_raw:
+            raise ConfigError(f"{where}dims.background.world: builds our streets; real scans "
+                              "take no world (drop one of world and real)")
         real = (real_backgrounds if real_backgrounds is not None
                 else read_real_backgrounds(bg_raw, where, base_dir or Path(".")))
-        return Categorical("background", tuple(range(len(real)))), real
+        return Categorical("background", tuple(range(len(real)))), real, ""
+    world = ""
+    if isinstance(bg_raw, dict) and "world" in bg_raw:
+        bg_raw = dict(bg_raw)
+        world = bg_raw.pop("world")
+        if not isinstance(world, str) or not world:
+            raise ConfigError(f"{where}dims.background.world: {world!r} is not a world "
+                              "profile's name or path (configs/worlds/NAME.json, or a file "
+                              "written by `falsify fit-world`)")
+        local = (base_dir or Path(".")) / world
+        if world.endswith(".json") and local.is_file():
+            world = str(local.resolve())
     bg = read_categorical("background", bg_raw, where, int)
     for v in bg.values:
         if not 0 <= int(v) <= MAX_BACKGROUND_ID:
             raise ConfigError(f"{where}dims.background: unknown background {v}; allowed: "
                               f"integer ids 0..{MAX_BACKGROUND_ID}, or real = [KITTI .bin "
                               "scans, folders or SemanticKITTI sequences]")
-    return bg, ()
+    return bg, (), world
 
 
 def _check_labelled(surfaces: list[str], real: tuple[RealScan, ...], model_dim: str,

@@ -90,6 +90,10 @@ class Background:
     face_material: np.ndarray | None = None  # (M,) uint8 material ids; None: concrete
     terrain: Terrain | None = None  # None: the flat plane z = 0
     face_semantic: np.ndarray | None = None  # (M,) uint16 raw SemanticKITTI ids; None: by class
+    # The ego's pitch (degrees) and height (m) over its pose on the terrain, for a street that
+    # stands for a real place (falsify.world.places): how that place's sensor saw its road.
+    ego_pitch_deg: float = 0.0
+    ego_dz: float = 0.0
 
     def materials(self) -> np.ndarray:
         """Per-face material ids (concrete everywhere for a background built without them)."""
@@ -106,7 +110,7 @@ class Background:
         return SEMANTIC_OF_CLASS[self.face_class]
 
 
-def _assemble(bg_id: int, st: _Street, lay: _Layout) -> Background:
+def assemble(bg_id: int, st: _Street, lay: _Layout) -> Background:
     """Merge the pieces into one float64/int32 triangle soup and freeze the arrays."""
     counts = np.array([len(f) for _, f in st.meshes])
     offsets = np.cumsum([0] + [len(m[0]) for m in st.meshes[:-1]])
@@ -179,10 +183,11 @@ STREETS_KEPT = 2
 STEPS = (_parked_vehicles, _people, _guard_rails, _poles, _plants, _boundaries, _buildings)
 
 
-def placed(bg_id: int, steps: tuple[Callable[[_Street, _Layout, int], None], ...] = STEPS
-           ) -> tuple[_Street, _Layout]:
-    """The ground of street `bg_id` and what `steps` (a leading part of STEPS) place on it."""
-    lay = _layout(bg_id)
+def placed(bg_id: int, steps: tuple[Callable[[_Street, _Layout, int], None], ...] = STEPS,
+           lay: _Layout | None = None) -> tuple[_Street, _Layout]:
+    """The ground of street `bg_id` and what `steps` (a leading part of STEPS) place on it;
+    `lay` replaces the street's own layout."""
+    lay = lay or _layout(bg_id)
     st = _Street()
     _ground(st, lay)
     for step in steps:
@@ -193,4 +198,4 @@ def placed(bg_id: int, steps: tuple[Callable[[_Street, _Layout, int], None], ...
 @functools.lru_cache(maxsize=STREETS_KEPT)
 def _build(bg_id: int) -> Background:
     st, lay = placed(bg_id)
-    return _assemble(bg_id, st, lay)
+    return assemble(bg_id, st, lay)

@@ -100,18 +100,18 @@ def main() -> None:
         if not kept.exists():
             resume = ["--resume"] if (model_dir / "checkpoint.pt").exists() else ["--init",
                                                                                    str(a.init.resolve())]
-            run([sys.executable, "-m", "falsify.models.train", "--data", str(train), "--out",
+            run(["falsify", "train", "--data", str(train), "--out",
                  str(model_dir), "--epochs", str(e), "--val-data", str(val), "--no-export",
                  *RECIPE, *resume], log=work / f"train-epoch{e}.log")
             shutil.copyfile(model_dir / "checkpoint.pt", kept)
         adjusted = work / f"epoch{e}-adjusted.pt"
         if not adjusted.exists():
-            run([sys.executable, "-m", "falsify.models.adjust", str(kept), "--val", str(val),
+            run(["falsify", "adjust", str(kept), "--val", str(val),
                  "--out", str(adjusted), "--alphas", ALPHAS, "--json"],
                 log=work / f"adjust-epoch{e}.json")
         onnx = work / f"epoch{e}" / "squeezeseg.onnx"
         if not onnx.exists():
-            run([sys.executable, "-m", "falsify.models.export", str(adjusted), "--out", str(onnx)])
+            run(["falsify", "export", str(adjusted), "--out", str(onnx)])
         adjust = json.loads((work / f"adjust-epoch{e}.json").read_text())
         result["epochs"][e] = {"adjust": adjust,
                                "fit": predict(onnx, FIT, work / f"epoch{e}-fit")}

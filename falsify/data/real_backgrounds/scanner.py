@@ -469,4 +469,5 @@ def scanner_for(space: Space, sensor: Sensor | None = None, lod: int = 2):
             raise ConfigError(f"{space.source}: {exc}") from None
         return RealScanner(sensor, space.real_backgrounds, space.user_cars, lod=lod,
                            surfaces=space.surfaces)
-    return Simulator(sensor, space.user_cars, lod=lod, surfaces=space.surfaces)
+    return Simulator(sensor, space.user_cars, lod=lod, surfaces=space.surfaces,
+                     background_source=space.background_source())
