@@ -30,7 +30,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "like a driving log")
     p.add_argument("--world", default=None, metavar="PROFILE",
                    help="draw each scene's sensor pitch, height and car count from a world "
-                   "profile (`falsify fit-world`); scattered traffic only")
+                   "profile (`falsify fit-world`; one with places builds every street for one "
+                   "of them); scattered traffic only. The config's [dims.background] world is "
+                   "not applied: training scenes take only the world named here")
     p.add_argument("--labels", choices=["kitti4", "semantickitti"], default="kitti4",
                    help="npy label channel: our four classes or SemanticKITTI's train ids")
     p.add_argument("--workers", type=int, default=1, help="processes writing scans (npy)")

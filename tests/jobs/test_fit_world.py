@@ -201,6 +201,13 @@ def test_the_fit_split_shows_pitch_our_world_lacks(tmp_path, capsys):
     fit, world = doc["fit"]["pitch_deg"], doc["world"]["pitch_deg"]
     assert fit["p95"] - fit["p5"] > 2.0 > 0.5 > world["p95"] - world["p5"]
     assert 1.6 < doc["fit"]["height_m"]["p50"] < 1.85
+    # each fit scan's place travels in the profile; the real places hold vegetation 15-30 m
+    # out and unlabeled clutter 30-60 m out that the streets as built lack
+    assert [p.name for p in profile.places] == list(profile.scans)
+    places, world = doc["places_fit"], doc["places_world"]
+    assert places["vegetation 15-30 m"]["p50"] > world["vegetation 15-30 m"]["p50"]
+    assert places["unlabeled 30-60 m"]["p50"] > 0.05 > world["unlabeled 30-60 m"]["p50"]
+    assert world["unlabeled 30-60 m"]["w1"] > 0.05
 
 
 def _profile(tmp_path: Path, **over) -> Path:
