@@ -62,13 +62,20 @@ def toml_text(raw: dict, prefix: str = "") -> str:
 
 def subset_config(config: Path, backgrounds: Sequence[int], suffix: str,
                   real: Sequence[RealScan] = ()) -> str:
-    """The config's text with its background dim replaced by `backgrounds` (paths absolute);
-    for a space of real scans (`real`, its scans), the scans of those backgrounds."""
+    """The config's text with its background dim replaced by `backgrounds` (paths absolute), its
+    streets' world kept; for a space of real scans (`real`, its scans), the scans of those
+    backgrounds."""
     raw = tomllib.loads(config.read_text(encoding="utf-8"))
     raw["name"] = f"{raw.get('name', config.stem)}-{suffix}"
+    before = raw["dims"]["background"]
     raw["dims"]["background"] = (
         {"real": [str(real[b].bin.resolve()) for b in backgrounds]} if real
         else {"values": list(backgrounds)})
+    if not real and isinstance(before, dict) and "world" in before:
+        # the subset's streets are the run's: its world, a file beside the config made absolute
+        world, local = before["world"], config.parent / str(before["world"])
+        raw["dims"]["background"]["world"] = (str(local.resolve()) if str(world).endswith(
+            ".json") and local.is_file() else world)
     for spec in raw.get("car_models", {}).values():
         if isinstance(spec, dict) and "file" in spec and not Path(spec["file"]).is_absolute():
             spec["file"] = str((config.parent / spec["file"]).resolve())

@@ -228,6 +228,7 @@ def test_parse_ids_and_subset_config(tmp_path) -> None:
     (tmp_path / "v.toml").write_text(text)
     sub, full = load_space(tmp_path / "v.toml"), load_space(CONFIGS / "paper.toml")
     assert sub.dims["background"].grid() == tuple(range(7))
+    assert sub.world == full.world == "semantickitti-places"   # the same streets
     raw, raw_full = tomllib.loads(text), tomllib.loads((CONFIGS / "paper.toml").read_text())
     assert raw["dims"]["x"] == raw_full["dims"]["x"] and raw["seed"] == raw_full["seed"]
     # the subset's samples are exactly the full grid's samples on those backgrounds
