@@ -53,6 +53,7 @@ def test_wheel_holds_only_the_falsify_package_and_its_data(wheel):
                  "falsify/reports/assets/run.css", "falsify/reports/assets/run.js",
                  "falsify/configs/worlds/semantickitti-fit-parked.json",
                  "falsify/configs/worlds/semantickitti-fit.json",
+                 "falsify/configs/worlds/semantickitti-places.json",
                  "falsify/models/cards/squeezeseg-drive.md"):
         assert need in names, need
     weights = {n.rsplit("/", 1)[1].split(".")[0] for n in names if n.startswith(weights)}
@@ -104,6 +105,11 @@ def test_installed_wheel_runs_outside_the_checkout(wheel, tmp_path):
                           cwd=work, env=env, capture_output=True, text=True, timeout=600)
     assert scan.returncode == 0, scan.stderr
     assert json.loads(scan.stdout)["car_points"] > 0 and (work / "scan" / "scan.png").exists()
+    # the paper's streets stand for real places: their world profile ships in the wheel
+    paper = subprocess.run([falsify_cmd, "scan", "configs/paper.toml", "--out", "paper",
+                            "--json"], cwd=work, env=env, capture_output=True, text=True,
+                           timeout=600)
+    assert paper.returncode == 0, paper.stderr
     grid = subprocess.run([falsify_cmd, "grid", "configs/ci.toml", "--out", "run", "--workers",
                            "2", "--quiet", "--json"], cwd=work, env=env, capture_output=True,
                           text=True, timeout=600)
