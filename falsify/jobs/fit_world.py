@@ -188,30 +188,30 @@ def distances(stats: list[SceneStats], reference: list[SceneStats]) -> dict[str,
             for k in STAT_KEYS}
 
 
-def describe(paths: list[str], sequences: list[str] | None = None) -> list[SceneStats]:
-    """The statistics of every labelled scan the paths name (real or a `falsify dataset
+def labelled_scans(paths: list[str], sequences: list[str] | None = None):
+    """(name, points, labels) of every labelled scan the paths name (real or a `falsify dataset
     --format semantickitti` set); FalsifyError naming a scan without SemanticKITTI labels."""
-    out = []
     for name, path, label, kind in real_scans(paths, sequences):
         if kind != "semantickitti" or label is None:
             raise FalsifyError(f"{path}: no SemanticKITTI .label beside it or in ../labels/ "
                                "(its road and cars cannot be measured)")
-        labels = np.fromfile(label, np.uint32)
-        out.append(scene_stats(name, read_bin(path), labels))
-    return out
+        yield name, read_bin(path), np.fromfile(label, np.uint32)
 
 
-def describe_places(paths: list[str], sequences: list[str] | None = None) -> list[Place]:
-    """The place (place_of) of every labelled scan the paths name."""
-    out = []
-    for name, path, label, kind in real_scans(paths, sequences):
-        if kind != "semantickitti" or label is None:
-            raise FalsifyError(f"{path}: no SemanticKITTI .label beside it or in ../labels/ "
-                               "(its places cannot be measured)")
-        labels = np.fromfile(label, np.uint32)
-        points = read_bin(path)
-        out.append(place_of(name, points, labels, scene_stats(name, points, labels)))
-    return out
+def describe(paths: list[str], sequences: list[str] | None = None) -> list[SceneStats]:
+    """The statistics of every labelled scan the paths name (labelled_scans)."""
+    return [scene_stats(n, p, lab) for n, p, lab in labelled_scans(paths, sequences)]
+
+
+def describe_places(paths: list[str], sequences: list[str] | None = None
+                    ) -> tuple[list[SceneStats], list[Place]]:
+    """The statistics and the place (place_of) of every labelled scan the paths name, each scan
+    read once."""
+    stats, places = [], []
+    for name, points, labels in labelled_scans(paths, sequences):
+        stats.append(scene_stats(name, points, labels))
+        places.append(place_of(name, points, labels, stats[-1]))
+    return stats, places
 
 
 def check_fit_data(paths: list[str], sequences: list[str] | None,
@@ -322,8 +322,7 @@ def fit_world(paths: list[str], sequences: list[str] | None, sensor, name: str,
     of parked cars kept, the `keep_grid` value whose profiled world's cars come nearest the fit
     scans' (parked_score; a tie keeps more), measured on streets standing for the places."""
     check_fit_data(paths, sequences, holdout)
-    fit = describe(paths, sequences)
-    places = describe_places(paths, sequences)
+    fit, places = describe_places(paths, sequences)
     base_places: list[list[Place]] = [[]]
     base = world_scenes(sensor, base_scans, places_out=base_places)[0]
     profile = WorldProfile(
