@@ -26,7 +26,7 @@ from falsify.models.spec import ModelSpec
 from falsify.results.metrics import Status
 from falsify.results.miou_maps import CellMap, MapError, fill_nearest, map_error, miou_map
 from falsify.sensor.lidar import Sensor, SensorPose, load_sensor
-from falsify.world.space import Categorical, Continuous, Sample, Space, UserCar, load_space
+from falsify.world.space import Categorical, Continuous, Sample, Space, load_space
 
 if TYPE_CHECKING:   # the CLI imports this module for KNOBS: keep trimesh out of it
     from falsify.executors.evaluator import Evaluator
@@ -98,7 +98,7 @@ class SettingScorer:
             settings = EvalSettings(space=self.space, model=str(s.model), backend=s.backend,
                                     threads=self.threads, lod=s.lod)
             scanner = None if s.resolution is None else Resampling(
-                load_sensor(self.space.sensor), s.resolution, self.space.user_cars, s.lod)
+                load_sensor(self.space.sensor), s.resolution, self.space, s.lod)
             self._evaluators[s] = Evaluator(settings, scanner=scanner)
         return self._evaluators[s]
 
@@ -145,18 +145,21 @@ class Resampling:
     the same fields of view, then projects the labelled points into the network's grid (nearest
     point wins a pixel): holes when coarser, supersampling when finer."""
 
-    def __init__(self, sensor: Sensor, shape: tuple[int, int], user_cars: dict[str, UserCar],
-                 lod: int):
+    def __init__(self, sensor: Sensor, shape: tuple[int, int], space: Space, lod: int):
         from falsify.sensor.simulator import Simulator
 
         self.sensor = sensor
-        self.sim = Simulator(sensor.with_resolution(*shape), user_cars, lod=lod)
+        self.sim = Simulator(sensor.with_resolution(*shape), space.user_cars, lod=lod,
+                             surfaces=space.surfaces, background_source=space.background_source())
 
     def background_hits(self, bg_id: int, pose: SensorPose):
         return self.sim.background_hits(bg_id, pose)
 
     def ego_pose(self, bg_id: int, pose: SensorPose = SensorPose()) -> SensorPose:
         return self.sim.ego_pose(bg_id, pose)
+
+    def placed_pixels(self, scan) -> np.ndarray:
+        return self.sim.placed_pixels(scan)
 
     def scan(self, sample: Sample, pose: SensorPose = SensorPose(),
              rng: np.random.Generator | None = None):

@@ -15,8 +15,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="runs of the same spaces, in the same order, with the reference "
                    "network (for CE, mCE)")
     p.add_argument("--column", default=None,
-                   help="the score (default: inserted_iou on real backgrounds, else the "
-                   "run's objective)")
+                   help="the score (default: inserted_iou, the placed object's own; in runs "
+                   "without it, the run's objective)")
     p.add_argument("--json", action="store_true")
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from falsify.data.real_backgrounds import INSERTED_INSTANCE, scanner_for
+from falsify.data.real_backgrounds import scanner_for
 from falsify.errors import FalsifyError
 from falsify.models.runners import Segmenter, load_segmenter
 from falsify.results.metrics import Scoring, Status
@@ -75,7 +75,7 @@ class Evaluator:
                 continue
             images.append(scan.image)
             truths.append(truth_ids(scan, scoring))
-            inserted.append(scan.instance >= INSERTED_INSTANCE if scoring.parts else None)
+            inserted.append(self.sim.placed_pixels(scan) if scoring.parts else None)
             where.append(i)
             t_scans.append(time.perf_counter() - t0)
         if images:

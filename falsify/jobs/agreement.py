@@ -23,8 +23,8 @@ from falsify.results.store import RunData, open_run
 
 METRICS = ("iou", "precision", "recall")
 QUANTILES = (0.1, 0.5, 0.9)
-PRECISION_NOTE = ("precision is car_precision on both runs; on real scans it counts the real "
-                  "cars as true positives too")
+PRECISION_NOTE = ("precision is car_precision on both runs: it counts the background's own cars "
+                  "(real ones, or the streets' parked ones) as true positives too")
 MAX_FP_SAMPLES = 10_000
 
 
@@ -184,11 +184,12 @@ def _r(v):
 
 # -- the comparison --------------------------------------------------------------------------
 def placed_columns(data: RunData) -> dict[str, str]:
-    """The columns of the placed car's IoU, precision and recall: the inserted car's on real
-    backgrounds (inserted_*), the car class's on our streets; FalsifyError if one is missing."""
-    real = "inserted_iou" in data.frame.columns
-    cols = {"iou": "inserted_iou" if real else "car_iou", "precision": "car_precision",
-            "recall": "inserted_recall" if real else "car_recall"}
+    """The columns of the placed car's IoU, precision and recall: the placed car's own
+    (inserted_*, the background's cars left out), else, in runs scored before streets had
+    them, the car class's; FalsifyError if one is missing."""
+    placed = "inserted_iou" in data.frame.columns
+    cols = {"iou": "inserted_iou" if placed else "car_iou", "precision": "car_precision",
+            "recall": "inserted_recall" if placed else "car_recall"}
     for c in cols.values():
         if c not in data.frame.columns:
             raise FalsifyError(f"{data.path}: samples table lacks column {c!r} (the car's "
@@ -268,8 +269,8 @@ def side(data: RunData) -> RunSide:
     cols = placed_columns(data)
     ok = ok_rows(data)
     n_bg = int(ok["background"].nunique()) if "background" in ok.columns else 0
-    return RunSide(str(data.path), cols["iou"] == "inserted_iou", len(ok), n_bg, cols["iou"],
-                   cols["recall"])
+    return RunSide(str(data.path), bool(data.space.real_backgrounds), len(ok), n_bg,
+                   cols["iou"], cols["recall"])
 
 
 def run_agreement(world_run: str | Path, real_run: str | Path, threshold: float | None = None,

@@ -11,8 +11,8 @@ Dietterich, ICLR 2019), with the score s (an IoU) at each severity l of effect e
 A run holds the rows of one space; the rows whose effect dims are all zero are the clean ones,
 and those with exactly one effect non-zero are that effect at that severity (a factorial space
 also holds mixed rows, which are left out and counted). Robo3D scores mIoU over classes; here the
-score is the placed object's IoU (`inserted_iou` on real backgrounds, else the run's objective)
-unless another column is named.
+score is the placed object's IoU (`inserted_iou`, the background's own objects left out; in runs
+scored without it, the run's objective) unless another column is named.
 """
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ class RobustnessResult:
 
 
 def score_column(data: RunData, column: str | None) -> str:
-    """The named column, else the placed object's IoU: inserted_iou on real backgrounds."""
+    """The named column, else the placed object's IoU (inserted_iou), else the objective's."""
     if column is not None:
         if column not in data.frame.columns:
             raise FalsifyError(f"--column {column!r}: not a column of {data.path}; allowed: "

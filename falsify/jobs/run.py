@@ -144,7 +144,9 @@ def prepare(req: RunRequest) -> Prepared:
     if space.real_backgrounds:   # which scans, so a report or gate need not look again
         meta["real_backgrounds"] = [[r.name, str(r.bin), None if r.label is None else str(r.label),
                                      r.kind] for r in space.real_backgrounds]
-    if scoring != CAR_SCORING:   # car-objective, four-class runs keep their bytes
+    # Car-objective, four-class runs on our streets keep their meta as it was before streets
+    # scored the placed objects apart.
+    if (scoring if space.real_backgrounds else replace(scoring, parts=False)) != CAR_SCORING:
         meta.update(objective=scoring.objective, score_column=scoring.score_column,
                     scored_classes=list(scoring.scored))
     _check_run_dir(req, meta)
@@ -194,16 +196,14 @@ def _sampler_of(req: RunRequest, space: Space) -> tuple[Sampler, dict | None]:
 
 
 def _scoring_of(req: RunRequest, space: Space, seg: Segmenter) -> Scoring:
-    """What the run scores: the objective asked for (else the placed actors' class); on real
-    backgrounds inserted and real objects apart as well."""
+    """What the run scores: the objective asked for (else the placed actors' class), and the
+    placed objects apart from the background's own (a real scan's, or a street's parked ones)."""
     semantics = [model_semantic(m, space.user_cars) for m in space.models()]
     objective = req.objective or Scoring.placed_class(list(seg.spec.classes), semantics)
     scoring = Scoring.of(list(seg.spec.classes), objective)
-    if space.real_backgrounds:   # inserted and real objects scored apart as well
-        placed = [c for c in Scoring.placed_classes(list(seg.spec.classes), semantics)
-                  if c in scoring.scored and c not in ("unknown", "unlabeled")]
-        scoring = replace(scoring, parts=True, placed=tuple(placed) if len(placed) > 1 else ())
-    return scoring
+    placed = [c for c in Scoring.placed_classes(list(seg.spec.classes), semantics)
+              if c in scoring.scored and c not in ("unknown", "unlabeled")]
+    return replace(scoring, parts=True, placed=tuple(placed) if len(placed) > 1 else ())
 
 
 def _check_run_dir(req: RunRequest, meta: dict) -> None:

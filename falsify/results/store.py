@@ -58,6 +58,12 @@ class Store:
             "INTEGER, label_points INTEGER, t_scan REAL, t_infer REAL, t_total REAL, seed "
             "INTEGER, model_hash TEXT, config_hash TEXT)")
         self.db.commit()
+        have = {row[1] for row in self.db.execute("PRAGMA table_info(samples)")}
+        if lacking := [m for m in self.metric_columns if m not in have]:
+            self.db.close()
+            raise FalsifyError(f"{self.path}: its samples table lacks the columns "
+                               f"{', '.join(lacking)} that this falsify scores (a run written "
+                               "by an older version); start it again in a new --out")
         self._cache: dict[str, float | None] = {
             k: v for k, v in self.db.execute(
                 f"SELECT sample_key, {scoring.score_column} FROM samples")}

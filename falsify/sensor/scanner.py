@@ -16,7 +16,7 @@ from falsify.sensor.lidar import Sensor, SensorPose
 from falsify.sensor.scan import Scan
 from falsify.world.space import CarPose, Sample
 
-FIRST_CAR_INSTANCE = 1
+FIRST_CAR_INSTANCE = 1   # a sample's placed objects: 1, 2, ... (the street's start at 1000)
 
 
 class InvalidSample(Exception):
@@ -75,3 +75,7 @@ class Scanner(Protocol):
 
     def scan(self, sample: Sample, pose: SensorPose = ...,
              rng: np.random.Generator | None = None) -> Scan: ...
+
+    def placed_pixels(self, scan: Scan) -> np.ndarray:
+        """The pixels of the objects the sample placed, apart from the background's own."""
+        ...

@@ -49,6 +49,7 @@ from falsify.sensor.weather import (
 )
 from falsify.world.materials import GLASS, PAINTS, mid
 from falsify.world.space import Sample, UserCar
+from falsify.world.street_layout import FIRST_STREET_INSTANCE
 from falsify.world.terrain import Terrain
 
 # The scanner's and placement's names callers import from here stay importable from here.
@@ -444,6 +445,11 @@ class Simulator:
         lo, hi = corners.min(axis=0), corners.max(axis=0)
         box = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
         return box @ car.rotation()[:2, :2].T + [car.x, car.y]
+
+    def placed_pixels(self, scan: Scan) -> np.ndarray:
+        """The pixels of the sample's placed objects (instances 1, 2, ...), not the street's
+        parked cars and other objects (instances from FIRST_STREET_INSTANCE)."""
+        return (scan.instance >= FIRST_CAR_INSTANCE) & (scan.instance < FIRST_STREET_INSTANCE)
 
     def scan(self, sample: Sample, pose: SensorPose = SensorPose(),
              rng: np.random.Generator | None = None) -> Scan:

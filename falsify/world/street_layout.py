@@ -24,7 +24,7 @@ FREE_ZONE: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 25.0), (-8.5
 SENSOR_CLEARANCE: float = 3.0  # metres around (0, 0) holding nothing but road
 TERRAIN_HALF_WIDTH: float = 300.0  # the ground reaches out to |y| = this
 
-_FIRST_INSTANCE = 1000
+FIRST_STREET_INSTANCE = 1000   # the street's own objects; the sample's placed ones lie below
 _DEFAULT_MAT = mid("concrete")
 # Our classes (unknown, car, pedestrian, cyclist) as raw SemanticKITTI ids, for pieces that name
 # no id of their own: unknown stays 0 "unlabeled".
@@ -58,7 +58,7 @@ class _Street:
         self.sem: list[np.ndarray] = []  # raw SemanticKITTI ids per face
         self.obstacles: list[Footprint] = []
         self.boxes: list[np.ndarray] = []  # (4,) x0, x1, y0, y1 of placed objects
-        self.next_id = _FIRST_INSTANCE
+        self.next_id = FIRST_STREET_INSTANCE
 
     def add(self, mesh: shapes.Mesh, cls: int = UNKNOWN, instance: int = 0,
             mat: int | np.ndarray = _DEFAULT_MAT, sem: int | np.ndarray | None = None) -> None:

@@ -141,16 +141,18 @@ def multiples_section(data: RunData, threshold: float) -> str:
 
 
 def inserted_section(data: RunData, threshold: float) -> str:
-    """Runs on real backgrounds: the inserted object's own IoU and recall maps, and per real
-    scan the inserted and the real objects of the class scored apart (each with the other left
-    out)."""
+    """The placed object's own IoU and recall maps, and per background the placed objects and
+    the background's own (a real scan's, or a street's parked ones) of the class scored apart,
+    each with the other left out."""
     if "inserted_iou" not in data.frame:
         return ""
     o = data.objective
     thing = "car" if o in ("car", "miou") else o
+    real = bool(data.space.real_backgrounds)
+    ins, own = ("inserted", "real") if real else ("placed", "parked")
     figs = []
-    for col, title in (("inserted_iou", f"inserted {thing} IoU"),
-                       ("inserted_recall", f"inserted {thing} recall")):
+    for col, title in (("inserted_iou", f"{ins} {thing} IoU"),
+                       ("inserted_recall", f"{ins} {thing} recall")):
         svg, mean, n_blind = _small_map(data.cell_map(column=col), threshold, title, title)
         figs.append(f'<figure class="multiple">{svg}<figcaption>{esc(title)} · {mean}<br>'
                     f"{n_blind} below {threshold:.2f}</figcaption></figure>")
@@ -171,17 +173,22 @@ def inserted_section(data: RunData, threshold: float) -> str:
             f'<td class="num">{mean("inserted_iou")} / {mean("inserted_recall")}</td>'
             f'<td class="num">{mean("real_iou")} / {mean("real_recall")}</td></tr>')
     thing = esc(thing)
-    return f"""
-<section id="inserted">
-<h2>Inserted and real {thing}s</h2>
-<p class="note">Each sample is a real scan with the {thing} inserted. The inserted {thing} is
+    note = (f"""Each sample is a real scan with the {thing} inserted. The inserted {thing} is
 scored with the scan's real {thing}s left out, and the real {thing}s with the inserted one left
 out, so a map of the inserted {thing} shows where the network loses it. A position where the
-{thing} would stand in a real car, wall or tree is invalid, counted and never merged.</p>
+{thing} would stand in a real car, wall or tree is invalid, counted and never merged.""" if real
+            else f"""Each sample is a street with the {thing} placed. The placed {thing} is
+scored with the street's own {thing}s (parked ones) left out, and those with the placed one left
+out, so a map of the placed {thing} shows where the network loses it, and compares with a run
+on real scans.""")
+    return f"""
+<section id="inserted">
+<h2>{ins.capitalize()} and {own} {thing}s</h2>
+<p class="note">{note}</p>
 <div class="multiples">{"".join(figs)}</div>
-<table class="small"><thead><tr><th>real scan</th><th>valid</th><th>invalid</th>
-<th>mean {esc(objective_name(data))}</th><th>inserted IoU / recall</th>
-<th>real IoU / recall</th></tr></thead><tbody>{"".join(rows)}</tbody></table>
+<table class="small"><thead><tr><th>{"real scan" if real else "street"}</th><th>valid</th>
+<th>invalid</th><th>mean {esc(objective_name(data))}</th><th>{ins} IoU / recall</th>
+<th>{own} IoU / recall</th></tr></thead><tbody>{"".join(rows)}</tbody></table>
 </section>"""
 
 

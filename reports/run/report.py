@@ -134,7 +134,7 @@ def render(report: ReportInput) -> str:
     name = meta.get("space_name") or data.space.name
     sections = [summary_section(data, cmap, threshold), heatmap_section(data, cmap, threshold)]
     sections.append(inserted_section(data, threshold))
-    if meta.get("scored_classes") and "inserted_iou" not in data.frame:
+    if meta.get("scored_classes") and not data.space.real_backgrounds:
         sections.append(class_maps_section(data, threshold))
     if report.explanation is not None:
         sections.append(explain_section(data, report.explanation))

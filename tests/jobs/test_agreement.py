@@ -16,11 +16,13 @@ from falsify.jobs.agreement import (
     Distribution,
     fp_classes,
     map_agreement,
+    ok_rows,
     run_agreement,
     spread_rows,
     wasserstein1,
 )
 from falsify.results.miou_maps import CellMap
+from falsify.results.store import open_run
 from tests.runfixture import write_run
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -180,7 +182,7 @@ def test_threshold_option_and_text_output(written, capsys):
     assert out["map"]["false_alarms"] == [[0.0, 5.0]]
     assert main(["agreement", str(written["world"]), str(written["real"])]) == 0
     text = capsys.readouterr().out
-    assert "W1" in text and "car_precision" in text and "real cars" in text
+    assert "W1" in text and "car_precision" in text and "parked ones" in text
     assert "world misses 1" in text and "--fp-samples 0" in text
 
 
@@ -261,11 +263,19 @@ def test_real_run_is_scored_on_the_inserted_car(pipeline_runs, capsys):
     assert out["real"]["backgrounds_are"] == "real scans"
     assert (out["real"]["iou_column"], out["real"]["recall_column"]) == ("inserted_iou",
                                                                          "inserted_recall")
-    assert out["world"]["iou_column"] == "car_iou" and out["map"]["cells_both"] == 12
+    assert out["world"]["iou_column"] == "inserted_iou" and out["map"]["cells_both"] == 12
     assert {x["metric"]: x["real_column"] for x in out["metrics"]}["precision"] == \
         "car_precision"
     assert out["metrics"][0]["real"]["count"] == 2
     assert all(k.startswith("01/") for k in out["metrics"][0]["real_per_background"])
+
+
+def test_street_runs_score_the_placed_car_apart_from_the_parked_ones(pipeline_runs):
+    world, _ = pipeline_runs
+    ok = ok_rows(open_run(world))
+    assert len(ok) == 24 and ok["inserted_iou"].notna().all()
+    parked = ok[ok["real_recall"].notna()]   # the street's own cars in view
+    assert len(parked) and (parked["inserted_iou"] != parked["car_iou"]).any()
 
 
 def test_replayed_false_positives_match_the_stored_counts(pipeline_runs):

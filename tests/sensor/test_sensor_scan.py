@@ -240,3 +240,15 @@ def test_sensor_noise_and_drop_are_seeded():
     assert a.image.tobytes() == b.image.tobytes()
     assert a.image.tobytes() != c.image.tobytes()
     assert 0.05 < 1 - a.valid.sum() / clean.valid.sum() < 0.15
+
+
+def test_placed_pixels_are_the_placed_cars_not_the_parked_ones():
+    sim = Simulator(load_sensor("kitti-hdl64e-front"))
+    scan = sim.render(0, [PlacedCar("sedan", 10.0, 0.0, 0.0, 1), PlacedCar("sedan", 16.0, -3.0,
+                                                                          30.0, 2)])
+    placed = sim.placed_pixels(scan)
+    car = scan.valid & (scan.label == 1)
+    assert placed.sum() > 200 and np.array_equal(placed, car & (scan.instance < 1000))
+    assert set(np.unique(scan.instance[placed])) == {1, 2}
+    parked = car & ~placed
+    assert parked.sum() > 100 and (scan.instance[parked] >= 1000).all()

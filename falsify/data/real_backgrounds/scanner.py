@@ -266,6 +266,10 @@ class RealScanner:
         return all_rows[(bg.row_elevation[:, 1] >= el_lo - eps)
                         & (bg.row_elevation[:, 0] <= el_hi + eps)]
 
+    def placed_pixels(self, scan: Scan) -> np.ndarray:
+        """The pixels of the inserted objects, not the scan's own."""
+        return scan.instance >= INSERTED_INSTANCE
+
     def scan(self, sample: Sample, pose: SensorPose = SensorPose(),
              rng: np.random.Generator | None = None) -> Scan:
         """The real scan with the sample's cars inserted; InvalidSample for impossible ones."""
