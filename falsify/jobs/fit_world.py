@@ -117,13 +117,34 @@ GROUP_IDS: dict[str, tuple[int, ...]] = {
 CLUTTER_GROUPS = ("vegetation", "building", "fence", "pole", "unlabeled")
 CLUTTER_X = (5.0, 30.0)   # m ahead: the strip whose clutter's lateral distance a place keeps
 FAR_CLUTTER_M = 30.0      # a side with no clutter in the strip
+# Where the road ends: what is neither road nor a road user, in 1 m slices EDGE_X ahead.
+EDGE_GROUPS = ("sidewalk", "terrain", "vegetation", "building", "fence", "pole", "unlabeled")
+EDGE_X = (5.0, 15.0)
+FAR_EDGE_M = 25.0         # a slice with no roadside within this on its side
+MIN_EDGE_POINTS = 3
+
+
+def road_edges(x: np.ndarray, y: np.ndarray, roadside: np.ndarray) -> tuple[float, float]:
+    """Where the road ends on the left (+y) and right, m from the sensor's line: per 1 m slice
+    of EDGE_X, the 10th percentile of |y| of the roadside points (FAR_EDGE_M where a slice has
+    none), then the median over the slices, which a bend or a gap in one slice does not move."""
+    out = []
+    for sign in (1, -1):
+        per_slice = []
+        for x0 in np.arange(*EDGE_X, 1.0):
+            on = roadside & (x >= x0) & (x < x0 + 1.0) & (sign * y > 0) & (np.abs(y) < FAR_EDGE_M)
+            per_slice.append(float(np.percentile(np.abs(y[on]), 10))
+                             if on.sum() >= MIN_EDGE_POINTS else FAR_EDGE_M)
+        out.append(round(float(np.median(per_slice)), 3))
+    return out[0], out[1]
 
 
 def place_of(name: str, points: np.ndarray, labels: np.ndarray,
              stats: SceneStats) -> Place:
     """The place one labelled scan shows (falsify.world.places.Place): its pose from `stats`,
     its front-90-degree points' share per class group in each range band, and the 5th
-    percentile of |y| of the clutter in the strip CLUTTER_X ahead on each side."""
+    percentile of |y| of the clutter in the strip CLUTTER_X ahead on each side, and where its
+    road ends on each side (road_edges)."""
     sem = split_label(labels)[0]
     x, y = points[:, 0].astype(np.float64), points[:, 1].astype(np.float64)
     ok = np.isfinite(x) & np.isfinite(y)
@@ -145,9 +166,12 @@ def place_of(name: str, points: np.ndarray, labels: np.ndarray,
         on = clutter & (sign * y > 0)
         near.append(round(float(np.percentile(np.abs(y[on]), 5)), 3)
                     if on.sum() >= MIN_CAR_POINTS else FAR_CLUTTER_M)
+    roadside = ok & np.isin(sem, np.concatenate([ids[g] for g in EDGE_GROUPS]))
+    left, right = road_edges(x, y, roadside)
     return Place(name=name, pitch_deg=round(stats.pitch_deg, 4),
                  height_m=round(stats.height_m, 4), shares=tuple(shares),
-                 clutter_left_m=near[0], clutter_right_m=near[1])
+                 clutter_left_m=near[0], clutter_right_m=near[1], edge_left_m=left,
+                 edge_right_m=right)
 
 
 def silverman_bandwidth(values: np.ndarray) -> float:

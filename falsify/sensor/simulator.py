@@ -106,6 +106,7 @@ class Simulator:
         self._obstacles: dict[int, Obstacles] = {}
         self._terrain: dict[int, Terrain | None] = {}
         self._ego_offset: dict[int, tuple[float, float]] = {}
+        self._kerbs_stop: dict[int, bool] = {}
         self._max_bvh, self._max_hits = max_bvh, max_hits
         self.background_source = background_source or streets.build_background
         self.returns = load_return_model(sensor.returns) if sensor.returns else None
@@ -187,6 +188,7 @@ class Simulator:
         self._terrain[bg_id] = bg.terrain
         self._ego_offset[bg_id] = (float(getattr(bg, "ego_pitch_deg", 0.0)),
                                    float(getattr(bg, "ego_dz", 0.0)))
+        self._kerbs_stop[bg_id] = bool(getattr(bg, "kerbs_stop_cars", True))
         self._bvh[bg_id] = entry
         while len(self._bvh) > self._max_bvh:
             self._bvh.popitem(last=False)
@@ -388,8 +390,10 @@ class Simulator:
         """The sample's cars in the world, or InvalidSample naming what they would intersect."""
         placed = [replace(place(c, FIRST_CAR_INSTANCE + i), cls=self.model_class(c.model))
                   for i, c in enumerate(sample.cars)]
-        check_placement(placed, [self.footprint(c) for c in placed],
-                        self.obstacles(sample.background), self.crosses_kerbs(placed))
+        obstacles = self.obstacles(sample.background)
+        crosses = (self.crosses_kerbs(placed) if self._kerbs_stop[sample.background]
+                   else [True] * len(placed))
+        check_placement(placed, [self.footprint(c) for c in placed], obstacles, crosses)
         check_surfaces(placed, self.surfaces,
                        lambda x, y: self.surface(sample.background, x, y))
         return [self.settle(sample.background, c) for c in placed]

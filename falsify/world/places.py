@@ -27,7 +27,7 @@ from falsify.errors import ConfigError
 from falsify.semantic import RAW_ID
 from falsify.world import buildings, shapes, vegetation
 from falsify.world.materials import mid
-from falsify.world.street_layout import _Layout, _layout, _rect, _rng, _Street
+from falsify.world.street_layout import FREE_ZONE, _Layout, _layout, _rect, _rng, _Street
 
 BANDS_M: tuple[float, ...] = (0.0, 15.0, 30.0, 60.0)   # range bands a share is measured in
 GROUPS: tuple[str, ...] = ("road", "sidewalk", "terrain", "vegetation", "building", "fence",
@@ -38,6 +38,7 @@ GREEN_PER_SHARE = 3.0      # kerb-length coverage of the green strip per unit ve
 CLUTTER_PER_SHARE = 1.2    # clutter objects per metre of roadside per unit unlabeled share
 FENCE_PER_SHARE = 8.0      # kerb-length coverage of fences per unit fence share
 ALONG_X: tuple[float, float] = (-40.0, 110.0)   # where a place's roadside is built
+ROAD_HALF_M: tuple[float, float] = (3.0, 15.0)   # the road half-widths a place's edges may set
 
 
 @dataclass(frozen=True)
@@ -45,7 +46,9 @@ class Place:
     """One real scan's place as a street draws it: the sensor's pitch (degrees, road rising
     ahead positive) and height (m) over the road plane, the share of its front-90-degree points
     per class group (GROUPS) in each range band (BANDS_M), and how near its roadside clutter
-    stands to the sensor's line on the left and right (m, 5th percentile of |y| at x 5..30)."""
+    stands to the sensor's line on the left and right (m, 5th percentile of |y| at x 5..30),
+    and where the road ends on each side (m from the sensor's line; None in profiles measured
+    before, whose streets keep their own road width)."""
 
     name: str
     pitch_deg: float
@@ -53,6 +56,8 @@ class Place:
     shares: tuple[tuple[float, ...], ...]   # per GROUPS entry, one share per band
     clutter_left_m: float
     clutter_right_m: float
+    edge_left_m: float | None = None
+    edge_right_m: float | None = None
 
     def __post_init__(self) -> None:
         if len(self.shares) != len(GROUPS):
@@ -65,6 +70,12 @@ class Place:
         for key in ("pitch_deg", "height_m", "clutter_left_m", "clutter_right_m"):
             if not math.isfinite(getattr(self, key)):
                 raise ConfigError(f"place {self.name!r}: {key} must be a finite number")
+        for key in ("edge_left_m", "edge_right_m"):
+            v = getattr(self, key)
+            if v is not None and not (math.isfinite(v) and v >= 0.0):
+                raise ConfigError(f"place {self.name!r}: {key} must be a distance >= 0 m")
+        if (self.edge_left_m is None) != (self.edge_right_m is None):
+            raise ConfigError(f"place {self.name!r}: edge_left_m and edge_right_m go together")
 
     def near(self, group: str) -> float:
         """The group's share within 30 m (the mean of the first two bands)."""
@@ -75,7 +86,7 @@ class Place:
         return self.shares[GROUPS.index(group)]
 
     def to_json(self) -> dict:
-        out = asdict(self)
+        out = {k: v for k, v in asdict(self).items() if v is not None}
         out["shares"] = {g: [round(v, 5) for v in vals]
                          for g, vals in zip(GROUPS, self.shares, strict=True)}
         return out
@@ -90,7 +101,7 @@ class Place:
         if unknown:
             raise ConfigError(f"{where}: unknown key {unknown[0]!r} (allowed: "
                               f"{', '.join(sorted(names))})")
-        missing = sorted(names - set(raw))
+        missing = sorted(names - set(raw) - {"edge_left_m", "edge_right_m"})
         if missing:
             raise ConfigError(f"{where}: missing key {missing[0]!r}")
         got = raw["shares"]
@@ -104,7 +115,9 @@ class Place:
             return cls(name=str(raw["name"]), pitch_deg=float(raw["pitch_deg"]),
                        height_m=float(raw["height_m"]), shares=shares,
                        clutter_left_m=float(raw["clutter_left_m"]),
-                       clutter_right_m=float(raw["clutter_right_m"]))
+                       clutter_right_m=float(raw["clutter_right_m"]),
+                       **{k: float(raw[k]) for k in ("edge_left_m", "edge_right_m")
+                          if k in raw})
         except (TypeError, ValueError, AttributeError) as exc:
             raise ConfigError(f"{where}: {exc}") from exc
 
@@ -129,8 +142,18 @@ def place_pose(bg_id: int, place: Place, base_pitch_deg: float, base_height_m: f
     return dp, dh
 
 
+def road_half_width(place: Place) -> float | None:
+    """The half-width of the road a place's street takes: the mean of where its road ends on
+    the two sides (the street is symmetric about the sensor's line), within ROAD_HALF_M; None
+    for a place measured without its edges."""
+    if place.edge_left_m is None or place.edge_right_m is None:
+        return None
+    return float(np.clip((place.edge_left_m + place.edge_right_m) / 2.0, *ROAD_HALF_M))
+
+
 def place_layout(bg_id: int, place: Place) -> _Layout:
-    """The street's layout with its sidewalks narrowed where the place's clutter is near."""
+    """The street's layout with its sidewalks narrowed where the place's clutter is near and
+    its road as wide as the place's, the whole length (no wider stretch at the test site)."""
     lay = _layout(bg_id)
     rng = _rng(bg_id, PLACE_STREAM + 1)
     sidewalk = list(lay.sidewalk)
@@ -138,7 +161,20 @@ def place_layout(bg_id: int, place: Place) -> _Layout:
         if near < NEAR_CLUTTER_M:
             sidewalk[k] = float(rng.uniform(1.5, 2.2))
     sw = (sidewalk[0], sidewalk[1])
-    return replace(lay, sidewalk=sw, terrain=replace(lay.terrain, sidewalk=sw))
+    half = road_half_width(place)
+    if half is None:
+        return replace(lay, sidewalk=sw, terrain=replace(lay.terrain, sidewalk=sw))
+    return replace(lay, half_width=half, sidewalk=sw,
+                   terrain=replace(lay.terrain, half_width=half, sidewalk=sw, narrow=0.0))
+
+
+def free_zone(lay: _Layout):
+    """The test site kept clear of the street's objects: FREE_ZONE, cut to the road between the
+    kerbs (a sampled car cannot stand beyond them: the kerbs are obstacles), so the place's
+    roadside stands right beside the road as it does on the place's own."""
+    (x0, x1), (y0, y1) = FREE_ZONE
+    half = lay.terrain.narrowest_kerb(x0, x1)
+    return (x0, x1), (max(y0, -half), min(y1, half))
 
 
 def roadside_step(place: Place):
@@ -243,6 +279,9 @@ def place_street(bg_id: int, place: Place, pose: tuple[float, float]):
     from falsify.world import streets
 
     steps = (*streets.STEPS[:2], roadside_step(place), *streets.STEPS[2:])
-    st, lay = streets.placed(bg_id, steps, place_layout(bg_id, place))
+    lay = place_layout(bg_id, place)
+    zone = free_zone(lay) if road_half_width(place) is not None else FREE_ZONE
+    st, lay = streets.placed(bg_id, steps, lay, zone)
     bg = streets.assemble(bg_id, st, lay)
-    return replace(bg, ego_pitch_deg=float(pose[0]), ego_dz=float(pose[1]))
+    return replace(bg, ego_pitch_deg=float(pose[0]), ego_dz=float(pose[1]),
+                   kerbs_stop_cars=road_half_width(place) is None)

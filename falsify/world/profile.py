@@ -9,7 +9,8 @@ draws its car count from the fit scans' counts. Its streets keep each parked car
 probability ``parked_keep``, the share that brings the world's cars in view nearest the fit
 scans' (fitted by `fit-world` over PARKED_KEEP_GRID). A profile with ``places`` (version 2)
 makes each street stand for one fit scan's place (falsify.world.places): its ego pose and its
-roadside; a space takes such streets with `[dims.background] world = "NAME"`.
+roadside, and (version 3, places with their road edges) its road's width; a space takes such
+streets with `[dims.background] world = "NAME"`.
 """
 
 from __future__ import annotations
@@ -30,8 +31,8 @@ from falsify.world.streets import Background, build_background, thin_parked_cars
 
 WORLDS = CONFIGS / "worlds"   # the fitted profiles that ship
 
-PROFILE_VERSION = 2
-READS_VERSIONS = (1, 2)
+PROFILE_VERSION = 3
+READS_VERSIONS = (1, 2, 3)
 POSE_KEYS = ("pitch_deg", "height_m", "cars_front")
 PARKED_KEEP_GRID = (1.0, 0.75, 0.5, 0.35, 0.25, 0.15, 0.1, 0.05, 0.0)
 
@@ -109,6 +110,10 @@ class WorldProfile:
         if self.parked_keep >= 1.0:
             return None
         return functools.partial(thinned_street, keep=self.parked_keep)
+
+    def place_name(self, bg_id: int) -> str | None:
+        """The real place street `bg_id` stands for (its fit scan's name); None without places."""
+        return self.places[place_index(bg_id, len(self.places))].name if self.places else None
 
     def street(self, bg_id: int) -> Background:
         """Street `bg_id` of this world: standing for place place_index(bg_id) with its pose,

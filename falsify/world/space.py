@@ -181,10 +181,19 @@ class Space:
                               "backgrounds are real scans")
 
     def background_name(self, bg: int) -> str:
-        """How a report names a background: the real scan's name, else the street's id."""
+        """How a report names a background: the real scan's name, else the street's id and,
+        in a world of places, the place it stands for."""
         if self.real_backgrounds:
             return self.real_backgrounds[int(bg)].name
-        return f"street {int(bg)}"
+        place = None
+        if self.world:
+            from falsify.world.profile import load_profile
+
+            try:
+                place = load_profile(self.world).place_name(int(bg))
+            except ConfigError:   # a report of a run whose profile has gone: the id alone
+                place = None
+        return f"street {int(bg)}" + (f" ({place})" if place else "")
 
     @property
     def max_count(self) -> int:

@@ -131,7 +131,7 @@ def _plants(st: _Street, lay: _Layout, bg_id: int) -> None:
                     off = kerb + sw + rng.uniform(0.8, 4.0)
                 # Crowns overhang the road but stop short of the free zone (jitter <= 15 %);
                 # away from it, up to 2 m over a narrowed road.
-                edge = 8.9 if t.narrow == 0.0 or _near_zone(x) else kerb - 2.0
+                edge = st.overhang_edge(8.9) if t.narrow == 0.0 or _near_zone(x) else kerb - 2.0
                 crown = min(rng.uniform(1.2, 3.5), (off - edge) / 1.2)
                 if crown < 0.8:
                     continue
@@ -166,7 +166,7 @@ def _poles(st: _Street, lay: _Layout, bg_id: int) -> None:
                     iid = st.new_instance()
                     base = float(t.height(np.array([x]), np.array([y]))[0])
                     h = rng.uniform(6.0, 10.0)
-                    edge = 8.8 if t.narrow == 0.0 or _near_zone(x) else kerb - 2.5
+                    edge = st.overhang_edge(8.8) if t.narrow == 0.0 or _near_zone(x) else kerb - 2.5
                     arm_end = max(off - rng.uniform(1.0, 2.5), edge)
                     # A street light is pole throughout (SemanticKITTI: lamp posts), its arm
                     # and lamp head too.

@@ -50,7 +50,8 @@ def _rect(x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
 class _Street:
     """Accumulates meshes with labels and materials, and the footprints used for placement."""
 
-    def __init__(self) -> None:
+    def __init__(self, free_zone=FREE_ZONE) -> None:
+        self.free_zone = free_zone   # ((x0, x1), (y0, y1)) that no object may enter
         self.meshes: list[shapes.Mesh] = []
         self.cls: list[int] = []
         self.inst: list[int] = []
@@ -76,11 +77,18 @@ class _Street:
         self.next_id += 1
         return self.next_id - 1
 
+    def overhang_edge(self, edge: float) -> float:
+        """The |y| an overhang (crown, lamp arm) keeps beyond over the test site: `edge`, set
+        for FREE_ZONE, or as far past a narrower zone's side."""
+        if self.free_zone == FREE_ZONE:
+            return edge
+        return max(abs(v) for v in self.free_zone[1]) + edge - max(abs(v) for v in FREE_ZONE[1])
+
     def fits(self, poly: np.ndarray, margin: float = 0.3) -> bool:
         """True when a footprint keeps off the free zone, the sensor and every placed object."""
         x0, y0 = poly.min(axis=0) - margin
         x1, y1 = poly.max(axis=0) + margin
-        (fx0, fx1), (fy0, fy1) = FREE_ZONE
+        (fx0, fx1), (fy0, fy1) = self.free_zone
         if x1 > fx0 and x0 < fx1 and y1 > fy0 and y0 < fy1:
             return False
         dx = max(x0, 0.0, -x1)

@@ -127,10 +127,11 @@ def multiples_section(data: RunData, threshold: float) -> str:
     figs = []
     for bg in shown:
         cmap = data.cell_map(data.frame[data.frame["background"] == bg])
-        label = (data.space.background_name(bg) if data.space.real_backgrounds
-                 else f"background {bg}")
+        name = data.space.background_name(bg)   # a street names the place it stands for
+        real = bool(data.space.real_backgrounds)
+        label = name if real else name.replace("street", "background", 1)
         svg, mean, n_blind = _small_map(cmap, threshold, label, label)
-        short = label if data.space.real_backgrounds else f"bg {bg}"
+        short = name if real else name.replace("street", "bg", 1)
         figs.append(f'<figure class="multiple">{svg}'
                     f"<figcaption>{esc(short)} · {mean}<br>{n_blind} blind"
                     "</figcaption></figure>")

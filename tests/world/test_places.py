@@ -12,27 +12,37 @@ import numpy as np
 import pytest
 
 from falsify.errors import ConfigError
-from falsify.jobs.fit_world import place_of, scene_stats
+from falsify.jobs.fit_world import place_of, road_edges, scene_stats
 from falsify.semantic import RAW_ID, join_label
 from falsify.sensor.lidar import load_sensor
+from falsify.sensor.scanner import InvalidSample
 from falsify.sensor.simulator import Simulator
-from falsify.world.places import BANDS_M, GROUPS, Place, place_index, place_street
+from falsify.world.places import (
+    BANDS_M,
+    GROUPS,
+    ROAD_HALF_M,
+    Place,
+    place_index,
+    place_street,
+    road_half_width,
+)
 from falsify.world.profile import PROFILE_VERSION, WorldProfile, load_profile
-from falsify.world.space import load_space
+from falsify.world.space import Sample, load_space
 from falsify.world.streets import FREE_ZONE, build_background
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def _place(name: str = "p", pitch: float = 1.5, green: float = 0.4, unlabeled: float = 0.05,
-           near: float = 4.0) -> Place:
+           near: float = 4.0, edges: tuple[float, float] | None = None) -> Place:
     shares = {g: (0.0, 0.0, 0.0) for g in GROUPS}
     shares["vegetation"] = (green, green, green)
     shares["unlabeled"] = (unlabeled, unlabeled, unlabeled)
     shares["fence"] = (0.05, 0.05, 0.05)
     return Place(name=name, pitch_deg=pitch, height_m=1.8,
                  shares=tuple(shares[g] for g in GROUPS), clutter_left_m=near,
-                 clutter_right_m=near)
+                 clutter_right_m=near, edge_left_m=edges and edges[0],
+                 edge_right_m=edges and edges[1])
 
 
 def _profile(places: tuple[Place, ...]) -> WorldProfile:
@@ -63,6 +73,19 @@ def test_place_of_counts_shares_per_band_and_the_nearest_clutter():
     assert len(BANDS_M) - 1 == len(place.share("car"))
 
 
+def test_road_edges_are_where_the_roadside_starts_on_each_side():
+    # Roadside from 3 m on the left and 4 m on the right to 12 m, spread evenly (the 10th
+    # percentile: 3.9 and 4.8 m), and a bend's terrain on the road in two of the ten slices.
+    rng = np.random.default_rng(0)
+    x = rng.uniform(5.0, 14.0, 4000)
+    y = rng.uniform(-12.0, 12.0, 4000)
+    roadside = (y > 3.0) | (y < -4.0)
+    bend = (x > 5.0) & (x < 7.0) & (np.abs(y) < 1.0)
+    left, right = road_edges(x, y, roadside | bend)
+    assert left == pytest.approx(3.9, abs=0.15) and right == pytest.approx(4.8, abs=0.15)
+    assert road_edges(x, y, np.zeros_like(roadside)) == (25.0, 25.0)
+
+
 def test_place_index_takes_every_place_once_over_n_streets():
     for n in (1, 2, 7, 21, 30):
         assert sorted(place_index(i, n) for i in range(n)) == list(range(n))
@@ -82,6 +105,13 @@ def test_place_json_round_trip_and_errors_name_the_key():
     bad = {**raw["shares"], "road": [0.5, 2.0, 0.1]}
     with pytest.raises(ConfigError, match="shares.road"):
         Place.from_json({**raw, "shares": bad}, "w")
+    assert "edge_left_m" not in raw                      # a place measured without its edges
+    edged = _place(edges=(3.0, 6.5))
+    assert Place.from_json(json.loads(json.dumps(edged.to_json())), "w") == edged
+    with pytest.raises(ConfigError, match="edge_left_m and edge_right_m go together"):
+        Place.from_json({**raw, "edge_left_m": 3.0}, "w")
+    with pytest.raises(ConfigError, match="edge_right_m must be a distance"):
+        Place.from_json({**raw, "edge_left_m": 3.0, "edge_right_m": -1.0}, "w")
 
 
 def test_a_place_street_is_deterministic_keeps_the_free_zone_and_adds_roadside():
@@ -103,6 +133,47 @@ def test_a_place_street_is_deterministic_keeps_the_free_zone_and_adds_roadside()
     assert (a.face_semantic == green).sum() > (plain.face_semantic == green).sum()
     bare = place_street(3, _place(green=0.0, unlabeled=0.0), (0.0, 0.0))
     assert not any(o.label.startswith(("clutter", "place hedge")) for o in bare.obstacles)
+
+
+def test_a_place_with_edges_narrows_the_road_and_lets_cars_onto_the_roadside():
+    place = _place(edges=(3.5, 5.5))
+    street = place_street(3, place, (0.0, 0.0))
+    assert road_half_width(place) == street.road_half_width == 4.5
+    assert float(street.terrain.kerb(np.array([10.0]))[0]) == 4.5     # no wider test site
+    assert not street.kerbs_stop_cars and place_street(3, _place(), (0.0, 0.0)).kerbs_stop_cars
+    assert road_half_width(_place(edges=(0.5, 0.9))) == ROAD_HALF_M[0]
+    # Nothing stands on the road at the test site; the roadside may stand right beside it.
+    (x0, x1), _ = FREE_ZONE
+    beside = 0
+    for fp in street.obstacles:
+        if fp.label.startswith("curb"):
+            continue
+        lo, hi = fp.polygon.min(axis=0), fp.polygon.max(axis=0)
+        if hi[0] > x0 and lo[0] < x1:
+            assert lo[1] >= 4.5 or hi[1] <= -4.5, fp.label
+            beside += min(abs(lo[1]), abs(hi[1])) < 8.5
+    assert beside > 0
+    # A car beyond the kerb is a sample, as one inserted in a real scan is; as built, not.
+    def sample(x: float) -> Sample:
+        return Sample((("car_model", "sedan"), ("x", x), ("y", 12.0), ("yaw", 0.0),
+                       ("count", 1), ("background", 0)))
+
+    def sim_of(p: Place) -> Simulator:
+        profile = _profile((p,))
+        return Simulator(load_sensor("kitti-hdl64e-front"),
+                         background_source=lambda b: profile.street(3))
+    verge = [x for x in np.arange(4.0, 8.0, 0.5) if _valid(sim_of(place), sample(x))]
+    assert verge, "no place across the right kerb (4.5 m) for a car"
+    with pytest.raises(InvalidSample, match="curb"):
+        sim_of(_place()).placed_cars(sample(-11.5))
+
+
+def _valid(sim: Simulator, sample: Sample) -> bool:
+    try:
+        sim.placed_cars(sample)
+    except InvalidSample:
+        return False
+    return True
 
 
 def test_the_simulator_stands_the_ego_as_the_place_saw_its_road():
@@ -153,3 +224,13 @@ def test_space_world_key_builds_place_streets_and_names_bad_values(tmp_path):
         load_space(_config(tmp_path, "values = [0]\nworld = 3\n"))
     with pytest.raises(ConfigError, match=r"dims\.background\.world: builds our streets"):
         load_space(_config(tmp_path, 'real = ["x"]\nworld = "w.json"\n'))
+
+
+def test_streets_are_named_for_their_places():
+    space = load_space(ROOT / "configs" / "paper.toml")
+    profile = load_profile(space.world)
+    names = [space.background_name(b) for b in range(len(profile.places))]
+    assert names[0] == f"street 0 ({profile.places[0].name})"
+    assert sorted(n.split("(")[1].rstrip(")") for n in names) == sorted(
+        p.name for p in profile.places)
+    assert load_space(ROOT / "configs" / "smoke.toml").background_name(3) == "street 3"
