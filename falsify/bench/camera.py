@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from falsify.bench.machine import machine
+from falsify.bench.scan import possible
 from falsify.errors import FalsifyError
 from falsify.sensor.camera import camera_preset
 from falsify.sensor.lidar import load_sensor
@@ -96,10 +97,10 @@ def bench_camera(config: str | Path, camera: str = "kitti-centre", samples: int 
     space = load_space(config)
     space.require_streets("bench camera")
     cam = camera_preset(camera)
-    grid = space.grid()
-    picked = [grid[i * len(grid) // samples + i] for i in range(min(samples, len(grid) // 2))]
     sim = Simulator(load_sensor(space.sensor), space.user_cars, max_bvh=64,
                     background_source=space.background_source())
+    grid = possible(sim, space.grid())
+    picked = [grid[i * len(grid) // samples + i] for i in range(min(samples, len(grid) // 2))]
     renderer = CameraRenderer(sim, cam, max_cached=1)  # each image on a new background: cold
     for s in picked:  # build every BVH before the clock starts
         sim.background(s.background)
