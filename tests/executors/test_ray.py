@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pandas as pd
@@ -26,13 +27,14 @@ from falsify.executors.ray import ActorCrash, EvalActor, RayExecutor, Shipment, 
 from falsify.jobs.run import RunRequest, execute, executors_of
 from falsify.models.runners import load_segmenter
 from falsify.models.spec import spec_path_for
-from falsify.results.samples import sample_key
+from falsify.results.samples import CAR_SCORING, sample_key
 from falsify.results.store import STORE_NAME, TIMING_COLUMNS, Store, read_frame, read_meta
 from falsify.sampler import make_sampler
 from falsify.world.space import load_space
 from tests.cli.test_bad_input import snapshot
 
 pytestmark = pytest.mark.slow   # the heavy tier: Ray: a local instance per module, whole grids
+RUN_SCORING = replace(CAR_SCORING, parts=True)   # what a grid run scores: the placed car apart too
 
 ROOT = Path(__file__).resolve().parents[2]
 CI = ROOT / "tests" / "data" / "small-grid.toml"  # 24 samples on 2 streets
@@ -85,7 +87,7 @@ def test_ray_rows_equal_process_rows(ray, process_rows, tmp_path):
 
 def test_killed_actor_gives_the_identical_rows(ray, process_rows, tmp_path):
     space = load_space(CI)
-    store = Store(tmp_path / STORE_NAME, space)
+    store = Store(tmp_path / STORE_NAME, space, RUN_SCORING)
     killed: list = []
 
     def kill_one(progress, final):   # after the first chunk, kill an actor holding a chunk
@@ -94,7 +96,7 @@ def test_killed_actor_gives_the_identical_rows(ray, process_rows, tmp_path):
             ray.kill(actor)
             killed.append(chunk)
 
-    with Driver(EvalSettings(space=space), store, workers=2, executor="ray",
+    with Driver(EvalSettings(space=space, scoring=RUN_SCORING), store, workers=2, executor="ray",
                 progress=Progress(None, kill_one)) as driver:
         make_sampler("grid").run(space, driver.evaluate, None, space.seed)
         reruns, replaced = driver.executor.reruns, driver.executor.replaced

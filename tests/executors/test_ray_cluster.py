@@ -6,6 +6,7 @@ Skipped where ray is not installed."""
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -13,6 +14,7 @@ import pytest
 from falsify.executors.driver import Driver, Progress
 from falsify.executors.evaluator import EvalSettings
 from falsify.jobs.run import RunRequest, execute
+from falsify.results.samples import CAR_SCORING
 from falsify.results.store import STORE_NAME, TIMING_COLUMNS, Store, read_frame
 from falsify.sampler import make_sampler
 from falsify.world.space import load_space
@@ -56,7 +58,8 @@ def test_a_removed_node_and_a_joining_one_give_the_process_rows(cluster, tmp_pat
     execute(RunRequest(config=CI, out=process, command="grid", workers=2, report=False))
 
     space = load_space(CI)
-    store = Store(tmp_path / STORE_NAME, space)
+    scoring = replace(CAR_SCORING, parts=True)   # what the grid run scores: the placed car apart
+    store = Store(tmp_path / STORE_NAME, space, scoring)
     events: list[str] = []
     lock = threading.Lock()
 
@@ -72,8 +75,9 @@ def test_a_removed_node_and_a_joining_one_give_the_process_rows(cluster, tmp_pat
         c.add_node(num_cpus=1, node_ip_address="127.0.0.1")
         events.append("added")
 
-    with Driver(EvalSettings(space=space), store, workers=2, batch=2, executor="ray",
-                address=c.address, progress=Progress(None, lose_a_node)) as driver:
+    settings = EvalSettings(space=space, scoring=scoring)
+    with Driver(settings, store, workers=2, batch=2, executor="ray", address=c.address,
+                progress=Progress(None, lose_a_node)) as driver:
         make_sampler("grid").run(space, driver.evaluate, None, space.seed)
         replaced = driver.executor.replaced
     store.close()

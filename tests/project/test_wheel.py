@@ -105,10 +105,11 @@ def test_installed_wheel_runs_outside_the_checkout(wheel, tmp_path):
                           cwd=work, env=env, capture_output=True, text=True, timeout=600)
     assert scan.returncode == 0, scan.stderr
     assert json.loads(scan.stdout)["car_points"] > 0 and (work / "scan" / "scan.png").exists()
-    # the paper's streets stand for real places: their world profile ships in the wheel
+    # the paper's streets stand for real places: their world profile ships in the wheel (x = 0:
+    # the first x, -5 m, stands in a parked bicycle beside street 0's narrow road)
     paper = subprocess.run([falsify_cmd, "scan", "configs/paper.toml", "--out", "paper",
-                            "--json"], cwd=work, env=env, capture_output=True, text=True,
-                           timeout=600)
+                            "--set", "x=0", "--json"], cwd=work, env=env, capture_output=True,
+                           text=True, timeout=600)
     assert paper.returncode == 0, paper.stderr
     grid = subprocess.run([falsify_cmd, "grid", "configs/ci.toml", "--out", "run", "--workers",
                            "2", "--quiet", "--json"], cwd=work, env=env, capture_output=True,

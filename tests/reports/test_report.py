@@ -127,7 +127,10 @@ def test_paper_size(tmp_path: Path) -> None:
     page = out.read_text(encoding="utf-8")
     assert out == run / "report.html"
     assert len(CELL.findall(page)) == 150
-    assert page.count('alt="range image, label"') == 12
+    # A preview each, or the reason there is none: this written run stores rows as ok where the
+    # places' streets hold an object (a real run stores those as invalid).
+    previews = page.count('alt="range image, label"')
+    assert previews >= 9 and previews + page.count("scan not regenerated: car 1") == 12
     assert page.count('class="multiple"') == 15
     assert out.stat().st_size < 5_000_000
 
