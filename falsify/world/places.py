@@ -170,8 +170,8 @@ def place_layout(bg_id: int, place: Place) -> _Layout:
 
 def free_zone(lay: _Layout):
     """The test site kept clear of the street's objects: FREE_ZONE, cut to the road between the
-    kerbs (a sampled car cannot stand beyond them: the kerbs are obstacles), so the place's
-    roadside stands right beside the road as it does on the place's own."""
+    kerbs, so the place's roadside stands right beside the road as it does on the place's own
+    (a sampled car beyond the kerb may meet it: an invalid sample, as in the real scan)."""
     (x0, x1), (y0, y1) = FREE_ZONE
     half = lay.terrain.narrowest_kerb(x0, x1)
     return (x0, x1), (max(y0, -half), min(y1, half))
@@ -280,8 +280,8 @@ def place_street(bg_id: int, place: Place, pose: tuple[float, float]):
 
     steps = (*streets.STEPS[:2], roadside_step(place), *streets.STEPS[2:])
     lay = place_layout(bg_id, place)
-    zone = free_zone(lay) if road_half_width(place) is not None else FREE_ZONE
-    st, lay = streets.placed(bg_id, steps, lay, zone)
+    own_road = road_half_width(place) is not None   # the place's road width, roadside beside
+    st, lay = streets.placed(bg_id, steps, lay, free_zone(lay) if own_road else FREE_ZONE)
     bg = streets.assemble(bg_id, st, lay)
     return replace(bg, ego_pitch_deg=float(pose[0]), ego_dz=float(pose[1]),
-                   kerbs_stop_cars=road_half_width(place) is None)
+                   kerbs_stop_cars=not own_road)

@@ -5,8 +5,12 @@ from __future__ import annotations
 import random
 import threading
 import tomllib
+from dataclasses import replace
 
-from falsify.results.samples import sample_key
+import pytest
+
+from falsify.errors import FalsifyError
+from falsify.results.samples import CAR_SCORING, sample_key
 from falsify.results.store import STORE_NAME, Store, read_frame
 from falsify.world.space import parse_space
 from tests.runfixture import SMOKE, synthetic_result
@@ -54,3 +58,16 @@ def test_renumber_puts_rows_not_asked_for_last_in_their_order(tmp_path):
     store.close()
     keys = list(read_frame(tmp_path)["sample_key"])
     assert keys == [sample_key(samples[i]) for i in (3, 1, 0, 2, 4)]
+
+
+def test_a_store_written_without_the_parts_columns_is_refused_by_name(tmp_path):
+    sp = space()
+    old = Store(tmp_path / STORE_NAME, sp)   # four-class car scoring, as runs were stored before
+    old.add([synthetic_result(sp.grid()[0], 0.5, 0)], "m", "c")
+    old.close()
+    before = (tmp_path / STORE_NAME).read_bytes()
+    with pytest.raises(FalsifyError, match="lacks the columns inserted_iou, inserted_recall, "
+                       "real_iou, real_recall .* new --out"):
+        Store(tmp_path / STORE_NAME, sp, replace(CAR_SCORING, parts=True))
+    assert (tmp_path / STORE_NAME).read_bytes() == before   # nothing written to it
+    assert len(read_frame(tmp_path / STORE_NAME)) == 1
