@@ -1,10 +1,11 @@
 """How far a world is from real streets, measured by how the network fails in each.
 
 Two finished runs over the same positions, one on our streets (the world) and one with the car
-placed in real scans, compared three ways: the per-background spread of the placed car's IoU,
-precision and recall (with the 1-Wasserstein distance between the runs' spreads), the x × y maps
-of its IoU cell by cell (which blind spots the world finds and misses), and, optionally, what the
-false-positive car points of a few replayed samples lie on.
+placed in real scans, compared four ways: the per-background spread of the placed car's IoU,
+precision and recall (with the 1-Wasserstein distance between the runs' spreads), each street
+against the real place it stands for where both runs hold it, the x × y maps of its IoU cell by
+cell (which blind spots the world finds and misses), and, optionally, what the false-positive
+car points of a few replayed samples lie on.
 """
 
 from __future__ import annotations
@@ -94,6 +95,41 @@ class MetricComparison:
 
 
 @dataclass(frozen=True)
+class PlacePair:
+    """One real place in both runs: the placed car's means (IoU, precision, recall) over the
+    streets standing for it and over its real scan's rows."""
+
+    place: str
+    streets: int
+    world: dict[str, float]
+    real: dict[str, float]
+
+    def to_json(self) -> dict:
+        def num(v: float) -> float | None:
+            return _r(v) if np.isfinite(v) else None
+
+        return {"place": self.place, "streets": self.streets,
+                "world": {k: num(v) for k, v in self.world.items()},
+                "real": {k: num(v) for k, v in self.real.items()}}
+
+
+@dataclass(frozen=True)
+class PlacePairing:
+    """Each street against the real place it stands for, where both runs hold the place: the
+    spreads can agree while each street is as hard as another place, not its own."""
+
+    pairs: tuple[PlacePair, ...]
+    mae: dict[str, float | None]   # metric -> mean |world - real| over the pairs
+    world_only: tuple[str, ...]    # places a street stands for that the real run lacks
+    real_only: tuple[str, ...]
+
+    def to_json(self) -> dict:
+        return {"pairs": [p.to_json() for p in self.pairs],
+                "mae": {k: _r(v) for k, v in self.mae.items()},
+                "world_only": list(self.world_only), "real_only": list(self.real_only)}
+
+
+@dataclass(frozen=True)
 class MapAgreement:
     """The two x × y maps of the placed car's IoU over the cells both define; a cell is blind
     below `threshold`. World misses: blind in the real run only; false alarms: world only."""
@@ -169,11 +205,13 @@ class AgreementResult:
     map: MapAgreement
     false_positives: tuple[FalsePositives, ...]   # empty when skipped
     fp_note: str
+    places: PlacePairing | None = None   # None: no place in both runs
     precision_note: str = PRECISION_NOTE
 
     def to_json(self) -> dict:
         return {"world": self.world.to_json(), "real": self.real.to_json(),
                 "metrics": [m.to_json() for m in self.metrics], "map": self.map.to_json(),
+                "places": None if self.places is None else self.places.to_json(),
                 "false_positives": [f.to_json() for f in self.false_positives],
                 "false_positives_note": self.fp_note, "precision_note": self.precision_note}
 
@@ -224,6 +262,44 @@ def compare_metric(world: RunData, real: RunData, metric: str) -> MetricComparis
     return MetricComparison(metric, wc, rc, Distribution.of(list(wv.values())),
                             Distribution.of(list(rv.values())),
                             wasserstein1(list(wv.values()), list(rv.values())), wv, rv)
+
+
+def by_place(data: RunData) -> dict[str, tuple[int, dict[str, float]]]:
+    """Per real place the run's backgrounds are or stand for: how many backgrounds, and the
+    mean over them of each metric's per-background mean (backgrounds of no place left out)."""
+    cols = placed_columns(data)
+    ok = ok_rows(data)
+    if "background" not in ok.columns or not len(ok):
+        return {}
+    means = ok[list(cols.values())].astype(float).groupby(ok["background"], sort=True).mean()
+    groups: dict[str, list[dict[str, float]]] = {}
+    for bg, row in means.iterrows():
+        try:
+            place = data.space.background_place(int(bg))
+        except (IndexError, TypeError, ValueError):
+            place = None
+        if place is not None:
+            groups.setdefault(place, []).append({m: float(row[c]) for m, c in cols.items()})
+    return {place: (len(rows), {m: float(np.nanmean([r[m] for r in rows]))
+                                if any(np.isfinite(r[m]) for r in rows) else float("nan")
+                                for m in METRICS})
+            for place, rows in sorted(groups.items())}
+
+
+def pair_places(world: dict[str, tuple[int, dict[str, float]]],
+                real: dict[str, tuple[int, dict[str, float]]]) -> PlacePairing | None:
+    """The places both sides hold, paired (see PlacePairing); None when they share none."""
+    common = sorted(set(world) & set(real))
+    if not common:
+        return None
+    pairs = tuple(PlacePair(p, world[p][0], world[p][1], real[p][1]) for p in common)
+    mae = {}
+    for m in METRICS:
+        d = [abs(x.world[m] - x.real[m]) for x in pairs
+             if np.isfinite(x.world[m]) and np.isfinite(x.real[m])]
+        mae[m] = float(np.mean(d)) if d else None
+    return PlacePairing(pairs, mae, tuple(sorted(set(world) - set(real))),
+                        tuple(sorted(set(real) - set(world))))
 
 
 def check_same_grid(world: RunData, real: RunData, wmap: CellMap, rmap: CellMap) -> None:
@@ -296,7 +372,7 @@ def run_agreement(world_run: str | Path, real_run: str | Path, threshold: float 
     else:
         fps, note = (), "skipped (--fp-samples 0); --fp-samples N replays N rows of each run"
     return AgreementResult(side(world), side(real), metrics, map_agreement(wmap, rmap, t), fps,
-                           note)
+                           note, pair_places(by_place(world), by_place(real)))
 
 
 # -- false positives by what they lie on -----------------------------------------------------
@@ -384,6 +460,7 @@ def format_text(res: AgreementResult) -> str:
     lines.append(f"blind below {a.threshold:g}: world {a.blind_world}, real {a.blind_real}; "
                  f"alike {f(a.agreement)}, world misses {len(a.world_misses)}, world only "
                  f"{len(a.false_alarms)}, Jaccard {f(a.jaccard)}")
+    lines.extend(_places_text(res.places, f))
     if not res.false_positives:
         lines.append(f"false-positive car points: {res.fp_note}")
     for fp in res.false_positives:
@@ -392,3 +469,24 @@ def format_text(res: AgreementResult) -> str:
                      f"replayed rows (stored car_fp {fp.stored_fp}): {top}"
                      + (f" [{fp.note}]" if fp.note else ""))
     return "\n".join(lines)
+
+
+def _places_text(pl: PlacePairing | None, f) -> list[str]:
+    """The per-place lines: each place's IoU and precision, world against real, hardest real
+    place first."""
+    if pl is None:
+        return ["per place: no real place in both runs"]
+    out = [f"per place, {len(pl.pairs)} in both runs: mean |world - real| IoU "
+           f"{f(pl.mae['iou'])}, precision {f(pl.mae['precision'])}, recall "
+           f"{f(pl.mae['recall'])}"
+           + (f"; streets' places not in the real run: {len(pl.world_only)}"
+              if pl.world_only else "")
+           + (f"; real places no street stands for: {len(pl.real_only)}"
+              if pl.real_only else ""),
+           f"  {'place':24s} {'streets':>7s} {'IoU world':>9s} {'real':>6s} "
+           f"{'prec world':>10s} {'real':>6s}"]
+    for p in sorted(pl.pairs, key=lambda p: (p.real["iou"], p.place)):
+        out.append(f"  {p.place:24s} {p.streets:7d} {f(p.world['iou']):>9s} "
+                   f"{f(p.real['iou']):>6s} {f(p.world['precision']):>10s} "
+                   f"{f(p.real['precision']):>6s}")
+    return out

@@ -185,15 +185,22 @@ class Space:
         in a world of places, the place it stands for."""
         if self.real_backgrounds:
             return self.real_backgrounds[int(bg)].name
-        place = None
-        if self.world:
-            from falsify.world.profile import load_profile
-
-            try:
-                place = load_profile(self.world).place_name(int(bg))
-            except ConfigError:   # a report of a run whose profile has gone: the id alone
-                place = None
+        place = self.background_place(bg)
         return f"street {int(bg)}" + (f" ({place})" if place else "")
+
+    def background_place(self, bg: int) -> str | None:
+        """The real place a background is (a real scan's name) or stands for (a street's place
+        in a world of places); None for a street of no place, or whose profile has gone."""
+        if self.real_backgrounds:
+            return self.real_backgrounds[int(bg)].name
+        if not self.world:
+            return None
+        from falsify.world.profile import load_profile
+
+        try:
+            return load_profile(self.world).place_name(int(bg))
+        except ConfigError:
+            return None
 
     @property
     def max_count(self) -> int:

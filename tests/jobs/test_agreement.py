@@ -17,6 +17,7 @@ from falsify.jobs.agreement import (
     fp_classes,
     map_agreement,
     ok_rows,
+    pair_places,
     run_agreement,
     spread_rows,
     wasserstein1,
@@ -173,6 +174,7 @@ def test_written_runs_compare_as_constructed(written, capsys):
     assert [x["metric"] for x in out["metrics"]] == ["iou", "precision", "recall"]
     assert out["false_positives"] == [] and "skipped" in out["false_positives_note"]
     assert out["world"]["backgrounds_are"] == "streets" and out["real"]["ok_rows"] == 12
+    assert out["places"] is None     # streets of no place: nothing to pair
 
 
 def test_threshold_option_and_text_output(written, capsys):
@@ -184,6 +186,7 @@ def test_threshold_option_and_text_output(written, capsys):
     text = capsys.readouterr().out
     assert "W1" in text and "car_precision" in text and "parked ones" in text
     assert "world misses 1" in text and "--fp-samples 0" in text
+    assert "per place: no real place in both runs" in text
 
 
 def test_a_run_against_itself_agrees_fully(written, capsys):
@@ -287,3 +290,51 @@ def test_replayed_false_positives_match_the_stored_counts(pipeline_runs):
         assert fp.points == fp.stored_fp == sum(fp.by_class.values())
         assert "car" not in fp.by_class
     assert json.dumps(result.to_json())
+
+
+# -- each street against its own place -------------------------------------------------------
+def test_pair_places_pairs_shared_places_and_names_the_rest():
+    nan = float("nan")
+    world = {"a": (2, {"iou": 0.8, "precision": 0.9, "recall": 0.7}),
+             "b": (1, {"iou": 0.5, "precision": 0.6, "recall": 0.9}),
+             "d": (1, {"iou": nan, "precision": nan, "recall": 0.9})}
+    real = {"a": (1, {"iou": 0.6, "precision": 0.95, "recall": 0.7}),
+            "d": (1, {"iou": 0.4, "precision": 0.5, "recall": 0.5}),
+            "c": (1, {"iou": 0.3, "precision": 0.3, "recall": 0.3})}
+    pl = pair_places(world, real)
+    assert [p.place for p in pl.pairs] == ["a", "d"] and pl.pairs[0].streets == 2
+    assert pl.mae["iou"] == pytest.approx(0.2) and pl.mae["precision"] == pytest.approx(0.05)
+    assert pl.mae["recall"] == pytest.approx(0.2)    # (0 + 0.4) / 2: d's recall is defined
+    assert (pl.world_only, pl.real_only) == (("b",), ("c",))
+    assert pl.to_json()["pairs"][1]["world"]["iou"] is None    # JSON has no NaN
+    assert pair_places(world, {"c": real["c"]}) is None
+
+
+PLACES_WORLD = CONFIG.format(xs="0.0, 2.0").replace(
+    "values = [0, 5]", 'values = [0, 16, 21]\nworld = "semantickitti-places"')
+PLACES_REAL = REAL.replace("min = -5.0\nmax = 3.0\nstep = 4.0", "values = [0.0, 2.0]").replace(
+    "min = 5.0\nmax = 17.0\nstep = 4.0", "values = [5.0, 10.0]")
+
+
+def test_streets_pair_with_the_real_places_they_stand_for(tmp_path, capsys):
+    data = os.environ.get("SEMANTICKITTI")
+    if not data or not (Path(data) / "sequences" / "01").is_dir():
+        pytest.skip("SemanticKITTI mini scans not found (shared/data/ beside the repo)")
+    # Streets 0 and 21 stand for place 01/000000, street 16 for 01/000009.
+    world_iou = {0: 0.9, 21: 0.7, 16: 0.5}
+    world = write_run(tmp_path / "w", PLACES_WORLD,
+                      iou=lambda s: world_iou[int(s["background"])])
+    real = write_run(tmp_path / "r", PLACES_REAL,
+                     iou=lambda s: (0.6, 0.5)[int(s["background"])])
+    names = open_run(real).space
+    assert [names.background_place(b) for b in (0, 1)] == ["01/000000", "01/000009"]
+    out = agreement_json(capsys, str(world), str(real))["places"]
+    pairs = {p["place"]: p for p in out["pairs"]}
+    assert set(pairs) == {"01/000000", "01/000009"} and pairs["01/000000"]["streets"] == 2
+    assert pairs["01/000000"]["world"]["iou"] == pytest.approx(0.8, abs=2e-3)
+    assert pairs["01/000009"]["real"]["iou"] == pytest.approx(0.5, abs=2e-3)
+    assert out["mae"]["iou"] == pytest.approx(0.1, abs=2e-3)
+    assert out["world_only"] == [] and out["real_only"] == []
+    assert main(["agreement", str(world), str(real)]) == 0
+    text = capsys.readouterr().out
+    assert "per place, 2 in both runs: mean |world - real| IoU 0.100" in text
