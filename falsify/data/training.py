@@ -86,11 +86,12 @@ def scene_for(index: int, seed: int, sim: Simulator,
     rng = np.random.default_rng([seed, index])
     bg = sim.background(bg_id)[1]
     half = float(getattr(bg, "road_half_width", 9.0))
+    off_crown = float(getattr(bg, "ego_dy", 0.0))   # pose y is across from the street's ego
     def draw() -> SensorPose:
         # Any lane, up to beside the parked cars, so the roadside is seen from close by too
         # (the middle of a road narrower than two lanes).
         reach = max(half - 3.3, 0.0)
-        lane = rng.uniform(-reach, reach)
+        lane = rng.uniform(-reach, reach) - off_crown
         heading = rng.normal(0.0, 2.0) + (180.0 if rng.random() < 0.3 else 0.0)
         ego_x = rng.uniform(*EGO_X_FORWARD) if heading < 90 else rng.uniform(*EGO_X_BACKWARD)
         return SensorPose(ego_x, lane, heading)

@@ -28,6 +28,7 @@ from falsify.semantic import kitti4
 from falsify.sensor.hits import Caster, HitLayer
 from falsify.sensor.lidar import Sensor, SensorPose
 from falsify.sensor.placement import (
+    EGO_FOOTPRINT,
     EGO_X_BACKWARD,
     EGO_X_FORWARD,
     Obstacles,
@@ -105,7 +106,7 @@ class Simulator:
         self._cars: dict[str, tuple[Caster, np.ndarray]] = {}
         self._obstacles: dict[int, Obstacles] = {}
         self._terrain: dict[int, Terrain | None] = {}
-        self._ego_offset: dict[int, tuple[float, float]] = {}
+        self._ego_offset: dict[int, tuple[float, float, float]] = {}   # pitch, dz, dy
         self._kerbs_stop: dict[int, bool] = {}
         self._max_bvh, self._max_hits = max_bvh, max_hits
         self.background_source = background_source or streets.build_background
@@ -187,7 +188,8 @@ class Simulator:
         self._obstacles[bg_id] = Obstacles.of(bg.obstacles)
         self._terrain[bg_id] = bg.terrain
         self._ego_offset[bg_id] = (float(getattr(bg, "ego_pitch_deg", 0.0)),
-                                   float(getattr(bg, "ego_dz", 0.0)))
+                                   float(getattr(bg, "ego_dz", 0.0)),
+                                   float(getattr(bg, "ego_dy", 0.0)))
         self._kerbs_stop[bg_id] = bool(getattr(bg, "kerbs_stop_cars", True))
         self._bvh[bg_id] = entry
         while len(self._bvh) > self._max_bvh:
@@ -388,12 +390,15 @@ class Simulator:
     # -- samples --------------------------------------------------------------------------
     def placed_cars(self, sample: Sample) -> list[PlacedCar]:
         """The sample's cars in the world, or InvalidSample naming what they would intersect."""
+        dy = self.ego_dy(sample.background)   # the sample's positions are the sensor's
         placed = [replace(place(c, FIRST_CAR_INSTANCE + i), cls=self.model_class(c.model))
                   for i, c in enumerate(sample.cars)]
+        placed = [replace(c, y=c.y + dy) for c in placed] if dy else placed
         obstacles = self.obstacles(sample.background)
         crosses = (self.crosses_kerbs(placed) if self._kerbs_stop[sample.background]
                    else [True] * len(placed))
-        check_placement(placed, [self.footprint(c) for c in placed], obstacles, crosses)
+        check_placement(placed, [self.footprint(c) for c in placed], obstacles, crosses,
+                        EGO_FOOTPRINT + [0.0, dy])
         check_surfaces(placed, self.surfaces,
                        lambda x, y: self.surface(sample.background, x, y))
         return [self.settle(sample.background, c) for c in placed]
@@ -420,11 +425,19 @@ class Simulator:
         return replace(car, z=z, pitch_deg=pitch, roll_deg=roll)
 
     def ego_pose(self, bg_id: int, pose: SensorPose = SensorPose()) -> SensorPose:
-        """The ego vehicle standing on the background's ground at the pose's x, y, heading,
-        pitched and raised by the street's own ego offsets (a street fitted to a real place)."""
-        z, pitch, roll = self.pose_on(bg_id, pose.x, pose.y, pose.heading_deg)
-        dpitch, dz = self._ego_offset.get(bg_id, (0.0, 0.0))
-        return replace(pose, z=z + dz, pitch_deg=pitch + dpitch, roll_deg=roll)
+        """The ego vehicle standing on the background's ground at the pose's x, heading and y
+        across from where the street's ego stands (ego_dy), pitched and raised by the street's
+        own ego offsets (a street fitted to a real place)."""
+        dy = self.ego_dy(bg_id)
+        z, pitch, roll = self.pose_on(bg_id, pose.x, pose.y + dy, pose.heading_deg)
+        dpitch, dz, _ = self._ego_offset[bg_id]
+        return replace(pose, y=pose.y + dy, z=z + dz, pitch_deg=pitch + dpitch, roll_deg=roll)
+
+    def ego_dy(self, bg_id: int) -> float:
+        """Where across the road (m, +left of the crown) the background's ego stands."""
+        if bg_id not in self._ego_offset:
+            self.background(bg_id)
+        return self._ego_offset[bg_id][2]
 
     def pose_on(self, bg_id: int, x: float, y: float, heading_deg: float,
                 half_length: float = 1.4, half_width: float = 0.8) -> tuple[float, float, float]:

@@ -39,6 +39,7 @@ CLUTTER_PER_SHARE = 1.2    # clutter objects per metre of roadside per unit unla
 FENCE_PER_SHARE = 8.0      # kerb-length coverage of fences per unit fence share
 ALONG_X: tuple[float, float] = (-40.0, 110.0)   # where a place's roadside is built
 ROAD_HALF_M: tuple[float, float] = (3.0, 15.0)   # the road half-widths a place's edges may set
+EGO_KERB_M = 1.5   # the ego's centre keeps this far inside either kerb (it is 1.9 m wide)
 
 
 @dataclass(frozen=True)
@@ -149,6 +150,18 @@ def road_half_width(place: Place) -> float | None:
     if place.edge_left_m is None or place.edge_right_m is None:
         return None
     return float(np.clip((place.edge_left_m + place.edge_right_m) / 2.0, *ROAD_HALF_M))
+
+
+def road_offset(place: Place) -> float:
+    """Where across its road (m, +left of the crown) the street's ego stands so that each kerb
+    is as far from it as the place's road edge on that side: half the right edge less the left
+    (a road widened to ROAD_HALF_M widens evenly), at least EGO_KERB_M inside both kerbs; 0
+    for a place measured without its edges."""
+    half = road_half_width(place)
+    if half is None or place.edge_left_m is None or place.edge_right_m is None:
+        return 0.0
+    reach = max(half - EGO_KERB_M, 0.0)
+    return float(np.clip((place.edge_right_m - place.edge_left_m) / 2.0, -reach, reach))
 
 
 def place_layout(bg_id: int, place: Place) -> _Layout:
@@ -281,7 +294,8 @@ def place_street(bg_id: int, place: Place, pose: tuple[float, float]):
     steps = (*streets.STEPS[:2], roadside_step(place), *streets.STEPS[2:])
     lay = place_layout(bg_id, place)
     own_road = road_half_width(place) is not None   # the place's road width, roadside beside
-    st, lay = streets.placed(bg_id, steps, lay, free_zone(lay) if own_road else FREE_ZONE)
+    dy = road_offset(place)
+    st, lay = streets.placed(bg_id, steps, lay, free_zone(lay) if own_road else FREE_ZONE, dy)
     bg = streets.assemble(bg_id, st, lay)
-    return replace(bg, ego_pitch_deg=float(pose[0]), ego_dz=float(pose[1]),
+    return replace(bg, ego_pitch_deg=float(pose[0]), ego_dz=float(pose[1]), ego_dy=dy,
                    kerbs_stop_cars=not own_road)

@@ -21,7 +21,7 @@ from falsify.world.terrain import Terrain, draw_terrain, terrain_meshes
 KERB_OBSTACLE: str = "curb"   # the label the kerbs' obstacle outlines start with
 ROAD_X: tuple[float, float] = (-170.0, 230.0)  # road, sidewalks and terrain span this x range
 FREE_ZONE: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 25.0), (-8.5, 7.5))
-SENSOR_CLEARANCE: float = 3.0  # metres around (0, 0) holding nothing but road
+SENSOR_CLEARANCE: float = 3.0  # metres around the sensor (0, sensor_y) holding nothing but road
 TERRAIN_HALF_WIDTH: float = 300.0  # the ground reaches out to |y| = this
 
 FIRST_STREET_INSTANCE = 1000   # the street's own objects; the sample's placed ones lie below
@@ -50,8 +50,9 @@ def _rect(x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
 class _Street:
     """Accumulates meshes with labels and materials, and the footprints used for placement."""
 
-    def __init__(self, free_zone=FREE_ZONE) -> None:
+    def __init__(self, free_zone=FREE_ZONE, sensor_y: float = 0.0) -> None:
         self.free_zone = free_zone   # ((x0, x1), (y0, y1)) that no object may enter
+        self.sensor_y = sensor_y     # where across the road the ego stands
         self.meshes: list[shapes.Mesh] = []
         self.cls: list[int] = []
         self.inst: list[int] = []
@@ -92,7 +93,7 @@ class _Street:
         if x1 > fx0 and x0 < fx1 and y1 > fy0 and y0 < fy1:
             return False
         dx = max(x0, 0.0, -x1)
-        dy = max(y0, 0.0, -y1)
+        dy = max(y0 - self.sensor_y, 0.0, self.sensor_y - y1)
         if dx * dx + dy * dy < SENSOR_CLEARANCE**2:
             return False
         if self.boxes:

@@ -94,6 +94,10 @@ class Background:
     # stands for a real place (falsify.world.places): how that place's sensor saw its road.
     ego_pitch_deg: float = 0.0
     ego_dz: float = 0.0
+    # Where across the road (m, +left of the crown) the ego stands: off the crown on a street
+    # whose kerbs stand where its place's do, on each side (the paper's positions stay the
+    # sensor's: a sampled car moves with it).
+    ego_dy: float = 0.0
     # Whether the kerbs stop a sampled car: not on a street whose road is as narrow as its
     # place's, where a car may stand on the sidewalk or verge as one inserted in the real scan
     # may (the kerbs still stop the ego).
@@ -188,11 +192,13 @@ STEPS = (_parked_vehicles, _people, _guard_rails, _poles, _plants, _boundaries, 
 
 
 def placed(bg_id: int, steps: tuple[Callable[[_Street, _Layout, int], None], ...] = STEPS,
-           lay: _Layout | None = None, free_zone=FREE_ZONE) -> tuple[_Street, _Layout]:
+           lay: _Layout | None = None, free_zone=FREE_ZONE, sensor_y: float = 0.0
+           ) -> tuple[_Street, _Layout]:
     """The ground of street `bg_id` and what `steps` (a leading part of STEPS) place on it;
-    `lay` replaces the street's own layout, `free_zone` the test site kept clear."""
+    `lay` replaces the street's own layout, `free_zone` the test site kept clear, `sensor_y`
+    where across the road the sensor stands (kept clear around)."""
     lay = lay or _layout(bg_id)
-    st = _Street(free_zone)
+    st = _Street(free_zone, sensor_y)
     _ground(st, lay)
     for step in steps:
         step(st, lay, bg_id)

@@ -25,10 +25,11 @@ from falsify.world.places import (
     place_index,
     place_street,
     road_half_width,
+    road_offset,
 )
 from falsify.world.profile import PROFILE_VERSION, WorldProfile, load_profile
 from falsify.world.space import Sample, load_space
-from falsify.world.streets import FREE_ZONE, build_background
+from falsify.world.streets import FREE_ZONE, SENSOR_CLEARANCE, build_background
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -234,3 +235,31 @@ def test_streets_are_named_for_their_places():
     assert sorted(n.split("(")[1].rstrip(")") for n in names) == sorted(
         p.name for p in profile.places)
     assert load_space(ROOT / "configs" / "smoke.toml").background_name(3) == "street 3"
+
+
+def test_the_ego_stands_across_its_road_where_the_place_sensor_did():
+    assert road_offset(_place(edges=(4.0, 4.0))) == 0.0 and road_offset(_place()) == 0.0
+    assert road_offset(_place(edges=(2.5, 7.0))) == pytest.approx(2.25)   # kerbs 2.5 and 7.0
+    assert road_offset(_place(edges=(0.5, 0.9))) == pytest.approx(0.2)    # widened evenly
+    assert road_offset(_place(edges=(0.0, 30.0))) == pytest.approx(15.0 - 1.5)   # kept inside
+    place = _place(edges=(2.5, 7.0))
+    street = place_street(1, place, (0.0, 0.0))    # kept around the crown, a sign stood 2.9 m
+    assert street.ego_dy == pytest.approx(2.25)    # from the ego
+    for fp in street.obstacles:    # the sensor's clearance is around the ego, not the crown
+        if not fp.label.startswith("curb"):
+            lo, hi = fp.polygon.min(axis=0), fp.polygon.max(axis=0)
+            gap = np.maximum(np.maximum(lo - [0.0, 2.25], [0.0, 2.25] - hi), 0.0)
+            assert np.hypot(*gap) >= SENSOR_CLEARANCE, fp.label
+    profile = _profile((place,))
+    sim = Simulator(load_sensor("kitti-hdl64e-front"),
+                    background_source=lambda b: profile.street(3))
+    assert sim.ego_pose(0).y == pytest.approx(2.25)
+    # The sample's positions are the sensor's: the car 12 m ahead on its line stands 2.25 m
+    # left of the crown, and its points lie on the sensor's line.
+    sample = Sample((("car_model", "sedan"), ("x", 0.0), ("y", 12.0), ("yaw", 0.0),
+                     ("count", 1), ("background", 0)))
+    (car,) = sim.placed_cars(sample)
+    assert (car.x, car.y) == (12.0, pytest.approx(2.25))
+    scan = sim.scan(sample)
+    pts = scan.image[sim.placed_pixels(scan)]
+    assert len(pts) > 100 and abs(float(np.median(pts[:, 1]))) < 0.3
