@@ -239,13 +239,19 @@ def ok_rows(data: RunData) -> pd.DataFrame:
     return data.frame[data.frame["status"] == Status.OK]
 
 
+def background_means(data: RunData, columns: list[str]) -> pd.DataFrame:
+    """Each background's mean of `columns` over its ok rows, one row per background id (none
+    for a run without a background dim or ok rows)."""
+    ok = ok_rows(data)
+    if "background" not in ok.columns or not len(ok):
+        return pd.DataFrame(columns=columns, dtype=float)
+    return ok[columns].astype(float).groupby(ok["background"], sort=True).mean()
+
+
 def per_background(data: RunData, column: str) -> dict[str, float]:
     """Each background's mean of `column` over its ok rows (backgrounds where it is undefined
     in every row left out), keyed by the background's name."""
-    ok = ok_rows(data)
-    if "background" not in ok.columns or not len(ok):
-        return {}
-    means = ok[column].astype(float).groupby(ok["background"], sort=True).mean().dropna()
+    means = background_means(data, [column])[column].dropna()
     return {_bg_name(data, bg): float(v) for bg, v in means.items()}
 
 
@@ -254,6 +260,13 @@ def _bg_name(data: RunData, bg) -> str:
         return data.space.background_name(int(bg))
     except (IndexError, TypeError, ValueError):
         return str(bg)
+
+
+def _bg_place(data: RunData, bg) -> str | None:
+    try:
+        return data.space.background_place(int(bg))
+    except (IndexError, TypeError, ValueError):
+        return None
 
 
 def compare_metric(world: RunData, real: RunData, metric: str) -> MetricComparison:
@@ -268,16 +281,9 @@ def by_place(data: RunData) -> dict[str, tuple[int, dict[str, float]]]:
     """Per real place the run's backgrounds are or stand for: how many backgrounds, and the
     mean over them of each metric's per-background mean (backgrounds of no place left out)."""
     cols = placed_columns(data)
-    ok = ok_rows(data)
-    if "background" not in ok.columns or not len(ok):
-        return {}
-    means = ok[list(cols.values())].astype(float).groupby(ok["background"], sort=True).mean()
     groups: dict[str, list[dict[str, float]]] = {}
-    for bg, row in means.iterrows():
-        try:
-            place = data.space.background_place(int(bg))
-        except (IndexError, TypeError, ValueError):
-            place = None
+    for bg, row in background_means(data, list(cols.values())).iterrows():
+        place = _bg_place(data, bg)
         if place is not None:
             groups.setdefault(place, []).append({m: float(row[c]) for m, c in cols.items()})
     return {place: (len(rows), {m: float(np.nanmean([r[m] for r in rows]))
