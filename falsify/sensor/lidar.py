@@ -275,7 +275,7 @@ def parse_sensor(raw: dict, source: str = "<sensor>") -> Sensor:
         rotation_hz=num("rotation_hz", 10.0, lo=0.0, lo_open=True),
         ray_drop=num("ray_drop", 0.0, lo=0.0, hi=1.0),
         range_noise=num("range_noise", 0.0, lo=0.0, hi=1.0),
-        returns=_returns_name(raw.get("returns", ""), where),
+        returns=_returns_name(raw.get("returns", ""), where, Path(source).parent),
         kitti_rings=_flag(raw, "kitti_rings", where),
         ring_offsets_m=_ring_offsets(raw, len(elevations), where),
         **_projection(raw, where, full_circle=abs(left - right - 360.0) < 1e-9),
@@ -373,12 +373,23 @@ def _flag(raw: dict, key: str, where: str) -> bool:
     return v
 
 
-def _returns_name(value, where: str) -> str:
-    """A return model name that exists in configs/returns/ (or "" for none)."""
+def _returns_name(value, where: str, folder: Path) -> str:
+    """A return model: the name of one in configs/returns/, a .json file (relative to the
+    sensor's TOML) that `falsify fit-returns` wrote, or "" for none."""
     if value == "":
         return ""
     allowed = sorted(p.stem for p in RETURN_MODELS.glob("*.json"))
+    if isinstance(value, str) and value.endswith(".json"):
+        from falsify.sensor.returns import load_return_model
+
+        path = (folder / value).resolve()
+        try:
+            load_return_model(str(path))
+        except ConfigError as exc:
+            raise ConfigError(f"{where}{exc}") from None
+        return str(path)
     if not isinstance(value, str) or value not in allowed:
         raise ConfigError(f"{where}returns: {value!r} is not a fitted return model; allowed: "
-                          f"{', '.join(allowed) or 'none'} (configs/returns/) or \"\"")
+                          f"{', '.join(allowed) or 'none'} (configs/returns/), a .json file "
+                          "that `falsify fit-returns` wrote, or \"\"")
     return value

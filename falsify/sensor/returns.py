@@ -3,14 +3,62 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass
 from functools import cached_property
+from pathlib import Path
 
 import numpy as np
 
+from falsify.errors import ConfigError
 from falsify.paths import RETURN_MODELS
+from falsify.semantic import TRAIN_CLASSES, train_ids
 from falsify.world.materials import MATERIALS, RETRO
+
+
+@dataclass(frozen=True)
+class ClassReturns:
+    """Per SemanticKITTI training class (index = train id): the corrected reflectivity at the
+    standard-normal scores `z` (its quantile function), the share of its spread that lies
+    between instances, and P(return). A hit's score is a Gaussian copula,
+    sqrt(s) * z_instance + sqrt(1 - s) * z_point, so each class keeps its fitted marginal and
+    each object its own shade (a Gaussian copula: Nelsen, "An Introduction to Copulas", 2006,
+    sec. 2.3; the sum of independent standard normals weighted to unit variance is standard
+    normal, so the class's quantile function at it draws the fitted distribution)."""
+
+    z: tuple[float, ...]
+    reflectivity: tuple[tuple[float, ...], ...]
+    instance_share: tuple[float, ...]
+    p_return: tuple[float, ...]
+    dropout_by_class: bool = True
+
+    @cached_property
+    def _table(self) -> np.ndarray:
+        return np.asarray(self.reflectivity, np.float32)
+
+    def scores(self, train: np.ndarray, instance: np.ndarray,
+               draws: np.random.Generator | None) -> np.ndarray:
+        """float32 normal score per hit: 0 (each class's median) without draws; instance 0
+        (stuff, or an object without an id) draws per point only."""
+        if draws is None:
+            return np.zeros(train.shape, np.float32)
+        ids, inverse = np.unique(instance, return_inverse=True)
+        z_inst = draws.standard_normal(len(ids)).astype(np.float32)[inverse]
+        share = np.where(instance > 0, np.asarray(self.instance_share, np.float32)[train], 0.0)
+        z_pt = draws.standard_normal(train.shape).astype(np.float32)
+        return (np.sqrt(share) * z_inst + np.sqrt(1.0 - share) * z_pt).astype(np.float32)
+
+    def reflectivity_at(self, train: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Each hit's class quantile function at its score, linear between the table's scores
+        and held at its ends."""
+        grid = np.asarray(self.z, np.float32)
+        step = (grid[-1] - grid[0]) / (len(grid) - 1)
+        pos = np.clip((z - grid[0]) / step, 0.0, len(grid) - 1.000001)
+        lo = pos.astype(np.int64)
+        frac = (pos - lo).astype(np.float32)
+        t = self._table
+        return t[train, lo] * (1.0 - frac) + t[train, lo + 1] * frac
 
 
 @dataclass(frozen=True)
@@ -21,7 +69,14 @@ class ReturnModel:
     P(return) = p_min + (p_max - p_min) * (1 - exp(-(intensity / i0)^k)); glass never returns;
     ``row_keep`` scales it per laser row; ``blocked`` holds, for the lowest rows, the return
     probability per azimuth bin left by the ego car's body (bins of 360 / len(row) degrees
-    starting at +180, clockwise).
+    starting at +180, clockwise). With `classes` (fitted on labelled scans) the reflectivity
+    (and, where it drops by class, P(return)) is the hit's class's instead of its material's.
+
+    The form is the radiometric model of Kashani et al., "A Review of LIDAR Radiometric
+    Processing", Sensors 15(11), 2015 (the range equation for an extended Lambertian target:
+    received power ~ reflectance * cos(incidence) / range^2), with the cosine's exponent and an
+    exponential range factor fitted, since KITTI's remission is already corrected for range by
+    the sensor.
     """
 
     name: str
@@ -36,22 +91,40 @@ class ReturnModel:
     row_keep: tuple[float, ...]
     blocked_rows: tuple[int, ...]
     blocked: tuple[tuple[float, ...], ...]
+    classes: ClassReturns | None = None
 
     @cached_property
     def material_reflectivity(self) -> np.ndarray:
         return np.array([self.reflectivity[m.level] for m in MATERIALS], dtype=np.float32)
 
-    def intensity(self, mat: np.ndarray, cos: np.ndarray, rng: np.ndarray) -> np.ndarray:
-        """float32 intensity in [0, 1] per hit."""
-        refl = self.material_reflectivity[mat]
+    def intensity(self, mat: np.ndarray, cos: np.ndarray, rng: np.ndarray,
+                  semantic: np.ndarray | None = None, instance: np.ndarray | None = None,
+                  draws: np.random.Generator | None = None) -> np.ndarray:
+        """float32 intensity in [0, 1] per hit: by class (raw SemanticKITTI ids `semantic`,
+        shades drawn from `draws`) where the model has classes, else by material."""
         c = np.clip(np.asarray(cos, np.float32), 0.0, 1.0)
-        gain = np.where(RETRO[mat], np.float32(self.retro_gain), c ** np.float32(self.cos_exp))
         att = np.exp(np.asarray(rng, np.float32) * np.float32(-1.0 / self.atten_m))
+        if self.classes is not None and semantic is not None:
+            train = train_ids(np.asarray(semantic)).astype(np.int64)
+            inst = np.zeros(train.shape, np.int64) if instance is None else instance
+            z = self.classes.scores(train, inst, draws)
+            refl = self.classes.reflectivity_at(train, z)
+            return np.clip(refl * c ** np.float32(self.cos_exp) * att, 0.0, 1.0)
+        refl = self.material_reflectivity[mat]
+        gain = np.where(RETRO[mat], np.float32(self.retro_gain), c ** np.float32(self.cos_exp))
         return np.clip(refl * gain * att, 0.0, 1.0)
 
     def p_return(self, intensity: np.ndarray) -> np.ndarray:
         x = np.maximum(intensity, 0.0) / np.float32(self.i0)
         return self.p_min + (self.p_max - self.p_min) * (1.0 - np.exp(-(x ** np.float32(self.k))))
+
+    def return_probability(self, intensity: np.ndarray, semantic: np.ndarray | None) -> np.ndarray:
+        """P(return) per hit before the row factor: the class's where the model drops by class,
+        else from the expected intensity (p_return)."""
+        c = self.classes
+        if c is not None and c.dropout_by_class and semantic is not None:
+            return np.asarray(c.p_return, np.float32)[train_ids(np.asarray(semantic))]
+        return self.p_return(intensity)
 
     def keep_map(self, rows: int, azimuths_deg: np.ndarray) -> np.ndarray:
         """(rows, W) per-pixel factor of the return probability: the laser's own factor per
@@ -68,12 +141,59 @@ class ReturnModel:
         return out
 
 
+def _dropout_kind(value) -> bool:
+    """True where a class table's `dropout` is "class", False for "intensity"."""
+    if value not in ("class", "intensity"):
+        raise ValueError(f"classes.dropout: {value!r}; allowed: class, intensity")
+    return value == "class"
+
+
+def side_generator(rng: np.random.Generator) -> np.random.Generator:
+    """A generator seeded from `rng`'s state without drawing from it: the shades a scan draws
+    leave its own draws (dropout, noise) as a model without classes would make them."""
+    state = json.dumps(rng.bit_generator.state, sort_keys=True, default=str).encode()
+    return np.random.default_rng(np.frombuffer(hashlib.sha256(state).digest(), np.uint32))
+
+
 def load_return_model(name: str) -> ReturnModel:
-    """Read a fitted return model by name from configs/returns/."""
-    raw = json.loads((RETURN_MODELS / f"{name}.json").read_text())
-    p = raw["params"]
+    """Read a fitted return model: by name from configs/returns/, or a .json file's path; a
+    ConfigError names a file that cannot be read or is not one."""
+    path = Path(name) if name.endswith(".json") else RETURN_MODELS / f"{name}.json"
+    if not name.endswith(".json") and not path.is_file():
+        allowed = ", ".join(sorted(q.stem for q in RETURN_MODELS.glob("*.json")))
+        raise ConfigError(f"returns: {name!r} is not a fitted return model; allowed: {allowed} "
+                          "(configs/returns/) or a .json file that `falsify fit-returns` wrote")
+    try:
+        raw = json.loads(path.read_text())
+        return _model(name if not name.endswith(".json") else str(raw.get("name", path.stem)),
+                      raw["params"])
+    except OSError as exc:
+        raise ConfigError(f"returns: cannot read {path} ({exc.strerror})") from None
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise ConfigError(f"returns: {path} is not a return model that `falsify fit-returns` "
+                          f"wrote ({type(exc).__name__}: {exc})") from None
+
+
+def _model(name: str, p: dict) -> ReturnModel:
+    """The model from a JSON document's params; ValueError names a class table that is not one
+    row per training class over evenly spaced rising scores."""
+    c = p.get("classes")
+    classes = None
+    if c is not None:
+        z = np.asarray(c["z"], np.float64)
+        rows = [tuple(float(v) for v in r) for r in c["reflectivity"]]
+        n = len(TRAIN_CLASSES)
+        if len(z) < 2 or not np.allclose(np.diff(z), z[1] - z[0]) or z[1] <= z[0]:
+            raise ValueError("classes.z must be evenly spaced rising scores")
+        if len(rows) != n or any(len(r) != len(z) for r in rows) or \
+                len(c["instance_share"]) != n or len(c["p_return"]) != n:
+            raise ValueError(f"classes: one row of {len(z)} values per training class ({n})")
+        classes = ClassReturns(z=tuple(float(v) for v in z), reflectivity=tuple(rows),
+                               instance_share=tuple(float(v) for v in c["instance_share"]),
+                               p_return=tuple(float(v) for v in c["p_return"]),
+                               dropout_by_class=_dropout_kind(c.get("dropout", "class")))
     return ReturnModel(name=name, reflectivity=dict(p["reflectivity"]), cos_exp=p["cos_exp"],
                        atten_m=p["atten_m"], p_min=p["p_min"], p_max=p["p_max"], i0=p["i0"],
                        k=p["k"], retro_gain=p["retro_gain"], row_keep=tuple(p["row_keep"]),
                        blocked_rows=tuple(p["blocked_rows"]),
-                       blocked=tuple(tuple(r) for r in p["blocked"]))
+                       blocked=tuple(tuple(r) for r in p["blocked"]), classes=classes)

@@ -37,7 +37,7 @@ from falsify.sensor.placement import (
     free_ego,
 )
 from falsify.sensor.raycast import cast_through
-from falsify.sensor.returns import load_return_model
+from falsify.sensor.returns import load_return_model, side_generator
 from falsify.sensor.scan import Scan, project_scan
 from falsify.sensor.scanner import FIRST_CAR_INSTANCE, InvalidSample, PlacedCar, Scanner, place
 from falsify.sensor.weather import (
@@ -355,8 +355,9 @@ class Simulator:
         if self.returns is not None:
             valid &= ~GLASS[layer.mat]
             intensity = np.zeros(r.shape, np.float32)
-            intensity[valid] = self.returns.intensity(layer.mat[valid], layer.cos[valid],
-                                                      r[valid])
+            intensity[valid] = self.returns.intensity(
+                layer.mat[valid], layer.cos[valid], r[valid], sem[valid], inst[valid],
+                None if rng is None or self.returns.classes is None else side_generator(rng))
         if fx is not None and fx.medium:
             clear_i = (valid * np.float32(NOMINAL_INTENSITY) if intensity is None
                        else intensity)
@@ -366,7 +367,7 @@ class Simulator:
                                                    e.semantic)
         if self.returns is not None and rng is not None:
             u = rng.random(r.shape)[valid]
-            p = self.returns.p_return(intensity[valid]) * self._keep[valid]
+            p = self.returns.return_probability(intensity[valid], sem[valid]) * self._keep[valid]
             valid[valid] = u < p
         if fx is not None and (fx.crosstalk or fx.beam_loss or fx.beams):
             e = self.weather.faults(fx, fx_seed, Echoes(r, valid, intensity, cls, inst, sem))
