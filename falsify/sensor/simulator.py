@@ -362,7 +362,8 @@ class Simulator:
             clear_i = (valid * np.float32(NOMINAL_INTENSITY) if intensity is None
                        else intensity)
             e = self.weather.medium(fx, fx_seed, Echoes(r, valid, intensity, cls, inst, sem),
-                                    clear_i, layer.mat, layer.cos, layer.normal)
+                                    clear_i, layer.mat, layer.cos, layer.normal,
+                                    self._material_power(layer, r, valid))
             r, valid, intensity, cls, inst, sem = (e.r, e.valid, e.intensity, e.cls, e.inst,
                                                    e.semantic)
         if self.returns is not None and rng is not None:
@@ -387,6 +388,17 @@ class Simulator:
         image[..., 5] = np.where(valid, cls, 0)
         return project_scan(s, Scan(image, np.where(valid, inst, 0).astype(np.int32),
                                    np.where(valid, sem, 0).astype(np.uint16)))
+
+    def _material_power(self, layer: HitLayer, r: np.ndarray, valid: np.ndarray
+                        ) -> np.ndarray | None:
+        """Where the return model shades by class: each hit's intensity by its material, what
+        the weather decides detection on (a class's stored remission may be darker than any
+        material's, as a real scan's may; its echo still reached the floor)."""
+        if self.returns is None or self.returns.classes is None:
+            return None
+        out = np.zeros(r.shape, np.float32)
+        out[valid] = self.returns.intensity(layer.mat[valid], layer.cos[valid], r[valid])
+        return out
 
     # -- samples --------------------------------------------------------------------------
     def placed_cars(self, sample: Sample) -> list[PlacedCar]:

@@ -190,3 +190,16 @@ def test_a_labelled_fit_can_drop_as_another_model_does(mini, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--dropout-from: returns: 'nope' is not a fitted return model" in err
     assert "kitti-hdl64e" in err and not (tmp_path / "x.json").exists()
+
+
+def test_thin_fog_keeps_every_near_return_however_dark_its_class_shade():
+    """Detection is decided on the material's power: a dark class shade is a stored remission,
+    and its echo reached the floor in clear air (as a real scan's recorded return did)."""
+    from falsify.sensor.weather import Effects
+    from tests.sensor.test_weather import clear_and
+
+    sim = Simulator(load_sensor("kitti-hdl64e-front", returns="semantickitti-fit"))
+    clear, fog = clear_and(sim, Effects(fog=2000.0), seed=4)
+    near = clear.valid & (clear.image[..., 4] < 40.0)
+    assert (clear.image[..., 3][near] < 0.02).sum() > 50      # dark shades are drawn
+    assert fog.valid[near].all()

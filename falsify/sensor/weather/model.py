@@ -52,14 +52,14 @@ class Weather:
 
     # -- the medium: fog, rain, snow, wet road -----------------------------------------------
     def medium(self, fx: Effects, seed: int, e: Echoes, clear_i: np.ndarray, mat: np.ndarray,
-               cos: np.ndarray, normal: np.ndarray) -> Echoes:
+               cos: np.ndarray, normal: np.ndarray, least: np.ndarray | None = None) -> Echoes:
         """The strongest echo per ray among the attenuated hard target, the fog's soft echo and
         the particles on the ray, kept where it reaches the detection floor. `clear_i` is the
-        hard echo's clear intensity, 0 where there is none."""
+        hard echo's clear intensity, 0 where there is none; `least` as `through` takes it."""
         ground = None
         if fx.wet_road > 0:
             ground = self.ground(mat, normal, np.where(e.valid, e.r, np.inf)) & e.valid
-        return self.through(fx, seed, e, clear_i, ground, cos)[0]
+        return self.through(fx, seed, e, clear_i, ground, cos, least)[0]
 
     def through(self, fx: Effects, seed: int, e: Echoes, clear_i: np.ndarray,
                 ground: np.ndarray | None, cos: np.ndarray | None,
