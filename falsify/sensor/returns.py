@@ -37,17 +37,24 @@ class ClassReturns:
     def _table(self) -> np.ndarray:
         return np.asarray(self.reflectivity, np.float32)
 
+    @cached_property
+    def _share(self) -> np.ndarray:
+        return np.asarray(self.instance_share, np.float32)
+
     def scores(self, train: np.ndarray, instance: np.ndarray,
                draws: np.random.Generator | None) -> np.ndarray:
         """float32 normal score per hit: 0 (each class's median) without draws; instance 0
         (stuff, or an object without an id) draws per point only."""
         if draws is None:
             return np.zeros(train.shape, np.float32)
-        ids, inverse = np.unique(instance, return_inverse=True)
-        z_inst = draws.standard_normal(len(ids)).astype(np.float32)[inverse]
-        share = np.where(instance > 0, np.asarray(self.instance_share, np.float32)[train], 0.0)
-        z_pt = draws.standard_normal(train.shape).astype(np.float32)
-        return (np.sqrt(share) * z_inst + np.sqrt(1.0 - share) * z_pt).astype(np.float32)
+        z = draws.standard_normal(train.shape, dtype=np.float32)
+        things = np.flatnonzero(instance > 0)
+        if len(things):
+            ids, inverse = np.unique(instance[things], return_inverse=True)
+            z_inst = draws.standard_normal(len(ids), dtype=np.float32)[inverse]
+            share = self._share[train[things]]
+            z[things] = np.sqrt(share) * z_inst + np.sqrt(1.0 - share) * z[things]
+        return z
 
     def reflectivity_at(self, train: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Each hit's class quantile function at its score, linear between the table's scores
