@@ -99,7 +99,7 @@ def test_streets_render_each_class_with_its_fitted_spread_and_the_same_bytes_aga
     assert np.median(cars) < np.median(road)
     q10, q90 = np.quantile(road, [0.1, 0.9])
     assert q90 - q10 > 0.1                 # a spread, not the material level's thin band
-    old = Simulator(load_sensor("kitti-hdl64e-front"))
+    old = Simulator(load_sensor("kitti-hdl64e-front", returns="kitti-hdl64e"))
     c = old.render(2, [car], old.ego_pose(2), np.random.default_rng(3))
     r_old = c.image[..., 3][c.valid & (c.semantic == RAW_ID["road"])]
     assert np.subtract(*np.quantile(r_old, [0.9, 0.1])) < q90 - q10
@@ -149,17 +149,17 @@ def test_labelled_fit_writes_a_model_the_sensor_reads(mini, tmp_path, capsys):
     # A sensor names the file beside its TOML; the scans then carry its classes' shades.
     toml = (CONFIGS / "sensors" / "kitti-hdl64e-front.toml").read_text()
     mine = tmp_path / "mine.toml"
-    mine.write_text(toml.replace('returns = "kitti-hdl64e"', 'returns = "mine.json"'))
+    mine.write_text(toml.replace('returns = "semantickitti-fit"', 'returns = "mine.json"'))
     sensor = load_sensor(mine)
     assert sensor.returns == str(out.resolve())
     sim = Simulator(sensor)
     assert sim.returns.classes is not None and sim.returns.name == "mine"
     broken = tmp_path / "broken.json"
     broken.write_text('{"params": {"classes": {}}}')
-    mine.write_text(toml.replace('returns = "kitti-hdl64e"', 'returns = "broken.json"'))
+    mine.write_text(toml.replace('returns = "semantickitti-fit"', 'returns = "broken.json"'))
     with pytest.raises(ConfigError, match=r"returns: .*broken.json is not a return model"):
         load_sensor(mine)
-    mine.write_text(toml.replace('returns = "kitti-hdl64e"', 'returns = "gone.json"'))
+    mine.write_text(toml.replace('returns = "semantickitti-fit"', 'returns = "gone.json"'))
     with pytest.raises(ConfigError, match=r"returns: cannot read .*gone.json"):
         load_sensor(mine)
 
@@ -198,7 +198,8 @@ def test_thin_fog_keeps_every_near_return_however_dark_its_class_shade():
     from falsify.sensor.weather import Effects
     from tests.sensor.test_weather import clear_and
 
-    sim = Simulator(load_sensor("kitti-hdl64e-front", returns="semantickitti-fit"))
+    sim = Simulator(load_sensor("kitti-hdl64e-front"))      # the presets shade by class
+    assert sim.returns.classes is not None
     clear, fog = clear_and(sim, Effects(fog=2000.0), seed=4)
     near = clear.valid & (clear.image[..., 4] < 40.0)
     assert (clear.image[..., 3][near] < 0.02).sum() > 50      # dark shades are drawn
