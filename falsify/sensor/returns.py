@@ -8,6 +8,7 @@ import json
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from statistics import NormalDist
 
 import numpy as np
 
@@ -15,6 +16,10 @@ from falsify.errors import ConfigError
 from falsify.paths import RETURN_MODELS
 from falsify.semantic import TRAIN_CLASSES, train_ids
 from falsify.world.materials import MATERIALS, RETRO
+
+SCORE_LEVELS = 4096   # a point's own normal score: one of this many equiprobable quantiles
+NORMAL_LEVELS = np.array([NormalDist().inv_cdf((k + 0.5) / SCORE_LEVELS)
+                          for k in range(SCORE_LEVELS)], np.float32)
 
 
 @dataclass(frozen=True)
@@ -41,31 +46,47 @@ class ClassReturns:
     def _share(self) -> np.ndarray:
         return np.asarray(self.instance_share, np.float32)
 
-    def scores(self, train: np.ndarray, instance: np.ndarray,
+    @cached_property
+    def _fine(self) -> np.ndarray:
+        """(classes * SCORE_LEVELS,) each class's reflectivity at every level of NORMAL_LEVELS:
+        a stuff point's shade is one lookup."""
+        n = len(self.reflectivity)
+        train = np.repeat(np.arange(n), SCORE_LEVELS)
+        return self.reflectivity_at(train, np.tile(NORMAL_LEVELS, n))
+
+    def shades(self, train: np.ndarray, instance: np.ndarray,
                draws: np.random.Generator | None) -> np.ndarray:
-        """float32 normal score per hit: 0 (each class's median) without draws; instance 0
-        (stuff, or an object without an id) draws per point only."""
+        """float32 reflectivity per hit: each class's median without draws. A point's own score
+        is one of SCORE_LEVELS equiprobable normal quantiles; a thing's instance (id > 0) adds
+        its shared score, weighted by the class's instance share."""
         if draws is None:
-            return np.zeros(train.shape, np.float32)
-        z = draws.standard_normal(train.shape, dtype=np.float32)
+            return self.reflectivity_at(train, np.zeros(train.shape, np.float32))
+        k = (draws.random(train.shape, dtype=np.float32) * SCORE_LEVELS).astype(np.int64)
+        np.minimum(k, SCORE_LEVELS - 1, out=k)
+        refl = np.take(self._fine, train * SCORE_LEVELS + k)
         things = np.flatnonzero(instance > 0)
         if len(things):
             ids, inverse = np.unique(instance[things], return_inverse=True)
             z_inst = draws.standard_normal(len(ids), dtype=np.float32)[inverse]
             share = self._share[train[things]]
-            z[things] = np.sqrt(share) * z_inst + np.sqrt(1.0 - share) * z[things]
-        return z
+            z = np.sqrt(share) * z_inst + np.sqrt(1.0 - share) * NORMAL_LEVELS[k[things]]
+            refl[things] = self.reflectivity_at(train[things], z)
+        return refl
 
     def reflectivity_at(self, train: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Each hit's class quantile function at its score, linear between the table's scores
         and held at its ends."""
-        grid = np.asarray(self.z, np.float32)
-        step = (grid[-1] - grid[0]) / (len(grid) - 1)
-        pos = np.clip((z - grid[0]) / step, 0.0, len(grid) - 1.000001)
-        lo = pos.astype(np.int64)
-        frac = (pos - lo).astype(np.float32)
         t = self._table
-        return t[train, lo] * (1.0 - frac) + t[train, lo + 1] * frac
+        k = t.shape[1]
+        step = np.float32((self.z[-1] - self.z[0]) / (k - 1))
+        pos = (np.asarray(z, np.float32) - np.float32(self.z[0])) / step
+        np.clip(pos, 0.0, np.float32(k - 1.0001), out=pos)
+        lo = pos.astype(np.int64)
+        pos -= lo
+        base = np.asarray(train, np.int64) * k + lo
+        a = np.take(t, base)
+        b = np.take(t, base + 1)
+        return a + (b - a) * pos
 
 
 @dataclass(frozen=True)
@@ -114,8 +135,7 @@ class ReturnModel:
         if self.classes is not None and semantic is not None:
             train = train_ids(np.asarray(semantic)).astype(np.int64)
             inst = np.zeros(train.shape, np.int64) if instance is None else instance
-            z = self.classes.scores(train, inst, draws)
-            refl = self.classes.reflectivity_at(train, z)
+            refl = self.classes.shades(train, inst, draws)
             return np.clip(refl * c ** np.float32(self.cos_exp) * att, 0.0, 1.0)
         refl = self.material_reflectivity[mat]
         gain = np.where(RETRO[mat], np.float32(self.retro_gain), c ** np.float32(self.cos_exp))

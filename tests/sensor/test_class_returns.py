@@ -35,7 +35,8 @@ def test_the_table_is_read_linearly_and_held_at_its_ends():
     train = np.full(5, TRAIN_ID["car"])
     z = np.array([-9.0, -3.0, 0.1, 3.0, 1e30], np.float32)
     np.testing.assert_allclose(c.reflectivity_at(train, z), [0.2, 0.2, 0.51, 0.8, 0.8], atol=1e-5)
-    assert not c.scores(train, np.arange(5), None).any()   # no draws: each class's median
+    no_draws = c.shades(train, np.arange(5), None)            # no draws: each class's median
+    np.testing.assert_allclose(no_draws, 0.5, atol=1e-6)
 
 
 @pytest.mark.parametrize("share", [0.0, 0.5, 0.9])
@@ -44,7 +45,7 @@ def test_the_copula_keeps_each_class_marginal_whatever_the_share(share):
     n = 200_000
     train = np.full(n, TRAIN_ID["car"])
     inst = np.arange(n) // 20 + 1                              # 10,000 cars of 20 points
-    refl = c.reflectivity_at(train, c.scores(train, inst, np.random.default_rng(0)))
+    refl = c.shades(train, inst, np.random.default_rng(0))
     q25, q50, q75 = np.quantile(refl, [0.25, 0.5, 0.75])
     assert q50 == pytest.approx(0.5, abs=0.003)
     assert q75 - q25 == pytest.approx(2 * 0.1 * 0.6745, abs=0.004)
@@ -56,8 +57,7 @@ def test_the_copula_keeps_each_class_marginal_whatever_the_share(share):
 def test_stuff_without_an_instance_draws_per_point_only():
     c = linear_classes(0.9)
     train = np.full(100_000, TRAIN_ID["road"])
-    refl = c.reflectivity_at(train, c.scores(train, np.zeros(100_000, np.int64),
-                                             np.random.default_rng(1)))
+    refl = c.shades(train, np.zeros(100_000, np.int64), np.random.default_rng(1))
     assert np.std(refl) == pytest.approx(0.1, rel=0.03)        # the full spread, not sqrt(0.1)
 
 
