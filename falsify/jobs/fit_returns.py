@@ -166,15 +166,19 @@ def _fit_dropout(ci: np.ndarray, cr: np.ndarray, crow: np.ndarray, rows: int
     res = minimize(nll, x0=[0.5, 0.98, 0.05, 1.0], method="L-BFGS-B",
                    bounds=[(0.0, 1.0), (0.5, 1.0), (1e-3, 1.0), (0.2, 5.0)])
     p_min, p_max, i0, k = (float(v) for v in res.x)
-    pred = p_of(res.x, ci)
-    row_keep = []
+    return (p_min, p_max, i0, k), _row_keep(cr, crow, p_of(res.x, ci), rows, p_max)
+
+
+def _row_keep(returned: np.ndarray, row: np.ndarray, pred: np.ndarray, rows: int,
+              p_max: float) -> list[float]:
+    """Per laser row, its candidates' return rate over the model's prediction for them (1 for a
+    row with under 200 candidates), held in 0.3..1/p_max."""
+    out = []
     for rr in range(rows):
-        m = crow == rr
-        if m.sum() < 200:
-            row_keep.append(1.0)
-        else:
-            row_keep.append(float(np.clip(cr[m].mean() / pred[m].mean(), 0.3, 1.0 / p_max)))
-    return (p_min, p_max, i0, k), row_keep
+        m = row == rr
+        out.append(1.0 if m.sum() < 200 else
+                   float(np.clip(returned[m].mean() / pred[m].mean(), 0.3, 1.0 / p_max)))
+    return out
 
 
 def labelled_frames(paths: list[str], sequences: list[str] | None,
@@ -335,13 +339,4 @@ def _class_dropout(returned: np.ndarray, row: np.ndarray, cls: np.ndarray, rows:
     n = np.bincount(cls, minlength=n_cls)
     hits = np.bincount(cls, weights=returned.astype(np.float64), minlength=n_cls)
     p_class = np.where(n >= MIN_CLASS_CANDIDATES, hits / np.maximum(n, 1), pooled)
-    pred = p_class[cls]
-    row_keep = []
-    for rr in range(rows):
-        m = row == rr
-        if m.sum() < 200:
-            row_keep.append(1.0)
-        else:
-            row_keep.append(float(np.clip(returned[m].mean() / pred[m].mean(), 0.3,
-                                          1.0 / p_class.max())))
-    return p_class, row_keep
+    return p_class, _row_keep(returned, row, p_class[cls], rows, float(p_class.max()))
