@@ -204,3 +204,14 @@ def test_thin_fog_keeps_every_near_return_however_dark_its_class_shade():
     near = clear.valid & (clear.image[..., 4] < 40.0)
     assert (clear.image[..., 3][near] < 0.02).sum() > 50      # dark shades are drawn
     assert fog.valid[near].all()
+
+
+def test_class_intensity_stays_finite_and_in_range_at_the_extremes():
+    m = load_return_model("semantickitti-fit")
+    cos = np.array([0.0, 1e-12, 1.0, 1.0, 1.0], np.float32)
+    rng = np.array([1.0, 1.0, 0.0, 1e6, 1e-9], np.float32)
+    sem = np.full(5, RAW_ID["traffic-sign"])
+    out = m.intensity(np.zeros(5, np.int64), cos, rng, sem, np.zeros(5, np.int64),
+                      np.random.default_rng(0))
+    assert np.isfinite(out).all() and out.min() >= 0.0 and out.max() <= 1.0
+    assert out[0] == 0.0 and out[3] == 0.0          # grazing and far: nothing comes back
