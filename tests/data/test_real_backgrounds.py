@@ -155,6 +155,26 @@ def test_the_same_sample_and_seed_give_the_same_bytes(street):
                     a.scan(s, rng=np.random.default_rng(6)))
 
 
+def test_an_inserted_car_is_shaded_by_its_class_as_the_streets_cars_are(street):
+    """With a per-class return model an inserted car takes the car class's shades (dark, as real
+    cars return), one shade per car, not its materials' levels; the same seed, the same bytes."""
+    s = sample(1.0, 10.0)
+
+    def car_points(returns: str, seed: int) -> tuple:
+        sc = RealScanner(load_sensor("kitti-hdl64e-front", returns=returns), (street,))
+        scan = sc.scan(s, rng=np.random.default_rng(seed))
+        car = sc.placed_pixels(scan)
+        return scan, scan.image[..., 3][car], scan.semantic[car]
+
+    a, _, sem = car_points("semantickitti-fit", 4)
+    assert same(a, car_points("semantickitti-fit", 4)[0])
+    assert len(sem) > 100 and set(np.unique(sem)) == {RAW_ID["car"]}
+    by_class = [np.median(car_points("semantickitti-fit", k)[1]) for k in range(6)]
+    by_material = [np.median(car_points("kitti-hdl64e", k)[1]) for k in range(6)]
+    assert np.mean(by_class) < 0.6 * np.mean(by_material)
+    assert np.ptp(by_class) > 3 * np.ptp(by_material)      # each car its own shade
+
+
 def test_a_car_in_a_wall_is_invalid_and_named(scanner):
     with pytest.raises(InvalidSample, match=r"intersects the real scan's building"):
         scanner.scan(sample(0.0, WALL_X))

@@ -5,7 +5,8 @@ into the sensor's range image as `falsify predict` reads it. Every pixel of that
 from the scan's origin: along its real point when it holds one, else along the pixel's own
 direction. A car stands on the scan's ground (a plane fitted to the ground points around it) and
 the rays of the columns it spans are cast at its mesh by Embree. A ray that meets the car before
-its real return takes the car's return (its label and the sensor's return model), which hides the
+its real return takes the car's return (its label; its shade and dropout from the sensor's return
+model, by the car's class where the model has classes, as the world's own cars), which hides the
 real point behind it; a real point inside the car's body is removed; every other pixel keeps the
 real scan's bytes, so a car beyond the range or outside the field of view leaves the scan as it
 was. A car that would stand in a real object (a real car, a wall, a tree: at least
@@ -49,6 +50,7 @@ from falsify.errors import ConfigError, FalsifyError
 from falsify.semantic import RAW_NAMES, kitti4
 from falsify.sensor.lidar import Sensor, SensorPose
 from falsify.sensor.raycast import cast_through
+from falsify.sensor.returns import side_generator
 from falsify.sensor.scan import Scan
 from falsify.sensor.simulator import (
     FIRST_CAR_INSTANCE,
@@ -372,17 +374,21 @@ class RealScanner:
         mat = hit_mat[px]
         if rng is not None and s.range_noise > 0:
             t = t + rng.normal(0.0, s.range_noise, t.shape)
-        returns = ~GLASS[mat] if self.sim.returns is not None else np.ones(len(t), bool)
+        car_sem = np.array([self.sim.car_semantic(c) for c in placed], np.uint16)[hit_car[px]]
+        model = self.sim.returns
+        returns = ~GLASS[mat] if model is not None else np.ones(len(t), bool)
         intensity = np.full(len(t), NOMINAL_INTENSITY, np.float32)
-        if self.sim.returns is not None:
-            intensity = self.sim.returns.intensity(mat, hit_cos[px], t)
+        if model is not None:   # shaded and dropped as the world's own cars are
+            draws = None if rng is None or model.classes is None else side_generator(rng)
+            intensity = model.intensity(mat, hit_cos[px], t, car_sem,
+                                        INSERTED_INSTANCE + hit_car[px], draws)
             if rng is not None:
-                p = self.sim.returns.p_return(intensity)
+                p = model.return_probability(intensity, car_sem)
                 if self._keep is not None:
                     p = p * self._keep.ravel()[px]
                 returns &= rng.random(len(t)) < p
         emptied.append(px[~returns])
-        px, t, intensity = px[returns], t[returns], intensity[returns]
+        px, t, intensity, car_sem = px[returns], t[returns], intensity[returns], car_sem[returns]
         image = bg.scan.image.copy()
         inst = bg.scan.instance.copy()
         sem = None if bg.scan.semantic is None else bg.scan.semantic.copy()
@@ -393,7 +399,6 @@ class RealScanner:
             sem.ravel()[gone] = 0
         xyz = (bg.origin.reshape(-1, 3)[px] + bg.direction.reshape(-1, 3)[px] * t[:, None]
                ).astype(np.float32)
-        car_sem = np.array([self.sim.car_semantic(c) for c in placed], np.uint16)[hit_car[px]]
         flat = image.reshape(-1, 6)
         flat[px, 0:3] = xyz
         flat[px, 3] = intensity
