@@ -21,14 +21,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-KITTI = ROOT.parent / "shared" / "data" / "kitti"
-MINI = KITTI / "semantickitti-mini"
+MINI = Path(os.environ.get("SEMANTICKITTI", "semantickitti-mini"))   # a SemanticKITTI root
 PROFILE = ROOT / "configs" / "worlds" / "semantickitti-fit.json"
 INIT = ROOT / "models" / "weights" / "squeezeseg-v1.pt"
 BASELINE = "squeezeseg-v1"
@@ -83,28 +83,31 @@ def main() -> None:
     p.add_argument("--val-seed", type=int, default=22)
     p.add_argument("--init", type=Path, default=INIT, help="the weights fine-tuned")
     p.add_argument("--baseline", default=BASELINE, help="the network to beat on the fit split")
+    p.add_argument("--epochs", type=int, default=EPOCHS)
     a = p.parse_args()
     work = a.work.resolve()
     work.mkdir(parents=True, exist_ok=True)
     train, val = work / "train", work / "val"
     profile = a.profile.resolve()
-    dataset(train, 4000, a.train_seed, 1000, 625, profile)
-    dataset(val, 400, a.val_seed, 5000, 50, profile)
+    # A work folder whose epochs were trained elsewhere (gpu_new_world.sh) needs no datasets.
+    if not all((work / f"epoch{e}" / "squeezeseg.onnx").exists() for e in range(1, a.epochs + 1)):
+        dataset(train, 4000, a.train_seed, 1000, 625, profile)
+        dataset(val, 400, a.val_seed, 5000, 50, profile)
 
     result: dict = {"profile": str(profile.relative_to(ROOT)), "init": a.init.name,
                     "baseline": a.baseline, "epochs": {}}
     result["bundled_fit"] = predict(a.baseline, FIT, work / "bundled-fit")
     model_dir = work / "model"
-    for e in range(1, EPOCHS + 1):
+    for e in range(1, a.epochs + 1):
         kept = work / f"epoch{e}-checkpoint.pt"
-        if not kept.exists():
+        adjusted = work / f"epoch{e}-adjusted.pt"
+        if not kept.exists() and not adjusted.exists():
             resume = ["--resume"] if (model_dir / "checkpoint.pt").exists() else ["--init",
                                                                                    str(a.init.resolve())]
             run(["falsify", "train", "--data", str(train), "--out",
                  str(model_dir), "--epochs", str(e), "--val-data", str(val), "--no-export",
                  *RECIPE, *resume], log=work / f"train-epoch{e}.log")
             shutil.copyfile(model_dir / "checkpoint.pt", kept)
-        adjusted = work / f"epoch{e}-adjusted.pt"
         if not adjusted.exists():
             run(["falsify", "adjust", str(kept), "--val", str(val),
                  "--out", str(adjusted), "--alphas", ALPHAS, "--json"],
