@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # One lent-GPU call for the new world (docs/experiments/streets_as_hard.md, "A network trained on
-# the new world"): the training rule's fine-tune (gpu_world_train.sh, 3 epochs, the places world
-# with the per-class return model) and the paper's real + synthetic and synthetic arms
+# the new world"): the training rule's fine-tune (gpu_world_train.sh, 3 epochs from squeezeseg-v4,
+# the bundled network when it ran (INIT overrides), on the places world with the per-class return
+# model) and the paper's real + synthetic and synthetic arms
 # (augment_experiment.py, both channel sets, seeds 0-2) run at once, then packed into $OUT as
 # at most 8 files. Stops itself at $LIMIT seconds so that whatever finished still comes back.
 #
@@ -38,7 +39,8 @@ log() { echo "== [$(($(date +%s) - T0)) s] $*" | tee -a "$W/logs/timings.txt"; }
 
 # 1. the fine-tune: gpu_world_train.sh installs the wheels and falsify under $SITE, $SITE-falsify
 (
-    export OUT=$W/wout BASE SITE PY DEVICE
+    # the weights the rule fine-tunes: the bundled network when it ran, kept as squeezeseg-v4
+    export OUT=$W/wout BASE SITE PY DEVICE INIT=${INIT:-models/weights/squeezeseg-v4.pt}
     [[ $DRY == 1 ]] && export FALSIFY_DRY=1 OUT=$W/wout
     timeout "$LIMIT" bash "$ROOT/research/experiments/gpu_world_train.sh" \
         configs/worlds/semantickitti-places.json 41 42 3
