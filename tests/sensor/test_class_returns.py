@@ -121,7 +121,22 @@ def test_the_shipped_model_is_what_its_command_fits(mini, tmp_path, capsys):
     argv[argv.index("--holdout") + 1] = str(HOLDOUT)
     assert main(argv) == 0
     capsys.readouterr()
-    assert json.loads(out.read_text())["params"] == doc["params"]
+    # To 1e-9: the fit's least squares round differently across numpy/scipy builds (seen: the
+    # 14th digit of atten_m), and nothing downstream reads that far.
+    fitted, shipped = _leaves(json.loads(out.read_text())["params"]), _leaves(doc["params"])
+    assert fitted.keys() == shipped.keys()
+    assert {k: (fitted[k], v) for k, v in shipped.items()
+            if fitted[k] != (pytest.approx(v, rel=1e-9, abs=1e-12) if isinstance(v, float)
+                             else v)} == {}
+
+
+def _leaves(doc, path: str = "") -> dict:
+    """Every leaf of a JSON document by its path."""
+    if isinstance(doc, dict):
+        return {k: v for key, val in doc.items() for k, v in _leaves(val, f"{path}/{key}").items()}
+    if isinstance(doc, list):
+        return {k: v for i, val in enumerate(doc) for k, v in _leaves(val, f"{path}/{i}").items()}
+    return {path: doc}
 
 
 def test_labelled_fit_refuses_held_out_and_unlabelled_scans(mini, tmp_path, capsys):
