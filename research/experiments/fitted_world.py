@@ -15,6 +15,9 @@ Steps: the profiled training and validation sets; a fine-tune of the bundled net
 at a time (each epoch's checkpoint kept); per epoch, the logit adjustment chosen on synthetic
 validation and an ONNX export; the fit split's pooled car IoU per epoch, which chooses; the
 evaluation split, only reported. Nothing here reads the evaluation split before the choice.
+The real scans are read from $SEMANTICKITTI (semantickitti-mini). A work folder whose epochs
+were trained elsewhere (gpu_new_world.sh: epochE-adjusted.pt, adjust-epochE.json,
+epochE/squeezeseg.onnx) is scored without datasets: `--epochs 3`.
 """
 
 from __future__ import annotations
