@@ -1,6 +1,6 @@
 """Synthetic cars inserted into real scans: constructed scans whose geometry is known (a ground
 plane and a wall, cast analytically with a 360-degree HDL-64E's rays), and the real
-SemanticKITTI scans where ../shared/data holds them."""
+SemanticKITTI scans where the test data folder holds them (tests/conftest.py)."""
 
 from __future__ import annotations
 
@@ -30,10 +30,10 @@ from falsify.semantic import RAW_ID
 from falsify.sensor.lidar import load_sensor
 from falsify.sensor.simulator import InvalidSample
 from falsify.world.space import RealScan, load_space, parse_space
+from tests.conftest import MINI
 
 MOUNT = 1.73
 WALL_X = 25.0          # a wall across the road, 25 m ahead
-MINI = Path(__file__).resolve().parents[3] / "shared" / "data" / "kitti" / "semantickitti-mini"
 
 
 def street_cloud(slope: float = 0.0, extra: np.ndarray | None = None

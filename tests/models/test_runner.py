@@ -20,8 +20,9 @@ from falsify.models.runners import (
     to_prediction,
 )
 from falsify.models.spec import load_spec, model_hash, spec_path_for
+from tests.conftest import KITTI_DIR
 
-KITTI = Path(__file__).resolve().parents[3] / "shared" / "data" / "kitti" / "squeezeseg"
+KITTI = KITTI_DIR / "squeezeseg"
 ROOT = Path(__file__).resolve().parents[2]
 
 
