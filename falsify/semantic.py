@@ -81,20 +81,34 @@ def join_label(semantic: np.ndarray, instance: np.ndarray) -> np.ndarray:
     return (np.asarray(instance, np.uint32) << 16) | np.asarray(semantic, np.uint32)
 
 
-def _lookup(table: np.ndarray, raw: np.ndarray) -> np.ndarray:
+def _wide(table: np.ndarray) -> np.ndarray:
+    """The table over every uint16 raw id (0 past its end): a scan's raw ids index it as they
+    are, with no range check (a per-scan cost of the per-class return model)."""
+    out = np.zeros(1 << 16, table.dtype)
+    out[:len(table)] = table
+    return out
+
+
+_LEARNING_WIDE = _wide(LEARNING_MAP)
+_KITTI4_WIDE = _wide(KITTI4_OF_RAW)
+
+
+def _lookup(table: np.ndarray, wide: np.ndarray, raw: np.ndarray) -> np.ndarray:
     raw = np.asarray(raw)
-    return table[np.where(raw < len(table), raw, 0)]
+    if raw.dtype in (np.uint8, np.uint16):
+        return wide.take(raw)
+    return table[np.where((raw >= 0) & (raw < len(table)), raw, 0)]
 
 
 def train_ids(raw: np.ndarray) -> np.ndarray:
     """Raw SemanticKITTI ids -> train ids 0..19 (unknown raw ids: 0, unlabeled)."""
-    return _lookup(LEARNING_MAP, raw)
+    return _lookup(LEARNING_MAP, _LEARNING_WIDE, raw)
 
 
 def kitti4(raw: np.ndarray) -> np.ndarray:
     """Raw SemanticKITTI ids -> the four SqueezeSeg classes (0 unknown, 1 car, 2 pedestrian,
     3 cyclist)."""
-    return _lookup(KITTI4_OF_RAW, raw)
+    return _lookup(KITTI4_OF_RAW, _KITTI4_WIDE, raw)
 
 
 def kitti4_of_train(train: np.ndarray) -> np.ndarray:

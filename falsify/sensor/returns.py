@@ -61,9 +61,9 @@ class ClassReturns:
         its shared score, weighted by the class's instance share."""
         if draws is None:
             return self.reflectivity_at(train, np.zeros(train.shape, np.float32))
-        k = (draws.random(train.shape, dtype=np.float32) * SCORE_LEVELS).astype(np.int64)
+        k = (draws.random(train.shape, dtype=np.float32) * SCORE_LEVELS).astype(np.int32)
         np.minimum(k, SCORE_LEVELS - 1, out=k)
-        refl = np.take(self._fine, train * SCORE_LEVELS + k)
+        refl = self._fine.take(train * np.int32(SCORE_LEVELS) + k)
         things = np.flatnonzero(instance > 0)
         if len(things):
             inst = instance[things]
@@ -82,11 +82,11 @@ class ClassReturns:
         step = np.float32((self.z[-1] - self.z[0]) / (k - 1))
         pos = (np.asarray(z, np.float32) - np.float32(self.z[0])) / step
         np.clip(pos, 0.0, np.float32(k - 1.0001), out=pos)
-        lo = pos.astype(np.int64)
+        lo = pos.astype(np.int32)
         pos -= lo
-        base = np.asarray(train, np.int64) * k + lo
-        a = np.take(t, base)
-        b = np.take(t, base + 1)
+        base = np.asarray(train, np.int32) * np.int32(k) + lo
+        a = t.take(base)
+        b = t.take(base + 1)
         return a + (b - a) * pos
 
 
@@ -134,7 +134,7 @@ class ReturnModel:
         c = np.clip(np.asarray(cos, np.float32), 0.0, 1.0)
         att = np.exp(np.asarray(rng, np.float32) * np.float32(-1.0 / self.atten_m))
         if self.classes is not None and semantic is not None:
-            train = train_ids(np.asarray(semantic)).astype(np.int64)
+            train = train_ids(np.asarray(semantic)).astype(np.int32)
             inst = np.zeros(train.shape, np.int64) if instance is None else instance
             refl = self.classes.shades(train, inst, draws)
             return np.clip(refl * c ** np.float32(self.cos_exp) * att, 0.0, 1.0)

@@ -247,3 +247,18 @@ def test_dataset_is_deterministic_and_resumes(tmp_path: Path, capsys) -> None:
     (seq / "poses.txt").unlink()
     assert make_dataset(tmp_path / "b", capsys)["written"] == 1
     assert files(tmp_path / "b") == a
+
+
+def test_raw_id_lookups_agree_for_every_integer_type() -> None:
+    """The uint16 fast path and the checked path give the same ids; ids no map names (past
+    its end, or negative) read as unlabeled / unknown."""
+    from falsify.semantic import LEARNING_MAP, train_ids
+
+    raw = np.array([0, 10, 40, 48, 72, 252, 259, 260, 999, 65535], np.int64)
+    expected = np.array([LEARNING_MAP[r] if r < len(LEARNING_MAP) else 0 for r in raw])
+    for dtype in (np.uint16, np.int64, np.int32, np.uint32):
+        assert np.array_equal(train_ids(raw.astype(dtype)), expected), dtype
+        assert np.array_equal(kitti4(raw.astype(dtype)),
+                              kitti4(raw.astype(np.uint16))), dtype
+    assert train_ids(np.array([-1, 40], np.int64)).tolist() == [0, int(LEARNING_MAP[40])]
+    assert kitti4(np.array([252], np.uint8)).tolist() == kitti4(np.array([252])).tolist()
