@@ -28,8 +28,8 @@ def ring_scatter(run: str) -> dict[str, list[float]]:
     for _, row in ok_rows(data).groupby("background").head(1).iterrows():
         _, scan = rep.scan(row)
         r, v, tid = scan.image[..., 4], scan.valid, train_ids(scan.semantic)
-        left, right = (np.roll(a, 1, 1) for a in (r, tid)), (np.roll(a, -1, 1) for a in (r, tid))
-        (rl, tl), (rr, tr) = left, right
+        rl, rr = np.roll(r, 1, 1), np.roll(r, -1, 1)
+        tl, tr = np.roll(tid, 1, 1), np.roll(tid, -1, 1)
         ok = v & np.roll(v, 1, 1) & np.roll(v, -1, 1) & (tid == tl) & (tid == tr) & (r < 40)
         ok[:, 0] = ok[:, -1] = False
         ins = scan.instance >= INSERTED_INSTANCE
