@@ -54,13 +54,19 @@ class ClassReturns:
         train = np.repeat(np.arange(n), SCORE_LEVELS)
         return self.reflectivity_at(train, np.tile(NORMAL_LEVELS, n))
 
+    @cached_property
+    def _median(self) -> np.ndarray:
+        """(classes,) each class's reflectivity at score 0: the shade of every hit without draws."""
+        n = len(self.reflectivity)
+        return self.reflectivity_at(np.arange(n), np.zeros(n, np.float32))
+
     def shades(self, train: np.ndarray, instance: np.ndarray,
                draws: np.random.Generator | None) -> np.ndarray:
         """float32 reflectivity per hit: each class's median without draws. A point's own score
         is one of SCORE_LEVELS equiprobable normal quantiles; a thing's instance (id > 0) adds
         its shared score, weighted by the class's instance share."""
         if draws is None:
-            return self.reflectivity_at(train, np.zeros(train.shape, np.float32))
+            return self._median.take(train)
         k = (draws.random(train.shape, dtype=np.float32) * SCORE_LEVELS).astype(np.int32)
         np.minimum(k, SCORE_LEVELS - 1, out=k)
         refl = self._fine.take(train * np.int32(SCORE_LEVELS) + k)

@@ -39,6 +39,18 @@ def test_the_table_is_read_linearly_and_held_at_its_ends():
     np.testing.assert_allclose(no_draws, 0.5, atol=1e-6)
 
 
+def test_without_draws_each_hit_gets_the_fitted_class_table_at_score_zero():
+    """The no-draw shade is a per-class lookup; it must be the table read at z = 0, bit for bit,
+    for every class of the shipped model (the bench and unseeded scans take this path)."""
+    c = load_return_model("semantickitti-fit").classes
+    n = len(TRAIN_CLASSES)
+    train = np.repeat(np.arange(n, dtype=np.int32), 3)
+    want = c.reflectivity_at(train, np.zeros(len(train), np.float32))
+    got = c.shades(train, np.arange(len(train)), None)
+    assert got.dtype == np.float32 and got.tobytes() == want.tobytes()
+    assert len(np.unique(got)) > 5   # classes differ: the lookup is indexed by class
+
+
 @pytest.mark.parametrize("share", [0.0, 0.5, 0.9])
 def test_the_copula_keeps_each_class_marginal_whatever_the_share(share):
     c = linear_classes(share)
