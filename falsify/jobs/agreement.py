@@ -3,7 +3,8 @@
 Two finished runs over the same positions, one on our streets (the world) and one with the car
 placed in real scans, compared four ways: the per-background spread of the placed car's IoU,
 precision and recall (with the 1-Wasserstein distance between the runs' spreads), each street
-against the real place it stands for where both runs hold it, the x × y maps of its IoU cell by
+against the real place it stands for where both runs hold it (and the floor a world of fewer
+places than the real run can reach), the x × y maps of its IoU cell by
 cell (which blind spots the world finds and misses), and, optionally, what the false-positive
 car points of a few replayed samples lie on.
 """
@@ -130,6 +131,25 @@ class PlacePairing:
 
 
 @dataclass(frozen=True)
+class PlaceFloor:
+    """How near a world can come when its streets stand for only some of the real run's places:
+    the real values of those places against all of them, as a world whose every street scored
+    exactly its own place's real value would stand. Gaps at or below these are the choice of
+    places, not the world."""
+
+    places: int                    # real places the world's streets stand for
+    real_places: int               # real places in the real run
+    w1: dict[str, float | None]    # metric -> W1 of those places' real values against all
+    p10: dict[str, float | None]   # metric -> 10th percentile of those places' real values
+    map_mae: float | None          # the real map over those places' rows against the whole
+
+    def to_json(self) -> dict:
+        return {"places": self.places, "real_places": self.real_places,
+                "w1": {k: _r(v) for k, v in self.w1.items()},
+                "p10": {k: _r(v) for k, v in self.p10.items()}, "map_mae": _r(self.map_mae)}
+
+
+@dataclass(frozen=True)
 class MapAgreement:
     """The two x × y maps of the placed car's IoU over the cells both define; a cell is blind
     below `threshold`. World misses: blind in the real run only; false alarms: world only."""
@@ -206,12 +226,14 @@ class AgreementResult:
     false_positives: tuple[FalsePositives, ...]   # empty when skipped
     fp_note: str
     places: PlacePairing | None = None   # None: no place in both runs
+    floor: PlaceFloor | None = None      # None: no place in both runs
     precision_note: str = PRECISION_NOTE
 
     def to_json(self) -> dict:
         return {"world": self.world.to_json(), "real": self.real.to_json(),
                 "metrics": [m.to_json() for m in self.metrics], "map": self.map.to_json(),
                 "places": None if self.places is None else self.places.to_json(),
+                "floor": None if self.floor is None else self.floor.to_json(),
                 "false_positives": [f.to_json() for f in self.false_positives],
                 "false_positives_note": self.fp_note, "precision_note": self.precision_note}
 
@@ -308,6 +330,28 @@ def pair_places(world: dict[str, tuple[int, dict[str, float]]],
                         tuple(sorted(set(real) - set(world))))
 
 
+def place_floor(real: RunData, places: Sequence[str], real_places: int, rmap: CellMap,
+                threshold: float) -> PlaceFloor:
+    """The real run's per-background values and map over the backgrounds of `places` against
+    all of its own (see PlaceFloor)."""
+    cols = placed_columns(real)
+    means = background_means(real, list(cols.values()))
+    mine = np.array([_bg_place(real, bg) in set(places) for bg in means.index], bool)
+    w1, p10 = {}, {}
+    for m, c in cols.items():
+        every = means[c].to_numpy(float)
+        every = every[np.isfinite(every)]
+        part = means[c].to_numpy(float)[mine]
+        part = part[np.isfinite(part)]
+        w1[m] = wasserstein1(list(part), list(every))
+        p10[m] = Distribution.of(list(part)).p10
+    ok = ok_rows(real)
+    rows = ok[ok["background"].map(lambda bg: _bg_place(real, bg) in set(places))]
+    part_map = miou_map(rows, real.space, "x", "y", cols["iou"])
+    return PlaceFloor(len(places), real_places, w1, p10,
+                      map_agreement(part_map, rmap, threshold).mae)
+
+
 def check_same_grid(world: RunData, real: RunData, wmap: CellMap, rmap: CellMap) -> None:
     """FalsifyError naming both runs and the dims whose grids differ."""
     differ = []
@@ -377,8 +421,12 @@ def run_agreement(world_run: str | Path, real_run: str | Path, threshold: float 
                 "order) and predicted again")
     else:
         fps, note = (), "skipped (--fp-samples 0); --fp-samples N replays N rows of each run"
+    real_places = by_place(real)
+    places = pair_places(by_place(world), real_places)
+    floor = (None if places is None else
+             place_floor(real, [p.place for p in places.pairs], len(real_places), rmap, t))
     return AgreementResult(side(world), side(real), metrics, map_agreement(wmap, rmap, t), fps,
-                           note, pair_places(by_place(world), by_place(real)))
+                           note, places, floor)
 
 
 # -- false positives by what they lie on -----------------------------------------------------
@@ -467,6 +515,13 @@ def format_text(res: AgreementResult) -> str:
                  f"alike {f(a.agreement)}, world misses {len(a.world_misses)}, world only "
                  f"{len(a.false_alarms)}, Jaccard {f(a.jaccard)}")
     lines.extend(_places_text(res.places, f))
+    if res.floor is not None:
+        fl = res.floor
+        real_p10 = next(m.real.p10 for m in res.metrics if m.metric == "iou")
+        lines.append(f"floor, were each street exactly its own place ({fl.places} of "
+                     f"{fl.real_places} real places): W1 IoU {f(fl.w1['iou'])}, precision "
+                     f"{f(fl.w1['precision'])}, recall {f(fl.w1['recall'])}; p10 IoU "
+                     f"{f(fl.p10['iou'])} (real {f(real_p10)}); map MAE {f(fl.map_mae)}")
     if not res.false_positives:
         lines.append(f"false-positive car points: {res.fp_note}")
     for fp in res.false_positives:

@@ -338,3 +338,18 @@ def test_streets_pair_with_the_real_places_they_stand_for(tmp_path, capsys):
     assert main(["agreement", str(world), str(real)]) == 0
     text = capsys.readouterr().out
     assert "per place, 2 in both runs: mean |world - real| IoU 0.100" in text
+    floor = agreement_json(capsys, str(world), str(real))["floor"]   # every place has a street
+    assert (floor["places"], floor["real_places"], floor["map_mae"]) == (2, 2, 0.0)
+    assert floor["w1"]["iou"] == 0.0
+
+    # Streets for 01/000000 alone: the floor is that place's real values against both places'.
+    one = write_run(tmp_path / "one", PLACES_WORLD.replace("[0, 16, 21]", "[0, 21]"),
+                    iou=lambda s: world_iou[int(s["background"])])
+    floor = agreement_json(capsys, str(one), str(real))["floor"]
+    assert (floor["places"], floor["real_places"]) == (1, 2)
+    assert floor["w1"]["iou"] == pytest.approx(0.05, abs=2e-3)     # [0.6] against [0.6, 0.5]
+    assert floor["p10"]["iou"] == pytest.approx(0.6, abs=2e-3)
+    assert floor["map_mae"] == pytest.approx(0.05, abs=2e-3)       # 0.6 a cell against 0.55
+    assert main(["agreement", str(one), str(real)]) == 0
+    assert "floor, were each street exactly its own place (1 of 2 real places): W1 IoU 0.050" \
+        in capsys.readouterr().out
