@@ -336,18 +336,16 @@ def place_floor(real: RunData, places: Sequence[str], real_places: int, rmap: Ce
     all of its own (see PlaceFloor)."""
     cols = placed_columns(real)
     means = background_means(real, list(cols.values()))
-    mine = np.array([_bg_place(real, bg) in set(places) for bg in means.index], bool)
+    wanted = set(places)
+    mine = [bg for bg in means.index if _bg_place(real, bg) in wanted]
     w1, p10 = {}, {}
     for m, c in cols.items():
-        every = means[c].to_numpy(float)
-        every = every[np.isfinite(every)]
-        part = means[c].to_numpy(float)[mine]
-        part = part[np.isfinite(part)]
+        every, part = (v[np.isfinite(v)] for v in (means[c].to_numpy(float),
+                                                   means.loc[mine, c].to_numpy(float)))
         w1[m] = wasserstein1(list(part), list(every))
         p10[m] = Distribution.of(list(part)).p10
     ok = ok_rows(real)
-    rows = ok[ok["background"].map(lambda bg: _bg_place(real, bg) in set(places))]
-    part_map = miou_map(rows, real.space, "x", "y", cols["iou"])
+    part_map = miou_map(ok[ok["background"].isin(mine)], real.space, "x", "y", cols["iou"])
     return PlaceFloor(len(places), real_places, w1, p10,
                       map_agreement(part_map, rmap, threshold).mae)
 
