@@ -93,22 +93,23 @@ _LEARNING_WIDE = _wide(LEARNING_MAP)
 _KITTI4_WIDE = _wide(KITTI4_OF_RAW)
 
 
-def _lookup(table: np.ndarray, wide: np.ndarray, raw: np.ndarray) -> np.ndarray:
+def _lookup(wide: np.ndarray, raw: np.ndarray) -> np.ndarray:
+    """`wide` at each raw id; ids outside it (negative, or past uint16) read entry 0."""
     raw = np.asarray(raw)
     if raw.dtype in (np.uint8, np.uint16):
         return wide.take(raw)
-    return table[np.where((raw >= 0) & (raw < len(table)), raw, 0)]
+    return wide[np.where((raw >= 0) & (raw < len(wide)), raw, 0)]
 
 
 def train_ids(raw: np.ndarray) -> np.ndarray:
     """Raw SemanticKITTI ids -> train ids 0..19 (unknown raw ids: 0, unlabeled)."""
-    return _lookup(LEARNING_MAP, _LEARNING_WIDE, raw)
+    return _lookup(_LEARNING_WIDE, raw)
 
 
 def kitti4(raw: np.ndarray) -> np.ndarray:
     """Raw SemanticKITTI ids -> the four SqueezeSeg classes (0 unknown, 1 car, 2 pedestrian,
     3 cyclist)."""
-    return _lookup(KITTI4_OF_RAW, _KITTI4_WIDE, raw)
+    return _lookup(_KITTI4_WIDE, raw)
 
 
 def kitti4_of_train(train: np.ndarray) -> np.ndarray:
