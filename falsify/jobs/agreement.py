@@ -6,7 +6,9 @@ precision and recall (with the 1-Wasserstein distance between the runs' spreads)
 against the real place it stands for where both runs hold it (and the floor a world of fewer
 places than the real run can reach), the x × y maps of its IoU cell by
 cell (which blind spots the world finds and misses), and, optionally, what the false-positive
-car points of a few replayed samples lie on.
+car points of a few replayed samples lie on. Limits on the distances turn the comparison into a
+check (`Limits`, `check_targets`): each target met or missed, and whether the floor leaves it
+within reach.
 """
 
 from __future__ import annotations
@@ -179,6 +181,79 @@ class MapAgreement:
 
 
 @dataclass(frozen=True)
+class Limits:
+    """The most each distance may be for the world to pass: W1 of the per-background IoU and
+    precision, |world - real| of the per-background IoU's 10th percentile, the maps' MAE; None:
+    not checked."""
+
+    w1: float | None = None
+    p10_gap: float | None = None
+    map_mae: float | None = None
+
+    def given(self) -> bool:
+        return any(v is not None for v in (self.w1, self.p10_gap, self.map_mae))
+
+
+LIMIT_OPTIONS = {"w1": "--max-w1", "p10_gap": "--max-p10-gap", "map_mae": "--max-map-mae"}
+
+
+def check_limits(limits: Limits) -> None:
+    """FalsifyError naming the option whose limit is not a number in [0, 1]."""
+    for key, option in LIMIT_OPTIONS.items():
+        v = getattr(limits, key)
+        if v is not None and not (np.isfinite(v) and 0.0 <= v <= 1.0):
+            raise FalsifyError(f"{option}: {v} must be a number in [0, 1]")
+
+
+@dataclass(frozen=True)
+class Target:
+    """One limit against its distance: met when the distance is defined and at most the limit.
+    `floor` is the same distance for a world whose every street scored its own place's real
+    value (None without a floor); a target whose floor exceeds its limit is out of reach for
+    any world on these streets' places."""
+
+    name: str                  # "w1 iou", "w1 precision", "p10 gap iou", "map mae"
+    value: float | None
+    limit: float
+    floor: float | None
+
+    @property
+    def met(self) -> bool:
+        return self.value is not None and self.value <= self.limit
+
+    @property
+    def reachable(self) -> bool | None:
+        return None if self.floor is None else self.floor <= self.limit
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "value": _r(self.value), "limit": self.limit,
+                "met": self.met, "floor": _r(self.floor), "reachable": self.reachable}
+
+
+def check_targets(metrics: Sequence[MetricComparison], amap: MapAgreement,
+                  floor: PlaceFloor | None, limits: Limits) -> tuple[Target, ...]:
+    """The targets `limits` sets, in a fixed order (W1 of IoU and precision, the 10th
+    percentile gap of IoU, the map's MAE), each with the floor's value beside it."""
+    by = {m.metric: m for m in metrics}
+    out: list[Target] = []
+    if limits.w1 is not None:
+        for metric in ("iou", "precision"):
+            out.append(Target(f"w1 {metric}", by[metric].w1, limits.w1,
+                              None if floor is None else floor.w1[metric]))
+    if limits.p10_gap is not None:
+        iou = by["iou"]
+        gap = (None if iou.world.p10 is None or iou.real.p10 is None
+               else abs(iou.world.p10 - iou.real.p10))
+        fl = (None if floor is None or floor.p10["iou"] is None or iou.real.p10 is None
+              else abs(floor.p10["iou"] - iou.real.p10))
+        out.append(Target("p10 gap iou", gap, limits.p10_gap, fl))
+    if limits.map_mae is not None:
+        out.append(Target("map mae", amap.mae, limits.map_mae,
+                          None if floor is None else floor.map_mae))
+    return tuple(out)
+
+
+@dataclass(frozen=True)
 class FalsePositives:
     """Predicted-car points whose label is not car, in `samples` replayed rows of one run, by
     the SemanticKITTI class of what they lie on."""
@@ -227,10 +302,19 @@ class AgreementResult:
     fp_note: str
     places: PlacePairing | None = None   # None: no place in both runs
     floor: PlaceFloor | None = None      # None: no place in both runs
+    targets: tuple[Target, ...] = ()     # empty: no limit given
     precision_note: str = PRECISION_NOTE
 
+    @property
+    def passed(self) -> bool:
+        """Every target met (true when there is none)."""
+        return all(t.met for t in self.targets)
+
     def to_json(self) -> dict:
-        return {"world": self.world.to_json(), "real": self.real.to_json(),
+        targets = None if not self.targets else {
+            "met": sum(t.met for t in self.targets), "total": len(self.targets),
+            "passed": self.passed, "each": [t.to_json() for t in self.targets]}
+        return {"world": self.world.to_json(), "real": self.real.to_json(), "targets": targets,
                 "metrics": [m.to_json() for m in self.metrics], "map": self.map.to_json(),
                 "places": None if self.places is None else self.places.to_json(),
                 "floor": None if self.floor is None else self.floor.to_json(),
@@ -398,14 +482,17 @@ def side(data: RunData) -> RunSide:
 
 
 def run_agreement(world_run: str | Path, real_run: str | Path, threshold: float | None = None,
-              fp_samples: int = 0, device: str = "cpu") -> AgreementResult:
+                  fp_samples: int = 0, device: str = "cpu",
+                  limits: Limits = Limits()) -> AgreementResult:
     """Compare a run on our streets with a run of the same positions on real scans; the
-    threshold defaults to the real run's, and `fp_samples` rows of each run are replayed."""
+    threshold defaults to the real run's, `fp_samples` rows of each run are replayed, and
+    `limits` set the targets to check."""
     from falsify.checks import check_range
     from falsify.jobs.gate import check_threshold
 
     check_threshold(threshold)
     check_range(fp_samples, "--fp-samples", 0, MAX_FP_SAMPLES)
+    check_limits(limits)
     world, real = open_run(world_run), open_run(real_run)
     wcol, rcol = placed_columns(world)["iou"], placed_columns(real)["iou"]
     wmap = miou_map(ok_rows(world), world.space, "x", "y", wcol)
@@ -423,8 +510,9 @@ def run_agreement(world_run: str | Path, real_run: str | Path, threshold: float 
     places = pair_places(by_place(world), real_places)
     floor = (None if places is None else
              place_floor(real, [p.place for p in places.pairs], len(real_places), rmap, t))
-    return AgreementResult(side(world), side(real), metrics, map_agreement(wmap, rmap, t), fps,
-                           note, places, floor)
+    amap = map_agreement(wmap, rmap, t)
+    return AgreementResult(side(world), side(real), metrics, amap, fps, note, places, floor,
+                           check_targets(metrics, amap, floor, limits))
 
 
 # -- false positives by what they lie on -----------------------------------------------------
@@ -520,6 +608,7 @@ def format_text(res: AgreementResult) -> str:
                      f"{fl.real_places} real places): W1 IoU {f(fl.w1['iou'])}, precision "
                      f"{f(fl.w1['precision'])}, recall {f(fl.w1['recall'])}; p10 IoU "
                      f"{f(fl.p10['iou'])} (real {f(real_p10)}); map MAE {f(fl.map_mae)}")
+    lines.extend(_targets_text(res.targets, f))
     if not res.false_positives:
         lines.append(f"false-positive car points: {res.fp_note}")
     for fp in res.false_positives:
@@ -528,6 +617,19 @@ def format_text(res: AgreementResult) -> str:
                      f"replayed rows (stored car_fp {fp.stored_fp}): {top}"
                      + (f" [{fp.note}]" if fp.note else ""))
     return "\n".join(lines)
+
+
+def _targets_text(targets: tuple[Target, ...], f) -> list[str]:
+    """One line a target: its distance against its limit, met or missed, and the floor's."""
+    if not targets:
+        return []
+    out = [f"targets: {sum(t.met for t in targets)} of {len(targets)} met"]
+    for t in targets:
+        reach = ("" if t.floor is None else f"  floor {f(t.floor)}"
+                 + ("" if t.reachable else ": out of reach on these places"))
+        out.append(f"  {t.name:12s} {f(t.value):>6s} <= {t.limit:<6g} "
+                   f"{'met' if t.met else 'MISSED':6s}{reach}")
+    return out
 
 
 def _places_text(pl: PlacePairing | None, f) -> list[str]:

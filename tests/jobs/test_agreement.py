@@ -14,6 +14,7 @@ import pytest
 from falsify.cli import main
 from falsify.jobs.agreement import (
     Distribution,
+    Target,
     fp_classes,
     map_agreement,
     ok_rows,
@@ -205,10 +206,49 @@ def test_different_grids_are_refused_naming_runs_and_dims(written, capsys):
 @pytest.mark.parametrize(("extra", "says"), [
     (["--threshold", "1.5"], "--threshold"),
     (["--fp-samples", "-1"], "--fp-samples"),
+    (["--max-w1", "-0.1"], "--max-w1"),
+    (["--max-p10-gap", "nan"], "--max-p10-gap"),
+    (["--max-map-mae", "2"], "--max-map-mae"),
 ])
 def test_bad_options_exit_2(written, capsys, extra, says):
     assert main(["agreement", str(written["world"]), str(written["real"]), *extra]) == 2
     assert says in capsys.readouterr().err
+
+
+def test_targets_pass_and_fail_with_the_limits_and_exit_1_on_a_miss(written, capsys):
+    runs = (str(written["world"]), str(written["real"]))
+    # Per-background IoU: world 0.823 / 0.843 (p10 0.825), real 0.683 / 0.783 (p10 0.693).
+    out = agreement_json(capsys, *runs, "--max-w1", "0.2", "--max-map-mae", "0.2")
+    t = out["targets"]
+    assert (t["met"], t["total"], t["passed"]) == (3, 3, True)
+    assert [x["name"] for x in t["each"]] == ["w1 iou", "w1 precision", "map mae"]
+    assert t["each"][0]["value"] == pytest.approx(0.10, abs=1e-3)
+    assert all(x["floor"] is None and x["reachable"] is None for x in t["each"])   # no places
+
+    assert main(["agreement", *runs, "--max-p10-gap", "0.1", "--max-map-mae", "0.1",
+                 "--json"]) == 1
+    t = json.loads(capsys.readouterr().out)["targets"]
+    assert (t["met"], t["total"], t["passed"]) == (0, 2, False)
+    assert t["each"][0]["name"] == "p10 gap iou"
+    assert t["each"][0]["value"] == pytest.approx(0.8253 - 0.6933, abs=2e-3)
+    assert t["each"][1]["value"] == pytest.approx(0.1333, abs=2e-3)
+    assert main(["agreement", *runs, "--max-p10-gap", "0.14", "--max-map-mae", "0.1"]) == 1
+    text = capsys.readouterr().out
+    assert "targets: 1 of 2 met" in text
+    assert "p10 gap iou" in text and "map mae" in text and "MISSED" in text
+
+    assert main(["agreement", *runs]) == 0             # no limit: a report, never a failure
+    assert "targets" not in capsys.readouterr().out
+    assert agreement_json(capsys, *runs)["targets"] is None
+
+
+def test_a_target_is_met_only_by_a_defined_distance_at_most_its_limit():
+    assert Target("w1 iou", 0.04, 0.04, None).met
+    assert not Target("w1 iou", 0.0401, 0.04, None).met
+    assert not Target("w1 iou", None, 0.04, 0.0).met         # nothing to compare: not met
+    assert Target("map mae", 0.1, 0.03, 0.03).reachable
+    assert Target("map mae", 0.1, 0.03, 0.031).reachable is False
+    assert Target("map mae", 0.1, 0.03, None).reachable is None
 
 
 def test_a_missing_run_exits_2_naming_it(written, tmp_path, capsys):
@@ -353,3 +393,12 @@ def test_streets_pair_with_the_real_places_they_stand_for(tmp_path, capsys):
     assert main(["agreement", str(one), str(real)]) == 0
     assert "floor, were each street exactly its own place (1 of 2 real places): W1 IoU 0.050" \
         in capsys.readouterr().out
+
+    # Its p10 target: streets 0.9 and 0.7 give 0.72 against the real 0.51; the floor's 0.6 is
+    # 0.09 off, so a limit of 0.05 is out of reach for any world on this one place.
+    assert main(["agreement", str(one), str(real), "--max-p10-gap", "0.05", "--json"]) == 1
+    t = json.loads(capsys.readouterr().out)["targets"]["each"][0]
+    assert t["value"] == pytest.approx(0.21, abs=3e-3)
+    assert t["floor"] == pytest.approx(0.09, abs=3e-3) and t["reachable"] is False
+    assert main(["agreement", str(one), str(real), "--max-p10-gap", "0.05"]) == 1
+    assert "floor 0.090: out of reach on these places" in capsys.readouterr().out
