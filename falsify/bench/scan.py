@@ -35,13 +35,6 @@ def warm(sim: Scanner, samples: list[Sample]) -> None:
             continue
 
 
-def _scan_rate(space: Space, samples: list[Sample], lod: int = 2) -> float:
-    """Scans per second of the fast path in this process, caches warm."""
-    sim = scanner_for(space, lod=lod)
-    warm(sim, samples)
-    return _timed(sim, samples)
-
-
 def _timed(sim: Scanner, samples: list[Sample]) -> float:
     """Scans per second of a warm scanner over the samples."""
     t0 = time.perf_counter()
@@ -159,12 +152,14 @@ class ScanBench:
     samples: int
     workers: int
     machine: dict
-    fast_1: float          # scans/s, 1 process
-    fast_n: float          # scans/s, `workers` processes
+    fast_1: float          # scans/s, 1 process (the median of its rounds)
+    fast_n: float          # scans/s, `workers` processes (the median of its rounds)
     naive: float           # scans/s, the naive path
     naive_samples: int
     scene_size: dict
     streets_1: float | None = None   # real backgrounds: the same positions on our streets
+    rounds_1: tuple[float, ...] = ()   # every round's scans/s, 1 process, in order
+    rounds_n: tuple[float, ...] = ()   # every round's scans/s, `workers` processes
 
     def to_json(self) -> dict:
         w = self.workers
@@ -178,6 +173,9 @@ class ScanBench:
             "speedup_1_process": round(self.fast_1 / self.naive, 1),
             f"speedup_{w}_processes": round(self.fast_n / self.naive, 1),
             "scene_size": self.scene_size,
+            "rounds": len(self.rounds_n),
+            "fast_scans_per_s_1_process_rounds": [round(v, 1) for v in self.rounds_1],
+            f"fast_scans_per_s_{w}_processes_rounds": [round(v, 1) for v in self.rounds_n],
             **({} if self.streets_1 is None else {
                 "background": "real scans (insertion)",
                 "streets_scans_per_s_1_process": round(self.streets_1, 1),
@@ -191,21 +189,31 @@ SIZE_SAMPLES = 150
 
 
 def bench_scan(config: str | Path, samples: int = 1000, naive_samples: int = 5,
-               workers: int = 2, size_samples: int = SIZE_SAMPLES) -> ScanBench:
-    """Scans/s of the fast path (1 process and `workers` processes) against the naive path, plus
-    how flat the per-scan time stays when the background grows and image-only dims change (on
-    the first `size_samples` samples on the first sample's street)."""
+               workers: int = 2, size_samples: int = SIZE_SAMPLES,
+               repeats: int = 1) -> ScanBench:
+    """Scans/s of the fast path (1 process and `workers` processes, `repeats` interleaved rounds
+    of each, the median reported: a shared machine swings by a third between runs) against the
+    naive path, plus how flat the per-scan time stays when the background grows and image-only
+    dims change (on the first `size_samples` samples on the first sample's street)."""
     if samples <= 0 or samples < workers:
         raise FalsifyError(f"--samples: {samples} must be at least the number of workers")
+    if repeats < 1:
+        raise FalsifyError(f"--repeats: {repeats} must be at least 1")
     if size_samples < 1:
         raise FalsifyError(f"size_samples: {size_samples} must be at least 1")
     space = load_space(config)
     space.check_size(MAX_SAMPLES, "the benchmark's limit")
-    grid = possible(scanner_for(space), space.grid())
+    sim = scanner_for(space)
+    grid = possible(sim, space.grid())
     if not grid:
         raise FalsifyError(f"{config}: no sample of the space can exist (every one collides)")
     picked = [grid[i % len(grid)] for i in range(samples)]
-    single = _scan_rate(space, picked)
+    warm(sim, picked)
+    rounds_1, rounds_n = [], []
+    for _ in range(repeats):   # interleaved, so a busy spell of the machine hits both alike
+        rounds_1.append(_timed(sim, picked))
+        rounds_n.append(_multi_rate(config, picked, workers))
+    single, multi = float(np.median(rounds_1)), float(np.median(rounds_n))
     streets = None
     if space.real_backgrounds:   # the same positions on our streets, alternating, best of 3
         paved = dataclasses.replace(
@@ -213,20 +221,10 @@ def bench_scan(config: str | Path, samples: int = 1000, naive_samples: int = 5,
             dims={**space.dims, "background": Categorical("background", tuple(range(15)))})
         on_streets = [paved.make({**s.as_dict(), "background": s.background % 15})
                       for s in picked]
-        real_sim, street_sim = scanner_for(space), scanner_for(paved)
-        warm(real_sim, picked)
+        street_sim = scanner_for(paved)
         warm(street_sim, on_streets)
-        rates = [(_timed(real_sim, picked), _timed(street_sim, on_streets)) for _ in range(3)]
+        rates = [(_timed(sim, picked), _timed(street_sim, on_streets)) for _ in range(3)]
         single, streets = max(r[0] for r in rates), max(r[1] for r in rates)
-
-    chunks = np.array_split(np.arange(samples), workers)
-    ctx = mp.get_context("spawn")
-    with ctx.Pool(workers) as pool:
-        parts = pool.map(_scan_worker, [(str(config), [picked[i] for i in c], 2)
-                                        for c in chunks])
-    start = min(p[1] for p in parts)
-    stop = max(p[2] for p in parts)
-    multi = sum(p[0] for p in parts) / (stop - start)
 
     naive_path = naive_insert if space.real_backgrounds else naive_scan
     naive_times = []
@@ -238,7 +236,18 @@ def bench_scan(config: str | Path, samples: int = 1000, naive_samples: int = 5,
     first = [s for s in picked if s.background == picked[0].background]
     size = {} if space.real_backgrounds else scene_size_effect(space, first[:size_samples])
     return ScanBench(str(config), space.sensor, samples, workers, machine(), single, multi,
-                     naive, naive_samples, size, streets)
+                     naive, naive_samples, size, streets, tuple(rounds_1), tuple(rounds_n))
+
+
+def _multi_rate(config: str | Path, picked: list[Sample], workers: int) -> float:
+    """Scans/s of `workers` fresh processes sharing the samples, from the first one's clock
+    start to the last one's stop (each warms its caches before its clock starts)."""
+    chunks = np.array_split(np.arange(len(picked)), workers)
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(workers) as pool:
+        parts = pool.map(_scan_worker, [(str(config), [picked[i] for i in c], 2)
+                                        for c in chunks])
+    return sum(p[0] for p in parts) / (max(p[2] for p in parts) - min(p[1] for p in parts))
 
 
 def scene_size_effect(space: Space, samples: list[Sample]) -> dict:

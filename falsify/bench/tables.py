@@ -46,11 +46,16 @@ def _scan(doc: dict) -> Row:
     n, fast = _workers_key(doc, "fast_scans_per_s_") or (1, doc["fast_scans_per_s_1_process"])
     _, speedup = _workers_key(doc, "speedup_") or (1, doc["speedup_1_process"])
     where = " (real backgrounds)" if "background" in doc else ""
+    rounds = doc.get(f"fast_scans_per_s_{n}_processes_rounds") or []
+    spread = ("" if len(rounds) < 2 else
+              f" (median of {len(rounds)} rounds, {_num(min(rounds))}-{_num(max(rounds))})")
     return Row("scan" + where,
-               f"{_num(fast)} scans/s on {n} processes, {_num(doc['fast_scans_per_s_1_process'])}"
-               f" on 1", f"{_num(speedup)}x the naive path ({doc['naive_scans_per_s']} scans/s)",
+               f"{_num(fast)} scans/s on {n} processes{spread}, "
+               f"{_num(doc['fast_scans_per_s_1_process'])} on 1",
+               f"{_num(speedup)}x the naive path ({doc['naive_scans_per_s']} scans/s)",
                NO_NETWORK, f"falsify bench scan --config {doc['config']} --samples "
-               f"{doc['samples']} --json")
+               f"{doc['samples']}" + (f" --repeats {len(rounds)}" if len(rounds) > 1 else "")
+               + " --json")
 
 
 def _pipeline(doc: dict) -> Row:

@@ -62,8 +62,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scans", default=None,
                    help="bench model: a folder of labelled .npy scans (default: generated)")
     p.add_argument("--repeats", type=int, default=1,
-                   help="bench model: timed runs of each variant over its frames, the best kept "
-                   "(default 1)")
+                   help="bench model: timed runs of each variant over its frames, the best kept; "
+                   "bench scan: interleaved rounds of the 1- and N-process runs, the median "
+                   "reported with every round (default 1)")
     p.add_argument("--calibration-scans", type=int, default=None, choices=range(1, 1025),
                    metavar="N", help="bench model: synthetic scenes to calibrate int8 on "
                    "(default: the export's 64; the bundled network's shipped int8 copy is "
@@ -279,13 +280,20 @@ def _bench_map(args) -> tuple[dict, str]:
 def _bench_scan(args) -> tuple[dict, str]:
     from falsify.bench.scan import bench_scan
 
-    sb = bench_scan(args.config, workers=args.workers,
-                          **given_options(args, "samples", "naive_samples"))
+    sb = bench_scan(args.config, workers=args.workers, repeats=args.repeats,
+                    **given_options(args, "samples", "naive_samples"))
     result = sb.to_json()
+    rounds = ("" if len(sb.rounds_n) < 2 else
+              f", median of {len(sb.rounds_n)} rounds ({_span(sb.rounds_n)} on {sb.workers}, "
+              f"{_span(sb.rounds_1)} on 1)")
     text = (f"scan: {round(sb.fast_n, 1)} scans/s on {sb.workers} processes "
             f"({round(sb.fast_1, 1)} on 1), naive {round(sb.naive, 3)} scans/s: "
-            f"{round(sb.fast_n / sb.naive, 1)}x")
+            f"{round(sb.fast_n / sb.naive, 1)}x{rounds}")
     return result, text
+
+
+def _span(values) -> str:
+    return f"{min(values):.1f}-{max(values):.1f}"
 
 
 def _bench_camera(args) -> tuple[dict, str]:

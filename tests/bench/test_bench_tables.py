@@ -22,6 +22,15 @@ def scan(machine: dict, fast: float) -> dict:
             "speedup_2_processes": fast / 3}
 
 
+def test_a_scan_of_several_rounds_shows_its_median_range_and_command():
+    doc = {**scan(EPYC, 600.0), "rounds": 3,
+           "fast_scans_per_s_2_processes_rounds": [471.2, 600.0, 650.3]}
+    text = render([doc])
+    assert "600.0 scans/s on 2 processes (median of 3 rounds, 471.2-650.3), 300.0 on 1" in text
+    assert "--samples 1000 --repeats 3 --json" in text
+    assert "median of" not in render([scan(EPYC, 600.0)])   # one round: as before
+
+
 def camera(machine: dict) -> dict:
     return {"benchmark": "camera", "config": "configs/paper.toml", "machine": machine,
             "image": "1242x375", "ms_per_image_cold": 245.0, "ms_per_image_warm": 30.1,
