@@ -25,13 +25,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help="most |world - real| of the per-background IoU's 10th percentile")
     lim.add_argument("--max-map-mae", type=float, metavar="D",
                      help="most mean absolute difference of the two x × y IoU maps")
+    lim.add_argument("--max-place-mae", type=float, metavar="D",
+                     help="most mean |street - place| of the placed car's IoU over the real "
+                     "places both runs hold (missed when they hold none)")
     p.add_argument("--json", action="store_true")
 
 
 def run(args) -> int:
     from falsify.jobs.agreement import Limits, format_text, run_agreement
 
-    limits = Limits(args.max_w1, args.max_p10_gap, args.max_map_mae)
+    limits = Limits(args.max_w1, args.max_p10_gap, args.max_map_mae, args.max_place_mae)
     result = run_agreement(args.world_run, args.real_run, threshold=args.threshold,
                            fp_samples=args.fp_samples, limits=limits)
     emit(args, result.to_json(), format_text(result))

@@ -209,6 +209,7 @@ def test_different_grids_are_refused_naming_runs_and_dims(written, capsys):
     (["--max-w1", "-0.1"], "--max-w1"),
     (["--max-p10-gap", "nan"], "--max-p10-gap"),
     (["--max-map-mae", "2"], "--max-map-mae"),
+    (["--max-place-mae", "inf"], "--max-place-mae"),
 ])
 def test_bad_options_exit_2(written, capsys, extra, says):
     assert main(["agreement", str(written["world"]), str(written["real"]), *extra]) == 2
@@ -236,6 +237,13 @@ def test_targets_pass_and_fail_with_the_limits_and_exit_1_on_a_miss(written, cap
     text = capsys.readouterr().out
     assert "targets: 1 of 2 met" in text
     assert "p10 gap iou" in text and "map mae" in text and "MISSED" in text
+
+    # Streets of no real place: the per-place target has nothing to compare, so it is missed.
+    assert main(["agreement", *runs, "--max-place-mae", "0.5", "--json"]) == 1
+    t = json.loads(capsys.readouterr().out)["targets"]["each"][0]
+    assert (t["name"], t["value"], t["met"], t["floor"]) == ("place mae iou", None, False, None)
+    assert main(["agreement", *runs, "--max-place-mae", "0.5"]) == 1
+    assert "no place in both runs" in capsys.readouterr().out
 
     assert main(["agreement", *runs]) == 0             # no limit: a report, never a failure
     assert "targets" not in capsys.readouterr().out
@@ -381,6 +389,12 @@ def test_streets_pair_with_the_real_places_they_stand_for(tmp_path, capsys):
     floor = agreement_json(capsys, str(world), str(real))["floor"]   # every place has a street
     assert (floor["places"], floor["real_places"], floor["map_mae"]) == (2, 2, 0.0)
     assert floor["w1"]["iou"] == 0.0
+    # Each street against its own place: mean |0.8 - 0.6|, |0.5 - 0.5| = 0.1; its floor is 0.
+    assert main(["agreement", str(world), str(real), "--max-place-mae", "0.12"]) == 0
+    assert "targets: 1 of 1 met" in capsys.readouterr().out
+    assert main(["agreement", str(world), str(real), "--max-place-mae", "0.08", "--json"]) == 1
+    t = json.loads(capsys.readouterr().out)["targets"]["each"][0]
+    assert t["value"] == pytest.approx(0.1, abs=2e-3) and t["floor"] == 0.0 and t["reachable"]
 
     # Streets for 01/000000 alone: the floor is that place's real values against both places'.
     one = write_run(tmp_path / "one", PLACES_WORLD.replace("[0, 16, 21]", "[0, 21]"),
