@@ -429,6 +429,22 @@ def test_the_fast_insertion_casts_what_the_naive_path_casts(tmp_path, street):
         assert (hit & ~car).sum() < 0.25 * hit.sum()
 
 
+def test_bench_scan_on_real_scans_keeps_its_rounds_and_best_of_three(tmp_path, street):
+    """`bench scan` on real backgrounds: N rounds of the N-process run (their median), and the
+    1-process rate the best of its three passes alternating with our streets."""
+    from falsify.bench.scan import bench_scan
+
+    cfg = space_toml(tmp_path / "b.toml", str(street.bin))
+    r = bench_scan(cfg, samples=4, naive_samples=1, workers=2, repeats=2).to_json()
+    assert r["background"] == "real scans (insertion)" and r["rounds"] == 2
+    two = r["fast_scans_per_s_2_processes_rounds"]
+    one = r["fast_scans_per_s_1_process_rounds"]
+    assert len(two) == 2 and len(one) == 3 and min(one + two) > 0
+    assert r["fast_scans_per_s_2_processes"] == pytest.approx(np.median(two), abs=0.1)
+    assert r["fast_scans_per_s_1_process"] == pytest.approx(max(one), abs=0.1)
+    assert r["streets_scans_per_s_1_process"] > 0
+
+
 def test_scan_inserts_into_a_real_background_and_refuses_what_needs_our_streets(tmp_path,
                                                                                  street):
     cfg = space_toml(tmp_path / "s.toml", str(street.bin))
