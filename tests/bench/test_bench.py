@@ -201,8 +201,9 @@ def test_bench_scan_rounds_report_their_median_and_every_round():
     assert len(one) == len(two) == 2 and min(one + two) > 0
     assert r["fast_scans_per_s_1_process"] == pytest.approx(np.median(one), abs=0.1)
     assert r["fast_scans_per_s_2_processes"] == pytest.approx(np.median(two), abs=0.1)
+    # each figure is rounded (rates to 0.1, the naive rate to 0.001, the ratio to 0.1)
     assert r["speedup_2_processes"] == pytest.approx(
-        r["fast_scans_per_s_2_processes"] / r["naive_scans_per_s"], rel=2e-3)
+        r["fast_scans_per_s_2_processes"] / r["naive_scans_per_s"], rel=5e-3, abs=0.2)
 
 
 def test_bench_scan_text_names_its_rounds(monkeypatch, capsys):
