@@ -254,6 +254,10 @@ def test_a_target_is_met_only_by_a_defined_distance_at_most_its_limit():
     assert Target("w1 iou", 0.04, 0.04, None).met
     assert not Target("w1 iou", 0.0401, 0.04, None).met
     assert not Target("w1 iou", None, 0.04, 0.0).met         # nothing to compare: not met
+    assert Target("w1 iou", 0.0, 0.0, 0.0).met and Target("map mae", 1.0, 1.0, None).met
+    assert Target("w1 iou", None, 0.04, None).to_json() == {
+        "name": "w1 iou", "value": None, "limit": 0.04, "met": False, "floor": None,
+        "reachable": None}
     assert Target("map mae", 0.1, 0.03, 0.03).reachable
     assert Target("map mae", 0.1, 0.03, 0.031).reachable is False
     assert Target("map mae", 0.1, 0.03, None).reachable is None
