@@ -21,6 +21,7 @@ from falsify.jobs.fit_world import (
     summarise,
     wasserstein_1d,
 )
+from falsify.paths import CONFIGS
 from falsify.semantic import RAW_ID, join_label
 from falsify.world.profile import WorldProfile, load_profile
 from tests.conftest import HOLDOUT, KITTI_DIR
@@ -208,6 +209,12 @@ def test_the_fit_split_shows_pitch_our_world_lacks(tmp_path, capsys):
     assert places["vegetation 15-30 m"]["p50"] > world["vegetation 15-30 m"]["p50"]
     assert places["unlabeled 30-60 m"]["p50"] > 0.05 > world["unlabeled 30-60 m"]["p50"]
     assert world["unlabeled 30-60 m"]["w1"] > 0.05
+    # What the shipped places profile measured on the real scans is what fit-world measures
+    # today (its base and parked share are measured on the world: docs/world.md).
+    shipped = load_profile(CONFIGS / "worlds" / "semantickitti-places.json")
+    for key in ("scans", "pitch_deg", "height_m", "cars_front", "pitch_jitter_deg",
+                "height_jitter_m", "places"):
+        assert getattr(profile, key) == getattr(shipped, key), key
 
 
 def _profile(tmp_path: Path, **over) -> Path:
