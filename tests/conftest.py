@@ -26,6 +26,22 @@ if MINI.is_dir():   # what configs/paper-real.toml reads
     os.environ.setdefault("SEMANTICKITTI", str(MINI))
 
 
+# Modules that start a Ray instance: two at once on one machine find each other's address, so
+# under pytest-xdist they run in one worker, one after the other.
+RAY_MODULES = ("tests/executors/test_ray.py", "tests/executors/test_ray_cluster.py")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Under `--dist loadgroup`, a module's tests share one worker (its module fixtures are built
+    once) and the Ray modules share one between them."""
+    for item in items:
+        if item.get_closest_marker("xdist_group") is None:
+            module = item.nodeid.split("::", 1)[0]
+            group = "ray" if module in RAY_MODULES else module
+            item.add_marker(pytest.mark.xdist_group(group))
+
+
 @pytest.fixture
 def kitti_dir() -> Path:
     if not (KITTI / "squeezeseg").is_dir():

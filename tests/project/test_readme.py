@@ -120,3 +120,16 @@ def test_quick_blocks_run(tmp_path: Path) -> None:
         if done.returncode != 0:
             tail = (done.stdout + done.stderr)[-3000:]
             pytest.fail(f"{line!r} exited {done.returncode}:\n{tail}")
+
+
+def test_ci_runs_the_readme_test_command_exactly() -> None:
+    """The block under "Set up and run the tests" is one line, and `.ci/run` runs it as written,
+    on every core, so CI and a new user run the same suite the same way."""
+    lines = readme_lines()
+    heading = next(i for i, line in enumerate(lines) if line.startswith("Set up and run the tests"))
+    start, _, body = next(b for b in code_blocks(lines) if b[0] > heading + 1)
+    commands = [c.strip() for c in body if c.strip()]
+    assert len(commands) == 1, f"README.md:{start}: the test block holds {commands}"
+    ci = [line.strip() for line in (ROOT / ".ci" / "run").read_text().splitlines()]
+    assert commands[0] in ci, f".ci/run does not run the README's test command: {commands[0]}"
+    assert "python -m pytest -n auto" in commands[0] and "pytest -m slow -n auto" in commands[0]
