@@ -10,8 +10,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 from tests.conftest import ROOT
 from tests.project.test_readme import code_blocks, readme_lines
 
@@ -39,13 +37,19 @@ def bare_env() -> dict[str, str]:
     return env
 
 
-def run_main_job(cwd: Path, config: str | None = None) -> subprocess.CompletedProcess:
-    """The README's first command from its `falsify` on, in an empty folder (the set-up part
-    installs what this test already runs on); `config` swaps in a smaller space."""
+def main_job() -> str:
+    """The README's first command from its `falsify` on (the set-up part installs what the tests
+    already run on); `.ci/run` runs it as written."""
     command = first_command()
     assert command.startswith("pip install torch==2.13.0 && pip install -e"), command
     job = command[command.index("falsify grid"):]
     assert job.startswith("falsify grid configs/paper.toml --out runs/paper"), job
+    return job
+
+
+def run_main_job(cwd: Path, config: str | None = None) -> subprocess.CompletedProcess:
+    """The README's main job in an empty folder; `config` swaps in a smaller space."""
+    job = main_job()
     if config is not None:
         job = job.replace("configs/paper.toml", config)
     return subprocess.run(["bash", "-c", job], cwd=cwd, env=bare_env(), capture_output=True,
@@ -61,16 +65,16 @@ def check_main_job(done: subprocess.CompletedProcess, cwd: Path) -> None:
 
 
 def test_the_first_command_runs_with_nothing_beside_it(tmp_path: Path) -> None:
-    """The main job, on the smoke space for time, from an empty folder with no data variable."""
+    """The main job, on the smoke space for time, from an empty folder with no data variable.
+    The job as written (2,250 scans, 4 CPU-minutes) runs in `.ci/run`, gated at 0 blind cells."""
     check_main_job(run_main_job(tmp_path, "configs/smoke.toml"), tmp_path)
 
 
-@pytest.mark.slow
-def test_the_first_command_runs_exactly(tmp_path: Path) -> None:
-    """The README's main job as written: the paper's 2,250 scans on the embedded streets."""
-    done = run_main_job(tmp_path)
-    check_main_job(done, tmp_path)
-    assert "2250 samples" in done.stdout
+def test_ci_runs_the_main_job_as_written() -> None:
+    """`.ci/run` takes its main job from the README through `main_job`, so the two cannot part."""
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert "from tests.project.test_fresh_machine import main_job" in ci
+    assert "falsify gate runs/paper --max-blind-spots 0" in ci
 
 
 def test_the_real_scan_job_says_where_to_point_it(tmp_path: Path) -> None:
