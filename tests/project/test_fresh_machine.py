@@ -66,7 +66,7 @@ def check_main_job(done: subprocess.CompletedProcess, cwd: Path) -> None:
 
 def test_the_first_command_runs_with_nothing_beside_it(tmp_path: Path) -> None:
     """The main job, on the smoke space for time, from an empty folder with no data variable.
-    The job as written (2,250 scans, 4 CPU-minutes) runs in `.ci/run`, gated at 0 blind cells."""
+    The job as written (2,250 scans, 3.3 CPU-minutes) runs in `.ci/run`, gated at 0 blind cells."""
     check_main_job(run_main_job(tmp_path, "configs/smoke.toml"), tmp_path)
 
 
