@@ -26,8 +26,8 @@ if MINI.is_dir():   # what configs/paper-real.toml reads
     os.environ.setdefault("SEMANTICKITTI", str(MINI))
 
 
-# Modules that start a Ray instance: two at once on one machine find each other's address, so
-# under pytest-xdist they run in one worker, one after the other.
+# Modules that start a Ray instance: a bare `ray.init()` joins the newest cluster started on the
+# machine (Ray's docs), so under pytest-xdist they run in one worker, one after the other.
 RAY_MODULES = ("tests/executors/test_ray.py", "tests/executors/test_ray_cluster.py")
 
 

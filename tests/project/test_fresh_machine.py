@@ -74,6 +74,7 @@ def test_ci_runs_the_main_job_as_written() -> None:
     """`.ci/run` takes its main job from the README through `main_job`, so the two cannot part."""
     ci = (ROOT / ".ci" / "run").read_text()
     assert "from tests.project.test_fresh_machine import main_job" in ci
+    assert "grep -q '^2250 samples ' job.log" in ci and "runs/paper/report.html" in ci
     assert "falsify gate runs/paper --max-blind-spots 0" in ci
 
 
