@@ -376,12 +376,6 @@ def tree_memory(pid: int | None = None, pss: bool = True) -> MemorySample:
                         root_rss, child_rss)
 
 
-def tree_rss(pid: int | None = None) -> tuple[int, int]:
-    """Summed RSS bytes of a process and its descendants, and how many processes that is."""
-    m = tree_memory(pid, pss=False)
-    return m.rss, m.processes
-
-
 @dataclass(frozen=True)
 class MemoryUse:
     """Summed RSS of a process tree: the peak over all samples, and the means over the first and
