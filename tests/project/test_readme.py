@@ -133,3 +133,27 @@ def test_ci_runs_the_readme_test_command_exactly() -> None:
     ci = [line.strip() for line in (ROOT / ".ci" / "run").read_text().splitlines()]
     assert commands[0] in ci, f".ci/run does not run the README's test command: {commands[0]}"
     assert "python -m pytest -n auto" in commands[0] and "pytest -m slow -n auto" in commands[0]
+
+
+def test_ci_stops_when_the_test_command_fails(tmp_path: Path) -> None:
+    """A failure early in the test line's `&&` list (the main tier) fails `.ci/run` at once:
+    `set -e` alone would carry on to the gates and pass. Stand-in tools on PATH record calls."""
+    (tmp_path / ".ci").mkdir()
+    (tmp_path / ".ci" / "run").write_text((ROOT / ".ci" / "run").read_text())
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    tools = {"python": f'echo "$*" >> "{tmp_path}/python-called"\n'
+                       'case "$*" in *"-m pytest -n auto"*) exit 1;; esac; exit 0',
+             "pip": "exit 0", "chromium": "exit 0", "chromedriver": "exit 0",
+             "falsify": f'echo "$*" >> "{tmp_path}/falsify-called"'}
+    for name, body in tools.items():
+        (bin_dir / name).write_text(f"#!/bin/sh\n{body}\n")
+        (bin_dir / name).chmod(0o755)
+    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}/usr/bin{os.pathsep}/bin"}
+    done = subprocess.run(["bash", str(tmp_path / ".ci" / "run")], env=env, capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 1, done.stderr
+    assert "the test command failed (1)" in done.stderr
+    called = (tmp_path / "python-called").read_text().splitlines()
+    assert called == ["-m ruff check .", "-m pytest -n auto"], called   # nothing after it ran
+    assert not (tmp_path / "falsify-called").exists()
