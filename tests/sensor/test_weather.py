@@ -258,6 +258,7 @@ def write_config(path, extra: str, ys: str = "9.0, 13.0") -> str:
     ("[dims.beam_loss]\nvalues = [2.5]\n", "dims.beam_loss"),
     ("[dims.beams]\nvalues = [200]\n", "dims.beams"),
     ("[dims.beams]\nvalues = [0, 48]\n", "dims.beams: 48 lasers do not divide"),
+    ("[dims.beams]\nvalues = [48]\n", "dims.beams: 48 lasers do not divide"),
     ("[dims.beams]\nmin = 16\nmax = 64\nstep = 16\n", "dims.beams: give values"),
     ("[dims.crosstalk]\nvalues = [\"many\"]\n", "dims.crosstalk"),
     ("[dims.ego_speed]\nvalues = [-30.0]\n", "dims.ego_speed"),
@@ -269,6 +270,15 @@ def test_bad_effect_values_exit_2_naming_the_dim(tmp_path, capsys, extra, named)
     err = capsys.readouterr().err
     assert named in err, err
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("beams", [0, 32])
+def test_one_beams_value_is_a_sensor_not_a_range(tmp_path, beams):
+    """`values = [32]` reads as a fixed value (min = max): it runs every sample with 32 lasers."""
+    cfg = write_config(tmp_path / "one.toml", f"[dims.beams]\nvalues = [{beams}]\n")
+    assert main(["grid", cfg, "--out", str(tmp_path / "run"), "--quiet"]) == 0
+    frame = pd.read_csv(tmp_path / "run" / "results.csv")
+    assert list(frame["beams"]) == [beams, beams]
 
 
 SEARCH_DIMS = (

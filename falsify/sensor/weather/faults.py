@@ -11,7 +11,7 @@ import numpy as np
 from falsify.errors import ConfigError
 from falsify.sensor.lidar import Sensor
 from falsify.sensor.weather.effects import _BEAMS, _CROSSTALK, Echoes, Effects, stream
-from falsify.world.space import Categorical, Space
+from falsify.world.space import Categorical, Continuous, Space
 
 
 def sensor_faults(s: Sensor, fx: Effects, seed: int, e: Echoes) -> Echoes:
@@ -55,7 +55,8 @@ def check_beams(space: Space, sensor: Sensor) -> None:
     if dim is None:
         return
     rows = sensor.rows
-    if not isinstance(dim, Categorical):
+    fixed = isinstance(dim, Continuous) and dim.lo == dim.hi   # `values = [v]` reads as lo = hi
+    if not (isinstance(dim, Categorical) or fixed):
         raise ConfigError(f"{space.source}: dims.beams: give values = [...], lasers that divide "
                           f"{sensor.name}'s {rows}; a range lets a search pick ones that do not")
     for v in dim.grid():
