@@ -37,11 +37,13 @@ def run(args) -> int:
     from falsify.images.png import encode_png
     from falsify.images.scan_pictures import scan_picture
     from falsify.sensor.lidar import load_sensor
+    from falsify.sensor.look import check_looks
     from falsify.sensor.simulator import InvalidSample
     from falsify.world.space import load_space
 
     check_out_dir(args.out)
     space = load_space(args.config)
+    check_looks(space)
     sample = space.make(_set_pairs(args.set or []))
     sensor = load_sensor(space.sensor)
     sim = scanner_for(space, sensor)

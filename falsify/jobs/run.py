@@ -45,6 +45,7 @@ from falsify.results.store import (
 from falsify.sampler import NLOPT_ALGORITHMS, make_sampler
 from falsify.sampler.base import BATCH, Sampler, SearchResult
 from falsify.sensor.lidar import load_sensor
+from falsify.sensor.look import check_looks
 from falsify.sensor.weather import check_beams
 from falsify.world.actors import model_semantic
 from falsify.world.cars import load_user_car
@@ -108,11 +109,10 @@ def prepare(req: RunRequest) -> Prepared:
     if req.camera is not None and space.real_backgrounds:
         raise FalsifyError("--camera renders our streets; a space of real backgrounds has no "
                            "scene to render (drop --camera)")
+    check_looks(space)   # stored in the results whether or not a camera renders them
     if req.camera is not None:
         from falsify.sensor.camera import camera_preset
-        from falsify.sensor.look import check_looks
         camera_preset(req.camera)
-        check_looks(space)
     backend = backend_for(req.model, req.backend)
     if backend == "torch" and req.fidelity != "exact":
         raise FalsifyError(f"--fidelity {req.fidelity} runs an ONNX variant of the network; "

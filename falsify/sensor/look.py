@@ -90,8 +90,12 @@ def look_of(sample: Sample) -> Look:
 
 
 def check_looks(space: Space) -> None:
-    """Fail before anything is written if an image-only dim holds a value we cannot render."""
+    """Fail before anything is written if an image-only dim holds a value we cannot render,
+    with or without a camera: the value is stored with every sample either way."""
     for name in IMAGE_ONLY:
         if name in space.dims:
             for v in space.dims[name].grid():
-                parse_look({name: v})
+                try:
+                    parse_look({name: v})
+                except ConfigError as e:
+                    raise ConfigError(f"{space.source}: {e}") from None

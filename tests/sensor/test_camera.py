@@ -165,12 +165,23 @@ def test_scan_camera_bad_input_exits_2(tmp_path, look_config, capsys, args, mess
     assert not out.exists()
 
 
-def test_space_with_unrenderable_look_fails_before_rendering(tmp_path, capsys):
+@pytest.mark.parametrize(("command", "extra"), [
+    ("scan", ["--camera"]), ("scan", []), ("grid", ["--quiet"]),
+    ("search", ["--algorithm", "random", "--budget", "2"]),
+])
+@pytest.mark.parametrize(("dim", "value", "message"), [
+    ("colour", "mauve", "dims.colour: 'mauve' is not a colour"),
+    ("time_of_day", "25:99", "dims.time_of_day: '25:99' is not a time"),
+])
+def test_space_with_unrenderable_look_fails_with_or_without_a_camera(
+        tmp_path, capsys, command, extra, dim, value, message):
+    """The value is stored with every sample, so it is checked even when no camera renders it."""
     config = tmp_path / "c.toml"
-    config.write_text((CONFIGS / "smoke.toml").read_text() + '[dims.colour]\nvalues = ["mauve"]\n')
+    look = f'[dims.{dim}]\nvalues = ["{value}"]\n'
+    config.write_text((CONFIGS / "smoke.toml").read_text() + look)
     out = tmp_path / "o"
-    assert main(["scan", str(config), "--out", str(out), "--camera"]) == 2
-    assert "dims.colour: 'mauve' is not a colour" in capsys.readouterr().err
+    assert main([command, str(config), "--out", str(out), *extra]) == 2
+    assert f"{config}: {message}" in capsys.readouterr().err
     assert not out.exists()
 
 
