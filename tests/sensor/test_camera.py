@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from falsify.cli import main
@@ -183,6 +184,24 @@ def test_space_with_unrenderable_look_fails_with_or_without_a_camera(
     assert main([command, str(config), "--out", str(out), *extra]) == 2
     assert f"{config}: {message}" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_camera_only_dims_leave_the_lidar_results_alone(tmp_path):
+    """colour, weather and time of day are the camera's: the same LiDAR samples with them give
+    the same seeds, scans and scores as without them."""
+    plain, looked = tmp_path / "plain.toml", tmp_path / "looked.toml"
+    plain.write_text((CONFIGS / "smoke.toml").read_text())
+    looked.write_text(plain.read_text() + '[dims.colour]\nvalues = ["red", "blue"]\n'
+                      '[dims.time_of_day]\nvalues = ["dusk"]\n')
+    for cfg in (plain, looked):
+        assert main(["grid", str(cfg), "--out", str(tmp_path / cfg.stem), "--quiet"]) == 0
+    a = pd.read_csv(tmp_path / "plain" / "results.csv")
+    b = pd.read_csv(tmp_path / "looked" / "results.csv")
+    keys = ["x", "y", "background"]
+    b = b.sort_values([*keys, "colour"]).reset_index(drop=True)
+    a = a.sort_values(keys).loc[a.index.repeat(2)].sort_values(keys).reset_index(drop=True)
+    for col in ("seed", "car_iou", "inserted_iou", "car_points", "label_points"):
+        assert a[col].tolist() == b[col].tolist(), col
 
 
 def test_png_reader_round_trip_and_filters():
