@@ -8,7 +8,7 @@ import zlib
 from dataclasses import dataclass, field
 
 from falsify.results.metrics import Scoring, Status
-from falsify.world.space import IMAGE_ONLY, Sample, Space
+from falsify.world.space import Sample, Space
 
 CAR_SCORING = Scoring()   # four classes, car IoU the objective: every run until told otherwise
 
@@ -44,6 +44,5 @@ def sample_key(sample: Sample) -> str:
 def sample_seed(space: Space, sample: Sample) -> int:
     """A per-sample seed for sensor effects: fixed by the space's seed and the sample's LiDAR
     dims alone, so a camera-only dim (colour, weather, time of day) leaves the scan as it is."""
-    lidar = tuple((k, v) for k, v in sample.values if k not in IMAGE_ONLY)
-    key = json.dumps(lidar, separators=(",", ":"))
+    key = json.dumps(sample.lidar_values, separators=(",", ":"))
     return (space.seed * 1_000_003 + zlib.crc32(key.encode())) % (2**31)

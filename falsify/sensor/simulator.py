@@ -486,6 +486,6 @@ class Simulator:
         """The labelled scan of a sample, with its weather and faults (effect dims); raises
         InvalidSample for impossible scenes."""
         effects = effects_of(sample)
-        seed = 0 if effects.clear else zlib.crc32(repr(sample.values).encode())
+        seed = 0 if effects.clear else zlib.crc32(repr(sample.lidar_values).encode())
         return self.render(sample.background, self.placed_cars(sample),
                            self.ego_pose(sample.background, pose), rng, effects, seed)

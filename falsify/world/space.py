@@ -87,6 +87,12 @@ class Sample:
         return dict(self.values)
 
     @property
+    def lidar_values(self) -> tuple[tuple[str, Value], ...]:
+        """The values the LiDAR scan reads: all but the camera-only dims, so those dims never
+        change a scan's random draws."""
+        return tuple((k, v) for k, v in self.values if k not in IMAGE_ONLY)
+
+    @property
     def count(self) -> int:
         return int(self.get("count", 1))
 

@@ -190,14 +190,14 @@ def test_camera_only_dims_leave_the_lidar_results_alone(tmp_path):
     """colour, weather and time of day are the camera's: the same LiDAR samples with them give
     the same seeds, scans and scores as without them."""
     plain, looked = tmp_path / "plain.toml", tmp_path / "looked.toml"
-    plain.write_text((CONFIGS / "smoke.toml").read_text())
+    plain.write_text((CONFIGS / "smoke.toml").read_text() + "[dims.rain]\nvalues = [0.0, 30.0]\n")
     looked.write_text(plain.read_text() + '[dims.colour]\nvalues = ["red", "blue"]\n'
                       '[dims.time_of_day]\nvalues = ["dusk"]\n')
     for cfg in (plain, looked):
         assert main(["grid", str(cfg), "--out", str(tmp_path / cfg.stem), "--quiet"]) == 0
     a = pd.read_csv(tmp_path / "plain" / "results.csv")
     b = pd.read_csv(tmp_path / "looked" / "results.csv")
-    keys = ["x", "y", "background"]
+    keys = ["x", "y", "background", "rain"]
     b = b.sort_values([*keys, "colour"]).reset_index(drop=True)
     a = a.sort_values(keys).loc[a.index.repeat(2)].sort_values(keys).reset_index(drop=True)
     for col in ("seed", "car_iou", "inserted_iou", "car_points", "label_points"):

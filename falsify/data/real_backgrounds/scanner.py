@@ -283,7 +283,7 @@ class RealScanner:
         refuse_effects(self.sensor, [n for n, _ in sample.effects])
         # As Simulator.scan: the effects' seed fixed by the sample and the generator's state,
         # read before the scan's own draws without drawing.
-        seed = effect_seed(rng, zlib.crc32(repr(sample.values).encode()))
+        seed = effect_seed(rng, zlib.crc32(repr(sample.lidar_values).encode()))
         return self.weather(bg, self.insert(bg, placed, rng), effects, seed, rng is not None)
 
     def weather(self, bg: RealBackground, scan: Scan, fx: Effects, seed: int,
