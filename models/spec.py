@@ -214,6 +214,13 @@ def _class_map(raw_classes: dict, path: str | Path, num_classes: int
     return classes
 
 
+# Every key a spec may hold: a misspelt one ("num_class") is an error, not a default.
+SPEC_KEYS = frozenset({
+    "name", "version", "input_kind", "channels", "mean", "std", "height", "width", "layout",
+    "input_name", "output_name", "output_kind", "num_classes", "classes", "xyz_input",
+    "mask_input", "architecture", "crf_iterations", "notes", "extra"})
+
+
 def spec_from_dict(d: Any, path: str | Path) -> ModelSpec:
     """Validate spec data (as a spec file holds it); FalsifyError names `path` (the file, or
     what the data came from) and the key on any problem.
@@ -227,6 +234,11 @@ def spec_from_dict(d: Any, path: str | Path) -> ModelSpec:
     def bad(key: str, why: str) -> FalsifyError:
         return FalsifyError(f"model spec {path}: key '{key}' {why}")
 
+    unknown = sorted(set(d) - SPEC_KEYS)
+    if unknown:
+        raise FalsifyError(f"model spec {path}: unknown key {unknown[0]!r}; allowed: "
+                           f"{', '.join(sorted(SPEC_KEYS))} (anything of your own goes in "
+                           "'extra')")
     input_kind = _get(d, "input_kind", path, str, "range")
     if input_kind not in INPUT_KINDS:
         raise bad("input_kind", f"must be one of {list(INPUT_KINDS)}, got {input_kind!r}")

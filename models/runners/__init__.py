@@ -39,6 +39,10 @@ __all__ = [
 ]
 
 
+# Bundled networks that run as plug-ins (a card, no ONNX file), by the name their card gives.
+PLUGIN_NAMES = {"pointnet20": "falsify.models.pointnet:reference"}
+
+
 def resolve_model(path: str | Path | None, backend: str = "onnx") -> Path:
     """The file `load_segmenter` opens: the bundled model for None, a bundled model by name
     (e.g. "squeezeseg-drive": models/weights/squeezeseg-drive.onnx) where no such file exists,
@@ -46,12 +50,21 @@ def resolve_model(path: str | Path | None, backend: str = "onnx") -> Path:
     if path is not None and not Path(path).suffix and not Path(path).exists():
         if (WEIGHTS_DIR / f"{path}.onnx").is_file():
             path = WEIGHTS_DIR / f"{path}.onnx"
+        elif str(path) in PLUGIN_NAMES:
+            raise FalsifyError(f"--model {path}: a plug-in; run it as --model "
+                               f"{PLUGIN_NAMES[str(path)]}")
         elif (CARDS_DIR / f"{path}.md").is_file():   # a network the wheel leaves out
             raise FalsifyError(
                 f"--model {path}: not installed (the package ships the default network, "
                 f"squeezeseg, and its int8 variants); its card {CARDS_DIR / f'{path}.md'} says "
                 f"how to make it, or take {path}.onnx and {path}.json from the source "
                 f"repository's models/weights/ and pass --model PATH/{path}.onnx")
+        else:
+            names = sorted(({f.stem for f in WEIGHTS_DIR.glob("*.onnx")}
+                            | {f.stem for f in CARDS_DIR.glob("*.md")}) - set(PLUGIN_NAMES))
+            raise FalsifyError(f"--model {path}: no such file, and not a bundled network; "
+                               f"bundled: {', '.join(names)}; or a path to an .onnx (its "
+                               ".json spec beside it), or MODULE:FACTORY for a plug-in")
     if backend == "torch":
         p = BUNDLED_PT if path is None else Path(path)
         return p.with_suffix(".pt") if p.suffix == ".onnx" else p

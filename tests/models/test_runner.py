@@ -166,6 +166,14 @@ def test_invalid_spec_names_file_and_key(exported, tmp_path, changes, key):
         load_spec(spec_path_for(p))
 
 
+def test_a_misspelt_spec_key_is_named_with_the_allowed_ones(exported, tmp_path):
+    """num_class for num_classes, or a key of the user's own outside 'extra', is an error."""
+    p = _with_spec(exported, tmp_path, colour="x")
+    with pytest.raises(FalsifyError, match="m.json: unknown key 'colour'; allowed: .*num_classes"):
+        load_spec(spec_path_for(p))
+    load_spec(spec_path_for(_with_spec(exported, tmp_path, extra={"colour": "x"})))
+
+
 def test_class_mapping_folds_outputs(exported, tmp_path):
     # a model whose output 0 is car and 1 unknown reads back with the classes swapped
     p = _with_spec(exported, tmp_path, classes={"unknown": 1, "car": 0, "pedestrian": 2,
@@ -275,8 +283,12 @@ def test_a_bundled_model_can_be_named(tmp_path, monkeypatch):
         spec = load_segmenter(name).spec
         assert spec.name == name and spec.crf_iterations == 3, name
     assert load_segmenter("squeezeseg-drive").model_hash == load_segmenter(drive).model_hash
-    with pytest.raises(FalsifyError, match="model file no-such-model not found"):
+    with pytest.raises(FalsifyError, match="no-such-model: no such file, and not a bundled "
+                       "network; bundled: squeezeseg, squeezeseg-drive"):
         load_segmenter("no-such-model")
+    with pytest.raises(FalsifyError, match="a plug-in; run it as --model "
+                       "falsify.models.pointnet:reference"):
+        load_segmenter("pointnet20")
     monkeypatch.chdir(ROOT)
     out = tmp_path / "run"
     assert main(["grid", "configs/smoke.toml", "--model", "squeezeseg-drive", "--out", str(out),
