@@ -24,7 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from falsify.jobs.report import write_report
+    from falsify.jobs.report import compare_differences, write_report
 
     retrain = None
     if args.retrain:
@@ -38,6 +38,12 @@ def run(args) -> int:
                        Path(args.compare) if args.compare else None,
                        predict=not args.no_predict, retrain=retrain, device=args.device)
     size = out.stat().st_size
-    summary = {"run": args.run, "out": str(out), "bytes": size, "compare": args.compare}
-    emit(args, summary, f"wrote {out} ({size / 1024:.0f} KiB)")
+    differs = list(compare_differences(Path(args.run), Path(args.compare))) if args.compare else []
+    summary = {"run": args.run, "out": str(out), "bytes": size, "compare": args.compare,
+               "compare_differs": differs}
+    text = f"wrote {out} ({size / 1024:.0f} KiB)"
+    if differs:
+        text += ("\nwarning: the runs compared are of different spaces, so the difference "
+                 "map mixes the network's change with the scenes':\n  " + "\n  ".join(differs))
+    emit(args, summary, text)
     return 0

@@ -96,6 +96,42 @@ def explain_report(data: RunData) -> Explanation | str:
     return e if result.algorithm != "grid" else dataclasses.replace(e, clusters=())
 
 
+def space_differences(before: RunData, after: RunData) -> tuple[str, ...]:
+    """What, besides the model and the x-y cells, differs between two runs' spaces, a line
+    each: a comparison across them mixes the network's change with the scenes'."""
+    out = []
+    b, a = before.space, after.space
+
+    def shown(values) -> str:
+        vals = [str(v) for v in values]
+        return ", ".join(vals[:6]) + (f", ... ({len(vals)} values)" if len(vals) > 6 else "")
+
+    def backgrounds(data: RunData) -> list[str]:
+        return [data.space.background_name(int(v)) for v in data.space.dims["background"].grid()]
+
+    for name in sorted((set(b.dims) | set(a.dims)) - {"x", "y"}):
+        if name not in a.dims or name not in b.dims:
+            has, lacks = ("before", "after") if name in b.dims else ("after", "before")
+            out.append(f"dim {name}: in the run {has} only, not {lacks}")
+            continue
+        bv, av = (backgrounds(d) for d in (before, after)) if name == "background" else (
+            list(b.dims[name].grid()), list(a.dims[name].grid()))
+        if bv != av:
+            out.append(f"{name}: before {shown(bv)}; after {shown(av)}")
+    if b.sensor != a.sensor:
+        out.append(f"sensor: before {b.sensor}; after {a.sensor}")
+    if before.score_column != after.score_column:
+        out.append(f"objective: before {before.score_column}; after {after.score_column}")
+    if before.threshold != after.threshold:
+        out.append(f"threshold: before {before.threshold}; after {after.threshold}")
+    return tuple(out)
+
+
+def compare_differences(run: Path, compare: Path) -> tuple[str, ...]:
+    """space_differences of two stored runs (the one before first)."""
+    return space_differences(open_run(compare), open_run(run))
+
+
 def render_report(run: Path, compare: Path | None = None, predict: bool = True,
                   worst: int = WORST, model: Segmenter | None = None,
                   retrain: dict | None = None, device: str = "cpu") -> str:
@@ -105,7 +141,8 @@ def render_report(run: Path, compare: Path | None = None, predict: bool = True,
     data = open_run(run)
     before = open_run(compare) if compare is not None else None
     scans, note = replay_worst(data, worst, predict, model, device)
-    return render(ReportInput(data, before, scans, note, worst, retrain, explain_report(data)))
+    return render(ReportInput(data, before, scans, note, worst, retrain, explain_report(data),
+                              () if before is None else space_differences(before, data)))
 
 
 def write_report(run: Path, out: Path | None = None, compare: Path | None = None,

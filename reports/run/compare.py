@@ -26,9 +26,11 @@ from falsify.results.store import RunData
 
 
 def compare_section(before: RunData, after: RunData, after_map: CellMap,
-                    threshold: float, ascending: bool = False) -> str:
+                    threshold: float, ascending: bool = False,
+                    differences: tuple[str, ...] = ()) -> str:
     """The difference map (after − before) and the paper's sorted per-cell change plot
-    (ascending, as the paper draws it, when `ascending`)."""
+    (ascending, as the paper draws it, when `ascending`); `differences`, what else differs
+    between the runs' spaces, stands above them as a warning."""
     bmap = before.cell_map()
     bidx = {cell_key(x, y): (i, j) for j, y in enumerate(bmap.b_values)
             for i, x in enumerate(bmap.a_values)}
@@ -69,12 +71,19 @@ def compare_section(before: RunData, after: RunData, after_map: CellMap,
     fixed, new = len(before_blind - after_blind), len(after_blind - before_blind)
     mean = f"{float(changes.mean()):+.3f}" if changes.size else "—"
     meta = before.meta
+    warning = "" if not differences else (
+        '<p class="warn" id="compare-differs"><b>The two runs are of different spaces:</b> '
+        "the change below mixes the network's with the scenes'.</p><ul class=\"warn\">"
+        + "".join(f"<li>{esc(d)}</li>" for d in differences) + "</ul>")
+    only = len(after_map.a_values) * len(after_map.b_values) - changes.size
     return f"""
 <section id="compare-section">
 <h2>Comparison with the run before</h2>
+{warning}
 <p class="note">Before: {esc(before.path)} (model {esc(meta.get("model_name", "?"))}
 {esc(str(meta.get("model_hash") or "")[:12])}, config {esc(meta.get("space_name", "?"))}).
-Over {changes.size} cells scored in both runs the mIoU changed by {mean} on average:
+Over {changes.size} cells scored in both runs ({only} of this run's not) the mIoU changed by
+{mean} on average:
 {int((changes > 0).sum())} improved, {int((changes < 0).sum())} got worse. Blind spots
 {len(before_blind)} → {len(after_blind)} ({fixed} fixed, {new} new).</p>
 <div class="row">

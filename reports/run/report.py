@@ -71,6 +71,8 @@ class ReportInput:
     # the run's explanation (`falsify explain`), or one line saying why there is none;
     # None leaves the Explain section out
     explanation: Explanation | str | None = None
+    # what differs between the two runs' spaces besides the model (one line each)
+    differences: tuple[str, ...] = ()
 
 
 def samples_json(data: RunData) -> dict:
@@ -145,7 +147,8 @@ def render(report: ReportInput) -> str:
         sections.append(retrain_section(before, data, cmap, threshold, retrain))
     if before is not None:
         sections.append(compare_section(before, data, cmap, threshold,
-                                        ascending=retrain is not None))
+                                        ascending=retrain is not None,
+                                        differences=report.differences))
     sections.append(distance_section(data, threshold))
     sections.append(worst_section(data, report.scans, report.note, report.worst))
     payload = script_json({"samples": samples_json(data), "threshold": threshold})

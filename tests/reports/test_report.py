@@ -13,7 +13,7 @@ import pytest
 from falsify.cli import main
 from falsify.jobs.report import render_report, write_report
 from tests.conftest import assert_offline
-from tests.runfixture import PAPER, write_run
+from tests.runfixture import PAPER, SMOKE, write_run
 
 EVIL_NAME = "<script>alert(1)</script>"
 EVIL_PATH = '/models/"&<>.onnx'
@@ -91,6 +91,25 @@ def test_compare_page(runs) -> None:
     assert page.count('class="bar"') == 4
     assert page.count('<rect class="dcell') == 4
     assert "Blind spots" in page and "fixed" in page
+    assert 'id="compare-differs"' not in page       # the same space: nothing to warn of
+
+
+def test_compare_across_spaces_says_what_differs(runs, tmp_path: Path, capsys) -> None:
+    """Another background set, another dim: the page and --json name each, escaped."""
+    text = SMOKE.read_text().replace("values = [0, 1]", "values = [0, 1, 2]") + (
+        '[dims.fog]\nvalues = [0.0, 80.0]\n')
+    other = write_run(tmp_path / "other", text)
+    page = render_report(runs["evil"], compare=other, predict=False)
+    assert 'id="compare-differs"' in page
+    assert "<li>background: before street 0, street 1, street 2; after street 0, street 1</li>" \
+        in page
+    assert "<li>dim fog: in the run before only, not after</li>" in page
+    assert main(["report", str(runs["evil"]), "--compare", str(other), "--no-predict",
+                 "--out", str(tmp_path / "p.html"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["compare_differs"] == [
+        "background: before street 0, street 1, street 2; after street 0, street 1",
+        "dim fog: in the run before only, not after"]
 
 
 def test_search_page(runs) -> None:
