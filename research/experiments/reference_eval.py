@@ -4,7 +4,7 @@
         [--model NAME=REF:BACKEND]
         [--root ROOT] > research/experiments/reference-networks/eval.json
 
-ROOT defaults to ../shared/data/kitti/semantickitti-mini. Its evaluation split (sequences 00, 03,
+ROOT defaults to $SEMANTICKITTI (a SemanticKITTI root). Its evaluation split (sequences 00, 03,
 06, 08) is only reported on; its fit split (01, 02, 04, 05, 07, 09, 10) may choose between
 candidate networks. Each scan is projected with the networks' own sensor preset (KITTI
 front view, 64 x 512, rows by laser ring) and scored per pixel as SemanticKITTI's evaluation
@@ -16,6 +16,7 @@ way beside them.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -82,8 +83,9 @@ if __name__ == "__main__":
     import argparse
 
     p = argparse.ArgumentParser()
-    p.add_argument("--root", type=Path, default=Path(__file__).resolve().parents[3]
-                   / "shared/data/kitti/semantickitti-mini")
+    p.add_argument("--root", type=Path, default=os.environ.get("SEMANTICKITTI"),
+                   required="SEMANTICKITTI" not in os.environ,
+                   help="a SemanticKITTI root (default $SEMANTICKITTI)")
     p.add_argument("--split", choices=sorted(SPLITS), default="evaluation")
     p.add_argument("--model", action="append", default=[], help="NAME=REF:BACKEND")
     a = p.parse_args()
