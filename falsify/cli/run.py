@@ -74,6 +74,12 @@ def summary_text(s) -> str:
         lines.insert(2, f"estimated map (level-set): {e['scored']} of the grid's "
                      f"{e['grid_samples']} samples scored ({e['scored'] / e['grid_samples']:.0%});"
                      f" {e['undecided_cells']} cells undecided at {e['confidence']:.0%}")
+    if s.unlabelled_backgrounds:
+        u = s.unlabelled_backgrounds
+        names = ", ".join(u[:3]) + (f", and {len(u) - 3} more" if len(u) > 3 else "")
+        lines.append(f"real scans without labels: {len(u)} ({names}); their real_iou and "
+                     "real_recall are empty, and a car predicted on one of their real cars "
+                     "counts against the inserted car (read inserted_recall)")
     if s.executors:
         lines.append(f"computed on executors {', then '.join(s.executors)} (resumed on another; "
                      "the rows do not depend on the executor)")

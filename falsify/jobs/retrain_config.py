@@ -64,13 +64,15 @@ def subset_config(config: Path, backgrounds: Sequence[int], suffix: str,
                   real: Sequence[RealScan] = ()) -> str:
     """The config's text with its background dim replaced by `backgrounds` (paths absolute), its
     streets' world kept; for a space of real scans (`real`, its scans), the scans of those
-    backgrounds."""
+    backgrounds and its `labels` (whether scans without labels may be among them)."""
     raw = tomllib.loads(config.read_text(encoding="utf-8"))
     raw["name"] = f"{raw.get('name', config.stem)}-{suffix}"
     before = raw["dims"]["background"]
     raw["dims"]["background"] = (
         {"real": [str(real[b].bin.resolve()) for b in backgrounds]} if real
         else {"values": list(backgrounds)})
+    if real and isinstance(before, dict) and "labels" in before:   # scans without labels allowed
+        raw["dims"]["background"]["labels"] = before["labels"]
     if not real and isinstance(before, dict) and "world" in before:
         # the subset's streets are the run's: its world, a file beside the config made absolute
         world, local = before["world"], config.parent / str(before["world"])

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from falsify.checks import MAX_SAMPLES, check_out_dir, check_range, check_seed
-from falsify.errors import FalsifyError
+from falsify.errors import ConfigError, FalsifyError
 from falsify.executors.driver import Driver, Progress, ProgressListener
 from falsify.executors.evaluator import EvalSettings
 from falsify.fileio import write_bytes, write_json
@@ -123,6 +123,7 @@ def prepare(req: RunRequest) -> Prepared:
     # Open the model once here: a missing, corrupt or mismatched model fails before any sample.
     seg = load_segmenter(model, backend=backend, threads=threads, device=req.device)
     scoring = _scoring_of(req, space, seg)
+    _check_labels_scored(space, scoring, seg.spec.name)
     settings = EvalSettings(space=space, model=model, backend=backend, threads=threads,
                             lod=fid.lod, device=req.device, scoring=scoring)
     sensor = load_sensor(space.sensor)
@@ -206,6 +207,19 @@ def _scoring_of(req: RunRequest, space: Space, seg: Segmenter) -> Scoring:
     return replace(scoring, parts=True, placed=tuple(placed) if len(placed) > 1 else ())
 
 
+def _check_labels_scored(space: Space, scoring: Scoring, model: str) -> None:
+    """ConfigError naming the real scans without labels when the model's classes are
+    SemanticKITTI's: its scores read each scan's own SemanticKITTI labels (before any sample)."""
+    bare = [r.name for r in space.real_backgrounds if r.kind == "none"]
+    if scoring.semantic and bare:
+        more = f", and {len(bare) - 3} more" if len(bare) > 3 else ""
+        raise ConfigError(f"{space.source}: dims.background.real: {model} predicts "
+                          "SemanticKITTI's classes and is scored on each scan's SemanticKITTI "
+                          f"labels; {len(bare)} scan{'s' * (len(bare) != 1)} "
+                          f"{'have' if len(bare) != 1 else 'has'} none ({', '.join(bare[:3])}"
+                          f"{more}): name labelled scans, or run a four-class model")
+
+
 def _check_run_dir(req: RunRequest, meta: dict) -> None:
     """A run folder that is new and empty, or (with --resume) holds a run of the same request."""
     if (req.out / STORE_NAME).exists():
@@ -263,13 +277,15 @@ class RunSummary:
     objective: str | None = None           # set when not car: the class (or miou) minimised
     mean_objective: float | None = None    # its mean over the valid samples
     estimated: dict | None = None          # level-set: the map is an estimate; how sure
+    # real scans without labels (bare .bin files, or `labels = "optional"`): real_ columns empty
+    unlabelled_backgrounds: list[str] | None = None
     search: SearchResult | None = field(default=None, repr=False)
 
     def to_json(self) -> dict:
         """Plain JSON data; `report`, `retraining_camera` and `executors` only when set."""
         out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "search"}
         for optional in ("report", "retraining_camera", "executors", "objective",
-                         "mean_objective", "estimated"):
+                         "mean_objective", "estimated", "unlabelled_backgrounds"):
             if out[optional] is None:
                 del out[optional]
         return out
@@ -438,6 +454,8 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
         objective=None if col == "car_iou" else data.objective,
         mean_objective=None if col == "car_iou" or not len(ok) else round(
             float(ok[col].astype(float).mean()), 4),
+        unlabelled_backgrounds=[r.name for r in space.real_backgrounds if r.kind == "none"]
+        or None,
         search=search)
     write_json(run / "summary.json", summary.to_json())
     if report:

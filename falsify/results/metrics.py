@@ -203,16 +203,17 @@ class Scoring:
         """The column the samplers minimise."""
         return "miou" if self.objective == "miou" else f"{column(self.objective)}_iou"
 
-    def score(self, pred: np.ndarray, truth: np.ndarray, inserted: np.ndarray | None = None
-              ) -> tuple[dict[str, float | int | None], str]:
+    def score(self, pred: np.ndarray, truth: np.ndarray, inserted: np.ndarray | None = None,
+              real_labelled: bool = True) -> tuple[dict[str, float | int | None], str]:
         """Per-sample metrics of class-id images `pred` and `truth` (ids into `classes`) and, when
         the objective is undefined, why; `inserted` marks the pixels of inserted objects (the
-        PARTS columns need it)."""
+        PARTS columns need it); `real_labelled` False: the background's own objects carry no
+        labels (a real scan without them), so the real_ columns are left empty."""
         pred = np.asarray(pred)
         truth = np.asarray(truth)
         parts = {}
         if self.parts:
-            parts = self.part_scores(pred, truth, inserted)
+            parts = self.part_scores(pred, truth, inserted, real_labelled)
         if self.semantic:
             keep = truth != 0
             pred, truth = pred[keep], truth[keep]
@@ -235,10 +236,11 @@ class Scoring:
             return metrics, "" if ious else "no scored class in label or prediction"
         return metrics, notes[self.objective]
 
-    def part_scores(self, pred: np.ndarray, truth: np.ndarray, inserted: np.ndarray | None
-                    ) -> dict[str, float | None]:
+    def part_scores(self, pred: np.ndarray, truth: np.ndarray, inserted: np.ndarray | None,
+                    real_labelled: bool = True) -> dict[str, float | None]:
         """IoU and recall of the objective class on the inserted objects (the real pixels of
-        that class left out) and on the real ones (the inserted pixels left out); unlabeled
+        that class left out) and on the real ones (the inserted pixels left out; None where the
+        background is not `real_labelled`: its objects are unknown, not absent); unlabeled
         pixels are left out where the classes are SemanticKITTI's."""
         ins = np.zeros(truth.shape, bool) if inserted is None else np.asarray(inserted, bool)
         labelled = truth != 0 if self.semantic else np.ones(truth.shape, bool)
@@ -254,7 +256,10 @@ class Scoring:
         if self.objective != "miou":
             c = self.classes.index(self.objective)
             part("inserted", c, ~((truth == c) & ~ins))
-            part("real", c, ~ins)
+            if real_labelled:
+                part("real", c, ~ins)
+            else:
+                out["real_iou"] = out["real_recall"] = None
         for name in self.placed:
             c = self.classes.index(name)
             part(f"inserted_{column(name)}", c, ~((truth == c) & ~ins))

@@ -34,6 +34,19 @@ def is_sequence_dir(path: Path) -> bool:
     return (path / "velodyne").is_dir() and not is_object_dir(path)
 
 
+def sequence_label(bin_path: str | Path) -> Path | None:
+    """Where a SemanticKITTI sequence keeps a .bin's labels (SS/labels/x.label) when the scan
+    sits in one (SS/velodyne/x.bin, SS a two-digit id or holding labels/); None for a scan
+    outside any sequence, which may be unlabelled (a bare KITTI .bin)."""
+    p = Path(bin_path)
+    folder = p.parent.parent
+    if p.parent.name != "velodyne" or is_object_dir(folder):
+        return None
+    if SEQUENCE_ID.fullmatch(folder.name) or (folder / "labels").is_dir():
+        return folder / "labels" / f"{p.stem}.label"
+    return None
+
+
 def sequence_dirs(path: Path) -> dict[str, Path] | None:
     """id -> folder of the sequences under a SemanticKITTI root (holding sequences/) or a
     sequences/ folder, sorted by id; None when `path` is neither."""
@@ -130,6 +143,12 @@ def sequence_files(folder: Path) -> list[Path]:
     return files
 
 
+def scans_per_folder(found: list[tuple[str, Path, Path | None, str]]) -> dict[Path, int]:
+    """How many of the scans found each folder of scans (a sequence's velodyne/, say) holds."""
+    counts: dict[Path, int] = {}
+    for _, path, _, _ in found:
+        counts[path.parent] = counts.get(path.parent, 0) + 1
+    return counts
 
 
 def evenly_per_folder(found: list[tuple[str, Path, Path | None, str]], k: int

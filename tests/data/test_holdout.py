@@ -58,10 +58,10 @@ def test_a_variable_in_a_path_reads_the_environment(tmp_path, monkeypatch):
 
 def test_per_sequence_takes_evenly_spaced_scans_of_each_sequence(tmp_path):
     _sequence(tmp_path / "sk", "00", 7)
-    _sequence(tmp_path / "sk", "01", 2)
+    _sequence(tmp_path / "sk", "01", 3)
     space = load_space(_config(tmp_path, f'real = ["{tmp_path / "sk"}"]\nper_sequence = 3\n'))
     assert [r.name for r in space.real_backgrounds] == [
-        "00/000000", "00/000003", "00/000006", "01/000000", "01/000001"]
+        "00/000000", "00/000003", "00/000006", "01/000000", "01/000001", "01/000002"]
     one = load_space(_config(tmp_path, f'real = ["{tmp_path / "sk"}"]\nper_sequence = 1\n'))
     assert [r.name for r in one.real_backgrounds] == ["00/000000", "01/000000"]
 
