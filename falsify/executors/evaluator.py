@@ -19,7 +19,13 @@ from falsify.results.metrics import Scoring, Status
 from falsify.results.samples import CAR_SCORING, SampleResult, sample_seed
 from falsify.semantic import train_ids
 from falsify.sensor.simulator import InvalidSample, Scanner, release_free_heap
+from falsify.sensor.weather import effects_of
 from falsify.world.space import Sample, Space
+
+# A scene whose placed objects return no point tests nothing of them; in clear weather that is
+# geometry (out of view, or behind the scene), so the sample is invalid, not scored on the rest.
+UNSEEN = ("no point of the placed object reaches the sensor: it stands outside the sensor's "
+          "view or hidden behind the scene")
 
 
 @dataclass(frozen=True)
@@ -73,9 +79,15 @@ class Evaluator:
                                           t_scan=time.perf_counter() - t0,
                                           seed=sample_seed(self.space, sample))
                 continue
+            placed = self.sim.placed_pixels(scan)
+            if not placed.any() and effects_of(sample).clear:
+                results[i] = SampleResult(sample, Status.INVALID, UNSEEN,
+                                          t_scan=time.perf_counter() - t0,
+                                          seed=sample_seed(self.space, sample))
+                continue
             images.append(scan.image)
             truths.append(truth_ids(scan, scoring))
-            inserted.append(self.sim.placed_pixels(scan) if scoring.parts else None)
+            inserted.append(placed if scoring.parts else None)
             where.append(i)
             t_scans.append(time.perf_counter() - t0)
         if images:

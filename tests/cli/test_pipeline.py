@@ -195,13 +195,22 @@ def test_undefined_and_invalid_samples_are_stored_with_reasons(tmp_path):
     frame = read_frame(out).set_index("y")
     assert frame.loc[3.0, "status"] == "invalid"
     assert "ego vehicle" in frame.loc[3.0, "reason"]
-    far = frame.loc[19.0]
-    assert far["label_points"] == 0
-    if far["car_points"] == 0:  # nothing labelled, nothing predicted: IoU has no meaning
-        assert far["status"] == "undefined" and pd.isna(far["car_iou"])
-        assert "no car" in far["reason"]
-    else:
-        assert far["status"] == "ok" and far["car_iou"] == 0.0
+    far = frame.loc[19.0]   # beyond the sensor's 6 m: the car returns nothing to score
+    assert far["status"] == "invalid" and pd.isna(far["car_iou"])
+    assert "no point of the placed object reaches the sensor" in far["reason"]
+
+
+def test_a_car_the_sensor_cannot_see_is_invalid_not_scored_on_the_street(tmp_path, capsys):
+    """Behind a front-facing sensor the placed car returns no point; the street's parked cars
+    would otherwise give the sample a car IoU that says nothing of the car under test."""
+    config = small_config(tmp_path, xs=(0.0, 0.0, 1.0), ys=(-20.0, 8.0, 28.0), backgrounds=(1,))
+    out = tmp_path / "behind"
+    assert main(["grid", str(config), "--out", str(out), "--quiet", "--no-report"]) == 0
+    frame = read_frame(out).set_index("y")
+    assert frame.loc[-20.0, "status"] == "invalid"
+    assert "outside the sensor's view" in frame.loc[-20.0, "reason"]
+    assert pd.isna(frame.loc[-20.0, "car_iou"])
+    assert frame.loc[8.0, "status"] == "ok"
 
 
 def test_two_workers_give_the_same_rows_as_one(tmp_path):
