@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -16,17 +17,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threshold", type=float, metavar="T",
                    help="mIoU threshold in (0, 1] (default: the run's, else 0.65)")
     p.add_argument("--junit", metavar="FILE", help="also write JUnit XML, one testcase per cell")
+    p.add_argument("--allow-incomplete", action="store_true",
+                   help="gate a run stopped before its end, or still being written, on the "
+                   "samples it holds (default: refuse it, exit 2)")
     p.add_argument("--json", action="store_true", help="print the verdict as JSON")
 
 
 def run(args) -> int:
-    from falsify.jobs.gate import format_text, judge, write_junit
+    from falsify.jobs.gate import completeness_note, format_text, judge, write_junit
 
-    result = judge(args.run, threshold=args.threshold,
-                   max_blind_spots=args.max_blind_spots, baseline=args.baseline)
+    result = judge(args.run, threshold=args.threshold, max_blind_spots=args.max_blind_spots,
+                   baseline=args.baseline, allow_incomplete=args.allow_incomplete)
     if args.junit:
         write_junit(result, args.junit)
     if args.json:
+        if note := completeness_note(result):   # the text says it; JSON readers' logs too
+            print(f"falsify gate: {result.run}: {note}", file=sys.stderr)
         print(json.dumps(result.to_json(), indent=2))
     else:
         print(format_text(result))

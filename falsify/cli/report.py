@@ -25,6 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from falsify.jobs.report import compare_differences, write_report
+    from falsify.results.store import open_run
 
     retrain = None
     if args.retrain:
@@ -39,9 +40,12 @@ def run(args) -> int:
                        predict=not args.no_predict, retrain=retrain, device=args.device)
     size = out.stat().st_size
     differs = list(compare_differences(Path(args.run), Path(args.compare))) if args.compare else []
+    done = open_run(Path(args.run)).completeness
     summary = {"run": args.run, "out": str(out), "bytes": size, "compare": args.compare,
-               "compare_differs": differs}
+               "compare_differs": differs, **done.to_json()}
     text = f"wrote {out} ({size / 1024:.0f} KiB)"
+    if done.complete is False:
+        text += f"\nwarning: incomplete run: {done.text()}; the report covers only those"
     if differs:
         text += ("\nwarning: the runs compared are of different spaces, so the difference "
                  "map mixes the network's change with the scenes':\n  " + "\n  ".join(differs))

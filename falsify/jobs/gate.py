@@ -2,8 +2,10 @@
 
 Exit 0 when the count is within the limit (default 0) and no cell became a blind spot that was
 not one in a baseline; 1 otherwise. Bad input raises FalsifyError (exit 2) before anything is
-written. The `--json` output doubles as the baseline file format; `--junit` writes one testcase
-per cell so CI dashboards show which cells fail.
+written; so does a run that is incomplete (stopped before its sampler ended, or being written
+now), whose missing cells would pass unseen, unless it is allowed (`--allow-incomplete`). The
+`--json` output doubles as the baseline file format; `--junit` writes one testcase per cell so
+CI dashboards show which cells fail.
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ from pathlib import Path
 
 from falsify.errors import FalsifyError
 from falsify.results.miou_maps import CellMap, fmt_value
-from falsify.results.store import STORE_NAME, open_run
+from falsify.results.runlock import writer
+from falsify.results.store import STORE_NAME, Completeness, RunData, open_run
 
 JUNIT_SUITE = "falsify.jobs.gate"
 
@@ -63,6 +66,8 @@ class GateResult:
     new_blind_spots: tuple[GateCell, ...]
     limit: int | None          # None when judged against a baseline
     baseline: str | None
+    completeness: Completeness
+    writer: str | None = None  # the process computing on the run (gated with --allow-incomplete)
 
     @property
     def passed(self) -> bool:
@@ -80,7 +85,13 @@ class GateResult:
                 "cells": [c.to_json(t) for c in self.cells],
                 "blind_spots": [c.to_json(t) for c in self.blind_spots],
                 "new_blind_spots": [c.to_json(t) for c in self.new_blind_spots],
+                **self.completeness.to_json(), "complete": self.complete, "writer": self.writer,
                 "passed": self.passed, "exit_code": self.exit_code}
+
+    @property
+    def complete(self) -> bool | None:
+        """False for a run stopped early or being written; None where that is not known."""
+        return False if self.writer is not None else self.completeness.complete
 
 
 def check_threshold(value: float | None, where: str = "--threshold") -> None:
@@ -101,14 +112,33 @@ def worst_first(cells: list[GateCell]) -> list[GateCell]:
     return sorted((c for c in cells if c.blind), key=lambda c: (c.miou, c.x, c.y))
 
 
-def read_baseline(source: str | Path, threshold: float) -> set[tuple[float, float]]:
-    """Blind-spot cells of a baseline: a gate --json file, or a run directory (at `threshold`)."""
+def check_complete(data: RunData, allow: bool, where: str = "") -> tuple[Completeness, str | None]:
+    """The run's completeness and the process writing it (None: none). Unless `allow`, an
+    incomplete run or one being written is a FalsifyError: its blind spots would be those of
+    the samples scored so far, and the cells not reached yet would pass."""
+    done, busy = data.completeness, writer(data.path)
+    if allow or (done.complete is not False and busy is None):
+        return done, busy
+    if busy is not None:
+        raise FalsifyError(f"{where}{data.path}: still being written by {busy}: {done.text()} "
+                           "stored so far; gate it once that run has ended, or pass "
+                           "--allow-incomplete to gate what it holds now")
+    raise FalsifyError(f"{where}{data.path}: incomplete run, stopped before its end: "
+                       f"{done.text()} stored; finish it with `{data.resume_command()}`, or pass "
+                       "--allow-incomplete to gate what it holds")
+
+
+def read_baseline(source: str | Path, threshold: float,
+                  allow_incomplete: bool = False) -> set[tuple[float, float]]:
+    """Blind-spot cells of a baseline: a gate --json file, or a run directory (at `threshold`;
+    a complete one unless `allow_incomplete`)."""
     path = Path(source)
     if path.is_dir():
         try:
             base = open_run(path)
         except FalsifyError as exc:
             raise FalsifyError(f"--baseline: {exc}") from None
+        check_complete(base, allow_incomplete, "--baseline ")
         return {_key(c.x, c.y) for c in gate_cells(base.cell_map(), threshold) if c.blind}
     try:
         raw = json.loads(path.read_text(encoding="utf-8"))
@@ -131,8 +161,9 @@ def read_baseline(source: str | Path, threshold: float) -> set[tuple[float, floa
 
 
 def judge(run: str | Path, threshold: float | None = None, max_blind_spots: int | None = None,
-             baseline: str | Path | None = None) -> GateResult:
-    """Judge a run; every input is checked before any result exists."""
+             baseline: str | Path | None = None, allow_incomplete: bool = False) -> GateResult:
+    """Judge a run; every input is checked before any result exists. An incomplete run (or
+    baseline run) is refused unless `allow_incomplete`, which judges the rows it holds."""
     if max_blind_spots is not None and baseline is not None:
         raise FalsifyError("--max-blind-spots and --baseline are mutually exclusive")
     if max_blind_spots is not None and max_blind_spots < 0:
@@ -141,7 +172,8 @@ def judge(run: str | Path, threshold: float | None = None, max_blind_spots: int 
     data = open_run(run)
     t = data.threshold if threshold is None else float(threshold)
     check_threshold(t, f"{data.path / STORE_NAME}: stored threshold")
-    base = read_baseline(baseline, t) if baseline is not None else None
+    done, busy = check_complete(data, allow_incomplete)
+    base = read_baseline(baseline, t, allow_incomplete) if baseline is not None else None
     cells = gate_cells(data.cell_map(), t)
     if not any(c.miou is not None for c in cells):
         counts = data.frame["status"].value_counts().to_dict() if len(data.frame) else {}
@@ -152,7 +184,22 @@ def judge(run: str | Path, threshold: float | None = None, max_blind_spots: int 
     new = [c for c in blind if _key(c.x, c.y) not in base] if base is not None else []
     return GateResult(str(run), t, tuple(cells), tuple(blind), tuple(new),
                       None if baseline is not None else (max_blind_spots or 0),
-                      None if baseline is None else str(baseline))
+                      None if baseline is None else str(baseline), done, busy)
+
+
+def completeness_note(result: GateResult) -> str | None:
+    """One line on a run gated while incomplete or of unknown completeness; None when complete."""
+    done = result.completeness
+    if result.writer is not None:
+        return (f"INCOMPLETE: still being written by {result.writer}: {done.text()} so far, "
+                "gated as they stand (--allow-incomplete)")
+    if done.complete is False:
+        return (f"INCOMPLETE: {done.text()}, stopped before its end, gated as they stand "
+                "(--allow-incomplete)")
+    if done.complete is None:
+        return (f"completeness unknown: {done.text()} stored; the run does not record whether "
+                "its sampler ended (written before falsify kept that, or by another tool)")
+    return None
 
 
 def format_text(result: GateResult) -> str:
@@ -168,6 +215,8 @@ def format_text(result: GateResult) -> str:
         head = (f"falsify gate: {verdict}: {n} blind spot{'s' * (n != 1)} (mIoU < {t:.3f}) in "
                 f"{result.run}, {k} new against baseline {result.baseline}")
     lines = [head]
+    if note := completeness_note(result):
+        lines.append(f"  {note}")
     scored = sum(c.miou is not None for c in result.cells)
     lines.append(f"  {len(result.cells)} cells, {scored} with valid samples")
     new = {_key(c.x, c.y) for c in result.new_blind_spots}
@@ -191,7 +240,10 @@ def junit_xml(result: GateResult) -> str:
     for name, value in (("run", result.run), ("threshold", f"{t:.6g}"),
                         ("limit", "" if result.limit is None else str(result.limit)),
                         ("baseline", result.baseline or ""), ("passed", str(result.passed)),
-                        ("exit_code", str(result.exit_code))):
+                        ("exit_code", str(result.exit_code)),
+                        ("samples", str(result.completeness.samples)),
+                        ("planned", "" if (n := result.completeness.planned) is None else str(n)),
+                        ("complete", "" if result.complete is None else str(result.complete))):
         ET.SubElement(props, "property", {"name": name, "value": value})
     new = {_key(c.x, c.y) for c in result.new_blind_spots}
     for c in result.cells:

@@ -336,8 +336,14 @@ def _execute(req: RunRequest, on_progress: ProgressListener | None,
         len(p.space.grid()) if req.algorithm == "grid" else None)
     progress = Progress(total, on_progress)
     try:
+        # `planned` and `complete` (set when the sampler returns) tell readers whether the run
+        # holds all it set out to; a run begun before they were kept gets them when resumed.
         if not old:
-            store.set_meta(**p.meta, started=now, elapsed_s=0.0, curve=[])
+            store.set_meta(**p.meta, started=now, elapsed_s=0.0, curve=[],
+                           planned=planned_samples(req, p.space), complete=False)
+        elif "planned" not in old:
+            store.set_meta(planned=planned_samples(req, p.space),
+                           complete="computed_last" in old)   # its sampler has returned
         with Driver(p.settings, store, workers=req.workers, progress=progress,
                     model=p.model, executor=req.executor, address=req.address,
                     inference=req.inference) as driver:
@@ -348,10 +354,11 @@ def _execute(req: RunRequest, on_progress: ProgressListener | None,
         # resumed run may hold rows of a killed one): number them in the sampler's order.
         store.renumber(search.samples)
         elapsed = float(old.get("elapsed_s", 0.0)) + time.perf_counter() - started
-        store.set_meta(elapsed_s=round(elapsed, 3), curve=list(search.curve),
-                       computed_last=progress.computed)
+        end: dict = {"elapsed_s": round(elapsed, 3), "curve": list(search.curve),
+                     "computed_last": progress.computed}
         if search.cells:   # the level-set sampler's estimate of every cell
-            store.set_meta(cell_estimates=[c.as_list() for c in search.cells])
+            end["cell_estimates"] = [c.as_list() for c in search.cells]
+        store.set_meta(**end, complete=True)   # one transaction: complete with all it needs
     except BaseException:
         if not old and not len(store):   # this invocation's run, and it holds no row
             store.close()
@@ -362,6 +369,16 @@ def _execute(req: RunRequest, on_progress: ProgressListener | None,
     return finish(req.out, p.space, threshold=req.threshold, report=req.report,
                   lod=p.settings.lod, model=p.model, search=search,
                   camera=req.camera)
+
+
+def planned_samples(req: RunRequest, space: Space) -> int:
+    """The samples a run sets out to score: the grid (or its first `budget`); for level-set
+    at most as many (it stops once every cell is decided); for other searches their budget
+    (fewer rows where a sampler draws a sample twice or converges early)."""
+    if req.algorithm in ("grid", LEVEL_SET):
+        size = space.size()
+        return size if req.budget is None else min(req.budget, size)
+    return int(req.budget or 0)
 
 
 def remove_run(out: Path, made: list[Path]) -> None:

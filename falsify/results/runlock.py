@@ -5,8 +5,8 @@ Two `grid`/`search` on one folder would compute the same samples and collide on 
 unique keys; the second is refused instead, with a message naming the holder (its pid and
 command line, which the holder writes into the lock file). A process that holds the lock may
 take it again (the CLI takes it before its slow imports, the run job for API callers); readers
-(`report`, `gate`) take none. The lock file is removed on release; one left by a killed process
-holds no lock and is taken over.
+(`report`, `gate`) take none (`writer` tells `gate` whether a process is computing on the run).
+The lock file is removed on release; one left by a killed process holds no lock and is taken over.
 """
 
 from __future__ import annotations
@@ -115,6 +115,29 @@ def _acquire(path: Path, command: str, made: list[Path]) -> _Held:
     except OSError:   # a full disk: the lock holds all the same, its holder goes unnamed
         pass
     return _Held(fd, path, made)
+
+
+def writer(run: str | Path) -> str | None:
+    """Who is computing on `run` now ('process PID (COMMAND)'), or None when no process is.
+    For readers: the lock file is opened read-only (never made) and a shared lock tried and
+    dropped at once, so a writer starting in that instant is refused as if the run were busy."""
+    path = Path(run) / LOCK_NAME
+    with _GUARD:
+        if os.path.realpath(run) in _HELD:
+            return f"this process ({os.getpid()})"
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:   # no lock file: no writer (one that cannot be read says nothing either)
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return holder(path)
+    except OSError:
+        return None
+    finally:
+        os.close(fd)   # closing drops the shared lock
+    return None
 
 
 def holder(path: Path, wait_s: float = 0.5) -> str:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import shlex
 import sqlite3
 import threading
 import tomllib
@@ -263,6 +264,46 @@ def _sql_type(space: Space, dim: str) -> str:
 
 # -- reading a run directory ------------------------------------------------------------------
 @dataclass(frozen=True)
+class Completeness:
+    """How much of its plan a run holds: `samples` rows of `planned` (a search's is its most;
+    None where the run does not record it), and whether its sampler ran to its end (None: the
+    run does not say)."""
+
+    samples: int
+    planned: int | None
+    complete: bool | None
+
+    def to_json(self) -> dict:
+        return {"samples": self.samples, "planned": self.planned, "complete": self.complete}
+
+    def text(self) -> str:
+        """'32 of 252 planned samples', or '32 samples' where the plan is not recorded."""
+        if self.planned is None:
+            return f"{self.samples} sample{'s' * (self.samples != 1)}"
+        return f"{self.samples} of {self.planned} planned samples"
+
+
+def completeness(meta: dict, samples: int, grid_size: int | None = None) -> Completeness:
+    """A run's completeness from its metadata: `complete` is set when its sampler returns (and
+    `computed_last` with it, in runs from before `complete`); a run holding all it planned is
+    complete too (stopped before it could say so). A run that records no plan and no end is of
+    unknown completeness (a killed run, or one written by another tool); `grid_size`, the size
+    of its space's grid, then stands for a grid run's plan where it holds them all."""
+    planned = meta.get("planned")
+    recorded = isinstance(planned, int) and not isinstance(planned, bool) and planned >= 0
+    if not recorded:
+        whole_grid = meta.get("algorithm") == "grid" and meta.get("budget") is None
+        planned = grid_size if whole_grid else None
+    if meta.get("complete") is True or "computed_last" in meta:
+        done: bool | None = True
+    elif planned is not None and (recorded or samples >= planned):
+        done = samples >= planned
+    else:
+        done = None
+    return Completeness(samples, planned, done)
+
+
+@dataclass(frozen=True)
 class RunData:
     """A stored run opened for reading: metadata, rows, and the space rebuilt from its config."""
 
@@ -290,6 +331,37 @@ class RunData:
         ok = self.ok
         return ok.assign(_iou=ok[self.score_column].astype(float)).sort_values(
             ["_iou", "eval_index"], kind="stable").head(n)
+
+    @property
+    def completeness(self) -> Completeness:
+        """Whether the run holds all it set out to score (see `completeness`)."""
+        return completeness(self.meta, len(self.frame), self.space.size())
+
+    def resume_command(self) -> str:
+        """The command that finishes this run: its command and config with the options its rows
+        depend on (those --resume checks), and --resume."""
+        m = self.meta
+        command = str(m.get("command") or "grid")
+        args = ["falsify", command, str(m.get("config_path") or "CONFIG"), "--out",
+                str(self.path)]
+        if command == "search":
+            args += ["--algorithm", str(m.get("algorithm"))]
+            if m.get("budget") is not None:
+                args += ["--budget", str(m["budget"])]
+            confidence = (m.get("sampler_options") or {}).get("confidence")
+            if confidence is not None:
+                args += ["--confidence", str(confidence)]
+        if m.get("model_path"):
+            args += ["--model", str(m["model_path"])]
+        if m.get("objective"):
+            args += ["--objective", str(m["objective"])]
+        if m.get("seed") is not None and m["seed"] != self.space.seed:
+            args += ["--seed", str(m["seed"])]
+        if m.get("threshold") is not None and m["threshold"] != self.space.threshold:
+            args += ["--threshold", str(m["threshold"])]
+        if m.get("fidelity") not in (None, "exact"):
+            args += ["--fidelity", str(m["fidelity"])]
+        return shlex.join([*args, "--resume"])
 
     @property
     def threshold(self) -> float:

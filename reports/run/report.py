@@ -126,6 +126,17 @@ DEFS = ('<svg width="0" height="0" style="position:absolute" aria-hidden="true">
         + "</linearGradient></defs></svg>")
 
 
+def incomplete_note(data: RunData) -> str:
+    """A warning above the summary for a run stopped before its end: what it holds and the
+    command that finishes it; empty for a complete run or one that does not say."""
+    done = data.completeness
+    if done.complete is not False:
+        return ""
+    return (f'<p id="incomplete" class="bad"><strong>Incomplete run:</strong> {esc(done.text())}'
+            " are stored; the maps, blind spots and samples below cover only those. Finish it "
+            f"with <code>{esc(data.resume_command())}</code>.</p>\n")
+
+
 def render(report: ReportInput) -> str:
     """The report as one self-contained HTML string (deterministic for its input); a
     `falsify retrain` summary in `report.retrain` adds the retraining experiment's section."""
@@ -160,7 +171,7 @@ def render(report: ReportInput) -> str:
 <p class="sub">{esc(meta.get("command", "run"))} run in {esc(data.path)} ·
 {objective_name(data)} of {esc(meta.get("model_name", "the model"))} per sample · threshold
 {threshold:.3f}</p>
-{"".join(sections)}
+{incomplete_note(data)}{"".join(sections)}
 <footer>falsify {esc(falsify.__version__)} · config hash
 <code>{esc(str(meta.get("config_hash") or "")[:12])}</code> · model hash
 <code>{esc(str(meta.get("model_hash") or "")[:12])}</code></footer>

@@ -13,6 +13,18 @@ from falsify.results.miou_maps import CellMap, fmt_value
 from falsify.results.store import RunData
 
 
+def samples_text(data: RunData) -> str:
+    """Rows and valid rows; for a run that may not have ended, of how many it planned."""
+    done = data.completeness
+    text = f"{done.samples} ({len(data.ok)} valid)"
+    if done.complete is True or done.planned is None:
+        return text
+    text = f"{done.samples} of {done.planned} planned ({len(data.ok)} valid)"
+    state = '<span class="bad">incomplete</span>' if done.complete is False else \
+        '<span class="note">not known whether it ended</span>'
+    return f"{text}<br>{state}"
+
+
 def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     meta, frame = data.meta, data.frame
     status = frame["status"]
@@ -57,7 +69,7 @@ def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
          f"{esc(meta.get('config_path', '—'))}</span>"),
         ("Sensor", esc(meta.get("sensor", data.space.sensor))),
         ("Run", esc(search)),
-        ("Samples", f"{len(frame)} ({len(ok)} valid)"),
+        ("Samples", samples_text(data)),
         ("Invalid samples", str(int((status == Status.INVALID).sum()))),
         ("Undefined samples", str(int((status == Status.UNDEFINED).sum()))),
         ("Blind spots", f'<span class="{"bad" if blind else ""}">{len(blind)}</span> of '

@@ -8,13 +8,16 @@ import shutil
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
 from falsify.cli import main
-from falsify.world.space import Sample
-from tests.runfixture import ROOT, write_run
+from falsify.jobs.run import RunRequest, execute
+from falsify.results.store import read_meta, stored_samples
+from falsify.world.space import Sample, load_space
+from tests.runfixture import ROOT, SMOKE, write_run
 
 # smoke.toml: x in {-2, 2}, y in {8, 14}, backgrounds {0, 1}: 4 cells of 2 samples each.
 BLIND = (-2.0, 8.0)
@@ -160,3 +163,164 @@ def test_console_script(run: Path) -> None:
     proc = subprocess.run([*cmd, "gate", str(run), "--threshold", "2"], capture_output=True,
                           text=True, env=env, timeout=60)
     assert proc.returncode == 2 and "--threshold" in proc.stderr
+
+
+# -- completeness: a run stopped before its end, or still being written, is not gated -------------
+
+# The grid's first five samples hold every sample of x = -2 and one of (2, 8): the blind cell
+# (2, 14) is one a run stopped there never reached.
+LATE_BLIND = (2.0, 14.0)
+
+
+def stopped_run(folder: Path, stored: int = 5, **meta) -> Path:
+    """A run of smoke.toml holding the first `stored` of its 8 grid samples, recorded as
+    `falsify grid` records a run stopped before its end (`meta` overrides that)."""
+    samples = load_space(SMOKE).grid()[:stored]
+    return write_run(folder, samples=samples, iou=iou_of({LATE_BLIND: 0.5}),
+                     meta={"planned": 8, "complete": False, **meta})
+
+
+def test_a_stopped_run_is_refused_and_nothing_is_written(tmp_path: Path, capsys) -> None:
+    run_dir = stopped_run(tmp_path / "stopped")
+    junit = tmp_path / "ci" / "gate.xml"
+    code, out, err = gate([str(run_dir), "--json", "--junit", str(junit)], capsys)
+    assert code == 2 and out == ""
+    assert err.startswith(f"falsify: error: {run_dir}: incomplete run")
+    assert "5 of 8 planned samples" in err and "--allow-incomplete" in err
+    assert f"falsify grid {SMOKE} --out {run_dir} --resume" in err
+    assert not junit.parent.exists()
+    # the blind cell it never reached is one the whole run has
+    whole = write_run(tmp_path / "whole", iou=iou_of({LATE_BLIND: 0.5}),
+                      meta={"planned": 8, "complete": True})
+    assert gate([str(whole)], capsys)[0] == 1
+
+
+def test_allow_incomplete_gates_what_the_run_holds_and_says_so(tmp_path: Path, capsys) -> None:
+    run_dir = stopped_run(tmp_path / "stopped")
+    code, out, _ = gate([str(run_dir), "--allow-incomplete"], capsys)
+    assert code == 0 and out.startswith("falsify gate: PASS")
+    assert "INCOMPLETE: 5 of 8 planned samples, stopped before its end" in out
+    junit = tmp_path / "gate.xml"
+    code, out, err = gate([str(run_dir), "--allow-incomplete", "--json", "--junit", str(junit)],
+                          capsys)
+    doc = json.loads(out)
+    assert code == 0 == doc["exit_code"] and doc["passed"] is True
+    assert (doc["samples"], doc["planned"], doc["complete"], doc["writer"]) == (5, 8, False, None)
+    assert "INCOMPLETE" in err   # in the job's log, beside the JSON
+    props = {p.get("name"): p.get("value") for p in ET.parse(junit).getroot().iter("property")}
+    assert (props["samples"], props["planned"], props["complete"]) == ("5", "8", "False")
+
+
+def test_a_complete_run_gates_as_before(run: Path, tmp_path: Path, capsys) -> None:
+    before = gate([str(run), "--json"], capsys)
+    for name, meta, stored in (("recorded", {"planned": 8, "complete": True}, 8),
+                               # stopped after its last sample, before it recorded its end
+                               ("all_rows", {"planned": 8, "complete": False}, 8)):
+        done = write_run(tmp_path / name, iou=iou_of({BLIND: 0.5, (2.0, 14.0): None}),
+                         samples=load_space(SMOKE).grid()[:stored], meta=meta)
+        code, out, err = gate([str(done), "--json"], capsys)
+        doc = json.loads(out)
+        assert code == before[0] == 1 and err == ""
+        assert (doc["samples"], doc["planned"], doc["complete"]) == (8, 8, True)
+        assert doc["cells"] == json.loads(before[1])["cells"]
+        text = gate([str(done)], capsys)[1]
+        assert "INCOMPLETE" not in text and "unknown" not in text
+
+
+def test_a_finished_search_with_fewer_rows_than_planned_is_complete(tmp_path: Path,
+                                                                   capsys) -> None:
+    """A level-set search stops once every cell is decided; other samplers may draw a sample
+    twice or converge: fewer rows than planned, yet finished."""
+    for algorithm in ("level-set", "random"):
+        done = write_run(tmp_path / algorithm, command="search", iou=lambda s: 0.8,
+                         samples=load_space(SMOKE).grid()[:5],
+                         meta={"algorithm": algorithm, "planned": 8, "complete": True})
+        code, out, _ = gate([str(done), "--json"], capsys)
+        doc = json.loads(out)
+        assert code == 0 and (doc["samples"], doc["planned"], doc["complete"]) == (5, 8, True)
+    killed = write_run(tmp_path / "killed", command="search", iou=lambda s: 0.8,
+                       samples=load_space(SMOKE).grid()[:5],
+                       meta={"algorithm": "random", "budget": 8, "planned": 8, "complete": False})
+    code, _, err = gate([str(killed)], capsys)
+    assert code == 2 and "5 of 8 planned samples" in err
+    assert f"falsify search {SMOKE} --out {killed} --algorithm random --budget 8 --resume" in err
+
+
+def test_a_run_without_the_record_still_gates(run: Path, tmp_path: Path, capsys) -> None:
+    """Runs written before falsify recorded `planned` and `complete`: judged as they were, their
+    completeness told where the run shows it and 'unknown' where it does not."""
+    code, out, _ = gate([str(run), "--json"], capsys)   # every grid sample: complete
+    doc = json.loads(out)
+    assert code == 1 and (doc["samples"], doc["planned"], doc["complete"]) == (8, 8, True)
+    ended = write_run(tmp_path / "ended", command="search", meta={"computed_last": 40})
+    doc = json.loads(gate([str(ended), "--json"], capsys)[1])
+    assert (doc["samples"], doc["planned"], doc["complete"]) == (40, None, True)
+    old = write_run(tmp_path / "old", samples=load_space(SMOKE).grid()[:5],
+                    iou=iou_of({LATE_BLIND: 0.5}))
+    code, out, _ = gate([str(old)], capsys)
+    assert code == 0 and "completeness unknown: 5 of 8 planned samples stored" in out
+    code, out, err = gate([str(old), "--json"], capsys)
+    doc = json.loads(out)
+    assert code == 0 and (doc["samples"], doc["planned"], doc["complete"]) == (5, 8, None)
+    assert "completeness unknown" in err
+    search = write_run(tmp_path / "search", command="search")
+    doc = json.loads(gate([str(search), "--json"], capsys)[1])
+    assert (doc["samples"], doc["planned"], doc["complete"]) == (40, None, None)
+
+
+def test_a_run_being_written_is_refused(run: Path, tmp_path: Path, capsys) -> None:
+    code = (f"from falsify.results.runlock import RunLock\n"
+            f"with RunLock({str(run)!r}, command='falsify grid held'):\n"
+            "    print('held', flush=True)\n    input()\n")
+    holder = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True)
+    junit = tmp_path / "gate.xml"
+    try:
+        assert holder.stdout.readline() == "held\n"
+        code, out, err = gate([str(run), "--junit", str(junit)], capsys)
+        assert code == 2 and out == "" and not junit.exists()
+        assert f"{run}: still being written by process {holder.pid} (falsify grid held)" in err
+        assert "8 of 8 planned samples" in err and "--allow-incomplete" in err
+        code, out, _ = gate([str(run), "--allow-incomplete", "--json"], capsys)
+        doc = json.loads(out)
+        assert code == 1 == doc["exit_code"] and doc["complete"] is False
+        assert doc["writer"] == f"process {holder.pid} (falsify grid held)"
+    finally:
+        holder.communicate("\n", timeout=30)
+    assert gate([str(run)], capsys)[0] == 1   # released: judged again
+    assert (run / "results.sqlite").exists() and not (run / ".lock").exists()
+
+
+def test_an_incomplete_baseline_run_is_refused(run: Path, tmp_path: Path, capsys) -> None:
+    base = stopped_run(tmp_path / "base")
+    code, out, err = gate([str(run), "--baseline", str(base)], capsys)
+    assert code == 2 and out == ""
+    assert f"--baseline {base}: incomplete run" in err and "5 of 8 planned samples" in err
+    assert gate([str(run), "--baseline", str(base), "--allow-incomplete"], capsys)[0] == 1
+
+
+@pytest.mark.skipif(not (ROOT / "models" / "weights" / "squeezeseg.onnx").exists(),
+                    reason="bundled model not trained yet")
+def test_a_grid_stopped_mid_way_is_refused_until_resumed(tmp_path: Path, capsys) -> None:
+    """The run job records what it planned and when it ends: a grid stopped after its first
+    batch (8 of 12 samples) is refused, and passes once --resume has finished it."""
+    config = tmp_path / "twelve.toml"
+    config.write_text(SMOKE.read_text().replace("values = [0, 1]", "values = [0, 1, 2]"))
+    out = tmp_path / "run"
+
+    def stop(progress, final: bool) -> None:
+        if progress.done >= 8 and not final:
+            raise KeyboardInterrupt   # as Ctrl-C stops it
+
+    req = RunRequest(config=config, out=out, command="grid", report=False)
+    with pytest.raises(KeyboardInterrupt):
+        execute(req, stop)
+    meta = read_meta(out)
+    assert (meta["planned"], meta["complete"], stored_samples(out)) == (12, False, 8)
+    code, _, err = gate([str(out), "--threshold", "0.01"], capsys)
+    assert code == 2 and "8 of 12 planned samples" in err
+    assert f"falsify grid {config} --out {out} --resume" in err
+    execute(replace(req, resume=True))
+    code, out_text, _ = gate([str(out), "--threshold", "0.01", "--json"], capsys)
+    doc = json.loads(out_text)
+    assert code == 0 and (doc["samples"], doc["planned"], doc["complete"]) == (12, 12, True)

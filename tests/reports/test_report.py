@@ -219,3 +219,23 @@ def test_replay_uses_the_level_of_detail_the_run_scanned_with() -> None:
     assert run_lod({"lod": 0, "fidelity": "exact"}) == 0       # the meta's own record wins
     assert run_lod({"fidelity": "fast"}) == 2                   # older runs: today's preset
     assert run_lod({}) == 2 and run_lod({"fidelity": "ultra"}) == 2
+
+
+def test_an_incomplete_run_says_so(runs, tmp_path: Path, capsys) -> None:
+    """A run stopped before its end: a warning above the summary with the command that finishes
+    it, the summary's count of what it planned, and the same in `report --json`."""
+    from falsify.world.space import load_space
+
+    stopped = write_run(tmp_path / "stopped", samples=load_space(SMOKE).grid()[:5],
+                        meta={"planned": 8, "complete": False, "config_path": EVIL_PATH})
+    page = render_report(stopped, predict=False)
+    warning = re.search(r'<p id="incomplete" class="bad">(.*?)</p>', page, re.S).group(1)
+    assert "5 of 8 planned samples are stored" in warning
+    assert "<code>falsify grid " in warning and "--resume</code>" in warning
+    assert "&amp;&lt;&gt;.onnx" in warning and '"&<>' not in warning   # the path, escaped
+    assert "5 of 8 planned (5 valid)" in page
+    assert 'id="incomplete"' not in render_report(runs["evil"], predict=False)
+    assert main(["report", str(stopped), "--no-predict", "--out", str(tmp_path / "p.html"),
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert (doc["samples"], doc["planned"], doc["complete"]) == (5, 8, False)
