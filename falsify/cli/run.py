@@ -61,12 +61,13 @@ def summary_text(s) -> str:
     where = "" if low is None else ", ".join(f"{k}={v}" for k, v in low["sample"].items()
                                              if k in ("x", "y", "yaw", "background",
                                                       "car_model", "actor"))
+    mean = s.mean_car_iou if s.objective is None else s.mean_objective
     lines = [
         f"{s.samples} samples ({s.computed_this_time} computed now, {s.invalid} invalid, "
         f"{s.undefined} undefined) in {s.elapsed_s:.1f} s",
         f"blind spots: {s.blind_spots} of {s.cells} cells below mIoU {s.threshold}",
-        f"lowest {what}: {'-' if low is None else low[key]} at {where}",
-        f"mean {what}: {s.mean_car_iou if s.objective is None else s.mean_objective}",
+        f"lowest {what}: " + ("- (no valid sample)" if low is None else f"{low[key]} at {where}"),
+        f"mean {what}: {'-' if mean is None else mean}",
         f"retraining set: {s.retraining_samples} scans in {Path(s.run) / 'retrain'}",
     ]
     if s.estimated:

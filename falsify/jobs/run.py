@@ -201,7 +201,15 @@ def _scoring_of(req: RunRequest, space: Space, seg: Segmenter) -> Scoring:
     placed objects apart from the background's own (a real scan's, or a street's parked ones)."""
     semantics = [model_semantic(m, space.user_cars) for m in space.models()]
     objective = req.objective or Scoring.placed_class(list(seg.spec.classes), semantics)
-    scoring = Scoring.of(list(seg.spec.classes), objective)
+    try:
+        scoring = Scoring.of(list(seg.spec.classes), objective)
+    except ConfigError as exc:
+        if req.objective:
+            raise
+        raise ConfigError(f"{seg.spec.name} does not predict {objective!r}, the class of the "
+                          f"placed objects, which a run scores by default; pass --objective "
+                          f"(allowed: {str(exc).split('allowed: ', 1)[-1]}) or run a model "
+                          "that predicts it") from None
     placed = [c for c in Scoring.placed_classes(list(seg.spec.classes), semantics)
               if c in scoring.scored and c not in ("unknown", "unlabeled")]
     return replace(scoring, parts=True, placed=tuple(placed) if len(placed) > 1 else ())

@@ -211,6 +211,12 @@ def test_a_car_the_sensor_cannot_see_is_invalid_not_scored_on_the_street(tmp_pat
     assert "outside the sensor's view" in frame.loc[-20.0, "reason"]
     assert pd.isna(frame.loc[-20.0, "car_iou"])
     assert frame.loc[8.0, "status"] == "ok"
+    capsys.readouterr()
+    config = small_config(tmp_path, xs=(0.0, 0.0, 1.0), ys=(-20.0, -20.0, 1.0), backgrounds=(1,))
+    assert main(["grid", str(config), "--out", str(tmp_path / "none"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "1 invalid" in out and "lowest car IoU: - (no valid sample)\n" in out
+    assert "mean car IoU: -\n" in out
 
 
 def test_two_workers_give_the_same_rows_as_one(tmp_path):

@@ -75,6 +75,21 @@ def test_unknown_objective_is_exit_2_with_the_allowed_names(tmp_path: Path, caps
 
 
 @pytest.mark.skipif(not SK20.exists(), reason="models/weights/squeezeseg20.onnx not present")
+def test_a_model_without_the_placed_class_asks_for_an_objective(tmp_path: Path, capsys) -> None:
+    """No --objective given: the error says the default is the placed objects' class."""
+    spec = json.loads(SK20.with_suffix(".json").read_text())
+    del spec["classes"]["car"]
+    model = tmp_path / "nocar.onnx"
+    model.write_bytes(SK20.read_bytes())
+    model.with_suffix(".json").write_text(json.dumps(spec))
+    assert main(["grid", str(SMOKE), "--out", str(tmp_path / "x"), "--model", str(model)]) == 2
+    err = capsys.readouterr().err
+    assert "does not predict 'car', the class of the placed objects" in err
+    assert "pass --objective (allowed: bicycle," in err and "--objective: 'car'" not in err
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.skipif(not SK20.exists(), reason="models/weights/squeezeseg20.onnx not present")
 def test_miou_objective_with_the_20_class_network(tmp_path: Path, capsys) -> None:
     run = tmp_path / "m"
     assert main(["grid", str(SMOKE), "--out", str(run), "--model", "squeezeseg20",
