@@ -49,6 +49,15 @@ def kitti_dir() -> Path:
     return KITTI
 
 
+def one_car_config(tmp_path: Path, background: str) -> Path:
+    """A config of one sedan at (0, 8) m over the `[dims.background]` table's lines given."""
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('name = "c"\nsensor = "kitti-hdl64e-front"\n[dims.car_model]\nvalues = '
+                   '["sedan"]\n[dims.x]\nvalues = [0.0]\n[dims.y]\nvalues = [8.0]\n'
+                   '[dims.background]\n' + background)
+    return cfg
+
+
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")
 

@@ -14,7 +14,7 @@ from falsify.data.holdout import Holdout, holdout_for, load_manifest
 from falsify.errors import FalsifyError
 from falsify.paths import expand_data_path
 from falsify.world.space import load_space
-from tests.conftest import HOLDOUT, MINI
+from tests.conftest import HOLDOUT, MINI, one_car_config
 
 
 def _sequence(root: Path, sid: str, scans: int, points: int = 20) -> list[Path]:
@@ -33,23 +33,16 @@ def _sequence(root: Path, sid: str, scans: int, points: int = 20) -> list[Path]:
     return out
 
 
-def _config(tmp_path: Path, background: str) -> Path:
-    cfg = tmp_path / "c.toml"
-    cfg.write_text('name = "c"\nsensor = "kitti-hdl64e-front"\n[dims.car_model]\nvalues = '
-                   '["sedan"]\n[dims.x]\nvalues = [0.0]\n[dims.y]\nvalues = [8.0]\n'
-                   '[dims.background]\n' + background)
-    return cfg
-
 
 def test_a_variable_in_a_path_reads_the_environment(tmp_path, monkeypatch):
     _sequence(tmp_path / "sk", "00", 2)
     monkeypatch.setenv("MY_SCANS", str(tmp_path / "sk"))
-    space = load_space(_config(tmp_path, 'real = ["${MY_SCANS}"]\n'))
+    space = load_space(one_car_config(tmp_path, 'real = ["${MY_SCANS}"]\n'))
     assert [r.name for r in space.real_backgrounds] == ["00/000000", "00/000001"]
     monkeypatch.delenv("MY_SCANS")
     with pytest.raises(FalsifyError, match=r"dims\.background\.real: \$\{MY_SCANS\} is not set; "
                                            r"it must name the folder it names: `export MY_SCANS"):
-        load_space(_config(tmp_path, 'real = ["${MY_SCANS}"]\n'))
+        load_space(one_car_config(tmp_path, 'real = ["${MY_SCANS}"]\n'))
     monkeypatch.setenv("EMPTY", "")
     with pytest.raises(FalsifyError, match=r"\$\{EMPTY\} is not set"):
         expand_data_path("${EMPTY}/x", "k")
@@ -59,17 +52,18 @@ def test_a_variable_in_a_path_reads_the_environment(tmp_path, monkeypatch):
 def test_per_sequence_takes_evenly_spaced_scans_of_each_sequence(tmp_path):
     _sequence(tmp_path / "sk", "00", 7)
     _sequence(tmp_path / "sk", "01", 3)
-    space = load_space(_config(tmp_path, f'real = ["{tmp_path / "sk"}"]\nper_sequence = 3\n'))
+    background = f'real = ["{tmp_path / "sk"}"]\nper_sequence = 3\n'
+    space = load_space(one_car_config(tmp_path, background))
     assert [r.name for r in space.real_backgrounds] == [
         "00/000000", "00/000003", "00/000006", "01/000000", "01/000001", "01/000002"]
-    one = load_space(_config(tmp_path, f'real = ["{tmp_path / "sk"}"]\nper_sequence = 1\n'))
+    one = load_space(one_car_config(tmp_path, f'real = ["{tmp_path / "sk"}"]\nper_sequence = 1\n'))
     assert [r.name for r in one.real_backgrounds] == ["00/000000", "01/000000"]
 
 
 @pytest.mark.parametrize("value", ["0", "true", '"3"', "2.5"])
 def test_a_bad_per_sequence_exits_2_naming_it(tmp_path, capsys, value):
     _sequence(tmp_path / "sk", "00", 2)
-    cfg = _config(tmp_path, f'real = ["{tmp_path / "sk"}"]\nper_sequence = {value}\n')
+    cfg = one_car_config(tmp_path, f'real = ["{tmp_path / "sk"}"]\nper_sequence = {value}\n')
     assert main(["grid", str(cfg), "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err
     assert "dims.background.per_sequence: expected an integer >= 1" in err

@@ -19,7 +19,7 @@ from falsify.errors import ConfigError
 from falsify.jobs.retrain_config import subset_config
 from falsify.results.metrics import Scoring
 from falsify.world.space import load_space
-from tests.conftest import MINI, ROOT
+from tests.conftest import MINI, ROOT, one_car_config
 from tests.data.test_real_backgrounds import space_toml, street_cloud
 
 SK20 = ROOT / "models" / "weights" / "squeezeseg20.onnx"
@@ -43,18 +43,11 @@ def sequence(root: Path, sid: str, scans: int, labels: bool = True,
     return out
 
 
-def config(tmp_path: Path, background: str) -> Path:
-    cfg = tmp_path / "c.toml"
-    cfg.write_text('name = "c"\nsensor = "kitti-hdl64e-front"\n[dims.car_model]\nvalues = '
-                   '["sedan"]\n[dims.x]\nvalues = [0.0]\n[dims.y]\nvalues = [8.0]\n'
-                   '[dims.background]\n' + background)
-    return cfg
-
 
 def refused(tmp_path: Path, capsys, background: str, *args: str) -> str:
     """The error of a grid on this background, which must exit 2 and create no run folder."""
     run = tmp_path / "run"
-    assert main(["grid", str(config(tmp_path, background)), "--out", str(run), "--quiet",
+    assert main(["grid", str(one_car_config(tmp_path, background)), "--out", str(run), "--quiet",
                  *args]) == 2
     assert not run.exists()
     return capsys.readouterr().err
@@ -92,7 +85,8 @@ def test_many_missing_labels_name_the_first_three_and_count_the_rest(tmp_path, c
 
 def test_only_the_scans_taken_need_labels(tmp_path):
     sequence(tmp_path / "sk", "01", 5, missing=(1,))
-    space = load_space(config(tmp_path, f'real = ["{tmp_path / "sk"}"]\nper_sequence = 3\n'))
+    background = f'real = ["{tmp_path / "sk"}"]\nper_sequence = 3\n'
+    space = load_space(one_car_config(tmp_path, background))
     assert [r.name for r in space.real_backgrounds] == ["01/000000", "01/000002", "01/000004"]
     assert {r.kind for r in space.real_backgrounds} == {"semantickitti"}
 
@@ -101,7 +95,7 @@ def test_a_bare_scan_may_have_no_labels_unless_they_are_required(tmp_path, capsy
     bare = tmp_path / "mine" / "x.bin"
     bare.parent.mkdir()
     np.zeros((4, 4), np.float32).tofile(bare)
-    space = load_space(config(tmp_path, f'real = ["{bare}"]\n'))
+    space = load_space(one_car_config(tmp_path, f'real = ["{bare}"]\n'))
     assert space.real_backgrounds[0].kind == "none"
     err = refused(tmp_path, capsys, f'real = ["{bare}"]\nlabels = "required"\n')
     assert f"missing {bare.with_suffix('.label')} (or ../labels/x.label)" in err
@@ -122,7 +116,8 @@ def test_per_sequence_beyond_a_sequences_scans_exits_2_naming_it(tmp_path, capsy
     assert (f"c.toml: dims.background.per_sequence: 4 scans asked of each sequence, but "
             f"sequence 02 ({tmp_path / 'sk' / 'sequences' / '02' / 'velodyne'}) holds 3 scans; "
             "allowed: 1 to 3") in err
-    space = load_space(config(tmp_path, f'real = ["{tmp_path / "sk"}"]\nper_sequence = 3\n'))
+    background = f'real = ["{tmp_path / "sk"}"]\nper_sequence = 3\n'
+    space = load_space(one_car_config(tmp_path, background))
     assert len(space.real_backgrounds) == 6
 
 
