@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from falsify.cli.common import emit
+from falsify.cli.common import ALLOW_INCOMPLETE_HELP, emit
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -28,6 +28,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     lim.add_argument("--max-place-mae", type=float, metavar="D",
                      help="most mean |street - place| of the placed car's IoU over the real "
                      "places both runs hold (missed when they hold none)")
+    p.add_argument("--allow-incomplete", action="store_true",
+                   help=ALLOW_INCOMPLETE_HELP)
     p.add_argument("--json", action="store_true")
 
 
@@ -36,6 +38,7 @@ def run(args) -> int:
 
     limits = Limits(args.max_w1, args.max_p10_gap, args.max_map_mae, args.max_place_mae)
     result = run_agreement(args.world_run, args.real_run, threshold=args.threshold,
-                           fp_samples=args.fp_samples, limits=limits)
+                           fp_samples=args.fp_samples, limits=limits,
+                           allow_incomplete=args.allow_incomplete)
     emit(args, result.to_json(), format_text(result))
     return 0 if result.passed else 1

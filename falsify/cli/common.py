@@ -14,6 +14,8 @@ MODEL_HELP = ("an ONNX segmentation model with its .json spec, a bundled model's
               "Python plug-in MODULE:FACTORY or FILE.py:FACTORY (see falsify.models.plugin) "
               "(default: bundled)")
 BACKEND_HELP = "onnx or torch for a model file; python (set by itself) for a plug-in"
+ALLOW_INCOMPLETE_HELP = ("read a run stopped before its end, or still being written, on the "
+                         "samples it holds (default: refuse it, exit 2)")
 DEVICE_HELP = ("where the network runs: cpu, or cuda (torch and plug-ins: a CUDA build of "
                "torch; onnx: pip install onnxruntime-gpu)")
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from falsify.cli.common import emit
+from falsify.cli.common import ALLOW_INCOMPLETE_HELP, emit
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -15,6 +15,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rules", type=int, default=5, help="rules to find, at most")
     p.add_argument("--clusters", type=int, default=4, help="clusters of failing samples")
     p.add_argument("--seed", type=int, default=0, help="seed of the clustering")
+    p.add_argument("--allow-incomplete", action="store_true",
+                   help=ALLOW_INCOMPLETE_HELP)
     p.add_argument("--json", action="store_true")
 
 
@@ -22,6 +24,7 @@ def run(args) -> int:
     from falsify.jobs.explain import explain_run, format_text
 
     result = explain_run(args.run, threshold=args.threshold, depth=args.depth,
-                         rules=args.rules, clusters=args.clusters, seed=args.seed)
+                         rules=args.rules, clusters=args.clusters, seed=args.seed,
+                         allow_incomplete=args.allow_incomplete)
     emit(args, result.to_json(), format_text(result))
     return 0

@@ -23,7 +23,7 @@ import pandas as pd
 from falsify.errors import FalsifyError
 from falsify.results.metrics import Status
 from falsify.results.miou_maps import CellMap, fmt_value, jaccard, miou_map
-from falsify.results.store import RunData, open_run
+from falsify.results.store import RunData, check_complete, open_run
 
 METRICS = ("iou", "precision", "recall")
 QUANTILES = (0.1, 0.5, 0.9)
@@ -488,10 +488,10 @@ def side(data: RunData) -> RunSide:
 
 def run_agreement(world_run: str | Path, real_run: str | Path, threshold: float | None = None,
                   fp_samples: int = 0, device: str = "cpu",
-                  limits: Limits = Limits()) -> AgreementResult:
+                  limits: Limits = Limits(), allow_incomplete: bool = False) -> AgreementResult:
     """Compare a run on our streets with a run of the same positions on real scans; the
     threshold defaults to the real run's, `fp_samples` rows of each run are replayed, and
-    `limits` set the targets to check."""
+    `limits` set the targets to check; either run incomplete is an error unless allowed."""
     from falsify.checks import check_range
     from falsify.jobs.gate import check_threshold
 
@@ -499,6 +499,8 @@ def run_agreement(world_run: str | Path, real_run: str | Path, threshold: float 
     check_range(fp_samples, "--fp-samples", 0, MAX_FP_SAMPLES)
     check_limits(limits)
     world, real = open_run(world_run), open_run(real_run)
+    check_complete(world, allow_incomplete, "world run ")
+    check_complete(real, allow_incomplete, "real run ")
     wcol, rcol = placed_columns(world)["iou"], placed_columns(real)["iou"]
     wmap = miou_map(ok_rows(world), world.space, "x", "y", wcol)
     rmap = miou_map(ok_rows(real), real.space, "x", "y", rcol)

@@ -12,7 +12,7 @@ from pathlib import Path
 from falsify.checks import check_seed
 from falsify.errors import FalsifyError
 from falsify.results.explain import Explanation, explain, score_name
-from falsify.results.store import open_run
+from falsify.results.store import check_complete, open_run
 
 MAX_DEPTH = 4
 MAX_RULES = 20
@@ -32,8 +32,10 @@ class ExplainResult:
 
 
 def explain_run(run: str | Path, threshold: float | None = None, depth: int = 2,
-                rules: int = 5, clusters: int = 4, seed: int = 0) -> ExplainResult:
-    """Explain a run's samples below `threshold` (default: the run's own threshold)."""
+                rules: int = 5, clusters: int = 4, seed: int = 0,
+                allow_incomplete: bool = False) -> ExplainResult:
+    """Explain a run's samples below `threshold` (default: the run's own threshold); an
+    incomplete run is an error unless allowed (its rules would be of the samples scored)."""
     if not 1 <= depth <= MAX_DEPTH:
         raise FalsifyError(f"--depth {depth}: must be in 1..{MAX_DEPTH}")
     if not 1 <= rules <= MAX_RULES:
@@ -44,6 +46,7 @@ def explain_run(run: str | Path, threshold: float | None = None, depth: int = 2,
     if threshold is not None and not 0.0 < threshold <= 1.0:
         raise FalsifyError(f"--threshold {threshold}: must be in (0, 1]")
     data = open_run(run)
+    check_complete(data, allow_incomplete)
     t = data.threshold if threshold is None else threshold
     algorithm = str(data.meta.get("algorithm") or "grid")
     return ExplainResult(str(data.path), algorithm,

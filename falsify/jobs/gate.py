@@ -18,8 +18,7 @@ from pathlib import Path
 
 from falsify.errors import FalsifyError
 from falsify.results.miou_maps import CellMap, fmt_value
-from falsify.results.runlock import writer
-from falsify.results.store import STORE_NAME, Completeness, RunData, open_run
+from falsify.results.store import STORE_NAME, Completeness, check_complete, open_run
 
 JUNIT_SUITE = "falsify.jobs.gate"
 
@@ -110,22 +109,6 @@ def gate_cells(cmap: CellMap, threshold: float) -> list[GateCell]:
 
 def worst_first(cells: list[GateCell]) -> list[GateCell]:
     return sorted((c for c in cells if c.blind), key=lambda c: (c.miou, c.x, c.y))
-
-
-def check_complete(data: RunData, allow: bool, where: str = "") -> tuple[Completeness, str | None]:
-    """The run's completeness and the process writing it (None: none). Unless `allow`, an
-    incomplete run or one being written is a FalsifyError: its blind spots would be those of
-    the samples scored so far, and the cells not reached yet would pass."""
-    done, busy = data.completeness, writer(data.path)
-    if allow or (done.complete is not False and busy is None):
-        return done, busy
-    if busy is not None:
-        raise FalsifyError(f"{where}{data.path}: still being written by {busy}: {done.text()} "
-                           "stored so far; gate it once that run has ended, or pass "
-                           "--allow-incomplete to gate what it holds now")
-    raise FalsifyError(f"{where}{data.path}: incomplete run, stopped before its end: "
-                       f"{done.text()} stored; finish it with `{data.resume_command()}`, or pass "
-                       "--allow-incomplete to gate what it holds")
 
 
 def read_baseline(source: str | Path, threshold: float,

@@ -25,7 +25,7 @@ import pandas as pd
 
 from falsify.errors import FalsifyError
 from falsify.results.metrics import Status
-from falsify.results.store import RunData, open_run
+from falsify.results.store import RunData, check_complete, open_run
 from falsify.world.space import EFFECT_DIMS
 
 
@@ -141,14 +141,18 @@ def merged_levels(runs: list[RunData], column: str | None
 
 
 def robustness(run: str | Path | list, reference: str | Path | list | None = None,
-               column: str | None = None) -> RobustnessResult:
+               column: str | None = None, allow_incomplete: bool = False) -> RobustnessResult:
     """The runs' per-effect levels, CE and RR against `reference` (runs of the same spaces,
     in the same order, with another network), mCE and mRR. Several runs pool their clean rows
-    and each adds its effects (Robo3D's effects one at a time, without their product)."""
+    and each adds its effects (Robo3D's effects one at a time, without their product). An
+    incomplete run (or reference) is an error unless allowed: its missing levels would go
+    unsaid."""
     runs = [run] if isinstance(run, str | Path) else list(run)
     refs = (None if reference is None else
             [reference] if isinstance(reference, str | Path) else list(reference))
     datas = [open_run(r) for r in runs]
+    for d in datas:
+        check_complete(d, allow_incomplete)
     col = score_column(datas[0], column)
     clean_rows, levels, mixed = merged_levels(datas, column)
     clean = float(clean_rows.mean())
@@ -162,6 +166,8 @@ def robustness(run: str | Path | list, reference: str | Path | list | None = Non
             raise FalsifyError(f"--reference: {len(refs)} runs for {len(runs)}; give one "
                                "reference run per run, in the same order")
         ref_datas = [open_run(r) for r in refs]
+        for d in ref_datas:
+            check_complete(d, allow_incomplete, "--reference ")
         for r, d, rd in zip(refs, datas, ref_datas, strict=True):
             if rd.meta.get("config_hash") != d.meta.get("config_hash"):
                 raise FalsifyError(f"--reference {r}: not a run of the same space as {d.path} "

@@ -415,3 +415,21 @@ def open_run(run: str | Path) -> RunData:
     if missing:
         raise FalsifyError(f"{path / STORE_NAME}: samples table lacks column {missing[0]!r}")
     return RunData(path, meta, frame, space)
+
+
+def check_complete(data: RunData, allow: bool, where: str = "") -> tuple[Completeness, str | None]:
+    """The run's completeness and the process writing it (None: none). Unless `allow`, an
+    incomplete run or one being written is a FalsifyError: what a command judges of it would be
+    of the samples scored so far, and the cells not reached yet would pass unseen."""
+    from falsify.results.runlock import writer
+
+    done, busy = data.completeness, writer(data.path)
+    if allow or (done.complete is not False and busy is None):
+        return done, busy
+    if busy is not None:
+        raise FalsifyError(f"{where}{data.path}: still being written by {busy}: {done.text()} "
+                           "stored so far; wait for that run to end, or pass "
+                           "--allow-incomplete to read what it holds now")
+    raise FalsifyError(f"{where}{data.path}: incomplete run, stopped before its end: "
+                       f"{done.text()} stored; finish it with `{data.resume_command()}`, or pass "
+                       "--allow-incomplete to read what it holds")

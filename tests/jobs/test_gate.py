@@ -195,6 +195,22 @@ def test_a_stopped_run_is_refused_and_nothing_is_written(tmp_path: Path, capsys)
     assert gate([str(whole)], capsys)[0] == 1
 
 
+@pytest.mark.parametrize("command", [["explain", "RUN"], ["agreement", "RUN", "WHOLE"],
+                                     ["agreement", "WHOLE", "RUN"], ["robustness", "RUN"]])
+def test_commands_that_judge_a_run_refuse_a_stopped_one(tmp_path: Path, capsys, command) -> None:
+    """explain, agreement and robustness read runs as gate does: a stopped one is named."""
+    run_dir = stopped_run(tmp_path / "stopped")
+    whole = write_run(tmp_path / "whole", meta={"planned": 8, "complete": True})
+    args = [{"RUN": str(run_dir), "WHOLE": str(whole)}.get(a, a) for a in command]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert f"{run_dir}: incomplete run, stopped before its end: 5 of 8 planned samples" in err
+    assert "--allow-incomplete" in err
+    if command[0] != "robustness":   # a smoke run has no effect dims for robustness to read
+        assert main([*args, "--allow-incomplete", "--json"]) == 0
+        json.loads(capsys.readouterr().out)
+
+
 def test_allow_incomplete_gates_what_the_run_holds_and_says_so(tmp_path: Path, capsys) -> None:
     run_dir = stopped_run(tmp_path / "stopped")
     code, out, _ = gate([str(run_dir), "--allow-incomplete"], capsys)
