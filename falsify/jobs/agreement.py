@@ -24,6 +24,7 @@ from falsify.errors import FalsifyError
 from falsify.results.metrics import Status
 from falsify.results.miou_maps import CellMap, fmt_value, jaccard, miou_map
 from falsify.results.store import RunData, check_complete, open_run
+from falsify.world.space import EFFECT_DIMS
 
 METRICS = ("iou", "precision", "recall")
 QUANTILES = (0.1, 0.5, 0.9)
@@ -453,6 +454,23 @@ def check_same_grid(world: RunData, real: RunData, wmap: CellMap, rmap: CellMap)
                            f"{'; '.join(differ)}); compare runs of the same positions")
 
 
+def check_sides(world: RunData, real: RunData) -> None:
+    """FalsifyError for runs given the wrong way round (real scans as the world, streets as
+    the real side) or with other effect dims (fog, rain, ...), whose rows would pool unsaid."""
+    if world.space.real_backgrounds and not real.space.real_backgrounds:
+        raise FalsifyError(f"{world.path} holds real scans and {real.path} streets: give the "
+                           f"world's run first (falsify agreement {real.path} {world.path})")
+    effects = {}
+    for d in (world, real):
+        effects[d.path] = {n: tuple(d.space.dims[n].grid()) for n in EFFECT_DIMS
+                           if n in d.space.dims}
+    if len({tuple(sorted(e.items())) for e in effects.values()}) > 1:
+        shown = "; ".join(f"{p}: {e or 'none'}" for p, e in effects.items())
+        raise FalsifyError(f"the runs' weather and fault dims differ ({shown}): their rows "
+                           "would pool other conditions into one side; compare runs of the "
+                           "same effects")
+
+
 def map_agreement(wmap: CellMap, rmap: CellMap, threshold: float) -> MapAgreement:
     """Agreement of two maps on one grid over the cells both define (see MapAgreement)."""
     w, r = wmap.miou, rmap.miou
@@ -501,6 +519,7 @@ def run_agreement(world_run: str | Path, real_run: str | Path, threshold: float 
     world, real = open_run(world_run), open_run(real_run)
     check_complete(world, allow_incomplete, "world run ")
     check_complete(real, allow_incomplete, "real run ")
+    check_sides(world, real)
     wcol, rcol = placed_columns(world)["iou"], placed_columns(real)["iou"]
     wmap = miou_map(ok_rows(world), world.space, "x", "y", wcol)
     rmap = miou_map(ok_rows(real), real.space, "x", "y", rcol)

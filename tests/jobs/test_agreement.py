@@ -203,6 +203,21 @@ def test_different_grids_are_refused_naming_runs_and_dims(written, capsys):
     assert "x: [0, 2, 4] against [0, 3, 4]" in err and "y: [" not in err
 
 
+def test_runs_of_other_effects_are_refused_naming_them(written, tmp_path, capsys):
+    foggy = write_run(tmp_path / "foggy", CONFIG.format(xs="0.0, 2.0, 4.0")
+                      + "[dims.fog]\nvalues = [0.0, 50.0]\n")
+    assert main(["agreement", str(foggy), str(written["real"])]) == 2
+    err = capsys.readouterr().err
+    assert "weather and fault dims differ" in err and "{'fog': (0.0, 50.0)}" in err
+
+
+def test_real_scans_given_as_the_world_are_refused(pipeline_runs, capsys):
+    world, real = pipeline_runs
+    assert main(["agreement", str(real), str(world)]) == 2
+    assert f"give the world's run first (falsify agreement {world} {real})" in \
+        capsys.readouterr().err
+
+
 @pytest.mark.parametrize(("extra", "says"), [
     (["--threshold", "1.5"], "--threshold"),
     (["--fp-samples", "-1"], "--fp-samples"),
