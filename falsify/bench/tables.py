@@ -133,8 +133,8 @@ def load(paths: Iterable[Path]) -> list[dict]:
     for path in sorted(paths):
         try:
             doc = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise FalsifyError(f"{path}: not a benchmark result ({exc})") from exc
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise FalsifyError(f"{path}: not a benchmark result ({exc})") from None
         kind = doc.get("benchmark") if isinstance(doc, dict) else None
         if kind not in ROWS or "machine" not in doc:
             raise FalsifyError(f"{path}: benchmark {kind!r} has no table; known: "

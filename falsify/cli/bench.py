@@ -318,9 +318,12 @@ def _table(args) -> int:
     """`bench table`: the saved results as tables, printed or spliced into --write."""
     from falsify.bench.tables import load, render, splice
 
-    tables = render(load(Path(f) for f in args.results))
+    results = load(Path(f) for f in args.results)
+    tables = render(results)
     if args.write is None:
-        print(tables)
+        cpus = sorted({d["machine"]["cpu"] for d in results})
+        emit(args, {"files": sorted(args.results), "cpus": cpus,
+                    "benchmarks": [d["benchmark"] for d in results], "markdown": tables}, tables)
         return 0
     doc = Path(args.write)
     if not doc.is_file():

@@ -79,7 +79,15 @@ def test_the_command_prints_or_splices_and_refuses_stray_files(tmp_path: Path, c
     result = tmp_path / "scan.json"
     result.write_text(json.dumps(scan(EPYC, 10.0)))
     assert main(["bench", "table", str(result)]) == 0
-    assert capsys.readouterr().out.startswith(BEGIN)
+    tables = capsys.readouterr().out
+    assert tables.startswith(BEGIN)
+    assert main(["bench", "table", str(result), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["markdown"] + "\n" == tables and doc["benchmarks"] == ["scan"]
+    binary = tmp_path / "model.onnx"
+    binary.write_bytes(b"\x08\xe4\xff\x00")
+    assert main(["bench", "table", str(binary)]) == 2
+    assert "model.onnx: not a benchmark result" in capsys.readouterr().err
     doc = tmp_path / "benchmarks.md"
     doc.write_text("# Benchmarks\n")
     assert main(["bench", "table", str(result), "--write", str(doc)]) == 0
