@@ -51,11 +51,7 @@ def run(args) -> int:
                 raise UsageError(f"--dropout-from: {exc}") from None
             dropout_from = {k: _plain(getattr(other, k)) for k in DROPOUT_KEYS}
         frames = labelled_frames(args.scans, sequences, args.holdout or ())
-        opts = f" --sequences {args.sequences}" if args.sequences else ""
-        opts += "".join(f" --holdout {h}" for h in args.holdout or ())
-        opts += f" --dropout-from {args.dropout_from}" if args.dropout_from else ""
-        doc = fit_labelled(frames, name, f"falsify fit-returns --labelled $SEMANTICKITTI{opts} "
-                                         f"--out configs/returns/{name}.json", dropout_from)
+        doc = fit_labelled(frames, name, _command(args), dropout_from)
     else:
         for opt, v in (("--sequences", args.sequences), ("--dropout-from", args.dropout_from)):
             if v:
@@ -63,7 +59,7 @@ def run(args) -> int:
         from falsify.data.velodyne import fit_frames
         from falsify.jobs.fit_returns import fit
 
-        doc = fit(fit_frames(args.scans))
+        doc = fit(fit_frames(args.scans), _command(args))
         doc["name"] = name
     write_text(out, json.dumps(doc, indent=1) + "\n")
     p = doc["params"]
@@ -78,6 +74,32 @@ def run(args) -> int:
     summary["out"] = str(out)
     emit(args, summary, _text(summary))
     return 0
+
+
+def _command(args) -> str:
+    """The command as run, recorded in the model; a path under $SEMANTICKITTI, $KITTI_OBJECT or
+    $KITTI is written with the variable, so the record holds no folder of this machine's."""
+    import os
+    import shlex
+
+    roots = [(v, os.environ[v].rstrip("/")) for v in ("SEMANTICKITTI", "KITTI_OBJECT", "KITTI")
+             if os.environ.get(v, "").strip("/")]
+
+    def portable(arg: str) -> str:
+        for var, root in roots:
+            if arg == root or arg.startswith(root + "/"):
+                return f"${var}{arg[len(root):]}"
+        return shlex.quote(arg)
+
+    parts = ["falsify", "fit-returns", *(["--labelled"] if args.labelled else []),
+             *map(portable, args.scans)]
+    for opt, v in (("--sequences", args.sequences), ("--dropout-from", args.dropout_from),
+                   ("--name", args.name)):
+        if v:
+            parts += [opt, portable(v)]
+    for h in args.holdout or ():
+        parts += ["--holdout", portable(h)]
+    return " ".join([*parts, "--out", portable(args.out)])
 
 
 def _plain(v):

@@ -64,7 +64,7 @@ def _normals_cos(img: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     return np.where(good, cos, np.nan)
 
 
-def fit(paths: list[Path]) -> dict:
+def fit(paths: list[Path], command: str) -> dict:
     """The return model fitted on KITTI object frames (.bin, KITTI's ring order), as the JSON
     document configs/returns/ holds."""
     sensor = load_sensor("kitti-hdl64e-360")
@@ -85,8 +85,7 @@ def fit(paths: list[Path]) -> dict:
     return {
         "name": "kitti-hdl64e",
         "fitted_on": [p.name for p in paths],
-        "command": "falsify fit-returns $KITTI_OBJECT/velodyne/*.bin "
-                   "--out configs/returns/kitti-hdl64e.json",
+        "command": command,
         "points_used": used,
         "dropout_candidates": int(len(cr)),
         "candidate_return_rate": float(cr.mean()),

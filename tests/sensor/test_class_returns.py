@@ -166,13 +166,17 @@ def test_labelled_fit_refuses_held_out_and_unlabelled_scans(mini, tmp_path, caps
     assert "--sequences: only with --labelled" in capsys.readouterr().err
 
 
-def test_labelled_fit_writes_a_model_the_sensor_reads(mini, tmp_path, capsys):
+def test_labelled_fit_writes_a_model_the_sensor_reads(mini, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("SEMANTICKITTI", str(mini))
     out = tmp_path / "mine.json"
     assert main(["fit-returns", "--labelled", str(mini), "--sequences", "01", "--out", str(out),
                  "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["classes"]["road"]["points"] > 10_000
     assert json.loads(out.read_text())["name"] == "mine"
+    # the command as run, the data root written as its variable
+    want = f"falsify fit-returns --labelled $SEMANTICKITTI --sequences 01 --out {out}"
+    assert json.loads(out.read_text())["command"] == want
     # A sensor names the file beside its TOML; the scans then carry its classes' shades.
     toml = (CONFIGS / "sensors" / "kitti-hdl64e-front.toml").read_text()
     mine = tmp_path / "mine.toml"
