@@ -294,12 +294,14 @@ class RetrainJob:
         sets.append(("real KITTI, SqueezeSeg layout",
                      read_set("squeezeseg", sq, sensor) if sq else None,
                      "kitti/squeezeseg/*.npy" if sq
-                     else f"skipped: no scans in {kitti}/squeezeseg"))
+                     else f"skipped: no scans in {kitti}/squeezeseg" if kitti
+                     else "skipped: no --kitti"))
         bins = sorted((kitti / "semantickitti").glob("*.bin")) if kitti else []
         sets.append(("real SemanticKITTI seq. 00",
                      read_set("semantickitti", bins, sensor) if bins else None,
                      "kitti/semantickitti/*.bin projected with the config's sensor" if bins
-                     else f"skipped: no scans in {kitti}/semantickitti"))
+                     else f"skipped: no scans in {kitti}/semantickitti" if kitti
+                     else "skipped: no --kitti"))
         sets.append(evaluation_split(kitti, sensor, req.holdout))
         present = [s for _, s, _ in sets if s is not None]
         scores = {}
@@ -408,6 +410,14 @@ def _check_settings(req: RetrainRequest) -> None:
     if not weights.is_file():
         raise ConfigError(f"--model {req.model}: fine-tuning starts from {weights}, "
                           "which does not exist")
+    if req.kitti is not None:
+        if not req.kitti.is_dir():
+            raise ConfigError(f"--kitti {req.kitti}: no such folder")
+        sets = ("squeezeseg", "semantickitti", "semantickitti-mini")
+        if not any((req.kitti / s).is_dir() for s in sets):
+            raise ConfigError(f"--kitti {req.kitti}: holds none of the real sets it checks on "
+                              f"({', '.join(s + '/' for s in sets)}); leave --kitti out to "
+                              "skip the checks")
 
 
 def _check_train_index(req: RetrainRequest, train_index: dict | None, used: set[int],
@@ -459,7 +469,8 @@ def evaluation_split(kitti: Path | None, sensor, holdout: tuple[Path, ...] = ())
     files = [f for d in (found or {}).values() for f in sequence_files(d)]
     held = holdout_for(files, holdout).held_out(files)
     if not held:
-        return (name, None, f"skipped: no held-out scans in {root}")
+        return (name, None, f"skipped: no held-out scans in {root}" if root is not None
+                else "skipped: no --kitti")
     return (name, read_set("evaluation split", held, sensor),
             f"{len(held)} scans, front 90 degrees, projected with the config's sensor; labels "
             "from labels/")

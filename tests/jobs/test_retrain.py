@@ -184,6 +184,8 @@ def test_report_cli_rebuilds_the_page(experiment, tmp_path, capsys) -> None:
     ({"--train-data": "NOWHERE"}, "--train-data"),
     ({"--epochs": "0"}, "--epochs: 0"),
     ({"--resume": None}, "holds no retraining run"),
+    ({"--kitti": "NOWHERE"}, "nowhere: no such folder"),
+    ({"--kitti": "EMPTY"}, "holds none of the real sets it checks on (squeezeseg/,"),
 ])
 def test_bad_input_exits_2_and_writes_nothing(inputs, tmp_path, capsys, change,
                                               message) -> None:
@@ -194,7 +196,9 @@ def test_bad_input_exits_2_and_writes_nothing(inputs, tmp_path, capsys, change,
     args = {"--model": str(MODEL), "--train-data": str(inputs["train"]),
             "--validation-backgrounds": "0", "--retraining-backgrounds": "5",
             "--out": str(out)}
-    subs = {"MISSING_PT": str(onnx), "NOWHERE": str(tmp_path / "nowhere")}
+    (tmp_path / "empty").mkdir()
+    subs = {"MISSING_PT": str(onnx), "NOWHERE": str(tmp_path / "nowhere"),
+            "EMPTY": str(tmp_path / "empty")}
     args.update({k: subs.get(v, v) for k, v in change.items()})
     argv = ["retrain", str(inputs["config"])]
     for k, v in args.items():
