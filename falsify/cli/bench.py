@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from falsify.checks import MAX_SAMPLES, check_out_dir, check_range
-from falsify.cli.common import DEFAULT_CONFIG, UsageError, emit, given_options
+from falsify.cli.common import DEFAULT_CONFIG, UsageError, emit, given_options, int_in
 from falsify.paths import CONFIGS
 
 # Held-out frames `bench model` compares the variants on unless --samples says otherwise (each
@@ -65,11 +65,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="bench model: timed runs of each variant over its frames, the best kept; "
                    "bench scan: interleaved rounds of the 1- and N-process runs, the median "
                    "reported with every round (default 1)")
-    p.add_argument("--calibration-scans", type=int, default=None, choices=range(1, 1025),
+    p.add_argument("--calibration-scans", type=int_in(1, 1024), default=None,
                    metavar="N", help="bench model: synthetic scenes to calibrate int8 on "
                    "(default: the export's 64; the bundled network's shipped int8 copy is "
                    "measured unless this is given)")
-    p.add_argument("--threads", type=int, default=2, choices=range(1, 65), metavar="N",
+    p.add_argument("--threads", type=int_in(1, 64), default=2, metavar="N",
                    help="bench model: inference threads (a grid worker uses 1)")
     p.add_argument("--out", default=None, help="bench search, map: where their runs go")
     p.add_argument("--budgets", default=None, metavar="F,F,...",
@@ -86,7 +86,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="bench search: budget as a fraction of the dense grid")
     p.add_argument("--seeds", type=int, default=3,
                    help="bench search, map: runs of each algorithm, from the config's seed on")
-    p.add_argument("--nodes", type=int, default=2, choices=range(1, 17), metavar="N",
+    p.add_argument("--nodes", type=int_in(1, 16), default=2, metavar="N",
                    help="bench nodes: the largest local cluster, in one-CPU worker nodes "
                    "(default 2)")
     p.add_argument("--camera-preset", default="kitti-centre",

@@ -14,6 +14,19 @@ MODEL_HELP = ("an ONNX segmentation model with its .json spec, a bundled model's
               "Python plug-in MODULE:FACTORY or FILE.py:FACTORY (see falsify.models.plugin) "
               "(default: bundled)")
 BACKEND_HELP = "onnx or torch for a model file; python (set by itself) for a plug-in"
+def int_in(lo: int, hi: int):
+    """An argparse type: an integer in lo..hi, whose error says the range, not every value."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: not an integer") from None
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"{value}: allowed {lo}..{hi}")
+        return value
+    return parse
+
+
 ALLOW_INCOMPLETE_HELP = ("read a run stopped before its end, or still being written, on the "
                          "samples it holds (default: refuse it, exit 2)")
 DEVICE_HELP = ("where the network runs: cpu, or cuda (torch and plug-ins: a CUDA build of "

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from falsify.cli.common import emit
+from falsify.cli.common import emit, int_in
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -19,7 +19,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "default: bundled")
     p.add_argument("--limit", type=int, default=None,
                    help="use only the first N samples of the grid (quick runs)")
-    p.add_argument("--threads", type=int, default=1, choices=range(1, 65), metavar="N",
+    p.add_argument("--threads", type=int_in(1, 64), default=1, metavar="N",
                    help="inference threads while timing (default 1: what each --workers "
                    "process of a run uses)")
     p.add_argument("--json", action="store_true")

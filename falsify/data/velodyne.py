@@ -45,6 +45,9 @@ def fit_frames(paths: list[str | Path]) -> list[Path]:
     may read. Anything else is evaluation data, and a FalsifyError names it."""
     out = [Path(p) for p in paths]
     for p in out:
+        if not p.is_file():
+            raise FalsifyError(f"{p}: no such file (fit on KITTI object frames, "
+                               ".../object/velodyne/*.bin)")
         if "object" not in p.parts:
             raise FalsifyError(f"{p}: fit only on KITTI object frames (.../object/velodyne/*.bin); "
                                "the other real scans are evaluation data")

@@ -131,7 +131,7 @@ def test_int8_matrix_rate_multiplies_integers_exactly():
 
 
 @pytest.mark.parametrize("args, message", [
-    (["bench", "model", "--threads", "0"], "--threads"),
+    (["bench", "model", "--threads", "0"], "--threads: 0: allowed 1..64"),
     (["bench", "pipeline", "--samples", "0"], "--samples"),
     (["bench", "memory", "--workers", "0"], "--workers"),
     (["bench", "memory", "--config", "no-such-config.toml"], "no-such-config.toml"),

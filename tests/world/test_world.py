@@ -194,11 +194,16 @@ def test_scans_are_deterministic_with_returns_and_intensity():
 
 
 def test_fit_refuses_evaluation_scans(tmp_path):
+    (tmp_path / "squeezeseg").mkdir()
+    (tmp_path / "squeezeseg" / "x.bin").write_bytes(bytes(16))
     r = subprocess.run([sys.executable, "-m", "falsify", "fit-returns",
                         str(tmp_path / "squeezeseg" / "x.bin"), "--out", str(tmp_path / "o")],
                        capture_output=True, text=True, cwd=ROOT)
-    assert r.returncode == 2 and "object" in r.stderr
+    assert r.returncode == 2 and "fit only on KITTI object frames" in r.stderr
     assert not (tmp_path / "o").exists()
+    r = subprocess.run([sys.executable, "-m", "falsify", "fit-returns", "nosuch.bin", "--out",
+                        str(tmp_path / "o")], capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 2 and "nosuch.bin: no such file" in r.stderr
 
 
 @pytest.mark.parametrize("bad", ["nope", 3])
