@@ -52,7 +52,10 @@ def check_out_dir(path: str | Path, option: str = "--out") -> Path:
 
 
 def check_out_file(path: str | Path, option: str = "--out") -> Path:
-    """An output file: not a directory, in a directory that exists or can be made."""
+    """An output file: not a directory (nor a name ending in /, which means one), in a
+    directory that exists or can be made."""
+    if str(path).endswith(("/", os.sep)):
+        raise FalsifyError(f"{option} {path}: names a folder; give a file name")
     path = Path(path)
     if path.is_dir():
         raise FalsifyError(f"{option} {path}: is a directory")

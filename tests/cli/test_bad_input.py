@@ -81,6 +81,8 @@ CASES = [   # (id, command line after `falsify`, a word the message must name)
      "--out afile/d"),
     ("tradeoff --out is a file", ["tradeoff", "SMOKE", "--out", "afile"], "--out afile"),
     ("report --out under a file", ["report", "run", "--out", "afile/r.html"], "afile"),
+    ("report --out a folder's name", ["report", "run", "--out", "pages/"],
+     "--out pages/: names a folder; give a file name"),
     ("scan --out on a read-only file system", ["scan", "SMOKE", "--out", "/proc/falsify-out"],
      "/proc/falsify-out"),
     ("grid --out on a read-only file system", ["grid", "SMOKE", "--out", "/proc/falsify-run"],
