@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import shlex
 import sys
 from types import ModuleType
 from typing import NamedTuple
@@ -125,9 +126,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     is_run = argv[:1] in (["grid"], ["search"])
+    resumable = is_run or argv[:1] in (["train"], ["retrain"])
     out = run_folder(argv)
     try:
-        with stop_signals() if is_run else contextlib.nullcontext(), lock_early(out, argv):
+        with stop_signals() if resumable else contextlib.nullcontext(), lock_early(out, argv):
             parser = build_parser()
             args = parser.parse_args(argv)
             args.argv = argv   # as typed: a stopped run's message repeats it to continue
@@ -138,7 +140,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as exc:
         what, code = stop_name(exc)
         bar = "\n" if is_run and sys.stderr.isatty() else ""   # end the progress bar's line
-        print(f"{bar}falsify: {what}" + (f": {interrupted_text(argv, out)}" if out else ""),
+        again = shlex.join(["falsify", *argv, *([] if "--resume" in argv else ["--resume"])])
+        print(f"{bar}falsify: {what}" + (f": {interrupted_text(argv, out)}" if out else
+                                          f"; continue with: {again}" if resumable else ""),
               file=sys.stderr)
         return code
 

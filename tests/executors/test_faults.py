@@ -267,3 +267,24 @@ def test_a_signal_stops_workers_and_keeps_the_rows(tmp_path, sig, code):
     r = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert stored(run) == (24, 24)
+
+
+@pytest.mark.parametrize("command", ["train", "retrain"])
+def test_a_stopped_training_names_the_command_that_continues_it(monkeypatch, capsys, command):
+    """train and retrain keep their state as they go; stopped, they say how to go on."""
+    import falsify.cli as cli
+    from falsify.cli.signals import Terminated
+
+    def stopped(args):
+        raise Terminated()
+
+    module = next(c.module for c in cli.COMMANDS if c.name == command)
+    monkeypatch.setattr(module, "run", stopped)
+    argv = [command, "--data", "my scans", "--out", "t"] if command == "train" else [
+        command, "c.toml", "--model", "m.onnx", "--train-data", "d", "--validation-backgrounds",
+        "0", "--retraining-backgrounds", "5", "--out", "t", "--resume"]
+    assert cli.main(argv) == 143
+    err = capsys.readouterr().err
+    want = "falsify " + " ".join(f"'{a}'" if " " in a else a for a in argv)
+    assert err == f"falsify: terminated; continue with: {want}" + (
+        "" if "--resume" in argv else " --resume") + "\n"
