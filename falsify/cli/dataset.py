@@ -3,19 +3,34 @@
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 from falsify.checks import check_out_dir, check_seed
 from falsify.cli.common import UsageError, emit
+from falsify.fileio import write_json
 
 # `dataset`'s drop for sensors without a fitted return model: real sensors lose some returns.
 UNIFORM_RAY_DROP = 0.05
 
 
+# index.json's keys and the options (or config) that set them, for a resume that differs
+INDEX_OPTIONS = {"seed": "--seed", "sensor": "the config's sensor", "camera": "--camera",
+                 "first_background": "--first-background", "backgrounds": "--backgrounds",
+                 "max_cars": "--max-cars", "ray_drop": "--ray-drop",
+                 "range_noise": "--range-noise", "traffic": "--traffic", "world": "--world",
+                 "effects": "the config's effect dims", "labels": "--labels",
+                 "format": "--format", "sequence": "--format"}
+# what a key missing from index.json means (the index leaves defaults out)
+INDEX_DEFAULTS = {"format": "npy", "labels": "kitti4", "traffic": "scattered"}
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", help="a space config: its sensor is used, not its dims")
     p.add_argument("--scans", type=int, required=True)
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True,
+                   help="a new or empty folder; or one this command wrote, to resume or extend "
+                   "it with the same options (--scans at least the set's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--first-background", type=int, default=1000)
     p.add_argument("--backgrounds", type=int, default=1000)
@@ -45,7 +60,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from falsify.data.training import TrafficOptions, write_dataset, write_dataset_parallel
+    from falsify.data.training import (
+        TrafficOptions,
+        dataset_index,
+        write_dataset,
+        write_dataset_parallel,
+    )
     from falsify.sensor.lidar import load_sensor
     from falsify.world.space import load_space
 
@@ -83,6 +103,10 @@ def run(args) -> int:
                           first_background=args.first_background, traffic=args.traffic,
                           world=world)
     if args.format == "kitti-object":
+        from falsify.data.kitti_export import kitti_object_index
+        from falsify.sensor.camera import camera_preset
+        check_resumable(Path(args.out), kitti_object_index(
+            sensor, camera_preset(args.camera).name, args.scans, args.seed, opts))
         from falsify.cli.camera import dataset_kitti_object
         summary, text = dataset_kitti_object(sensor, args.camera, Path(args.out), args.scans,
                                              args.seed, opts)
@@ -99,6 +123,7 @@ def run(args) -> int:
         raise UsageError(f"--labels {args.labels}: only --format npy holds labels in channel 5 "
                          "(semantickitti files carry SemanticKITTI's ids anyway)")
     kwargs = dict(seed=args.seed, opts=opts, weather=space, fmt=args.format, labels=args.labels)
+    check_resumable(Path(args.out), dataset_index(sensor, args.scans, **kwargs))
     if args.workers > 1:
         summary = write_dataset_parallel(args.workers, sensor, Path(args.out), args.scans,
                                          **kwargs)
@@ -108,3 +133,38 @@ def run(args) -> int:
     emit(args, summary, f"wrote {summary['written']} scans to {args.out} "
          f"({summary['scans']} in the set); points per class {summary['points_per_class']}")
     return 0
+
+
+def check_resumable(out: Path, index: dict) -> None:
+    """--out new or empty, or a set this command wrote with the same options and no more scans
+    than asked for (a resume or an extension: every scan depends on (seed, index) alone); then
+    index.json is written before any scan, so a killed run can be resumed and checked too."""
+    count = "frames" if "frames" in index else "scans"
+    if out.is_dir() and any(out.iterdir()):
+        path = out / "index.json"
+        try:
+            old = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise UsageError(f"--out {out}: not empty and holds no dataset (no index.json); "
+                             "choose a new or empty folder") from None
+        except (OSError, ValueError) as exc:
+            raise UsageError(f"--out {out}: cannot read {path} ({exc}); choose a new or empty "
+                             "folder") from None
+        if not isinstance(old, dict):
+            raise UsageError(f"--out {out}: {path} is not a dataset index; choose a new or "
+                             "empty folder")
+        for key in sorted((set(old) | set(index)) - {count}, key=lambda k: (k != "format", k)):
+            there, now = (d.get(key, INDEX_DEFAULTS.get(key)) for d in (old, index))
+            if there != now:
+                option = INDEX_OPTIONS.get(key, key)
+                raise UsageError(f"--out {out} holds a dataset made with other options: {key} "
+                                 f"({option}) is {there!r} there, {now!r} now; "
+                                 "give the same options to resume or extend it, or choose "
+                                 "another --out")
+        if not isinstance(old.get(count), int) or index[count] < old[count]:
+            raise UsageError(f"--scans {index[count]}: --out {out} already holds a set of "
+                             f"{old.get(count)} scans; give --scans {old.get(count)} or more to "
+                             "resume or extend it, or choose another --out")
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "index.json", index)

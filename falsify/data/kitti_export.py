@@ -85,6 +85,15 @@ def boxes_in_view(sim: Simulator, bg_id: int, placed: list[PlacedCar], pose: Sen
     return out
 
 
+def kitti_object_index(sensor: Sensor, camera: str, frames: int, seed: int = 0,
+                       opts: TrafficOptions = TrafficOptions()) -> dict:
+    """The index.json `write_kitti_object` writes: what decides its frames, so a resumed set
+    can be checked against the one already there."""
+    return {"format": "kitti-object", "frames": frames, "seed": seed, "sensor": sensor.name,
+            "camera": camera, "first_background": opts.first_background,
+            "backgrounds": opts.backgrounds, "max_cars": opts.max_cars}
+
+
 def write_kitti_object(sensor: Sensor, camera: Camera, out: Path, frames: int, seed: int = 0,
                        opts: TrafficOptions = TrafficOptions()) -> KittiExport:
     """Write frames 0..frames-1 (skipping complete ones already there) and index.json."""
@@ -121,8 +130,5 @@ def write_kitti_object(sensor: Sensor, camera: Camera, out: Path, frames: int, s
         write_text(paths["calib"], calib_text)
         write_text(paths["label_2"], "".join(line + "\n" for line in lines))
         written += 1
-    write_json(out / "index.json", {"format": "kitti-object", "frames": frames, "seed": seed,
-                                    "sensor": sensor.name, "camera": camera.name,
-                                    "first_background": opts.first_background,
-                                    "backgrounds": opts.backgrounds, "max_cars": opts.max_cars})
+    write_json(out / "index.json", kitti_object_index(sensor, camera.name, frames, seed, opts))
     return KittiExport(str(out), frames, written, counts, camera.name, sensor.name)

@@ -195,6 +195,23 @@ def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
         written += 1
         if on_progress is not None and written % 50 == 0:
             on_progress(i + 1, scans)
+    index = dataset_index(sensor, scans, seed, opts, weather, fmt, labels)
+    extra: dict = {}
+    if semantickitti:
+        _write_calib_and_poses(out / "sequences" / SEMANTICKITTI_SEQUENCE, poses)
+        extra["points_per_semantic"] = {RAW_NAMES.get(int(k), str(int(k))): int(sem_counts[k])
+                                        for k in np.flatnonzero(sem_counts)}
+    write_json(out / "index.json", index)
+    return {**index, "written": written, "points_per_class": dict(
+        zip(CLASSES, counts.tolist(), strict=True)), **extra}
+
+
+def dataset_index(sensor: Sensor, scans: int, seed: int = 0,
+                  opts: TrafficOptions = TrafficOptions(), weather: Space | None = None,
+                  fmt: str = "npy", labels: str = "kitti4") -> dict:
+    """The index.json of a set `write_dataset` writes with these arguments: what decides its
+    scans, so a resumed or extended set can be checked against the one already there."""
+    drawn = [] if weather is None else [d for d in EFFECT_DIMS if d in weather.dims]
     index = {"scans": scans, "seed": seed, "sensor": sensor.name,
              "first_background": opts.first_background, "backgrounds": opts.backgrounds,
              "max_cars": opts.max_cars, "ray_drop": sensor.ray_drop,
@@ -205,18 +222,12 @@ def write_dataset(sensor: Sensor, out: Path, scans: int, seed: int = 0,
         index["world"] = opts.world.name
     if drawn:   # so do clear sets
         index["effects"] = {d: _drawn_from(weather.dims[d]) for d in drawn}
-    extra: dict = {}
     if labels != "kitti4":
         index["labels"] = labels
-    if semantickitti:   # npy sets keep their index byte for byte too
+    if fmt == "semantickitti":   # npy sets keep their index byte for byte too
         index["format"] = fmt
         index["sequence"] = SEMANTICKITTI_SEQUENCE
-        _write_calib_and_poses(out / "sequences" / SEMANTICKITTI_SEQUENCE, poses)
-        extra["points_per_semantic"] = {RAW_NAMES.get(int(k), str(int(k))): int(sem_counts[k])
-                                        for k in np.flatnonzero(sem_counts)}
-    write_json(out / "index.json", index)
-    return {**index, "written": written, "points_per_class": dict(
-        zip(CLASSES, counts.tolist(), strict=True)), **extra}
+    return index
 
 
 def semantickitti_paths(out: Path, index: int) -> tuple[Path, Path]:
