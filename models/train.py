@@ -9,14 +9,17 @@ SemanticKITTI's 19 train ids (falsify.semantic; 0 unlabeled is ignored by the lo
 by ``falsify dataset --labels semantickitti``. bf16 autocast on a CUDA device where it has it.
 
 Writes into --out: ``checkpoint.pt`` (every epoch and at the time limit: model, optimiser, epoch,
-step, torch RNG), ``train_log.jsonl`` (one line per epoch), and at the end ``squeezeseg.pt``
-(weights only), ``squeezeseg.onnx`` + ``squeezeseg.json``. Real KITTI scans must not be --data.
+step, torch RNG, the run's options), ``train_log.jsonl`` (one line per epoch), and at the end
+``squeezeseg.pt`` (weights only), ``squeezeseg.onnx`` + ``squeezeseg.json``. Real KITTI scans
+must not be --data. An --out holding a run is continued only with --resume, and only with the
+options that decide its weights unchanged (RESUME_KEYS; --epochs may grow).
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import time
 from collections.abc import Sequence
@@ -25,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from falsify.checks import check_out_dir, check_range, check_seed
 from falsify.errors import FalsifyError
 from falsify.models.spec import ALL_CHANNELS, DEFAULT_CHANNELS, normalise
 
@@ -33,6 +37,10 @@ CLASS_SETS = ("kitti4", "semantickitti")
 WEIGHT_SCANS = 200   # scans whose label counts set the semantickitti class weights
 CHECKPOINT = "checkpoint.pt"
 LOG = "train_log.jsonl"
+RUN_FILES = (CHECKPOINT, LOG, "squeezeseg.pt", "squeezeseg.onnx")   # what a run leaves in --out
+# the options a resumed run must keep: they decide its weights (--epochs may grow)
+RESUME_KEYS = ("data", "batch", "seed", "lr", "lr_decay", "weight_decay", "crf_iterations",
+               "channels", "classes", "loss_on", "crf_only")
 
 
 @dataclass
@@ -253,7 +261,8 @@ def train(cfg: TrainConfig) -> dict:
             run.epoch, run.step = run.epoch + 1, 0
         _save_atomic({"model": model.state_dict(), "optim": opt.state_dict(), "epoch": run.epoch,
                       "step": run.step, "torch_rng": torch.get_rng_state(),
-                      "config": json.dumps(asdict(cfg))}, ckpt_path)
+                      "config": json.dumps(asdict(cfg)),
+                      "data_path": str(Path(cfg.data).resolve())}, ckpt_path)
         run.last = _epoch_record(cfg, run, end_of_epoch, batches, losses, frames, sec, use_bf16)
         if val_files and (end_of_epoch or run.stopped != "done"):
             run.last.update(validate(model, val_files, cfg, shape, autocast))
@@ -283,6 +292,8 @@ class _Progress:
 def _checked_inputs(cfg: TrainConfig, torch) -> tuple[list[Path], list[Path], tuple[int, int]]:
     """The training and validation scans and the scans' (H, W), once every option has been
     checked; sets torch's threads and deterministic algorithms on the way, as training needs."""
+    _check_numbers(cfg)
+    check_out_dir(cfg.out)
     files = list_scans(cfg.data)
     first = load_scan(files[0])
     shape = first.shape[:2]
@@ -313,7 +324,82 @@ def _checked_inputs(cfg: TrainConfig, torch) -> tuple[list[Path], list[Path], tu
         raise FalsifyError(f"--init {cfg.init}: no such file")
     if cfg.precision not in ("auto", "bf16", "fp32"):
         raise FalsifyError(f"--precision must be auto, bf16 or fp32, got {cfg.precision!r}")
+    check_labels(cfg.data, cfg.classes, "--data")
+    if cfg.val_data:
+        check_labels(cfg.val_data, cfg.classes, "--val-data")
+    _check_out(cfg, torch)
     return files, val_files, shape
+
+
+def _check_numbers(cfg: TrainConfig) -> None:
+    """Counts and rates a run can train with: a zero batch or a negative rate fails deep in
+    torch, and zero epochs would write untrained weights as a model."""
+    check_range(cfg.epochs, "--epochs", 1)
+    check_range(cfg.batch, "--batch", 1)
+    check_range(cfg.threads, "--threads", 1)
+    check_seed(cfg.seed)
+    if not (math.isfinite(cfg.lr) and cfg.lr > 0):
+        raise FalsifyError(f"--lr: {cfg.lr} must be a number > 0")
+    if not (math.isfinite(cfg.lr_decay) and 0 < cfg.lr_decay <= 1):
+        raise FalsifyError(f"--lr-decay: {cfg.lr_decay} must be in (0, 1]")
+    if cfg.time_limit_min is not None and not cfg.time_limit_min > 0:
+        raise FalsifyError(f"--time-limit-min: {cfg.time_limit_min} must be > 0")
+
+
+def check_labels(folder: str, classes: str, option: str, fix: str | None = None) -> None:
+    """The label set a `falsify dataset` folder's index.json records (our four classes when it
+    names none) is `classes`: other ids fail mid-run or train nonsense. `fix`: what to do
+    instead (default: pass --classes to match)."""
+    path = Path(folder) / "index.json"
+    try:
+        index = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return   # not a `falsify dataset` folder: nothing records its labels
+    labels = index.get("labels", "kitti4") if isinstance(index, dict) else "kitti4"
+    if labels in CLASS_SETS and labels != classes:
+        raise FalsifyError(f"{option} {folder}: its scans hold {labels} labels ({path}), not "
+                           f"{classes}; {fix or f'pass --classes {labels}'}")
+
+
+def _same_path(a: str | None, b: str | None) -> bool:
+    """Two option values naming the same file or folder (as written, or once resolved)."""
+    if a is None or b is None:
+        return a == b
+    return a == b or Path(a).resolve() == Path(b).resolve()
+
+
+def _check_out(cfg: TrainConfig, torch) -> None:
+    """--out without a training run in it, or (with --resume) one of the same run: the options
+    in RESUME_KEYS as stored in its checkpoint, and --epochs no fewer than it has trained."""
+    out = Path(cfg.out)
+    if not cfg.resume:
+        held = [n for n in RUN_FILES if (out / n).exists()]
+        if held:
+            raise FalsifyError(f"--out {out} already holds a training run ({held[0]}); pass "
+                               "--resume to continue it or choose another --out")
+        return
+    ckpt_path = out / CHECKPOINT
+    if not ckpt_path.is_file():
+        raise FalsifyError(f"--resume: no checkpoint {ckpt_path}")
+    ck = _load(ckpt_path, "--resume", torch)
+    try:
+        old = json.loads(ck["config"])
+    except (KeyError, TypeError, ValueError):
+        raise FalsifyError(f"--resume {ckpt_path}: holds no run options (not a checkpoint of "
+                           "`falsify train`)") from None
+    now = json.loads(json.dumps(asdict(cfg)))   # tuples as lists, as stored
+    for key in RESUME_KEYS:
+        there, here = old.get(key), now[key]
+        same = there == here
+        if key == "data":   # a relative --data names the same folder from another directory
+            same = _same_path(ck.get("data_path", there), here)
+        if not same:
+            raise FalsifyError(f"--resume: {key} differs from the run in {out} ({there!r} "
+                               f"there, {here!r} now)")
+    if cfg.epochs < int(ck.get("epoch", 0)):
+        raise FalsifyError(f"--resume --epochs {cfg.epochs}: the run in {out} has trained "
+                           f"{ck.get('epoch')} epochs already; give --epochs {ck.get('epoch')} "
+                           "or more")
 
 
 def _use_bf16(cfg: TrainConfig, torch) -> bool:
@@ -348,9 +434,7 @@ def _restore(cfg: TrainConfig, model, opt, ckpt_path: Path, torch) -> tuple[int,
     """--resume: the checkpoint's model, optimiser and RNG, and its (epoch, step); --init: the
     weights only, from (0, 0); neither: (0, 0)."""
     epoch, step = 0, 0
-    if cfg.resume:
-        if not ckpt_path.is_file():
-            raise FalsifyError(f"--resume: no checkpoint {ckpt_path}")
+    if cfg.resume:   # the checkpoint is there and of this run (_check_out)
         ck = _load(ckpt_path, "--resume", torch)
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optim"])

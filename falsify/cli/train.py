@@ -15,7 +15,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--epochs", type=int, default=30)
     p.add_argument("--batch", type=int, default=8)
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from OUT/checkpoint.pt, with the run's options (--data, "
+                   "--batch, --lr, --seed, --channels, --classes, ...); --epochs may grow")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--time-limit-min", type=float, default=None)
     p.add_argument("--val-data", default=None, help="folder of *.npy scans for car IoU")

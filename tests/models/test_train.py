@@ -103,3 +103,76 @@ def test_crf_only_fine_tune_moves_only_the_compatibility(data, tmp_path):
     assert changed and all(k.startswith("crf.") for k in changed)
     assert main(["--data", str(data), "--out", str(tmp_path / "x"), "--crf-only",
                  *ARGS]) == 2  # needs --loss-on crf
+
+
+def _files(root) -> list[str]:
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+@pytest.mark.parametrize("argv, names", [
+    (["--batch", "0"], "--batch"),
+    (["--lr", "-1"], "--lr"),
+    (["--lr", "nan"], "--lr"),
+    (["--epochs", "0"], "--epochs"),
+    (["--threads", "0"], "--threads"),
+])
+def test_bad_numbers_exit_2_and_write_nothing(data, tmp_path, capsys, argv, names):
+    out = tmp_path / "o"
+    assert main(["--data", str(data), "--out", str(out), *argv]) == 2
+    assert names in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_out_an_existing_file_exits_2(data, tmp_path, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("mine\n")
+    assert main(["--data", str(data), "--out", str(afile), *ARGS]) == 2
+    assert f"--out {afile}" in capsys.readouterr().err
+    assert afile.read_text() == "mine\n"
+
+
+def test_semantickitti_labels_need_classes_semantickitti(data, tmp_path, capsys):
+    sk = tmp_path / "sk"
+    sk.mkdir()
+    for f in data.glob("*.npy"):
+        (sk / f.name).write_bytes(f.read_bytes())
+    (sk / "index.json").write_text(json.dumps({"scans": 4, "labels": "semantickitti"}))
+    out = tmp_path / "o"
+    assert main(["--data", str(sk), "--out", str(out), *ARGS]) == 2
+    err = capsys.readouterr().err
+    assert f"--data {sk}" in err and "--classes semantickitti" in err
+    assert not out.exists()
+
+
+def test_out_holding_a_run_needs_resume_and_resume_keeps_the_options(data, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["--data", str(data), "--out", str(out), "--epochs", "1", "--max-steps", "1",
+                 "--no-export", *ARGS]) == 0
+    capsys.readouterr()
+    before = {p: (out / p).read_bytes() for p in _files(out)}
+    # without --resume: refused, the run untouched
+    assert main(["--data", str(data), "--out", str(out), "--epochs", "1", *ARGS]) == 2
+    err = capsys.readouterr().err
+    assert f"--out {out} already holds a training run" in err and "--resume" in err
+    # --resume with other options: refused naming the option and both values
+    other = tmp_path / "other-scans"
+    other.mkdir()
+    for f in data.glob("*.npy"):
+        (other / f.name).write_bytes(f.read_bytes())
+    for argv, want in [(["--batch", "1"], "batch differs"), (["--lr", "0.01"], "lr differs"),
+                       (["--seed", "4"], "seed differs"),
+                       (["--channels", "x,y,z"], "channels differs")]:
+        changed = dict(zip(ARGS[::2], ARGS[1::2], strict=True))
+        changed.update(dict(zip(argv[::2], argv[1::2], strict=True)))
+        flat = [v for kv in changed.items() for v in kv]
+        assert main(["--data", str(data), "--out", str(out), "--epochs", "1", "--resume",
+                     *flat]) == 2, argv
+        err = capsys.readouterr().err
+        assert want in err and f"the run in {out}" in err, err
+    assert main(["--data", str(other), "--out", str(out), "--epochs", "1", "--resume",
+                 *ARGS]) == 2
+    assert "data differs" in capsys.readouterr().err
+    assert {p: (out / p).read_bytes() for p in _files(out)} == before
+    # more epochs with the same options is a resume
+    assert main(["--data", str(data), "--out", str(out), "--epochs", "2", "--resume",
+                 "--max-steps", "1", "--no-export", *ARGS]) == 0
