@@ -23,7 +23,13 @@ import numpy as np
 
 from falsify.classes import CAR
 from falsify.errors import FalsifyError
-from falsify.models.train import CLASS_WEIGHTS, batch_tensors, list_scans, load_scan
+from falsify.models.train import (
+    CLASS_WEIGHTS,
+    batch_tensors,
+    check_labels,
+    list_scans,
+    load_scan,
+)
 from falsify.results.metrics import class_scores, confusion
 
 DEFAULT_ALPHAS = tuple(round(0.05 * i, 2) for i in range(21))
@@ -88,6 +94,8 @@ def choose_alpha(state: dict, val: str | Path, alphas: Sequence[float] = DEFAULT
     if threads:
         torch.set_num_threads(int(threads))
     files = list_scans(val, "--val")
+    check_labels(str(val), "kitti4", "--val", "adjust scores our four classes: name a folder "
+                 "of `falsify dataset --labels kitti4` scans")
     model = SqueezeSeg(DEFAULT_CHANNELS, crf_iterations=crf_iterations)
     try:
         model.load_state_dict(state)
@@ -100,6 +108,11 @@ def choose_alpha(state: dict, val: str | Path, alphas: Sequence[float] = DEFAULT
         for i in range(0, len(files), BATCH):
             scans = np.stack([load_scan(f) for f in files[i:i + BATCH]])
             x, xyz, mask, labels = batch_tensors(scans, DEFAULT_CHANNELS)
+            if int(labels.max()) >= len(CLASS_WEIGHTS):
+                raise FalsifyError(f"--val {val}: a scan from {files[i].name} on holds "
+                                   f"label id {int(labels.max())}; adjust scores our four classes "
+                                   f"(0..{len(CLASS_WEIGHTS) - 1}): name a folder of "
+                                   "`falsify dataset --labels kitti4` scans")
             logits = model.backbone(x)
             invalid = scans[..., 4] <= 0
             for k, a in enumerate(alphas):

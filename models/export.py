@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from falsify.checks import check_out_file, check_range
 from falsify.errors import FalsifyError
 from falsify.models.spec import (
     ModelSpec,
@@ -286,6 +287,13 @@ def export_weights(weights: str | Path, out: str | Path, crf_iterations: int = 3
     recorded in the spec; with `int8`, also a static int8 copy there, calibrated on
     `calibration_scans` training-style synthetic scenes (default 64). Returns the files written;
     FalsifyError before writing anything on bad input."""
+    out = check_out_file(out)
+    if out.suffix != ".onnx":   # the spec and weights go beside it as .json and .pt
+        raise FalsifyError(f"--out {out}: must end in .onnx")
+    check_range(height, "--height", 1)
+    check_range(width, "--width", 1)
+    if int8:
+        check_out_file(int8, "--int8")
     if int8 and (height, width) != (64, 512):
         raise FalsifyError("--int8 calibrates on the kitti-hdl64e-front preset: 64 x 512 only")
     bad = [n for n in notes if "=" not in n or not n.split("=", 1)[0]]
@@ -302,7 +310,6 @@ def export_weights(weights: str | Path, out: str | Path, crf_iterations: int = 3
         raise FalsifyError(f"{weights}: not SqueezeSeg weights "
                            f"({str(exc).splitlines()[0]})") from None
     extra = dict(n.split("=", 1) for n in notes)
-    out = Path(out)
     path, spec = export_onnx(model, out, H=height, W=width, name=out.stem, **extra)
     torch.save({k: v.contiguous() for k, v in model.state_dict().items()}, out.with_suffix(".pt"))
     written = {"onnx": str(path), "spec": str(spec_path_for(path)),

@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from falsify.checks import check_out_dir
 from falsify.cli.common import UsageError, emit, predict_sequences
 
 
@@ -45,6 +46,7 @@ def run(args) -> int:
     from falsify.reports.realism_page import render_realism
     from falsify.sensor.lidar import load_sensor
 
+    check_out_dir(args.out)   # before the work: a minute or more of encoding
     if args.scans is not None and args.scans < 1:
         raise UsageError(f"--scans: {args.scans} must be >= 1")
     if args.bootstrap < 0:

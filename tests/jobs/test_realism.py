@@ -389,6 +389,16 @@ def test_realism_bad_inputs_exit_2(sets, tmp_path: Path, capsys) -> None:
         assert not out.exists()
 
 
+@pytest.mark.skipif(not BUNDLED.exists(), reason="bundled model not trained yet")
+def test_realism_out_a_file_exits_2_before_the_work(sets, tmp_path: Path, capsys) -> None:
+    afile = tmp_path / "afile"
+    afile.write_text("mine\n")
+    code, _, err = run(["realism", str(sets["old"]), "--real", str(sets["real"]),
+                        "--bootstrap", "0", "--out", str(afile)], capsys)
+    assert code == 2 and f"--out {afile}" in err, err
+    assert afile.read_text() == "mine\n"
+
+
 # -- the page ---------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def page_doc(sets, tmp_path_factory) -> dict:

@@ -101,6 +101,8 @@ def test_cli_writes_the_chosen_adjustment(val, state, tmp_path, capsys):
     (["--val-empty"], "no *.npy scans"),
     (["--weights-bad"], "cannot load weights"),
     (["--val-no-car"], "no car points"),
+    (["--val-semantickitti-index"], "semantickitti labels"),
+    (["--val-semantickitti-ids"], "label id 19"),
 ])
 def test_bad_input_exits_2_naming_it_and_writes_nothing(val, tmp_path, capsys, args, needle):
     src = tmp_path / "w.pt"
@@ -121,6 +123,36 @@ def test_bad_input_exits_2_naming_it_and_writes_nothing(val, tmp_path, capsys, a
         scan = np.load(next(val.glob("*.npy")))
         scan[..., 5] = np.where(scan[..., 5] == 1, 0, scan[..., 5])
         np.save(v / "000000.npy", scan)
+    elif args in (["--val-semantickitti-index"], ["--val-semantickitti-ids"]):
+        v = tmp_path / "sk"
+        v.mkdir()
+        scan = np.load(next(val.glob("*.npy")))
+        scan[..., 5] = np.where(scan[..., 5] == 1, 19, scan[..., 5])   # SemanticKITTI's ids
+        np.save(v / "000000.npy", scan)
+        if args == ["--val-semantickitti-index"]:
+            (v / "index.json").write_text(json.dumps({"scans": 1, "labels": "semantickitti"}))
+        args = []
     assert main([str(src), "--val", str(v), "--out", str(out), *args]) == 2
     assert needle in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--height", "0"], "--height"),
+    (["--width", "-3"], "--width"),
+    (["--out-name", "m"], "must end in .onnx"),
+    (["--out-name", "afile"], "must end in .onnx"),
+])
+def test_export_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, args, needle):
+    src = tmp_path / "w.pt"
+    torch.save(SqueezeSeg(DEFAULT_CHANNELS).state_dict(), src)
+    (tmp_path / "afile").write_text("mine\n")
+    out = tmp_path / "d" / "m.onnx"
+    if args[0] == "--out-name":
+        out, args = tmp_path / args[1], []
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    assert falsify_main(["export", str(src), "--out", str(out), *args]) == 2
+    err = capsys.readouterr().err
+    assert needle in err and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before
+    assert (tmp_path / "afile").read_text() == "mine\n"
