@@ -130,6 +130,7 @@ def run(args) -> int:
     else:
         summary = write_dataset(sensor, Path(args.out), args.scans,
                                 on_progress=None if args.json else progress, **kwargs)
+    summary = {"out": str(args.out), "format": args.format, **summary}   # as every format says
     emit(args, summary, f"wrote {summary['written']} scans to {args.out} "
          f"({summary['scans']} in the set); points per class {summary['points_per_class']}")
     return 0

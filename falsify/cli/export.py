@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from falsify.cli.common import int_in
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("weights", help="a state dict (.pt) or a training checkpoint.pt")
@@ -17,7 +19,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--int8", default=None, metavar="PATH",
                    help="also write a static int8 copy (CRF kept fp32) to PATH, calibrated on "
                    "training-style synthetic scenes")
-    p.add_argument("--calibration-scans", type=int, default=None, choices=range(1, 1025),
+    p.add_argument("--calibration-scans", type=int_in(1, 1024), default=None,
                    metavar="N", help="--int8: how many scenes to calibrate on (default 64)")
 
 

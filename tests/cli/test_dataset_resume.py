@@ -37,7 +37,8 @@ def test_index_is_written_and_an_extension_keeps_the_scans(made, tmp_path, capsy
         (out / name).write_bytes(data)
     old = snapshot(out)
     assert dataset(out, "--scans", "2") == 0          # a resume with nothing left to do
-    assert json.loads(capsys.readouterr().out)["written"] == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["written"] == 0 and (summary["out"], summary["format"]) == (str(out), "npy")
     assert dataset(out, "--scans", "3") == 0          # an extension
     now = snapshot(out)
     assert all(now[k] == v for k, v in old.items() if k != "index.json")
