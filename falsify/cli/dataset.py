@@ -54,8 +54,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--format", choices=["npy", "kitti-object", "semantickitti"], default="npy",
                    help="npy: range images; kitti-object: velodyne, image_2, calib, label_2; "
                    "semantickitti: sequences/00/velodyne/*.bin, labels/*.label (raw ids)")
-    p.add_argument("--camera", default="kitti-centre", metavar="PRESET",
-                   help="kitti-object: the camera preset (kitti-centre or kitti-rig)")
+    p.add_argument("--camera", default=None, metavar="PRESET",
+                   help="kitti-object: the camera preset (kitti-centre, the default, or "
+                   "kitti-rig); no other format renders the camera")
     p.add_argument("--json", action="store_true")
 
 
@@ -102,7 +103,11 @@ def run(args) -> int:
     opts = TrafficOptions(max_cars=args.max_cars, backgrounds=args.backgrounds,
                           first_background=args.first_background, traffic=args.traffic,
                           world=world)
+    if args.camera is not None and args.format != "kitti-object":
+        raise UsageError(f"--camera {args.camera}: only --format kitti-object renders the "
+                         f"camera (--format {args.format} writes LiDAR scans alone)")
     if args.format == "kitti-object":
+        args.camera = args.camera or "kitti-centre"
         from falsify.data.kitti_export import kitti_object_index
         from falsify.sensor.camera import camera_preset
         check_resumable(Path(args.out), kitti_object_index(

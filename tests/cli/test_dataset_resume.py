@@ -68,3 +68,14 @@ def test_a_folder_holding_something_else_is_refused(tmp_path, capsys):
     assert dataset(out, "--scans", "1") == 2
     assert f"--out {out}: not empty" in capsys.readouterr().err
     assert snapshot(out) == {"notes.txt": b"mine\n"}
+
+
+def test_camera_is_refused_where_no_camera_renders(tmp_path, capsys):
+    """--camera with npy or semantickitti did nothing, unsaid; kitti-object still takes it."""
+    for fmt in ("npy", "semantickitti"):
+        assert dataset(tmp_path / fmt, "--scans", "1", "--format", fmt, "--camera",
+                       "kitti-rig") == 2
+        assert "only --format kitti-object renders the camera" in capsys.readouterr().err
+        assert not (tmp_path / fmt).exists()
+    assert dataset(tmp_path / "ko", "--scans", "1", "--format", "kitti-object") == 0
+    assert json.loads((tmp_path / "ko" / "index.json").read_text())["camera"] == "kitti-centre"
