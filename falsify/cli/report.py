@@ -24,8 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from falsify.jobs.report import compare_differences, write_report
-    from falsify.results.store import open_run
+    from falsify.jobs.report import write_report_of
 
     retrain = None
     if args.retrain:
@@ -35,12 +34,11 @@ def run(args) -> int:
         retrain = read_summary(Path(args.retrain), "--retrain")
     if args.out:
         check_out_file(args.out)
-    out = write_report(Path(args.run), Path(args.out) if args.out else None,
-                       Path(args.compare) if args.compare else None,
-                       predict=not args.no_predict, retrain=retrain, device=args.device)
+    written = write_report_of(Path(args.run), Path(args.out) if args.out else None,
+                              Path(args.compare) if args.compare else None,
+                              predict=not args.no_predict, retrain=retrain, device=args.device)
+    out, differs, done = written.path, list(written.differences), written.completeness
     size = out.stat().st_size
-    differs = list(compare_differences(Path(args.run), Path(args.compare))) if args.compare else []
-    done = open_run(Path(args.run)).completeness
     summary = {"run": args.run, "out": str(out), "bytes": size, "compare": args.compare,
                "compare_differs": differs, **done.to_json()}
     text = f"wrote {out} ({size / 1024:.0f} KiB)"

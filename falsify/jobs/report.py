@@ -13,7 +13,7 @@ from falsify.models.runners import Segmenter, load_segmenter
 from falsify.reports.run import WORST, ReplayedScan, ReportInput, render
 from falsify.results.explain import MIN_SUPPORT, Explanation, score_name
 from falsify.results.replay import Replay
-from falsify.results.store import RunData, open_run
+from falsify.results.store import Completeness, RunData, open_run
 
 
 def open_model(meta: dict, predict: bool, model: Segmenter | None = None,
@@ -127,35 +127,54 @@ def space_differences(before: RunData, after: RunData) -> tuple[str, ...]:
     return tuple(out)
 
 
-def compare_differences(run: Path, compare: Path) -> tuple[str, ...]:
-    """space_differences of two stored runs (the one before first)."""
-    return space_differences(open_run(compare), open_run(run))
+@dataclasses.dataclass(frozen=True)
+class WrittenReport:
+    """A report written: where, what differs from the run compared with, how complete the run
+    is (what the command says beside the page)."""
+
+    path: Path
+    differences: tuple[str, ...]
+    completeness: Completeness
+
+
+def report_input(run: Path, compare: Path | None = None, predict: bool = True,
+                 worst: int = WORST, model: Segmenter | None = None,
+                 retrain: dict | None = None, device: str = "cpu") -> ReportInput:
+    """Everything the report of `run` draws, each run opened once; `retrain` (a `falsify
+    retrain` summary, with `compare`) adds the experiment's section; `device` is where the
+    run's model predicts the previews when it is loaded here."""
+    data = open_run(run)
+    before = open_run(compare) if compare is not None else None
+    scans, note = replay_worst(data, worst, predict, model, device)
+    return ReportInput(data, before, scans, note, worst, retrain, explain_report(data),
+                       () if before is None else space_differences(before, data))
 
 
 def render_report(run: Path, compare: Path | None = None, predict: bool = True,
                   worst: int = WORST, model: Segmenter | None = None,
                   retrain: dict | None = None, device: str = "cpu") -> str:
-    """The report of `run` as one self-contained HTML string (deterministic for its inputs);
-    `retrain` (a `falsify retrain` summary, with `compare`) adds the experiment's section;
-    `device` is where the run's model predicts the previews when it is loaded here."""
-    data = open_run(run)
-    before = open_run(compare) if compare is not None else None
-    scans, note = replay_worst(data, worst, predict, model, device)
-    return render(ReportInput(data, before, scans, note, worst, retrain, explain_report(data),
-                              () if before is None else space_differences(before, data)))
+    """The report of `run` as one self-contained HTML string (deterministic for its inputs)."""
+    return render(report_input(run, compare, predict, worst, model, retrain, device))
+
+
+def write_report_of(run: Path, out: Path | None = None, compare: Path | None = None,
+                    predict: bool = True, model: Segmenter | None = None,
+                    retrain: dict | None = None, device: str = "cpu") -> WrittenReport:
+    """Render and write the report atomically (default RUN/report.html)."""
+    report = report_input(Path(run), None if compare is None else Path(compare), predict,
+                          model=model, retrain=retrain, device=device)
+    path = Path(out) if out is not None else Path(run) / "report.html"
+    if path.is_dir():
+        raise FalsifyError(f"--out {path}: is a directory")
+    try:
+        write_text(path, render(report))
+    except OSError as exc:
+        raise FalsifyError(f"--out {path}: cannot write ({exc.strerror})") from None
+    return WrittenReport(path, report.differences, report.run.completeness)
 
 
 def write_report(run: Path, out: Path | None = None, compare: Path | None = None,
                  predict: bool = True, model: Segmenter | None = None,
                  retrain: dict | None = None, device: str = "cpu") -> Path:
-    """Render and write the report atomically (default RUN/report.html); returns the path."""
-    text = render_report(Path(run), compare=None if compare is None else Path(compare),
-                         predict=predict, model=model, retrain=retrain, device=device)
-    path = Path(out) if out is not None else Path(run) / "report.html"
-    if path.is_dir():
-        raise FalsifyError(f"--out {path}: is a directory")
-    try:
-        write_text(path, text)
-    except OSError as exc:
-        raise FalsifyError(f"--out {path}: cannot write ({exc.strerror})") from None
-    return path
+    """write_report_of's path."""
+    return write_report_of(run, out, compare, predict, model, retrain, device).path
