@@ -82,8 +82,8 @@ def compare_section(before: RunData, after: RunData, after_map: CellMap,
 {warning}
 <p class="note">Before: {esc(before.path)} (model {esc(meta.get("model_name", "?"))}
 {esc(str(meta.get("model_hash") or "")[:12])}, config {esc(meta.get("space_name", "?"))}).
-Over {changes.size} cells scored in both runs ({only} of this run's not) the mIoU changed by
-{mean} on average:
+Over the {changes.size} cells scored in both runs (this run's other {only} are not) the mIoU
+changed by {mean} on average:
 {int((changes > 0).sum())} improved, {int((changes < 0).sum())} got worse. Blind spots
 {len(before_blind)} → {len(after_blind)} ({fixed} fixed, {new} new).</p>
 <div class="row">
