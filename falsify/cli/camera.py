@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from falsify.checks import check_out_dir
+from falsify.cli.common import int_in
 from falsify.errors import FalsifyError
 
 
@@ -61,9 +62,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="a folder for one overlay PNG per frame (none are written without it)")
     p.add_argument("--scenes", default=None, metavar="CONFIG",
                    help="instead: score car points on car pixels over samples of a space")
-    p.add_argument("--samples", type=int, default=100, help="--scenes: samples of the grid")
-    p.add_argument("--camera", default=DEFAULT_CAMERA, choices=CAMERA_PRESETS,
-                   help="--scenes: the camera preset")
+    p.add_argument("--samples", type=int_in(1, 1_000_000), default=None,
+                   help="--scenes: samples of the grid (default 100)")
+    p.add_argument("--camera", default=None, choices=CAMERA_PRESETS,
+                   help=f"--scenes: the camera preset (default {DEFAULT_CAMERA})")
     p.add_argument("--json", action="store_true")
 
 
@@ -72,15 +74,24 @@ def run(args) -> int:
     import json
 
     from falsify.jobs.calib import check_kitti_dir, scene_agreement
+    from falsify.sensor.camera import DEFAULT_CAMERA
 
     if (args.directory is None) == (args.scenes is None):
         raise FalsifyError("calib: give a KITTI object DIRECTORY or --scenes CONFIG (not both)")
     if args.scenes is not None:
-        res = scene_agreement(args.scenes, samples=args.samples, camera=args.camera)
+        if args.out is not None:
+            raise FalsifyError("calib --out: overlays are written for a KITTI object DIRECTORY "
+                               "only, not with --scenes")
+        res = scene_agreement(args.scenes, samples=args.samples or 100,
+                              camera=args.camera or DEFAULT_CAMERA)
         summary = res.to_json()
         text = (f"car points on car pixels ({res.camera}, {res.scored} of {res.samples} samples "
                 f"scored): median {res.median}, minimum {res.minimum}, pooled {res.pooled}")
     else:
+        for flag, value in (("--samples", args.samples), ("--camera", args.camera)):
+            if value is not None:
+                raise FalsifyError(f"calib {flag}: used with --scenes only; a KITTI object "
+                                   "DIRECTORY is read with its own calib files")
         if not Path(args.directory).is_dir():
             raise FalsifyError(f"{args.directory}: not a directory")
         if args.out is not None:

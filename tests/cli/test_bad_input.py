@@ -92,6 +92,8 @@ CASES = [   # (id, command line after `falsify`, a word the message must name)
     ("predict an empty .bin", ["predict", "empty.bin", "--out", "p"], "empty.bin"),
     ("predict a .bin of NaN", ["predict", "nan.bin", "--out", "p"], "nan.bin"),
     ("bench model --samples 0", ["bench", "model", "--samples", "0"], "--samples"),
+    ("calib --scenes --samples 0", ["calib", "--scenes", "SMOKE", "--samples", "0"],
+     "--samples: 0: allowed 1..1000000"),
     ("bench model --calibration-scans 0", ["bench", "model", "--calibration-scans", "0"],
      "--calibration-scans"),
     ("tradeoff --threads 0", ["tradeoff", "SMOKE", "--out", "t", "--threads", "0"],

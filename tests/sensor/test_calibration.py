@@ -13,6 +13,7 @@ from falsify.cli import main
 from falsify.data.kitti_object import format_calib, read_calib
 from falsify.errors import FalsifyError
 from falsify.jobs.calib import check_kitti_dir
+from falsify.paths import CONFIGS
 from falsify.sensor.calibration import (
     Extrinsic,
     KittiCalib,
@@ -179,3 +180,18 @@ def test_calib_writes_overlays_only_into_out(kitti_object, tmp_path, capsys, mon
     summary = json.loads(capsys.readouterr().out)
     assert summary["pooled"]["points_in_boxes"] > 1000
     assert summary["overlays"] == [] and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["DIR", "--samples", "5"], "calib --samples: used with --scenes only"),
+    (["DIR", "--camera", "kitti-centre"], "calib --camera: used with --scenes only"),
+    (["--scenes", "CONFIG", "--out", "OUT"], "calib --out: overlays are written for a KITTI"),
+])
+def test_calib_refuses_options_of_the_other_mode(tmp_path, capsys, argv, says):
+    """An option the chosen mode does not use is an error, not silently ignored."""
+    (tmp_path / "dir").mkdir()
+    argv = [{"DIR": str(tmp_path / "dir"), "CONFIG": str(CONFIGS / "smoke.toml"),
+             "OUT": str(tmp_path / "out")}.get(a, a) for a in argv]
+    assert main(["calib", *argv]) == 2
+    assert says in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
