@@ -32,7 +32,6 @@ TRAIN_CLASSES: tuple[str, ...] = (
     "vegetation", "trunk", "terrain", "pole", "traffic-sign",
 )
 TRAIN_ID: dict[str, int] = {name: i for i, name in enumerate(TRAIN_CLASSES)}
-IGNORE = 0
 
 _LEARNING_MAP: dict[int, str] = {
     0: "unlabeled", 1: "unlabeled", 10: "car", 11: "bicycle", 13: "other-vehicle",
@@ -60,14 +59,6 @@ _KITTI4_OF_TRAIN = {"car": CAR, "person": PEDESTRIAN, "bicyclist": CYCLIST, "mot
 KITTI4_OF_TRAIN = np.zeros(len(TRAIN_CLASSES), np.uint8)
 for _name, _cls in _KITTI4_OF_TRAIN.items():
     KITTI4_OF_TRAIN[TRAIN_ID[_name]] = _cls
-
-# train id -> RGB for pictures: our own palette, one hue family per group of classes
-TRAIN_RGB = np.array([
-    [0, 0, 0], [230, 60, 50], [250, 130, 200], [180, 60, 160], [150, 40, 40], [255, 120, 60],
-    [50, 120, 230], [240, 190, 30], [130, 90, 230], [120, 120, 130], [170, 120, 170],
-    [90, 60, 110], [120, 60, 60], [230, 190, 120], [150, 110, 40], [40, 160, 60], [110, 70, 30],
-    [150, 200, 90], [230, 230, 100], [250, 40, 250],
-], np.uint8)
 
 
 def split_label(label: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

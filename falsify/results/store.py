@@ -29,7 +29,6 @@ from falsify.results.samples import CAR_SCORING, SampleResult, sample_key
 from falsify.world.space import DEFAULT_THRESHOLD, RealScan, Sample, Space, parse_space
 
 STORE_NAME = "results.sqlite"
-METRIC_COLUMNS = CAR_SCORING.columns
 FIXED_COLUMNS = ["eval_index", "sample_key", "status", "reason", "car_points", "label_points",
                  "t_scan", "t_infer", "t_total", "seed", "model_hash", "config_hash"]
 TIMING_COLUMNS = ("t_scan", "t_infer", "t_total")
