@@ -210,7 +210,7 @@ def scans_under(paths: Sequence[str | Path], sequences: list[str] | None = None
                 ) -> list[tuple[Path, str]]:
     """(file, name) of every scan the paths name: .npy and .bin files, folders of them and
     SemanticKITTI roots (only `sequences`, when given); names are relative to the folder that
-    holds each path, so a manifest says no more of where its data sits."""
+    holds each path as given (links kept), so a manifest says no more of where its data sits."""
     from falsify.world.real_scans import real_scans
     out: list[tuple[Path, str]] = []
     for p in map(Path, paths):
@@ -219,7 +219,8 @@ def scans_under(paths: Sequence[str | Path], sequences: list[str] | None = None
         npys = [p] if p.suffix == ".npy" else sorted(p.glob("*.npy")) if p.is_dir() else []
         files = npys or [f for _, f, _, _ in real_scans([str(p)], sequences
                                                          if sequence_dirs(p) else None)]
-        out += [(f, f.resolve().relative_to(p.resolve().parent).as_posix()) for f in files]
+        base = Path(os.path.abspath(p)).parent
+        out += [(f, Path(os.path.abspath(f)).relative_to(base).as_posix()) for f in files]
     return out
 
 
@@ -227,8 +228,7 @@ def manifest_text(scans: Sequence[tuple[Path, str]], note: str = "") -> str:
     """A split manifest holding out `scans` ((file, name) pairs) by content (sha256, size)."""
     lines = ["# Held-out scans: only ever reported on; falsify refuses to fit, train or choose",
              "# on them (matched by content, wherever they are)."]
-    if note:
-        lines.append(f"# {note}")
+    lines += [f"# {line}" for line in note.splitlines()]
     lines += ["[holdout]", ""]
     for p, name in scans:
         lines += ["[[holdout.scan]]", f"name = {json.dumps(name)}",

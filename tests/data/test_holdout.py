@@ -168,3 +168,28 @@ def test_a_missing_manifest_and_an_empty_holdout_exit_2_writing_nothing(tmp_path
     assert main(["holdout", str(empty), "--out", str(manifest)]) == 2
     assert f"{empty}: no .bin scans here" in capsys.readouterr().err
     assert not manifest.exists()
+
+
+def test_a_manifest_of_linked_data_names_the_scans_as_given(tmp_path):
+    """A root of symlinked sequences and a folder of symlinked scans (links into another tree)
+    are named as the user laid them out, not where the links point."""
+    real = _sequence(tmp_path / "store", "05", 2)
+    root = tmp_path / "sk" / "sequences"
+    root.mkdir(parents=True)
+    (root / "05").symlink_to(real[0].parent.parent)
+    linked = tmp_path / "links"
+    linked.mkdir()
+    (linked / "a.bin").symlink_to(real[1])
+    manifest = tmp_path / "m.toml"
+    assert main(["holdout", str(tmp_path / "sk"), str(linked), "--out", str(manifest)]) == 0
+    assert [s.name for s in load_manifest(manifest).scans] == [
+        "sk/sequences/05/velodyne/000000.bin", "sk/sequences/05/velodyne/000001.bin",
+        "links/a.bin"]
+
+
+def test_a_note_of_several_lines_stays_a_comment(tmp_path):
+    (scan,) = _sequence(tmp_path / "a", "05", 1)
+    manifest = tmp_path / "m.toml"
+    assert main(["holdout", str(scan), "--out", str(manifest), "--note", "one\nsplit = 2"]) == 0
+    assert "# one\n# split = 2\n" in manifest.read_text()
+    assert len(load_manifest(manifest).scans) == 1
