@@ -11,7 +11,8 @@ from falsify.cli.common import emit, holdout_option, predict_sequences
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scans", nargs="+", help="KITTI object frames (velodyne/*.bin); with "
+    p.add_argument("scans", nargs="+", help="KITTI .bin frames or folders of them (an object "
+                   "directory's velodyne/); with "
                    "--labelled, SemanticKITTI roots, sequence folders or .bin scans with their "
                    ".label (fit data only: held-out scans are refused)")
     p.add_argument("--out", required=True, help="the return model's JSON file")
@@ -59,7 +60,7 @@ def run(args) -> int:
         from falsify.data.velodyne import fit_frames
         from falsify.jobs.fit_returns import fit
 
-        doc = fit(fit_frames(args.scans), _command(args))
+        doc = fit(fit_frames(args.scans, args.holdout or (), "fit-returns' frames"), _command(args))
         doc["name"] = name
     write_text(out, json.dumps(doc, indent=1) + "\n")
     p = doc["params"]

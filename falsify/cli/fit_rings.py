@@ -7,9 +7,13 @@ import argparse
 import json
 from dataclasses import asdict
 
+from falsify.cli.common import holdout_option
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("bins", nargs="+", help="KITTI object frames (velodyne/*.bin)")
+    p.add_argument("bins", nargs="+", help="KITTI .bin frames in their ring order, or folders "
+                   "of them (an object directory's velodyne/); held-out frames are refused")
+    holdout_option(p)
     p.add_argument("--json", action="store_true", help="print the fit as JSON")
 
 
@@ -18,7 +22,7 @@ def run(args) -> int:
     from falsify.data.velodyne import fit_frames
     from falsify.jobs.fit_rings import fit
 
-    paths = fit_frames(args.bins)
+    paths = fit_frames(args.bins, args.holdout or (), "fit-rings' frames")
     rings = fit(paths)
     if args.json:
         print(json.dumps({"frames": [str(p) for p in paths],

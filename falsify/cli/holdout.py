@@ -30,5 +30,6 @@ def run(args) -> int:
     summary = {"manifest": str(out), "scans": len(held.scans),
                "bytes": sum(s.size for s in held.scans)}
     emit(args, summary, f"{out}: {len(held.scans)} held-out scans, matched by content; pass it "
-         "as --holdout to fit-world, train and retrain, or name it in $FALSIFY_HOLDOUT")
+         "as --holdout to the fits (fit-world, fit-returns, fit-rings) and the trainers, or name "
+         "it in $FALSIFY_HOLDOUT")
     return 0

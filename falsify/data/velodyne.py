@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -40,17 +41,40 @@ def write_kitti(scan: Scan, bin_path: str | Path, label_path: str | Path) -> Non
     labels.tofile(label_path)
 
 
-def fit_frames(paths: list[str | Path]) -> list[Path]:
-    """The paths, if every one is a KITTI object frame (.../object/...): what the sensor fits
-    may read. Anything else is evaluation data, and a FalsifyError names it."""
-    out = [Path(p) for p in paths]
+def fit_frames(paths: list[str | Path], holdout: Sequence[str | Path] = (),
+               what: str = "the fit's frames") -> list[Path]:
+    """The KITTI .bin frames the paths name (files, or folders of them such as an object
+    directory's velodyne/), for the sensor's fits: each readable, non-empty and once only;
+    a held-out one (the manifests, $FALSIFY_HOLDOUT, a splits.toml beside the data) is refused."""
+    from falsify.data.holdout import check_not_held_out, file_sha256
+
+    out: list[Path] = []
+    for p in map(Path, paths):
+        folder = p / "velodyne" if (p / "velodyne").is_dir() else p
+        if folder.is_dir():
+            found = sorted(folder.glob("*.bin"))
+            if not found:
+                raise FalsifyError(f"{p}: no .bin frames here (give KITTI .bin files, a "
+                                   "velodyne/ folder or an object directory)")
+            out += found
+        elif not p.is_file():
+            raise FalsifyError(f"{p}: no such file or folder")
+        elif p.suffix != ".bin":
+            raise FalsifyError(f"{p}: not a KITTI .bin frame (x, y, z, remission float32)")
+        else:
+            out.append(p)
+    seen: dict[tuple[int, str], Path] = {}
     for p in out:
-        if not p.is_file():
-            raise FalsifyError(f"{p}: no such file (fit on KITTI object frames, "
-                               ".../object/velodyne/*.bin)")
-        if "object" not in p.parts:
-            raise FalsifyError(f"{p}: fit only on KITTI object frames (.../object/velodyne/*.bin); "
-                               "the other real scans are evaluation data")
+        size = p.stat().st_size
+        if size == 0 or size % 16:
+            raise FalsifyError(f"{p}: {size} bytes, not N x 4 float32 (x, y, z, remission)")
+        key = (size, file_sha256(p))
+        if key in seen:
+            same = "given twice" if p.resolve() == seen[key].resolve() else \
+                f"the same bytes as {seen[key]}"
+            raise FalsifyError(f"{p}: {same}; give each frame once")
+        seen[key] = p
+    check_not_held_out(out, holdout, what)
     return out
 
 

@@ -1,6 +1,6 @@
 """The ring geometry fit: it recovers each row's elevation and origin height from scans cast by
-a sensor with per-row origins, says which ring it cannot fit, refuses evaluation scans, and on
-KITTI's object frames finds the HDL-64E's two blocks of laser origins."""
+a sensor with per-row origins, says which ring it cannot fit, refuses held-out and repeated
+frames, and on KITTI's object frames finds the HDL-64E's two blocks of laser origins."""
 
 from __future__ import annotations
 
@@ -74,17 +74,37 @@ def test_fit_names_the_ring_it_cannot_fit():
         fit_rings(same_range, np.zeros(60, int), 1)
 
 
-def test_cli_refuses_evaluation_scans_and_unordered_files(tmp_path, capsys):
-    semantic = tmp_path / "semantickitti" / "000000.bin"
-    semantic.parent.mkdir()
-    np.zeros((100, 4), np.float32).tofile(semantic)
-    assert main([str(semantic)]) == 2
-    assert "fit only on KITTI object frames" in capsys.readouterr().err
-    out = tmp_path / "returns.json"          # the return-model fit refuses the same way
-    assert fit_returns_main([str(semantic), "--out", str(out)]) == 2
-    assert "semantickitti/000000.bin: fit only on" in capsys.readouterr().err
+def test_cli_refuses_held_out_repeated_and_unordered_frames(tmp_path, capsys):
+    """Held-out frames are refused by content, whatever their folder is called (a manifest,
+    not a path name, says what is evaluation data); so are a frame given twice and bad files."""
+    held = tmp_path / "object" / "velodyne" / "000000.bin"
+    held.parent.mkdir(parents=True)
+    np.random.default_rng(1).normal(0, 10, (100, 4)).astype(np.float32).tofile(held)
+    manifest = tmp_path / "splits-eval.toml"
+    assert falsify_main(["holdout", str(held), "--out", str(manifest)]) == 0
+    capsys.readouterr()
+    out = tmp_path / "returns.json"
+    for argv in ([str(held)], ["--out", str(out), str(held)]):
+        fit = main if len(argv) == 1 else fit_returns_main
+        assert fit([*argv, "--holdout", str(manifest)]) == 2
+        assert "000000.bin: a held-out scan" in capsys.readouterr().err
     assert not out.exists()
-    shuffled = tmp_path / "object" / "velodyne" / "000009.bin"
+    copy = tmp_path / "copy.bin"
+    copy.write_bytes(held.read_bytes())
+    assert main([str(held.parent), str(copy)]) == 2
+    assert f"{copy}: the same bytes as {held}; give each frame once" in capsys.readouterr().err
+    assert main([str(held), str(held)]) == 2
+    assert "given twice" in capsys.readouterr().err
+    for name, data, says in (("empty.bin", b"", "0 bytes, not N x 4"),
+                             ("odd.bin", b"x" * 20, "20 bytes, not N x 4"),
+                             ("frame.npy", b"x" * 16, "not a KITTI .bin frame")):
+        (tmp_path / name).write_bytes(data)
+        assert main([str(tmp_path / name)]) == 2
+        assert says in capsys.readouterr().err
+    (tmp_path / "none").mkdir()
+    assert main([str(tmp_path / "none")]) == 2
+    assert "none: no .bin frames here" in capsys.readouterr().err
+    shuffled = tmp_path / "renamed" / "000009.bin"
     shuffled.parent.mkdir(parents=True)
     np.random.default_rng(0).normal(0, 10, (5000, 4)).astype(np.float32).tofile(shuffled)
     assert main([str(shuffled)]) == 2
