@@ -206,6 +206,22 @@ def check_not_held_out(paths: Sequence[str | Path], manifests: Sequence[str | Pa
     holdout_for(paths, manifests).check(paths, what)
 
 
+def check_each_once(paths: Sequence[str | Path], what: str) -> None:
+    """FalsifyError naming a scan that `what` (say `fit-world's scans`) holds twice, by path or
+    by content: a fit would weigh it double. Only files of equal size are hashed."""
+    by_size: dict[int, list[Path]] = {}
+    for p in map(Path, paths):
+        by_size.setdefault(p.stat().st_size, []).append(p)
+    for same_size in (g for g in by_size.values() if len(g) > 1):
+        seen: dict[str, Path] = {}
+        for p in same_size:
+            first = seen.setdefault(file_sha256(p), p)
+            if first is not p:
+                same = "given twice" if p.resolve() == first.resolve() else \
+                    f"the same bytes as {first}"
+                raise FalsifyError(f"{p}: {same}; {what} take each scan once")
+
+
 def scans_under(paths: Sequence[str | Path], sequences: list[str] | None = None
                 ) -> list[tuple[Path, str]]:
     """(file, name) of every scan the paths name: .npy and .bin files, folders of them and

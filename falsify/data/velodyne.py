@@ -46,7 +46,7 @@ def fit_frames(paths: list[str | Path], holdout: Sequence[str | Path] = (),
     """The KITTI .bin frames the paths name (files, or folders of them such as an object
     directory's velodyne/), for the sensor's fits: each readable, non-empty and once only;
     a held-out one (the manifests, $FALSIFY_HOLDOUT, a splits.toml beside the data) is refused."""
-    from falsify.data.holdout import check_not_held_out, file_sha256
+    from falsify.data.holdout import check_each_once, check_not_held_out
 
     out: list[Path] = []
     for p in map(Path, paths):
@@ -63,17 +63,11 @@ def fit_frames(paths: list[str | Path], holdout: Sequence[str | Path] = (),
             raise FalsifyError(f"{p}: not a KITTI .bin frame (x, y, z, remission float32)")
         else:
             out.append(p)
-    seen: dict[tuple[int, str], Path] = {}
     for p in out:
         size = p.stat().st_size
         if size == 0 or size % 16:
             raise FalsifyError(f"{p}: {size} bytes, not N x 4 float32 (x, y, z, remission)")
-        key = (size, file_sha256(p))
-        if key in seen:
-            same = "given twice" if p.resolve() == seen[key].resolve() else \
-                f"the same bytes as {seen[key]}"
-            raise FalsifyError(f"{p}: {same}; give each frame once")
-        seen[key] = p
+    check_each_once(out, what)
     check_not_held_out(out, holdout, what)
     return out
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from falsify.data.holdout import check_not_held_out
+from falsify.data.holdout import check_each_once, check_not_held_out
 from falsify.data.velodyne import read_bin
 from falsify.errors import FalsifyError
 from falsify.semantic import RAW_ID, split_label
@@ -240,9 +240,11 @@ def describe_places(paths: list[str], sequences: list[str] | None = None
 
 def check_fit_data(paths: list[str], sequences: list[str] | None,
                    holdout: Sequence[str | Path] = ()) -> None:
-    """FalsifyError naming the first scan that is held out (never fitted to): by the split
-    manifests `holdout`, FALSIFY_HOLDOUT, a splits.toml beside the data or its official split."""
+    """FalsifyError naming a scan given twice, or the first scan that is held out (never fitted
+    to): by the split manifests `holdout`, FALSIFY_HOLDOUT, a splits.toml beside the data or its
+    official split."""
     files = [path for _, path, _, _ in real_scans(paths, sequences)]
+    check_each_once(files, "fit-world's scans")
     check_not_held_out(files, holdout, "fit-world's scans")
 
 

@@ -92,7 +92,8 @@ def test_cli_refuses_held_out_repeated_and_unordered_frames(tmp_path, capsys):
     copy = tmp_path / "copy.bin"
     copy.write_bytes(held.read_bytes())
     assert main([str(held.parent), str(copy)]) == 2
-    assert f"{copy}: the same bytes as {held}; give each frame once" in capsys.readouterr().err
+    assert f"{copy}: the same bytes as {held}; fit-rings' frames take each scan once" in \
+        capsys.readouterr().err
     assert main([str(held), str(held)]) == 2
     assert "given twice" in capsys.readouterr().err
     for name, data, says in (("empty.bin", b"", "0 bytes, not N x 4"),

@@ -181,6 +181,23 @@ def test_cli_refuses_the_real_evaluation_split_and_writes_nothing(tmp_path, caps
     assert not out.exists() and not out.parent.exists()
 
 
+def test_cli_refuses_a_scan_given_twice_by_path_or_by_content(tmp_path, capsys):
+    """A fit would weigh a repeated scan double: the same folder twice, or a byte-identical copy
+    in another sequence, exits 2 naming both, and nothing is written."""
+    a = _write_sequence(tmp_path / "r", "05", [_plane_scan(1.0, 0.0, 1.73, s) for s in (0, 1)])
+    out = tmp_path / "profile.json"
+    assert main(["fit-world", str(a), str(a), "--out", str(out)]) == 2
+    assert "000000.bin: given twice; fit-world's scans take each scan once" in \
+        capsys.readouterr().err
+    b = _write_sequence(tmp_path / "r", "07", [_plane_scan(2.0, 0.0, 1.73, 5)])
+    shutil.copyfile(a / "velodyne" / "000001.bin", b / "velodyne" / "000001.bin")
+    shutil.copyfile(a / "labels" / "000001.label", b / "labels" / "000001.label")
+    assert main(["fit-world", str(tmp_path / "r"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"07/velodyne/000001.bin: the same bytes as {a / 'velodyne' / '000001.bin'}" in err
+    assert not out.exists()
+
+
 def test_a_scan_without_labels_is_named(tmp_path):
     _write_sequence(tmp_path, "05", [_plane_scan(1.0, 0.0, 1.73)], labelled=False)
     with pytest.raises(FalsifyError, match=r"000000\.bin: no SemanticKITTI \.label"):
