@@ -21,13 +21,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _set_pairs(pairs: list[str]) -> dict[str, str]:
-    out = {}
+    """--set's KEY=VALUE pairs; a key given twice is an error, not the last one winning."""
+    out: dict[str, str] = {}
     for item in pairs:
         if "=" not in item:
             raise UsageError(f"--set {item!r}: expected KEY=VALUE, e.g. --set x=2.5")
-        key, value = item.split("=", 1)
-        out[key.strip()] = value.strip()
+        key, value = (part.strip() for part in item.split("=", 1))
+        if key in out:
+            raise UsageError(f"--set {key}: given twice ({out[key]} and {value}); give it once")
+        out[key] = value
     return out
+
+
+def _check_active(space, sample, pairs: dict[str, str]) -> None:
+    """A --set dim of a car the sample does not hold (beyond its count) would be pinned to its
+    first value without a word: an error naming the count that would use it."""
+    count = int(sample.as_dict().get("count", 1))
+    for key in pairs:
+        if not space.active(key, count):
+            raise UsageError(f"--set {key}: a dim of a car beyond the sample's count ({count}); "
+                             "also set count to hold that car")
 
 
 def run(args) -> int:
@@ -44,7 +57,9 @@ def run(args) -> int:
     check_out_dir(args.out)
     space = load_space(args.config)
     check_looks(space)
-    sample = space.make(_set_pairs(args.set or []))
+    pairs = _set_pairs(args.set or [])
+    sample = space.make(pairs)
+    _check_active(space, sample, pairs)
     sensor = load_sensor(space.sensor)
     sim = scanner_for(space, sensor)
     camera = None
@@ -76,6 +91,11 @@ def run(args) -> int:
     for name, data in extra.items():
         write_bytes(out / name, data)
         summary["files"].append(str(out / name))
-    emit(args, summary, f"wrote {out / 'scan.npy'}, .png, .bin and .label: "
+    if camera is None:   # a previous sample's camera files would sit beside this scan
+        from falsify.sensor.camera import CAMERA_FILES
+        for name in (*CAMERA_FILES, "overlay.png"):
+            (out / name).unlink(missing_ok=True)
+    camera_text = f"; the camera's {', '.join(extra)}" if extra else ""
+    emit(args, summary, f"wrote {out / 'scan.npy'}, .png, .bin and .label{camera_text}: "
          f"{summary['points']} points, {summary['car_points']} on cars")
     return 0

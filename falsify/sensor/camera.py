@@ -114,6 +114,9 @@ def overlay_picture(image: CameraImage, camera: Camera, points: np.ndarray) -> n
                        size=2)
 
 
+CAMERA_FILES = ("image.png", "class.png", "class.npy", "instance.npy", "depth.npy")
+
+
 def camera_files(image: CameraImage, prefix: str = "") -> dict[str, bytes]:
     """The files that hold one camera frame: RGB and class PNGs, class, instance and depth."""
     import io
@@ -124,7 +127,6 @@ def camera_files(image: CameraImage, prefix: str = "") -> dict[str, bytes]:
         buf = io.BytesIO()
         np.save(buf, a, allow_pickle=False)
         return buf.getvalue()
-    return {f"{prefix}image.png": encode_png(image.rgb),
-            f"{prefix}class.png": encode_png(class_picture(image)),
-            f"{prefix}class.npy": npy(image.cls), f"{prefix}instance.npy": npy(image.instance),
-            f"{prefix}depth.npy": npy(image.depth)}
+    data = (encode_png(image.rgb), encode_png(class_picture(image)), npy(image.cls),
+            npy(image.instance), npy(image.depth))
+    return {prefix + name: d for name, d in zip(CAMERA_FILES, data, strict=True)}

@@ -32,11 +32,39 @@ def test_scan_is_deterministic(tmp_path):
     assert (tmp_path / "a" / "scan.png").read_bytes() == (tmp_path / "b" / "scan.png").read_bytes()
 
 
+TWO_CARS = """
+[dims.x_2]
+min = -6.0
+max = 6.0
+step = 12.0
+[dims.y_2]
+min = 16.0
+max = 20.0
+step = 4.0
+"""
+
+
+
+def two_cars(smoke: str) -> str:
+    """smoke.toml with one or two cars, the second car's position its own dims."""
+    return smoke.replace("[dims.count]\nvalues = [1]", "[dims.count]\nvalues = [1, 2]") + TWO_CARS
+
+
+def test_scan_sets_a_second_cars_dim_with_its_count(tmp_path, capsys):
+    config = tmp_path / "c.toml"
+    config.write_text(two_cars((CONFIGS / "smoke.toml").read_text()))
+    assert main(["scan", str(config), "--out", str(tmp_path / "o"), "--set", "count=2",
+                 "--set", "x_2=6", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["sample"]["x_2"] == 6.0
+
+
 @pytest.mark.parametrize(("toml", "sets", "message"), [
     ("", ["x=9"], "x: '9' is outside [-2, 2]"),
     ("", ["car_model=tank"], "car_model: 'tank' is not one of sedan"),
     ("", ["colour=red"], "unknown dim 'colour'"),
     ("", ["x"], "expected KEY=VALUE"),
+    ("", ["x=-2", "x=2"], "--set x: given twice (-2 and 2); give it once"),
+    ("two", ["x_2=6"], "--set x_2: a dim of a car beyond the sample's count (1)"),
     ("", ["y=1.0"], "outside"),
     ("BROKEN", [], "not valid TOML"),
     ("step0", [], "dims.x.step: 0 must be > 0"),
@@ -47,7 +75,8 @@ def test_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, toml, sets, mess
     if toml:
         text = config.read_text()
         text = {"BROKEN": "name = [", "step0": text.replace("step = 4.0", "step = 0.0"),
-                "fov": text.replace('sensor = "kitti-hdl64e-front"', 'sensor = "wide"')}[toml]
+                "fov": text.replace('sensor = "kitti-hdl64e-front"', 'sensor = "wide"'),
+                "two": two_cars(text)}[toml]
         config = tmp_path / "c.toml"
         config.write_text(text)
     out = tmp_path / "out"

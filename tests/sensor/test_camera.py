@@ -153,6 +153,13 @@ def test_scan_camera_files_and_image_dims_leave_scan_identical(tmp_path, look_co
     assert main(["scan", str(look_config), "--out", str(plain), "--set", "x=2"]) == 0
     assert {p.name for p in plain.iterdir()} == {"scan.npy", "scan.png", "scan.bin", "scan.label"}
     assert (plain / "scan.npy").read_bytes() == (outs[0] / "scan.npy").read_bytes()
+    # The text names the camera's files; a scan without --camera into a folder that held one
+    # leaves no earlier camera file beside it.
+    assert main(["scan", str(look_config), "--out", str(outs[1]), "--set", "x=2", "--camera"]) == 0
+    assert "the camera's image.png, class.png" in capsys.readouterr().out
+    assert main(["scan", str(look_config), "--out", str(outs[1]), "--set", "x=2"]) == 0
+    assert {p.name for p in outs[1].iterdir()} == {"scan.npy", "scan.png", "scan.bin",
+                                                   "scan.label"}
 
 
 @pytest.mark.parametrize(("args", "message"), [
