@@ -14,10 +14,12 @@ the actors are shared through one queue of idle actors.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import os
 import re
+import signal
 import socket
 import tempfile
 import threading
@@ -233,6 +235,23 @@ class EvalActor:
         return self.evaluator.score_batch(samples)
 
 
+@contextlib.contextmanager
+def keep_stop_handlers() -> Iterator[None]:
+    """Put SIGTERM's and SIGINT's handlers back after the block: ray.init installs its own,
+    which ends the driver at once (exit 15) instead of stopping the run cleanly with its
+    resume command."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for sig, handler in saved.items():
+            if handler is not None:
+                signal.signal(sig, handler)
+
+
 class RayExecutor:
     """`workers` EvalActors on the Ray cluster at `address` (None: the running instance, else a
     new local one); `map` scores chunks in order and re-runs a chunk whose actor died. `actor`
@@ -265,7 +284,8 @@ class RayExecutor:
             kw = {"address": self.address} if self.address else {
                 "num_cpus": self.workers, "include_dashboard": False}
             try:
-                ray.init(log_to_driver=False, logging_level="ERROR", **kw)
+                with keep_stop_handlers():
+                    ray.init(log_to_driver=False, logging_level="ERROR", **kw)
             except (ConnectionError, RuntimeError, ValueError) as exc:
                 raise FalsifyError(f"--address {self.address}: cannot join the Ray cluster "
                                    f"({exc})") from None

@@ -227,11 +227,15 @@ def _default_sigint() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)],
-                         ids=["SIGTERM", "Ctrl-C"])
-def test_a_signal_stops_workers_and_keeps_the_rows(tmp_path, sig, code):
+@pytest.mark.parametrize("sig, code, executor", [(signal.SIGTERM, 143, "process"),
+                                                 (signal.SIGINT, 130, "process"),
+                                                 (signal.SIGTERM, 143, "ray")],
+                         ids=["SIGTERM", "Ctrl-C", "SIGTERM-ray"])
+def test_a_signal_stops_workers_and_keeps_the_rows(tmp_path, sig, code, executor):
+    """Ray's own SIGTERM handler (ray.init installs one) must not replace the clean stop."""
     run = tmp_path / "run"
-    cmd = falsify("grid", SMALL_GRID, "--out", run, "--quiet", "--no-report", "--workers", 2)
+    cmd = falsify("grid", SMALL_GRID, "--out", run, "--quiet", "--no-report", "--workers", 2,
+                  *(["--executor", "ray"] if executor == "ray" else []))
     # As from a terminal: SIGINT at its default even where this test runs in a background job,
     # which ignores it (an ignored SIGINT falsify rightly leaves ignored, as nohup asks).
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
@@ -255,7 +259,8 @@ def test_a_signal_stops_workers_and_keeps_the_rows(tmp_path, sig, code):
     n = stored(run)[0]
     assert re.search(rf"\b{n} samples are stored safely in {re.escape(str(run))}", line), line
     assert line.endswith(f"continue with: falsify grid {SMALL_GRID} --out {run} --quiet "
-                         "--no-report --workers 2 --resume"), line
+                         f"--no-report --workers 2{' --executor ray' * (executor == 'ray')} "
+                         "--resume"), line
     # The workers end with the driver; the resource tracker a moment after it.
     left = [p for p in session_processes(proc.pid) if "spawn_main" in p]
     assert not left, left
