@@ -11,7 +11,7 @@ train id i; output 0, unlabeled, reads as unknown).
 ``--model falsify.models.pointnet:factory`` runs it with seeded random weights: plumbing, not a
 trained network. For trained weights, a file plug-in calls ``factory("net.pt", device=device)``.
 `export_onnx` writes it as a points-in ONNX model ((1, N, 4) in, (1, N, 20) logits out);
-``falsify train-pointnet`` trains it (`train`).
+``falsify train-pointnet`` trains it (falsify.models.train_pointnet).
 Importing this module imports torch.
 """
 
@@ -157,93 +157,3 @@ def export_onnx(model: PointNetSeg, path: str | PathLike, name: str | None = Non
                           do_constant_folding=True)
     save_spec(spec, spec_path_for(path))
     return path, spec
-
-
-def train(data: str | PathLike, out: str | PathLike, epochs: int = 20, batch: int = 16,
-          points: int = 16384, lr: float = 1e-3, seed: int = 0, device: str = "cpu",
-          time_limit_min: float | None = None, val_data: str | PathLike | None = None) -> dict:
-    """Train on npy scans whose label channel holds SemanticKITTI train ids (`falsify dataset
-    --labels semantickitti`): each step takes `points` valid points of each of `batch` scans
-    (drawn with replacement where a scan has fewer), cross-entropy weighted as SqueezeSeg's
-    (1 / sqrt(frequency), unlabeled ignored). Writes pointnet.pt, pointnet.onnx + .json and
-    train_log.jsonl into `out`; returns the last log line."""
-    import json
-    import time
-
-    from falsify.models.runners import points_of
-    from falsify.models.train import list_scans, load_scan, semantic_weights
-
-    t0 = time.monotonic()
-    device = torch_device(device)
-    files = list_scans(data)
-    shape = load_scan(files[0]).shape[:2]
-    spec = pointnet_spec()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
-    torch.manual_seed(seed)
-    model = PointNetSeg().to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
-    weights = torch.tensor(semantic_weights(files, shape), dtype=torch.float32, device=device)
-    last: dict = {}
-
-    def draw(f: Path) -> tuple[np.ndarray, np.ndarray]:
-        scan = load_scan(f, shape)
-        valid = scan[..., 4] > 0
-        pts, lab = points_of(scan, valid, spec), scan[valid][:, 5].astype(np.int64)
-        pick = rng.choice(len(pts), points, replace=len(pts) < points)
-        return pts[pick], lab[pick]
-
-    for epoch in range(epochs):
-        perm = rng.permutation(len(files))
-        losses = []
-        for i in range(0, len(perm), batch):
-            drawn = [draw(files[j]) for j in perm[i:i + batch]]
-            x = torch.from_numpy(np.stack([d[0] for d in drawn])).to(device)
-            y = torch.from_numpy(np.stack([d[1] for d in drawn])).to(device)
-            loss = nn.functional.cross_entropy(model(x).transpose(1, 2), y, weight=weights,
-                                               ignore_index=0)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            losses.append(float(loss.detach()))
-        last = {"epoch": epoch + 1, "loss": float(np.mean(losses)),
-                "seconds": round(time.monotonic() - t0, 1)}
-        if val_data is not None:
-            last.update(_validate(model, list_scans(val_data, "--val-data"), spec, device))
-        with open(out / "train_log.jsonl", "a", encoding="utf-8") as fh:
-            fh.write(json.dumps(last) + "\n")
-        print(json.dumps(last), flush=True)
-        if time_limit_min is not None and time.monotonic() - t0 > 60 * time_limit_min:
-            last["stopped"] = "time_limit"
-            break
-    model = model.cpu().eval()
-    torch.save({k: v.contiguous() for k, v in model.state_dict().items()}, out / "pointnet.pt")
-    export_onnx(model, out / "pointnet.onnx")
-    return last
-
-
-def _validate(model: PointNetSeg, files: list[Path], spec: ModelSpec, device: str) -> dict:
-    """Pooled per-class IoU over every valid point of the validation scans (unlabeled
-    ignored): val_car_iou and val_miou over the classes present."""
-    from falsify.models.runners import points_of
-    from falsify.models.train import load_scan
-
-    n = len(TRAIN_CLASSES)
-    conf = np.zeros((n, n), np.int64)
-    model.eval()
-    with torch.inference_mode():
-        for f in files:
-            scan = load_scan(f)
-            valid = scan[..., 4] > 0
-            x = torch.from_numpy(points_of(scan, valid, spec)).to(device)
-            pred = model(x[None])[0].argmax(-1).cpu().numpy()
-            lab = scan[valid][:, 5].astype(np.int64)
-            keep = lab != 0
-            conf += np.bincount(lab[keep] * n + pred[keep], minlength=n * n).reshape(n, n)
-    model.train()
-    tp = np.diag(conf)
-    denom = conf.sum(0) + conf.sum(1) - tp
-    iou = [float(tp[c] / denom[c]) if denom[c] else None for c in range(n)]
-    present = [v for c, v in enumerate(iou) if c and conf[c].sum()]
-    return {"val_car_iou": iou[1], "val_miou": float(np.mean(present)) if present else None}

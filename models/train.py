@@ -25,6 +25,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -368,12 +369,14 @@ def _same_path(a: str | None, b: str | None) -> bool:
     return a == b or Path(a).resolve() == Path(b).resolve()
 
 
-def _check_out(cfg: TrainConfig, torch) -> None:
-    """--out without a training run in it, or (with --resume) one of the same run: the options
-    in RESUME_KEYS as stored in its checkpoint, and --epochs no fewer than it has trained."""
+def _check_out(cfg: Any, torch, keys: Sequence[str] = RESUME_KEYS,
+               run_files: Sequence[str] = RUN_FILES) -> None:
+    """--out without a training run in it (`run_files`), or (with --resume) one of the same run:
+    the options in `keys` as stored in its checkpoint, and --epochs no fewer than it has trained
+    (a dataclass `cfg` with out, resume and epochs: train-pointnet's too)."""
     out = Path(cfg.out)
     if not cfg.resume:
-        held = [n for n in RUN_FILES if (out / n).exists()]
+        held = [n for n in run_files if (out / n).exists()]
         if held:
             raise FalsifyError(f"--out {out} already holds a training run ({held[0]}); pass "
                                "--resume to continue it or choose another --out")
@@ -385,10 +388,10 @@ def _check_out(cfg: TrainConfig, torch) -> None:
     try:
         old = json.loads(ck["config"])
     except (KeyError, TypeError, ValueError):
-        raise FalsifyError(f"--resume {ckpt_path}: holds no run options (not a checkpoint of "
-                           "`falsify train`)") from None
+        raise FalsifyError(f"--resume {ckpt_path}: holds no run options (not a training "
+                           "checkpoint of falsify)") from None
     now = json.loads(json.dumps(asdict(cfg)))   # tuples as lists, as stored
-    for key in RESUME_KEYS:
+    for key in keys:
         there, here = old.get(key), now[key]
         same = there == here
         if key == "data":   # a relative --data names the same folder from another directory

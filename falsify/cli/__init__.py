@@ -67,7 +67,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("fit-rings", "fit the HDL-64E's ring elevations and origin heights on the points of "
             "KITTI object frames", fit_rings,
             "Fit the HDL-64E's ring geometry on the geometry of KITTI's object frames."),
-    Command("holdout", "write a split manifest: scans that fit-world, train and retrain refuse "
+    Command("holdout", "write a split manifest: scans that the fits and the trainers refuse "
             "(matched by content, wherever they are)", holdout),
     Command("predict", "run the network on scans; IoU, precision, recall per set and range band "
             "where labelled", predict),
@@ -78,8 +78,9 @@ COMMANDS: tuple[Command, ...] = (
     Command("train", "train SqueezeSeg on a folder of .npy scans (resumable)", train,
             "Train SqueezeSeg on a directory of ``*.npy`` scans (H, W, 6), resumable exactly."),
     Command("train-pointnet", "train the reference PointNet plug-in on .npy scans with "
-            "SemanticKITTI train ids", train_pointnet,
-            "train the reference PointNet on npy scans with SemanticKITTI train ids"),
+            "SemanticKITTI train ids (resumable)", train_pointnet,
+            "Train the reference PointNet plug-in on .npy scans with SemanticKITTI train ids, "
+            "resumable exactly."),
     Command("adjust", "logit adjustment: choose alpha on synthetic validation scans and write "
             "the adjusted SqueezeSeg weights", adjust,
             "`falsify adjust WEIGHTS.pt --val DIR --out ADJUSTED.pt`: choose alpha on "
@@ -126,7 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     is_run = argv[:1] in (["grid"], ["search"])
-    resumable = is_run or argv[:1] in (["train"], ["retrain"])
+    resumable = is_run or argv[:1] in (["train"], ["retrain"], ["train-pointnet"])
     out = run_folder(argv)
     try:
         with stop_signals() if resumable else contextlib.nullcontext(), lock_early(out, argv):

@@ -16,13 +16,14 @@ falsify dataset configs/paper.toml --scans "$SCANS" --labels semantickitti --wor
 falsify dataset configs/paper.toml --scans 240 --first-background 9000 --labels semantickitti \
   --workers "$WORKERS" --out "$DATA/val" --json > /dev/null
 echo "data: $(( $(date +%s) - t0 )) s"
-python3 -m falsify.models.train --data "$DATA/train" --val-data "$DATA/val" \
+falsify train --data "$DATA/train" --val-data "$DATA/val" \
   --out "$OUT/squeezeseg20" --classes semantickitti --crf-iterations 0 --device "$DEVICE" \
   --epochs 30 --batch 32 --threads 8 --time-limit-min "${SQUEEZESEG_MIN:-7}"
 echo "squeezeseg: $(( $(date +%s) - t0 )) s"
-python3 -m falsify.models.pointnet --data "$DATA/train" --val-data "$DATA/val" \
+falsify train-pointnet --data "$DATA/train" --val-data "$DATA/val" \
   --out "$OUT/pointnet20" --device "$DEVICE" --epochs 60 --batch 32 --points 16384 \
   --time-limit-min "${POINTNET_MIN:-2}"
 echo "pointnet: $(( $(date +%s) - t0 )) s"
-rm -f "$OUT/squeezeseg20/checkpoint.pt" "$OUT/pointnet20/pointnet.onnx" \
+rm -f "$OUT/squeezeseg20/checkpoint.pt" "$OUT/pointnet20/checkpoint.pt" \
+  "$OUT/pointnet20/pointnet.onnx" \
   "$OUT/pointnet20/pointnet.json"
