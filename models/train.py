@@ -250,13 +250,19 @@ def train(cfg: TrainConfig) -> dict:
     ckpt_path = out / CHECKPOINT
     run = _Progress(*_restore(cfg, model, opt, ckpt_path, torch))
     model.train(not cfg.crf_only)  # CRF-only: the frozen backbone runs as at inference
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)   # only once every input has been checked
 
     limit = cfg.time_limit_min * 60.0 if cfg.time_limit_min else None
     while run.epoch < cfg.epochs and run.stopped == "done":
-        losses, frames, batches, sec = _train_epoch(
-            cfg, model, opt, weights, files, shape, autocast, run,
-            lambda: limit is not None and time.monotonic() - t_start > limit)
+        try:
+            losses, frames, batches, sec = _train_epoch(
+                cfg, model, opt, weights, files, shape, autocast, run,
+                lambda: limit is not None and time.monotonic() - t_start > limit)
+        except FalsifyError:   # diverged: a folder made for this run and still empty goes
+            if created and not any(out.iterdir()):
+                out.rmdir()
+            raise
         end_of_epoch = run.step >= batches
         if end_of_epoch:
             run.epoch, run.step = run.epoch + 1, 0
@@ -487,6 +493,8 @@ def _train_epoch(cfg: TrainConfig, model, opt, weights, files: list[Path], shape
         loss.backward()
         opt.step()
         losses.append(float(loss.detach()))
+        if not math.isfinite(losses[-1]):
+            raise diverged(cfg.out, cfg.lr, run.epoch + 1, f"the loss is {losses[-1]}")
         frames += len(idx)
         run.step += 1
         run.steps_run += 1
@@ -497,6 +505,14 @@ def _train_epoch(cfg: TrainConfig, model, opt, weights, files: list[Path], shape
         if run.stopped != "done":
             break
     return losses, frames, len(batches), time.monotonic() - t_epoch
+
+
+def diverged(out: str | Path, lr: float, epoch: int, what: str) -> FalsifyError:
+    """The error that stops a diverged run (epoch counted from 1) before its NaN weights are
+    saved: the epochs finished before it stay in --out's checkpoint."""
+    kept = f"; epochs 1-{epoch - 1} stay in {out}" if epoch > 1 else ""
+    return FalsifyError(f"epoch {epoch}: {what}, training diverged; lower --lr (now "
+                        f"{lr:g}){kept}")
 
 
 def _epoch_record(cfg: TrainConfig, run: _Progress, end_of_epoch: bool, batches: int,

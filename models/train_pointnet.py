@@ -167,7 +167,7 @@ def _train_epoch(cfg: PointNetTrainConfig, model, opt, weights, files: list[Path
     from torch import nn
 
     from falsify.models.runners import points_of
-    from falsify.models.train import load_scan
+    from falsify.models.train import diverged, load_scan
 
     def draw(f: Path) -> tuple[np.ndarray, np.ndarray]:
         scan = load_scan(f, shape)
@@ -192,18 +192,10 @@ def _train_epoch(cfg: PointNetTrainConfig, model, opt, weights, files: list[Path
         opt.step()
         losses.append(float(loss.detach()))
         if not math.isfinite(losses[-1]):
-            raise _diverged(cfg, epoch, f"the loss is {losses[-1]}")
+            raise diverged(cfg.out, cfg.lr, epoch, f"the loss is {losses[-1]}")
     if not all(bool(torch.isfinite(p).all()) for p in model.parameters()):
-        raise _diverged(cfg, epoch, "the weights are not finite")
+        raise diverged(cfg.out, cfg.lr, epoch, "the weights are not finite")
     return float(np.mean(losses))
-
-
-def _diverged(cfg: PointNetTrainConfig, epoch: int, what: str) -> FalsifyError:
-    """The error that stops a diverged run, before its NaN weights are saved: the epochs
-    finished before it stay in --out's checkpoint."""
-    kept = f"; epochs 1-{epoch - 1} stay in {cfg.out}" if epoch > 1 else ""
-    return FalsifyError(f"epoch {epoch}: {what}, training diverged; lower --lr (now "
-                        f"{cfg.lr:g}){kept}")
 
 
 def _validate(model, files: list[Path], spec: ModelSpec, device: str) -> dict:

@@ -123,6 +123,16 @@ def test_bad_numbers_exit_2_and_write_nothing(data, tmp_path, capsys, argv, name
     assert not out.exists()
 
 
+def test_a_diverging_run_stops_with_exit_2_and_writes_nothing(data, tmp_path, capsys):
+    """A non-finite loss stops training before NaN weights are saved or exported."""
+    out = tmp_path / "t"
+    assert main(["--data", str(data), "--out", str(out), "--epochs", "2", "--lr", "1e12",
+                 *ARGS]) == 2
+    assert "epoch 1: the loss is nan, training diverged; lower --lr (now 1e+12)" in \
+        capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_out_an_existing_file_exits_2(data, tmp_path, capsys):
     afile = tmp_path / "afile"
     afile.write_text("mine\n")
