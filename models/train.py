@@ -338,19 +338,24 @@ def _checked_inputs(cfg: TrainConfig, torch) -> tuple[list[Path], list[Path], tu
     return files, val_files, shape
 
 
-def _check_numbers(cfg: TrainConfig) -> None:
-    """Counts and rates a run can train with: a zero batch or a negative rate fails deep in
-    torch, and zero epochs would write untrained weights as a model."""
+def check_run_numbers(cfg: Any) -> None:
+    """The numbers every trainer takes (epochs, batch, seed, lr, time limit): a zero batch or a
+    negative rate fails deep in torch, and zero epochs would write untrained weights."""
     check_range(cfg.epochs, "--epochs", 1)
     check_range(cfg.batch, "--batch", 1)
-    check_range(cfg.threads, "--threads", 1)
     check_seed(cfg.seed)
     if not (math.isfinite(cfg.lr) and cfg.lr > 0):
         raise FalsifyError(f"--lr: {cfg.lr} must be a number > 0")
-    if not (math.isfinite(cfg.lr_decay) and 0 < cfg.lr_decay <= 1):
-        raise FalsifyError(f"--lr-decay: {cfg.lr_decay} must be in (0, 1]")
     if cfg.time_limit_min is not None and not cfg.time_limit_min > 0:
         raise FalsifyError(f"--time-limit-min: {cfg.time_limit_min} must be > 0")
+
+
+def _check_numbers(cfg: TrainConfig) -> None:
+    """SqueezeSeg's numbers: every trainer's, its threads and its rate's decay."""
+    check_run_numbers(cfg)
+    check_range(cfg.threads, "--threads", 1)
+    if not (math.isfinite(cfg.lr_decay) and 0 < cfg.lr_decay <= 1):
+        raise FalsifyError(f"--lr-decay: {cfg.lr_decay} must be in (0, 1]")
 
 
 def check_labels(folder: str, classes: str, option: str, fix: str | None = None) -> None:

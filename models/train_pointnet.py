@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from falsify.checks import check_out_dir, check_range, check_seed
+from falsify.checks import check_out_dir, check_range
 from falsify.errors import FalsifyError
 from falsify.models.spec import ModelSpec
 
@@ -121,16 +121,10 @@ def _checked_inputs(cfg: PointNetTrainConfig, torch) -> tuple[list[Path], list[P
     value fails here, as one line, before anything is written."""
     from falsify.data.holdout import check_not_held_out
     from falsify.models.plugin import torch_device
-    from falsify.models.train import _check_out, check_labels, list_scans
+    from falsify.models.train import _check_out, check_labels, check_run_numbers, list_scans
 
-    check_range(cfg.epochs, "--epochs", 1)
-    check_range(cfg.batch, "--batch", 1)
+    check_run_numbers(cfg)
     check_range(cfg.points, "--points", 1)
-    check_seed(cfg.seed)
-    if not (math.isfinite(cfg.lr) and cfg.lr > 0):
-        raise FalsifyError(f"--lr: {cfg.lr} must be a number > 0")
-    if cfg.time_limit_min is not None and not cfg.time_limit_min > 0:
-        raise FalsifyError(f"--time-limit-min: {cfg.time_limit_min} must be > 0")
     check_out_dir(cfg.out)
     files = list_scans(cfg.data)
     val_files = list_scans(cfg.val_data, "--val-data") if cfg.val_data else []
