@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from falsify.checks import check_out_file, check_range
-from falsify.cli.common import MODEL_HELP, emit
+from falsify.cli.common import MODEL_HELP, emit, predict_sequences
 from falsify.errors import FalsifyError
 
 
@@ -17,8 +17,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--instances", default=None, metavar="ROOT",
                    help="instead: SemanticKITTI's labelled cars and persons under ROOT (a root "
                    "or sequence folder), each against a built-in actor of its class")
-    p.add_argument("--sequences", nargs="+", default=None, metavar="SS",
-                   help="with --instances: only these sequences")
+    p.add_argument("--sequences", nargs="+", default=None, metavar="SS,SS",
+                   help="with --instances: only these sequences, e.g. 04,05 (as elsewhere; "
+                   "04 05 is read the same)")
     p.add_argument("--min-points", type=int, default=None, metavar="N",
                    help="with --instances: instances of at least N points (default 30)")
     p.add_argument("--model", default=None, help=MODEL_HELP)
@@ -68,7 +69,9 @@ def _instance_faithfulness(args) -> int:
     min_points = MIN_POINTS if args.min_points is None else args.min_points
     check_range(min_points, "--min-points", 1)
     root = Path(expand_data_path(args.instances, "--instances"))
-    result = run_instance_faithfulness([root], args.sequences, load_sensor(args.sensor),
+    sequences = (None if args.sequences is None
+                 else predict_sequences(",".join(args.sequences), [str(root)]))
+    result = run_instance_faithfulness([root], sequences, load_sensor(args.sensor),
                                        load_segmenter(args.model), min_points)
     summary = result.to_json()
     if args.out:

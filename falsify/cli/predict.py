@@ -7,7 +7,16 @@ import sys
 from pathlib import Path
 
 from falsify.checks import check_out_dir
-from falsify.cli.common import BACKEND_HELP, DEVICE_HELP, MODEL_HELP, emit, predict_sequences
+from falsify.cli.common import (
+    BACKEND_HELP,
+    DEVICE_HELP,
+    MODEL_HELP,
+    UsageError,
+    emit,
+    predict_sequences,
+)
+
+DEFAULT_SENSOR = "kitti-hdl64e-front"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -15,17 +24,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=".npy range images, KITTI .bin scans (labels: x.label beside or "
                    "../labels/x.label), folders of .npy / .bin, a SemanticKITTI root, its "
                    "sequences/ folder or one sequence folder (one set per sequence), or a KITTI "
-                   "object directory (velodyne/, label_2/, calib/: labelled from its 3D "
-                   "boxes); scores are pooled per folder or sequence, and over all")
+                   "object directory (velodyne/, label_2/, calib/, image_2/: labelled from its "
+                   "3D boxes, points outside the camera's image ignored); scores are pooled per "
+                   "folder or sequence, and over all; each scan once")
     p.add_argument("--sequences", default=None, metavar="SS,SS",
                    help="only these SemanticKITTI sequences of a root or sequences/ folder, "
                    "e.g. 00,03,06,08")
     p.add_argument("--model", default=None, help=MODEL_HELP)
-    p.add_argument("--backend", choices=["onnx", "torch", "python"], default="onnx",
-                   help=BACKEND_HELP)
+    p.add_argument("--backend", choices=["onnx", "torch", "python"], default=None,
+                   help=BACKEND_HELP + " (default: onnx)")
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help=DEVICE_HELP)
-    p.add_argument("--sensor", default="kitti-hdl64e-front",
-                   help="preset used to project .bin scans")
+    p.add_argument("--sensor", default=None,
+                   help=f"preset used to project .bin scans and KITTI object frames (default: "
+                   f"{DEFAULT_SENSOR}); refused when every scan is a .npy range image")
     p.add_argument("--out", required=True)
     p.add_argument("--json", action="store_true")
 
@@ -36,33 +47,62 @@ def run(args) -> int:
     from falsify.images.png import encode_png
     from falsify.images.scan_pictures import prediction_picture
     from falsify.jobs.predict import evaluate
-    from falsify.models.runners import backend_for, load_segmenter
+    from falsify.models.runners import backend_for, is_plugin, load_segmenter
     from falsify.sensor.lidar import load_sensor
 
     check_out_dir(args.out)
+    if args.backend not in (None, "python") and is_plugin(args.model):
+        raise UsageError(f"--backend {args.backend}: the plug-in model {args.model} runs on "
+                         "python; leave --backend out (or give python)")
     sequences = predict_sequences(args.sequences, args.scans)
-    sets = load_sets(args.scans, load_sensor(args.sensor), sequences=sequences)
+    sets = load_sets(args.scans, load_sensor(args.sensor or DEFAULT_SENSOR),
+                     sequences=sequences)
+    if args.sensor is not None and not any(Path(src).suffix == ".bin"
+                                           for s in sets for src in s.sources):
+        raise UsageError(f"--sensor {args.sensor}: projects .bin scans and KITTI object frames "
+                         "only; every scan named is a .npy range image, already projected")
+    out = Path(args.out)
+    targets = output_stems(sets, out)
     for s in sets:
         for source in s.unlabelled:
             print(f"falsify: warning: no labels for {source} (looked for {Path(source).stem}"
                   ".label beside it and in ../labels/)", file=sys.stderr)
-    model = load_segmenter(args.model, backend=args.backend, device=args.device)
-    args.backend = backend_for(args.model, args.backend)
+        for label in s.orphan_labels:
+            print(f"falsify: warning: {label}: labels without a scan (no "
+                  f"{Path(label).stem}.bin among the set's scans); not scored", file=sys.stderr)
+    backend = backend_for(args.model, args.backend or "onnx")
+    model = load_segmenter(args.model, backend=backend, device=args.device)
     result = evaluate(model, sets)
-    out = Path(args.out)
-    for s, scans in zip(result.sets, sets, strict=True):
-        folder = out / s.name if len(result.sets) > 1 else out
+    for s, scans, stems in zip(result.sets, sets, targets, strict=True):
         labelled = scans.labelled()
-        for k, (source, cls) in enumerate(zip(s.sources, s.predictions, strict=True)):
-            write_npy(folder / f"{Path(source).stem}.pred.npy", cls)
+        for k, (stem, cls) in enumerate(zip(stems, s.predictions, strict=True)):
+            write_npy(stem.with_name(f"{stem.name}.pred.npy"), cls)
             picture = prediction_picture(scans.images[k], cls, labelled=bool(labelled[k]))
-            write_bytes(folder / f"{Path(source).stem}.png", encode_png(picture))
-    summary = {**result.to_json(), "backend": args.backend, "out": str(out)}
+            write_bytes(stem.with_name(f"{stem.name}.png"), encode_png(picture))
+    summary = {**result.to_json(), "backend": backend, "out": str(out)}
     labelled = result.labelled_sets > 0
     if not labelled:
         summary = {k: v for k, v in summary.items() if k not in ("pooled", "bands", "sets")}
-    emit(args, summary, _predict_text(result, args.backend, out, labelled))
+    emit(args, summary, _predict_text(result, backend, out, labelled))
     return 0
+
+
+def output_stems(sets, out: Path) -> list[list[Path]]:
+    """Per set, per scan: the path its .pred.npy and .png are named from (under --out, in a
+    folder per set when there are several); FalsifyError naming both scans where two would
+    write the same files (x.npy beside x.bin, or sets of the same name)."""
+    taken: dict[Path, str] = {}
+    stems = []
+    for s in sets:
+        parts = [q for q in Path(s.name).parts if q not in (Path(s.name).anchor, ".", "..")]
+        folder = out.joinpath(*parts) if len(sets) > 1 else out
+        stems.append([folder / Path(src).stem for src in s.sources])
+        for stem, src in zip(stems[-1], s.sources, strict=True):
+            first = taken.setdefault(stem, src)
+            if first != src:
+                raise UsageError(f"{first} and {src}: both would be predicted into "
+                                 f"{stem}.pred.npy / .png; rename one or predict them apart")
+    return stems
 
 
 def _predict_text(result, backend: str, out: Path, labelled: bool) -> str:
@@ -91,11 +131,16 @@ def _predict_text(result, backend: str, out: Path, labelled: bool) -> str:
     if result.unlabelled:
         lines.append(f"{len(result.unlabelled)} scans without labels (named above): predicted, "
                      "left out of every score")
+    if result.orphan_labels:
+        lines.append(f"{len(result.orphan_labels)} labels without a scan (named above): not "
+                     "scored")
     if not labelled:
         return "\n".join(lines)
     for s in result.sets:
         lines.append(f"\n{s.name}: {len(s.sources)} scans"
                      + (f", {len(s.unlabelled)} without labels, not scored" if s.unlabelled
+                        else "")
+                     + (f", {len(s.orphan_labels)} labels without a scan" if s.orphan_labels
                         else "")
                      + (f", {s.ignored_pixels} pixels ignored" if s.ignored_pixels else ""))
         if s.scored:

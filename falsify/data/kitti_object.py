@@ -181,7 +181,20 @@ def frames(directory: Path) -> list[str]:
                 raise FalsifyError(f"{directory / d / f'{i}.{ext}'}: missing (a KITTI object "
                                    "frame needs velodyne/, calib/, label_2/ and image_2/ files "
                                    "of the same name)")
+    check_labels_have_scans(directory)
     return ids
+
+
+def check_labels_have_scans(directory: Path) -> None:
+    """FalsifyError naming the label_2/*.txt of an object directory whose velodyne/*.bin is
+    missing: their boxes would silently go unscored."""
+    orphans = sorted(p for p in (directory / "label_2").glob("*.txt")
+                     if not (directory / "velodyne" / f"{p.stem}.bin").is_file())
+    if orphans:
+        more = f" and {len(orphans) - 3} more" if len(orphans) > 3 else ""
+        raise FalsifyError(f"{', '.join(map(str, orphans[:3]))}{more}: labels without a scan "
+                           f"(no velodyne/{orphans[0].stem}.bin); every labelled frame needs "
+                           "its velodyne/ .bin of the same name")
 
 
 # -- our scenes as KITTI objects ---------------------------------------------------------------

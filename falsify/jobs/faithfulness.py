@@ -22,13 +22,21 @@ from pathlib import Path
 import numpy as np
 
 from falsify.classes import CAR
-from falsify.data.kitti_object import KittiObject, points_in_box, read_calib, read_labels
+from falsify.data.holdout import file_sha256
+from falsify.data.kitti_object import (
+    KittiObject,
+    check_labels_have_scans,
+    points_in_box,
+    read_calib,
+    read_labels,
+)
 from falsify.data.real_backgrounds import (
     INSERTED_INSTANCE,
     RealBackground,
     RealScanner,
     fit_ground,
 )
+from falsify.data.scansets import check_named_once
 from falsify.errors import FalsifyError
 from falsify.models.runners import Segmenter
 from falsify.results.metrics import confusion
@@ -42,6 +50,7 @@ from falsify.world.space import RealScan
 
 MARGIN_M = 0.2            # the removed car's box grows this much on its sides and top
 SEED = 0                  # the return model's dropouts on an inserted car: seeded per car
+#                           by (SEED, the sha256 of its frame's .bin, its box's label line)
 SCORED_TYPE = "Car"       # the boxes scored, one row each
 LEFT_OUT_TYPES = ("Car", "Van")   # other boxes of these types are neither TP, FP nor FN
 POSE = "bottom centre and rotation_y of the box; pitch and roll 0"
@@ -170,7 +179,9 @@ class Insertion:
 
 def object_scans(paths: list[Path]) -> list[RealScan]:
     """The frames of KITTI object directories, in order; FalsifyError naming a path that is
-    missing or is not an object directory (velodyne/, label_2/, calib/)."""
+    missing or is not an object directory (velodyne/, label_2/, calib/), and labels whose
+    velodyne/ scan is missing (as a scan whose labels are missing is named) or a frame named
+    twice (it would count twice)."""
     for p in paths:
         if not p.exists():
             raise FalsifyError(f"{p}: no such folder (expected a KITTI object directory: "
@@ -178,8 +189,10 @@ def object_scans(paths: list[Path]) -> list[RealScan]:
         if not p.is_dir() or not is_object_dir(p) or not (p / "calib").is_dir():
             raise FalsifyError(f"{p}: not a KITTI object directory (expected velodyne/, "
                                "label_2/ and calib/ folders)")
-    return [RealScan(name, b, label, kind)
-            for name, b, label, kind in real_scans([str(p) for p in paths])]
+        check_labels_have_scans(p)
+    found = real_scans([str(p) for p in paths])
+    check_named_once([b for _, b, _, _ in found])
+    return [RealScan(name, b, label, kind) for name, b, label, kind in found]
 
 
 def nearest_model(obj: KittiObject) -> tuple[str, tuple[float, float, float]]:
@@ -298,7 +311,8 @@ def run_faithfulness(paths: list[Path], sensor: Sensor, segmenter: Segmenter,
 def frame_rows(scanner: RealScanner, f: int, segmenter: Segmenter, margin: float = MARGIN_M,
                seed: int = SEED) -> list[CarRow]:
     """The rows of frame `f` of the scanner's real scans: its real scan and one inserted scan
-    per scored box, predicted in one batch."""
+    per scored box, predicted in one batch. Each car's dropouts are seeded by the frame's
+    content and the box's line, so neither the frames beside it nor their order moves them."""
     real = scanner.real[f]
     bg = scanner.background(f)
     if not len(bg.cloud):
@@ -309,8 +323,10 @@ def frame_rows(scanner: RealScanner, f: int, segmenter: Segmenter, margin: float
     scored = [k for k, o in enumerate(boxes) if o.type == SCORED_TYPE and o.has_3d]
     if not scored:
         return []
+    frame_id = int(file_sha256(real.bin), 16)
     inserted = [insert_in_place(scanner, bg, boxes[k], calib,
-                                np.random.default_rng([seed, f, k]), margin) for k in scored]
+                                np.random.default_rng([seed, frame_id, k]), margin)
+                for k in scored]
     pred = segmenter.predict(np.stack([bg.scan.image, *(i.scan.image for i in inserted)]))
     car_pred = pred.classes == CAR
     rows = []

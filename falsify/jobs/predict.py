@@ -5,7 +5,8 @@ Ignored pixels (e.g. inside a KITTI `Van` box) count as no class's TP, FP or FN.
 valid, not ignored pixels whose measured range falls in it; invalid pixels only ever count as
 unknown, so the car counts of the bands add up to the pooled car counts. Scans whose labels were
 not found are predicted but never scored: read as all unknown, every car predicted on them would
-count as a false positive.
+count as a false positive. Labels whose scan is missing are listed beside them, never dropped
+unsaid.
 
 A network with SemanticKITTI classes on sets whose scans carry SemanticKITTI labels (`.bin` with
 `.label`) is scored per train class as SemanticKITTI's evaluation scores points: pixels labelled
@@ -79,6 +80,7 @@ class SetEvaluation:
     ignored_pixels: int
     predictions: np.ndarray = field(repr=False)    # (B, H, W) uint8
     unlabelled: tuple[str, ...] = ()               # sources predicted but left out of the scores
+    orphan_labels: tuple[str, ...] = ()            # labels of the set whose scan is missing
 
     @property
     def scored(self) -> int:
@@ -88,7 +90,8 @@ class SetEvaluation:
     def to_json(self) -> dict:
         missing = set(self.unlabelled)
         return {"name": self.name, "scans": len(self.sources), "scored_scans": self.scored,
-                "unlabelled": list(self.unlabelled), "pooled": self.pooled.to_json(),
+                "unlabelled": list(self.unlabelled),
+                "labels_without_scans": list(self.orphan_labels), "pooled": self.pooled.to_json(),
                 "bands": {b: s.to_json() for b, s in self.bands},
                 "ignored_pixels": self.ignored_pixels,
                 "per_scan": [{"scan": s, "car_iou": v, "labelled": s not in missing}
@@ -111,6 +114,11 @@ class Evaluation:
         return tuple(u for s in self.sets for u in s.unlabelled)
 
     @property
+    def orphan_labels(self) -> tuple[str, ...]:
+        """Every set's labels whose scan is missing, in order."""
+        return tuple(u for s in self.sets for u in s.orphan_labels)
+
+    @property
     def labelled_sets(self) -> int:
         """How many sets have at least one scored scan."""
         return sum(1 for s in self.sets if s.scored)
@@ -120,6 +128,7 @@ class Evaluation:
                 "scans": sum(len(s.sources) for s in self.sets),
                 "scored_scans": sum(s.scored for s in self.sets),
                 "unlabelled": list(self.unlabelled),
+                "labels_without_scans": list(self.orphan_labels),
                 "pooled": self.pooled.to_json(),
                 "bands": {b: s.to_json() for b, s in self.bands},
                 "sets": [s.to_json() for s in self.sets]}
@@ -178,7 +187,8 @@ def evaluate_set(model: Segmenter, scans: ScanSet,
         band_sum += band_counts(pred[k], label[k], rng[k], ignore[k], bands, n)
     return SetEvaluation(
         scans.name, scans.sources, Scores.of(pooled(totals)), _band_scores(band_sum, bands),
-        tuple(per_scan), int(scans.ignore[labelled].sum()), pred, scans.unlabelled)
+        tuple(per_scan), int(scans.ignore[labelled].sum()), pred, scans.unlabelled,
+        scans.orphan_labels)
 
 
 def evaluate(model: Segmenter, sets: list[ScanSet],

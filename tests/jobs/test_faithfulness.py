@@ -23,7 +23,7 @@ from falsify.jobs.faithfulness import (
 )
 from falsify.semantic import RAW_ID
 from falsify.sensor.lidar import load_sensor
-from tests.conftest import KITTI_DIR
+from tests.conftest import KITTI_DIR, MINI
 
 DIRS = [KITTI_DIR / "object", KITTI_DIR / "object-extra"]
 
@@ -124,3 +124,74 @@ def test_cli_missing_folder_exits_2(tmp_path, capsys):
     (tmp_path / "plain").mkdir()
     assert main(["faithfulness", str(tmp_path / "plain"), "--json"]) == 2
     assert "not a KITTI object directory" in capsys.readouterr().err
+
+
+def test_a_cars_numbers_do_not_depend_on_the_frames_beside_it(dirs, result):
+    """Each car's dropouts are seeded by its frame's content: reversing the directories or
+    running one alone gives every car the same row (they moved with the frame's position)."""
+    from falsify.models.runners import load_segmenter
+    rows = {(r["frame"], r["box"]): r for r in result.to_json()["rows"]}
+    for run in ([dirs[1], dirs[0]], [dirs[1]]):
+        other = run_faithfulness(run, load_sensor("kitti-hdl64e-front"), load_segmenter(None))
+        assert other.rows
+        for r in other.to_json()["rows"]:
+            assert r == rows[(r["frame"], r["box"])]
+
+
+def object_copy(tmp_path: Path, dirs: list[Path], scans: list[str], labels: list[str]) -> Path:
+    """A KITTI object directory of symlinks: velodyne/, calib/ and image_2/ of `scans`, label_2/
+    of `labels`."""
+    d = tmp_path / "obj"
+    for sub, ext, names in (("velodyne", "bin", scans), ("calib", "txt", scans),
+                            ("image_2", "png", scans), ("label_2", "txt", labels)):
+        (d / sub).mkdir(parents=True)
+        for n in names:
+            (d / sub / f"{n}.{ext}").symlink_to(dirs[0] / sub / f"{n}.{ext}")
+    return d
+
+
+@pytest.mark.parametrize("command", [["faithfulness"], ["predict", "--out", "OUT"]])
+def test_labels_without_a_scan_exit_2(dirs, tmp_path, capsys, command):
+    """label_2/000001.txt (a Car) without velodyne/000001.bin is named, not skipped."""
+    d = object_copy(tmp_path, dirs, ["000002"], ["000001", "000002"])
+    out = tmp_path / "out"
+    argv = [str(out) if a == "OUT" else a for a in command]
+    assert main([*argv, str(d)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(d / "label_2" / "000001.txt") in err
+    assert "velodyne/000001.bin" in err and not out.exists()
+
+
+def test_a_frame_named_twice_exits_2(dirs, capsys):
+    assert main(["faithfulness", str(dirs[0]), str(dirs[0])]) == 2
+    assert "given twice" in capsys.readouterr().err
+
+
+def semantic_root(tmp_path: Path, ids: list[str]) -> Path:
+    """A SemanticKITTI root of symlinks to fit sequences of semantickitti-mini (never its
+    evaluation sequences 00, 03, 06, 08)."""
+    root = tmp_path / "sk" / "sequences"
+    root.mkdir(parents=True)
+    for sid in ids:
+        assert sid not in ("00", "03", "06", "08")
+        if not (MINI / "sequences" / sid / "velodyne").is_dir():
+            pytest.skip(f"semantickitti-mini's sequence {sid} not found at {MINI}")
+        (root / sid).symlink_to(MINI / "sequences" / sid)
+    return root.parent
+
+
+@pytest.mark.parametrize("form", [["04,05"], ["04", "05"]])
+def test_instances_sequences_take_the_comma_form(tmp_path, capsys, form):
+    """--sequences SS,SS as every other command takes it (the space list still reads the same)."""
+    root = semantic_root(tmp_path, ["04", "05"])
+    assert main(["faithfulness", "--instances", str(root), "--sequences", *form,
+                 "--min-points", "100000", "--json"]) == 0
+    scans = json.loads(capsys.readouterr().out)["scans"]
+    assert scans and {s.split("/")[0] for s in scans} == {"04", "05"}
+
+
+def test_instances_unknown_sequence_names_the_allowed(tmp_path, capsys):
+    root = semantic_root(tmp_path, ["04"])
+    assert main(["faithfulness", "--instances", str(root), "--sequences", "04,07"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--sequences 04,07" in err and "allowed: 04" in err
