@@ -28,6 +28,7 @@ import numpy as np
 
 from falsify.classes import CAR, PEDESTRIAN
 from falsify.classes import CLASSES as FOUR_CLASSES
+from falsify.data.holdout import file_sha256
 from falsify.data.real_backgrounds import (
     INSERTED_INSTANCE,
     PointIndex,
@@ -328,7 +329,10 @@ def instance_row(scanner: RealScanner, k: int, view: View, segmenter: Segmenter,
                         f"{view.cls} ({span[0]} x {span[1]})"))
         return None
     car = scanner.settle(removed, PlacedCar(model, x, y, heading, FIRST_CAR_INSTANCE))
-    scan = scanner.insert(removed, [car], np.random.default_rng([seed, k]))
+    # seeded by the scan's content and the instance, not view k's place in the run
+    rng = np.random.default_rng([seed, int(file_sha256(real.bin), 16), view.instance,
+                                 list(CLASSES).index(view.cls)])
+    scan = scanner.insert(removed, [car], rng)
     pred = segmenter.predict(np.stack([bg.scan.image, scan.image]))
     class_id = ids[view.cls]
     columns = np.zeros(bg.valid.shape, bool)

@@ -86,6 +86,18 @@ def test_each_instance_is_scored_both_ways_and_the_real_one_is_gone(tmp_path):
     assert result.classes["car"].pooled.cars == 1
 
 
+def test_a_views_row_does_not_depend_on_the_scans_beside_it(tmp_path):
+    """The insertion's random draws are seeded by the scan's content and the instance, so a
+    scan alone and after another give the same row."""
+    a, _ = _scan_with(tmp_path / "a", [("sedan", *CAR_AT, "car", 7)])
+    b, _ = _scan_with(tmp_path / "b", [("pedestrian", *PERSON_AT, "person", 9),
+                                       ("hatchback", 18.0, -2.0, 0.0, "car", 4)])
+    runs = [run_instance_faithfulness(dirs, None, load_sensor(SENSOR), load_segmenter(None))
+            for dirs in ([a.bin.parent], [b.bin.parent, a.bin.parent])]
+    alone, after = ([r for r in res.rows if r.instance == 7] for res in runs)
+    assert len(alone) == 1 and alone == after
+
+
 def test_an_instance_spanning_more_than_one_object_is_skipped_and_named(tmp_path):
     scan, _ = _scan_with(tmp_path, [("sedan", *CAR_AT, "car", 7),
                                     ("sedan", 22.0, -4.0, 0.0, "car", 7)])
