@@ -7,6 +7,7 @@ hold exactly what it held before the command ran.
 
 from __future__ import annotations
 
+import io
 import os
 import subprocess
 import sys
@@ -45,12 +46,21 @@ def dims(extra: str, text: str = SMOKE) -> str:
 MESH_CAR = SMOKE.replace('[dims.car_model]\nvalues = ["sedan"]', '[car_models.mine]\n'
                          'file = "{file}"\n\n[dims.car_model]\nvalues = ["mine"]')
 
+def npy_bytes(a: np.ndarray) -> bytes:
+    """An array as the bytes of its .npy file."""
+    buf = io.BytesIO()
+    np.save(buf, a, allow_pickle=False)
+    return buf.getvalue()
+
+
 SETUP = {   # file name: content (bytes or str); made in the scratch directory before each case
     "afile": "not a directory\n",
     "empty.npy": b"",
     "empty.bin": b"",
     "nan.bin": np.full((100, 4), np.nan, np.float32).tobytes(),
     "text.npy": b"\x93NUMPY garbage",
+    "badlab.npy": npy_bytes(np.concatenate([np.ones((8, 16, 5), np.float32),
+                                            np.full((8, 16, 1), 7, np.float32)], axis=2)),
     "yaw720.toml": dims("[dims.yaw]\nmin = 0.0\nmax = 720.0\nstep = 90.0"),
     "far.toml": dims("[dims.x]\nvalues = [1e9]"),
     "seedneg.toml": config(seed="seed = -1"),
@@ -91,6 +101,8 @@ CASES = [   # (id, command line after `falsify`, a word the message must name)
     ("predict a .npy that is not one", ["predict", "text.npy", "--out", "p"], "text.npy"),
     ("predict an empty .bin", ["predict", "empty.bin", "--out", "p"], "empty.bin"),
     ("predict a .bin of NaN", ["predict", "nan.bin", "--out", "p"], "nan.bin"),
+    ("predict a .npy whose labels are no class", ["predict", "badlab.npy", "--out", "p"],
+     "badlab.npy: label channel holds 7"),
     ("bench model --samples 0", ["bench", "model", "--samples", "0"], "--samples"),
     ("calib --scenes --samples 0", ["calib", "--scenes", "SMOKE", "--samples", "0"],
      "--samples: 0: allowed 1..1000000"),
