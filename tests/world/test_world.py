@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 
@@ -194,12 +195,17 @@ def test_scans_are_deterministic_with_returns_and_intensity():
 
 
 def test_fit_refuses_evaluation_scans(tmp_path):
-    (tmp_path / "squeezeseg").mkdir()
-    (tmp_path / "squeezeseg" / "x.bin").write_bytes(bytes(16))
-    r = subprocess.run([sys.executable, "-m", "falsify", "fit-returns",
-                        str(tmp_path / "squeezeseg" / "x.bin"), "--out", str(tmp_path / "o")],
-                       capture_output=True, text=True, cwd=ROOT)
-    assert r.returncode == 2 and "fit only on KITTI object frames" in r.stderr
+    """A frame that $FALSIFY_HOLDOUT's manifest holds out is refused, whatever its folder."""
+    scan = tmp_path / "object" / "velodyne" / "x.bin"
+    scan.parent.mkdir(parents=True)
+    scan.write_bytes(np.ones((100, 4), np.float32).tobytes())
+    manifest = tmp_path / "eval.toml"
+    assert subprocess.run([sys.executable, "-m", "falsify", "holdout", str(scan), "--out",
+                           str(manifest)], capture_output=True, cwd=ROOT).returncode == 0
+    r = subprocess.run([sys.executable, "-m", "falsify", "fit-returns", str(scan), "--out",
+                        str(tmp_path / "o")], capture_output=True, text=True, cwd=ROOT,
+                       env={**os.environ, "FALSIFY_HOLDOUT": str(manifest)})
+    assert r.returncode == 2 and "x.bin: a held-out scan" in r.stderr, r.stderr
     assert not (tmp_path / "o").exists()
     r = subprocess.run([sys.executable, "-m", "falsify", "fit-returns", "nosuch.bin", "--out",
                         str(tmp_path / "o")], capture_output=True, text=True, cwd=tmp_path)
