@@ -12,18 +12,15 @@ torch = pytest.importorskip("torch")
 
 from falsify.cli import main as falsify_main  # noqa: E402
 from falsify.models.adjust import adjust_state, choose_alpha, logit_offsets  # noqa: E402
-from falsify.models.plausible import plausible_scans  # noqa: E402
 from falsify.models.spec import DEFAULT_CHANNELS  # noqa: E402
 from falsify.models.squeezeseg import SqueezeSeg  # noqa: E402
 from falsify.models.train import CLASS_WEIGHTS, batch_tensors  # noqa: E402
+from tests.models.conftest import write_crops  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def val(tmp_path_factory):
-    d = tmp_path_factory.mktemp("val")
-    for i, s in enumerate(plausible_scans(3, 64, 512, seed=5)):
-        np.save(d / f"{i:06d}.npy", np.ascontiguousarray(s[:, 224:288]))
-    return d
+    return write_crops(tmp_path_factory.mktemp("val"), 3, seed=5, name="{i:06d}.npy")
 
 
 @pytest.fixture(scope="module")

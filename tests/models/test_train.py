@@ -14,16 +14,6 @@ from falsify.errors import FalsifyError  # noqa: E402
 from falsify.models.plausible import plausible_scans  # noqa: E402
 from falsify.models.train import flip  # noqa: E402
 
-
-@pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    d = tmp_path_factory.mktemp("scans")
-    # 64 x 64 crops of plausible scans (the centre columns, where the cars are)
-    for i, s in enumerate(plausible_scans(4, 64, 512, seed=11)):
-        np.save(d / f"scan_{i}.npy", np.ascontiguousarray(s[:, 224:288]))
-    return d
-
-
 ARGS = ["--batch", "2", "--seed", "3", "--precision", "fp32", "--crf-iterations", "1"]
 
 
@@ -123,20 +113,27 @@ def test_bad_numbers_exit_2_and_write_nothing(data, tmp_path, capsys, argv, name
     assert not out.exists()
 
 
-def test_a_diverging_run_stops_with_exit_2_and_writes_nothing(data, tmp_path, capsys):
+TRAINERS = pytest.mark.parametrize("trainer, args", [
+    ("train", ARGS), ("train-pointnet", ["--batch", "2", "--points", "64", "--seed", "3"])])
+
+
+@TRAINERS
+def test_a_diverging_run_stops_with_exit_2_and_writes_nothing(data, tmp_path, capsys, trainer,
+                                                              args):
     """A non-finite loss stops training before NaN weights are saved or exported."""
     out = tmp_path / "t"
-    assert main(["--data", str(data), "--out", str(out), "--epochs", "2", "--lr", "1e12",
-                 *ARGS]) == 2
+    assert falsify_main([trainer, "--data", str(data), "--out", str(out), "--epochs", "2",
+                         *args, "--lr", "1e12"]) == 2
     assert "epoch 1: the loss is nan, training diverged; lower --lr (now 1e+12)" in \
         capsys.readouterr().err
     assert not out.exists()
 
 
-def test_out_an_existing_file_exits_2(data, tmp_path, capsys):
+@TRAINERS
+def test_out_an_existing_file_exits_2(data, tmp_path, capsys, trainer, args):
     afile = tmp_path / "afile"
     afile.write_text("mine\n")
-    assert main(["--data", str(data), "--out", str(afile), *ARGS]) == 2
+    assert falsify_main([trainer, "--data", str(data), "--out", str(afile), *args]) == 2
     assert f"--out {afile}" in capsys.readouterr().err
     assert afile.read_text() == "mine\n"
 

@@ -1,0 +1,24 @@
+"""Scans the training tests share: 64 x 64 crops of plausible scans (the centre columns, where
+the cars are; labels 0..3, valid for both label sets)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from falsify.models.plausible import plausible_scans
+
+
+def write_crops(folder: Path, n: int, seed: int, name: str = "scan_{i}.npy") -> Path:
+    """`n` crops into `folder`, each named by `name`."""
+    for i, s in enumerate(plausible_scans(n, 64, 512, seed=seed)):
+        np.save(folder / name.format(i=i), np.ascontiguousarray(s[:, 224:288]))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    """Four crops: a training set small enough for a step a second."""
+    return write_crops(tmp_path_factory.mktemp("scans"), 4, seed=11)
