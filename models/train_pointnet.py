@@ -170,6 +170,9 @@ def _train_epoch(cfg: PointNetTrainConfig, model, opt, weights, files: list[Path
         if lab.size and not 0 <= lab.min() <= lab.max() < spec.num_classes:
             raise FalsifyError(f"scan {f}: labels {lab.min()}..{lab.max()}, not SemanticKITTI's "
                                f"train ids 0..{spec.num_classes - 1}; {LABELS_FIX}")
+        if not len(pts):
+            raise FalsifyError(f"scan {f}: no valid point (channel 4 is 0 everywhere); "
+                               "nothing to train on")
         pick = rng.choice(len(pts), cfg.points, replace=len(pts) < cfg.points)
         return pts[pick], lab[pick]
 

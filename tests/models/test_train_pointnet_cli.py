@@ -63,6 +63,19 @@ def test_kitti4_labelled_data_is_refused(data, tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_a_scan_without_a_valid_point_is_named(data, tmp_path, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    for f in data.glob("*.npy"):
+        (empty / f.name).write_bytes(f.read_bytes())
+    scan = np.load(empty / "scan_2.npy")
+    scan[..., 4] = 0
+    np.save(empty / "scan_2.npy", scan)
+    assert main(["--data", str(empty), "--out", str(tmp_path / "o"), *ARGS]) == 2
+    assert "scan_2.npy: no valid point" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize("how", ["env", "option", "val"])
 def test_held_out_scans_are_refused(data, tmp_path, capsys, monkeypatch, how):
     manifest = tmp_path / "hold.toml"
