@@ -3,6 +3,7 @@ the cars are; labels 0..3, valid for both label sets)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -22,3 +23,13 @@ def write_crops(folder: Path, n: int, seed: int, name: str = "scan_{i}.npy") -> 
 def data(tmp_path_factory) -> Path:
     """Four crops: a training set small enough for a step a second."""
     return write_crops(tmp_path_factory.mktemp("scans"), 4, seed=11)
+
+
+def copy_of(data: Path, folder: Path, labels: str | None = None) -> Path:
+    """The scans of `data` copied into `folder`, with an index.json naming `labels` if given."""
+    folder.mkdir()
+    for f in data.glob("*.npy"):
+        (folder / f.name).write_bytes(f.read_bytes())
+    if labels is not None:
+        (folder / "index.json").write_text(json.dumps({"scans": 4, "labels": labels}))
+    return folder

@@ -13,6 +13,7 @@ from falsify.cli import main as falsify_main  # noqa: E402
 from falsify.errors import FalsifyError  # noqa: E402
 from falsify.models.plausible import plausible_scans  # noqa: E402
 from falsify.models.train import flip  # noqa: E402
+from tests.models.conftest import copy_of  # noqa: E402
 
 ARGS = ["--batch", "2", "--seed", "3", "--precision", "fp32", "--crf-iterations", "1"]
 
@@ -139,11 +140,7 @@ def test_out_an_existing_file_exits_2(data, tmp_path, capsys, trainer, args):
 
 
 def test_semantickitti_labels_need_classes_semantickitti(data, tmp_path, capsys):
-    sk = tmp_path / "sk"
-    sk.mkdir()
-    for f in data.glob("*.npy"):
-        (sk / f.name).write_bytes(f.read_bytes())
-    (sk / "index.json").write_text(json.dumps({"scans": 4, "labels": "semantickitti"}))
+    sk = copy_of(data, tmp_path / "sk", labels="semantickitti")
     out = tmp_path / "o"
     assert main(["--data", str(sk), "--out", str(out), *ARGS]) == 2
     err = capsys.readouterr().err

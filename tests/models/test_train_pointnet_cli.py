@@ -19,6 +19,7 @@ from falsify.cli import build_parser  # noqa: E402
 from falsify.cli import main as falsify_main  # noqa: E402
 from falsify.cli.signals import Terminated  # noqa: E402
 from falsify.models import train_pointnet  # noqa: E402
+from tests.models.conftest import copy_of  # noqa: E402
 
 ARGS = ["--batch", "2", "--points", "64", "--seed", "3"]
 
@@ -53,21 +54,14 @@ def test_bad_values_exit_2_in_one_line_and_write_nothing(data, tmp_path, capsys,
 
 
 def test_kitti4_labelled_data_is_refused(data, tmp_path, capsys):
-    k4 = tmp_path / "k4"
-    k4.mkdir()
-    for f in data.glob("*.npy"):
-        (k4 / f.name).write_bytes(f.read_bytes())
-    (k4 / "index.json").write_text(json.dumps({"scans": 4, "labels": "kitti4"}))
+    k4 = copy_of(data, tmp_path / "k4", labels="kitti4")
     assert main(["--data", str(k4), "--out", str(tmp_path / "o"), *ARGS]) == 2
     assert "--labels semantickitti" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 
 def test_a_scan_without_a_valid_point_is_named(data, tmp_path, capsys):
-    empty = tmp_path / "empty"
-    empty.mkdir()
-    for f in data.glob("*.npy"):
-        (empty / f.name).write_bytes(f.read_bytes())
+    empty = copy_of(data, tmp_path / "empty")
     scan = np.load(empty / "scan_2.npy")
     scan[..., 4] = 0
     np.save(empty / "scan_2.npy", scan)
