@@ -12,10 +12,15 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised like Ctrl-C's KeyboardInterrupt so that a run stops the same clean way."""
 
 
+_received: list[int] = []   # the stop signal the handler took: a library that catches our
+#                             Terminated and raises KeyboardInterrupt (Ray's waits) keeps it
+
+
 @contextlib.contextmanager
 def stop_signals() -> Iterator[None]:
     """For the block: SIGTERM raises Terminated and SIGINT KeyboardInterrupt (each where not
     ignored), once; a second signal during the clean-up that follows is ignored."""
+    _received.clear()
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -23,6 +28,7 @@ def stop_signals() -> Iterator[None]:
     def stop(signum: int, frame) -> None:
         for sig in old:
             signal.signal(sig, signal.SIG_IGN)
+        _received.append(signum)
         raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
     old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -37,5 +43,7 @@ def stop_signals() -> Iterator[None]:
 
 
 def stop_name(exc: KeyboardInterrupt) -> tuple[str, int]:
-    """What stopped the command, and its exit status (128 + the signal's number)."""
-    return ("terminated", 143) if isinstance(exc, Terminated) else ("interrupted", 130)
+    """What stopped the command, and its exit status (128 + the signal's number): SIGTERM when
+    the exception says so or our handler took it, whatever the exception became on its way."""
+    term = isinstance(exc, Terminated) or signal.SIGTERM in _received
+    return ("terminated", 143) if term else ("interrupted", 130)

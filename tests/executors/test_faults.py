@@ -299,3 +299,21 @@ def test_a_stopped_training_names_the_command_that_continues_it(monkeypatch, cap
     want = "falsify " + " ".join(f"'{a}'" if " " in a else a for a in argv)
     assert err == f"falsify: terminated; continue with: {want}" + (
         "" if "--resume" in argv else " --resume") + "\n"
+
+
+def test_a_sigterm_stays_a_sigterm_when_a_library_reraises_it_as_ctrl_c():
+    """Ray's waits catch the Terminated our handler raises and raise KeyboardInterrupt: the
+    exit status still says SIGTERM (143), from the signal the handler took."""
+    from falsify.cli.signals import stop_name, stop_signals
+
+    with pytest.raises(KeyboardInterrupt):
+        with stop_signals():
+            try:
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(1)
+            except KeyboardInterrupt:
+                raise KeyboardInterrupt() from None   # what Ray's ray.wait turned it into
+    assert stop_name(KeyboardInterrupt()) == ("terminated", 143)
+    with stop_signals():   # the next command starts afresh: a Ctrl-C there is no SIGTERM
+        pass
+    assert stop_name(KeyboardInterrupt()) == ("interrupted", 130)
