@@ -10,7 +10,14 @@ import sys
 from pathlib import Path
 
 from falsify.checks import MAX_SAMPLES
-from falsify.cli.common import BACKEND_HELP, DEVICE_HELP, MODEL_HELP, camera_option, emit
+from falsify.cli.common import (
+    BACKEND_HELP,
+    DEVICE_HELP,
+    MODEL_HELP,
+    UsageError,
+    camera_option,
+    emit,
+)
 from falsify.cli.progress import ProgressBar
 from falsify.errors import FalsifyError
 
@@ -19,7 +26,7 @@ def run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("config")
     p.add_argument("--out", required=True, help="run directory (results.sqlite, maps, report)")
     p.add_argument("--model", default=None, help=MODEL_HELP)
-    p.add_argument("--backend", choices=["onnx", "torch", "python"], default="onnx",
+    p.add_argument("--backend", choices=["onnx", "torch", "python"], default=None,
                    help=BACKEND_HELP)
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help=DEVICE_HELP)
     p.add_argument("--inference", choices=["auto", "worker", "shared"], default="auto",
@@ -137,11 +144,15 @@ def lock_early(out: Path | None, argv: list[str]) -> contextlib.AbstractContextM
 
 def run_job(args, command: str, algorithm: str) -> int:
     from falsify.jobs.run import RunRequest, RunStopped, execute
+    from falsify.models.plugin import is_plugin
 
+    if args.backend not in (None, "python") and is_plugin(args.model):
+        raise UsageError(f"--backend {args.backend}: the plug-in model {args.model} runs on "
+                         "python; leave --backend out (or give python)")
     req = RunRequest(
         config=Path(args.config), out=Path(args.out), command=command, algorithm=algorithm,
         budget=getattr(args, "budget", None), seed=args.seed, model=args.model,
-        backend=args.backend, device=args.device, objective=args.objective,
+        backend=args.backend or "onnx", device=args.device, objective=args.objective,
         workers=args.workers, resume=args.resume,
         threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
         camera=args.camera, max_samples=args.max_samples, executor=args.executor,

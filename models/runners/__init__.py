@@ -99,6 +99,9 @@ def load_segmenter(path: str | Path | None = None, backend: str = "onnx",
         return PluginSegmenter(str(path), threads, device)
     p = resolve_model(path, backend)
     if backend == "torch":
+        if path is not None and p != Path(path) and not p.is_file():
+            raise FalsifyError(f"--backend torch reads the state dict beside {path}: {p} not "
+                               "found (save one with torch.save(model.state_dict(), PATH))")
         return TorchSegmenter(p, threads, device=device)
     if path is None and not p.is_file():
         raise FalsifyError(f"bundled model {p} not found; train one with "

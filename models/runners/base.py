@@ -128,6 +128,20 @@ def _one_to_one(spec: ModelSpec) -> list[int] | None:
     return None
 
 
+def check_finite(out: np.ndarray, valid: np.ndarray, source: Path | str) -> np.ndarray:
+    """`out` (B, K, H, W) unchanged, or a FalsifyError naming `source` when a valid pixel has a
+    NaN or infinite score: argmax would read it as some class and score it as an answer."""
+    out = np.asarray(out)
+    if not np.issubdtype(out.dtype, np.floating) or np.isfinite(out).all():
+        return out
+    bad = ~np.isfinite(out).all(axis=1) & valid
+    if bad.any():
+        raise FalsifyError(f"model {source}: its output has NaN or inf scores on "
+                           f"{int(bad.sum()):,} valid pixels of {int(valid.sum()):,}; "
+                           "refusing to score them")
+    return out
+
+
 def to_prediction(out: np.ndarray, spec: ModelSpec, valid: np.ndarray) -> Prediction:
     """Model output (B,K,H,W) -> Prediction in our 4 classes; invalid pixels are unknown.
     Spec names fold into ours as `falsify.models.spec.four_class_of` says (person is

@@ -13,6 +13,7 @@ from falsify.models.plugin import check_device
 from falsify.models.runners.base import (
     BATCH,
     Prediction,
+    check_finite,
     check_scans,
     feeds,
     open_model,
@@ -161,4 +162,5 @@ class OnnxSegmenter:
 
     def predict(self, scans: np.ndarray) -> Prediction:
         a = check_scans(scans, self.spec, self.path)
-        return to_prediction(self._run(a), self.spec, a[..., 4] > 0)
+        valid = a[..., 4] > 0
+        return to_prediction(check_finite(self._run(a), valid, self.path), self.spec, valid)

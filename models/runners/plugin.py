@@ -48,11 +48,17 @@ class PluginSegmenter:
                 scan = a[b, ..., :6].copy()
                 scan[..., 5:] = 0   # the label: a network must not see the answer
                 batch.append(scan)
-        answers = self.plugin.predict(batch) if batch else []
-        answers = [_numpy(x) for x in answers]
+        answers = [_numpy(x) for x in self._predict(batch)] if batch else []
         if len(answers) != len(batch):
             raise FalsifyError(f"plug-in {self.path}: predict returned {len(answers)} answers "
                                f"for {len(batch)} scans")
+        for x in answers:
+            if not (np.issubdtype(x.dtype, np.number) or x.dtype == bool) or np.iscomplexobj(x):
+                raise FalsifyError(f"plug-in {self.path}: predict returned an answer of dtype "
+                                   f"{x.dtype}; allowed: integer output indices or float scores")
+            if not np.isfinite(x).all():
+                raise FalsifyError(f"plug-in {self.path}: predict returned NaN or inf scores "
+                                   f"for a scan; refusing to score them")
         ints = {np.issubdtype(x.dtype, np.integer) or x.dtype == bool for x in answers}
         if len(ints) > 1:
             raise FalsifyError(f"plug-in {self.path}: predict returned integer classes for "
@@ -82,6 +88,17 @@ class PluginSegmenter:
         else:
             raw = np.stack(per_scan) if len(a) else np.zeros((0, k, *a.shape[1:3]), np.float32)
         return raw, dataclasses.replace(s, output_kind="probabilities") if onehot else s
+
+    def _predict(self, batch: list[np.ndarray]) -> list[Any]:
+        """The plug-in's answers as a list; its own exceptions as a FalsifyError naming it, so
+        a failing network is one line, not a traceback."""
+        try:
+            return list(self.plugin.predict(batch))
+        except FalsifyError:
+            raise
+        except Exception as e:
+            raise FalsifyError(f"plug-in {self.path}: predict failed: {type(e).__name__}: {e}"
+                               ) from e
 
 
 def _numpy(x: Any) -> np.ndarray:

@@ -13,6 +13,7 @@ from falsify.models.plugin import torch_device
 from falsify.models.runners.base import (
     BATCH,
     Prediction,
+    check_finite,
     check_scans,
     feeds,
     open_model,
@@ -59,9 +60,18 @@ class TorchSegmenter:
                                "for the torch SqueezeSeg")
         try:
             state = torch.load(str(self.path), map_location="cpu", weights_only=True)
+        except Exception as e:
+            raise FalsifyError(f"cannot load torch weights {self.path}: not a state dict that "
+                               "torch.load(weights_only=True) reads (save one with "
+                               f"torch.save(model.state_dict(), PATH); {type(e).__name__})"
+                               ) from e
+        try:
             self.model.load_state_dict(state)
         except Exception as e:
-            raise FalsifyError(f"cannot load torch weights {self.path}: {e}") from e
+            raise FalsifyError(f"cannot load torch weights {self.path} into the SqueezeSeg "
+                               f"{spec_path} describes ({self.spec.num_classes} classes, "
+                               f"channels {list(self.spec.channels)}, crf_iterations "
+                               f"{self.spec.crf_iterations}): {_one_line(e)}") from e
         # channels_last: about 2x faster than channels-first eager on this CPU (measured)
         self.model = self.model.to(self.device, memory_format=torch.channels_last).eval()
 
@@ -88,4 +98,15 @@ class TorchSegmenter:
 
     def predict(self, scans: np.ndarray) -> Prediction:
         a = check_scans(scans, self.spec, self.path)
-        return to_prediction(self._run(a), self.spec, a[..., 4] > 0)
+        valid = a[..., 4] > 0
+        return to_prediction(check_finite(self._run(a), valid, self.path), self.spec, valid)
+
+
+def _one_line(e: Exception) -> str:
+    """torch's error as one line: its first problem, and how many more it lists."""
+    lines = [x.strip() for x in str(e).splitlines() if x.strip()]
+    if not lines:
+        return type(e).__name__
+    head = lines[0] if len(lines) == 1 or not lines[0].endswith(":") else lines[1]
+    more = len(lines) - (1 if head == lines[0] else 2)
+    return head + (f" (and {more} more)" if more > 0 else "")

@@ -214,6 +214,40 @@ def test_bad_plugin_answers_are_clear_errors(tmp_path):
         seg.predict(plausible_scans(1))
 
 
+@pytest.mark.parametrize("answer, match", [
+    ("np.full((len(p), 2), np.nan, np.float32)", "NaN or inf scores"),
+    ("np.array(['car'] * len(p))", r"dtype <U3; allowed: integer output indices or float"),
+    ("1 / 0", "predict failed: ZeroDivisionError"),
+])
+def test_plugin_answers_that_cannot_be_scored_are_exit_2(tmp_path, capsys, answer, match):
+    """NaN scores, text answers and a predict that raises: one line naming the plug-in, exit 2,
+    no run folder left (before: NaN scored as IoU 0, a raise a traceback)."""
+    (tmp_path / "odd.py").write_text(
+        "import numpy as np\n"
+        "class P:\n    spec = {'name': 'p', 'input_kind': 'points', 'num_classes': 2,\n"
+        "            'classes': {'car': 1}}\n"
+        f"    def predict(self, b):\n        return [{answer} for p in b]\n"
+        "def factory():\n    return P()\n")
+    out = tmp_path / "run"
+    assert main(["grid", str(SMOKE), "--out", str(out), "--model",
+                 f"{tmp_path / 'odd.py'}:factory", "--quiet", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert re.search(match, err) and "odd.py:factory" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("command", [["grid"], ["search", "--algorithm", "random",
+                                                  "--budget", "2"]])
+def test_a_backend_a_plugin_cannot_run_on_is_refused(rules, tmp_path, capsys, command):
+    """grid and search --backend torch with a plug-in: refused as predict refuses it (before:
+    silently run on python)."""
+    out = tmp_path / "run"
+    assert main([*command[:1], str(SMOKE), *command[1:], "--out", str(out), "--model",
+                 f"{rules}:factory", "--backend", "torch", "--quiet"]) == 2
+    assert "--backend torch: the plug-in model" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_model_strings_name_plugins(tmp_path, monkeypatch):
     assert is_plugin("falsify.models.pointnet:factory")
     assert is_plugin("nets/mine.py:build") and is_plugin(r"C:\nets\mine.py:build")

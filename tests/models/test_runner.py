@@ -105,6 +105,25 @@ def test_nan_and_shape_errors(exported):
         seg.predict(np.zeros((1, 32, 512, 6), np.float32))
 
 
+@pytest.mark.parametrize("backend", ["onnx", "torch"])
+def test_a_network_answering_nan_is_refused_not_scored(tmp_path, backend):
+    """A network whose scores are NaN is an error naming it: argmax read NaN as class 0 and the
+    scan was scored as if the network had answered."""
+    torch = pytest.importorskip("torch")
+    from falsify.models.export import export_onnx
+    from falsify.models.squeezeseg import SqueezeSeg
+
+    torch.manual_seed(1234)
+    model = SqueezeSeg(crf_iterations=0).eval()
+    with torch.no_grad():
+        model.conv14.conv.bias.fill_(float("nan"))   # the last layer: every score NaN
+    onnx_path, _ = export_onnx(model, tmp_path / "nan.onnx")
+    torch.save(model.state_dict(), tmp_path / "nan.pt")
+    seg = load_segmenter(onnx_path, backend=backend)
+    with pytest.raises(FalsifyError, match=r"nan\.(onnx|pt).*NaN or inf scores on [\d,]+ valid"):
+        seg.predict(plausible_scans(1, seed=2))
+
+
 def test_missing_and_corrupt_files(exported, tmp_path):
     with pytest.raises(FalsifyError, match="nope.onnx not found"):
         load_segmenter(tmp_path / "nope.onnx")
@@ -119,6 +138,40 @@ def test_missing_and_corrupt_files(exported, tmp_path):
         load_segmenter(lone)
     with pytest.raises(FalsifyError, match="backend"):
         load_segmenter(exported, backend="tf")
+
+
+def test_torch_without_a_pt_beside_the_onnx_says_where_it_looked(exported, tmp_path):
+    """--backend torch with net.onnx reads net.pt: its absence names both files."""
+    lone = tmp_path / "lone.onnx"
+    lone.write_bytes(exported.read_bytes())
+    spec_path_for(lone).write_text(spec_path_for(exported).read_text())
+    with pytest.raises(FalsifyError, match=r"reads the state dict beside .*lone\.onnx: "
+                       r".*lone\.pt not found"):
+        load_segmenter(lone, backend="torch")
+
+
+def test_torch_weights_that_do_not_fit_the_spec_are_one_line(exported, tmp_path):
+    """--backend torch with a .pt of another class count, or not a state dict: one line naming
+    the file, the spec's classes and torch's first complaint (before: torch's whole listing, or
+    its advice to load untrusted pickles)."""
+    pytest.importorskip("torch")
+    d = json.loads(spec_path_for(exported).read_text())
+    d.update(num_classes=20, classes={"car": 1}, crf_iterations=0, xyz_input=None,
+             mask_input=None)
+    net = tmp_path / "net.onnx"
+    net.write_bytes(exported.read_bytes())
+    spec_path_for(net).write_text(json.dumps(d))
+    net.with_suffix(".pt").write_bytes(exported.with_suffix(".pt").read_bytes())   # 4 classes
+    with pytest.raises(FalsifyError) as exc:
+        load_segmenter(net, backend="torch")
+    msg = str(exc.value)
+    assert "\n" not in msg and "net.pt into the SqueezeSeg" in msg and "20 classes" in msg
+    assert "size mismatch for conv14" in msg and "more)" in msg
+    net.with_suffix(".pt").write_bytes(b"not a state dict")
+    with pytest.raises(FalsifyError) as exc:
+        load_segmenter(net, backend="torch")
+    assert "\n" not in str(exc.value) and "not a state dict" in str(exc.value)
+    assert "weights_only` set to `False`" not in str(exc.value)
 
 
 def _with_spec(exported: Path, tmp_path: Path, **changes) -> Path:
