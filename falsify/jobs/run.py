@@ -170,6 +170,10 @@ def _check_request(req: RunRequest, space: Space) -> None:
                            "workers; with --executor ray each actor runs the network")
     if req.algorithm == "grid" and req.budget is None:
         space.check_size(req.max_samples)
+    elif req.algorithm == LEVEL_SET and req.budget is None and space.size() > req.max_samples:
+        raise FalsifyError(f"--max-samples: level-set without --budget may score the whole grid, "
+                           f"{space.size():,} samples, more than --max-samples "
+                           f"{req.max_samples:,}; give --budget or raise --max-samples")
     if req.threshold is not None and not 0 < req.threshold <= 1:
         raise FalsifyError(f"--threshold: {req.threshold} must be in (0, 1]")
 

@@ -156,7 +156,9 @@ class Scoring:
             classes = TRAIN_CLASSES
             scored = tuple(n for n in TRAIN_CLASSES[1:] if n in names)
             objective = _TO_TRAIN.get(objective, objective)
-        allowed = [n for n in scored if n not in ("unknown", "unlabeled")] + ["miou"]
+        # a four-class model scores all four, but is judged only on those its spec maps
+        allowed = [n for n in scored if n not in ("unknown", "unlabeled") and n in (
+            mapped if classes is CLASSES else scored)] + ["miou"]
         if objective not in allowed:
             raise ConfigError(f"--objective: {objective!r} is not a class this model "
                               f"predicts; allowed: {', '.join(allowed)}")

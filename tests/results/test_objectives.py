@@ -13,6 +13,7 @@ import pytest
 
 from falsify.cli import main
 from falsify.data.velodyne import read_kitti
+from falsify.errors import ConfigError
 from falsify.models.runners import load_segmenter
 from falsify.results.metrics import Scoring
 from falsify.semantic import TRAIN_CLASSES, train_ids
@@ -37,6 +38,16 @@ def test_scoring_names_and_aliases() -> None:
     assert sem.score_column == "person_iou"
     with pytest.raises(Exception, match="allowed: car, person, traffic-sign, miou"):
         Scoring.of(["car", "person", "traffic-sign"], "road")
+
+
+def test_a_four_class_spec_without_a_class_cannot_be_judged_on_it() -> None:
+    """--objective names a class the network predicts: a four-class spec that maps only car is
+    refused person (before: scored as pedestrian IoU 0 on every sample)."""
+    with pytest.raises(ConfigError, match="'pedestrian' is not a class this model predicts; "
+                       "allowed: car, miou"):
+        Scoring.of(["unknown", "car"], "person")
+    assert Scoring.of(["unknown", "car"], "car").scored == ("unknown", "car", "pedestrian",
+                                                             "cyclist")
 
 
 def test_semantic_scoring_ignores_unlabeled_and_averages_present_classes() -> None:
