@@ -83,7 +83,9 @@ def plot(rows: Sequence[dict], grid_samples: int) -> str:
     xs = [math.log10(max(grid_ms(r, grid_samples), 1e-6)) for r in pts]
     ys = [math.log10(max(r["map_mean_abs_error"], ERROR_FLOOR)) for r in pts]
     x0, x1 = min(xs) - 0.1, max(xs) + 0.1
-    y0, y1 = math.log10(ERROR_FLOOR), max(math.ceil(max(ys)), math.log10(ERROR_FLOOR) + 2)
+    # y1 a whole decade, at least two above the floor (an int: errors all under 0.01 too)
+    y0 = math.log10(ERROR_FLOOR)
+    y1 = max(math.ceil(max(ys)), round(y0) + 2)
     pw, ph = W - LEFT - RIGHT, H - TOP - BOTTOM
 
     def px(lx: float) -> float:

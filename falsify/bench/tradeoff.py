@@ -431,9 +431,9 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
 
     Bad input raises FalsifyError before anything is written."""
     from falsify.bench.machine import machine
-    from falsify.fileio import write_bytes, write_json
+    from falsify.fileio import write_bytes, write_json, write_text
     from falsify.models.runners import BUNDLED_ONNX
-    from falsify.reports.tradeoff_page import write_page
+    from falsify.reports.tradeoff_page import render
 
     knobs = parse_knobs(",".join(knobs))
     out = check_out_dir(out)
@@ -488,9 +488,10 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
         "files": {k: str(out / f"tradeoff.{k}") for k in ("csv", "json", "html")},
     }
     frame = pd.DataFrame([dataclasses.asdict(r) for r in rows], columns=list(Row.__annotations__))
+    page = render(summary)   # before any file: a page that fails leaves no csv without it
     write_bytes(out / "tradeoff.csv", frame.to_csv(index=False).encode())
     write_json(out / "tradeoff.json", summary)
-    write_page(summary, out / "tradeoff.html")
+    write_text(out / "tradeoff.html", page)
     return summary
 
 

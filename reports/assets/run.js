@@ -47,6 +47,7 @@
     while (body.firstChild) body.removeChild(body.firstChild);
     var show = ['eval', 'x', 'y', 'yaw', 'car_model', 'count', 'background', 'status', 'iou',
                 'precision', 'recall', 'reason'];
+    if (at.other !== undefined) show.push('other');   // weather, camera, further objects' dims
     hits.forEach(function (r) {
       var tr = document.createElement('tr');
       show.forEach(function (c) {

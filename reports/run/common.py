@@ -58,3 +58,26 @@ def dim_text(row: pd.Series, name: str) -> str:
         return v
     return f"{float(v):.3f}".rstrip("0").rstrip(".") if name in ("x", "y", "yaw") else \
         fmt_value(v)
+
+
+# Dims the sample tables give a column of their own (besides the model dim).
+TABLE_DIMS = ("x", "y", "yaw", "count", "background")
+
+
+def other_dims(data: RunData) -> tuple[str, ...]:
+    """The space's dims without a column of their own (weather, camera, further objects'): the
+    tables list them in one column, so samples that differ only there do not read alike."""
+    return tuple(d for d in data.space.dims if d not in (*TABLE_DIMS, data.space.model_dim))
+
+
+def other_text(row: pd.Series, names: tuple[str, ...]) -> str:
+    """A row's values of `names` as "fog 50, colour red"."""
+    return ", ".join(f"{n} {dim_text(row, n)}" for n in names)
+
+
+def score_parts(column: str) -> tuple[str | None, str | None]:
+    """The precision and recall columns of an IoU score column ("car_iou": car_precision,
+    car_recall); none for mIoU, which has neither."""
+    if not column.endswith("_iou"):
+        return None, None
+    return column[:-4] + "_precision", column[:-4] + "_recall"

@@ -9,7 +9,13 @@ import numpy as np
 
 from falsify.reports.charts import Grid, axes_svg, cells_svg, f3, legend_svg, svg_element, viridis
 from falsify.reports.page import esc
-from falsify.reports.run.common import bg_values, model_heading, objective_name, objective_title
+from falsify.reports.run.common import (
+    bg_values,
+    model_heading,
+    objective_name,
+    objective_title,
+    other_dims,
+)
 from falsify.results.metrics import Status, column
 from falsify.results.miou_maps import CellMap, fmt_value
 from falsify.results.store import RunData
@@ -92,7 +98,8 @@ its value; click it to list its samples.</p>{estimated}
 <p id="cell-hint" class="note">Click a cell of the map to list its samples here.</p>
 <div class="scroll"><table id="cell-table" hidden><thead><tr><th>eval</th><th>x</th><th>y</th>
 <th>yaw</th><th>{model_heading(data)}</th><th>count</th><th>background</th><th>status</th><th>{what}</th>
-<th>precision</th><th>recall</th><th>reason</th></tr></thead><tbody></tbody></table></div>
+<th>precision</th><th>recall</th><th>reason</th>{"<th>other dims</th>" if other_dims(data) else ""}
+</tr></thead><tbody></tbody></table></div>
 </div>
 </section>"""
 

@@ -21,7 +21,7 @@ import falsify
 from falsify.reports.charts import BLIND_STROKE, FONT, VIRIDIS
 from falsify.reports.explain_page import explain_section
 from falsify.reports.page import esc, head
-from falsify.reports.run.common import cell_key, objective_name
+from falsify.reports.run.common import cell_key, objective_name, other_dims, other_text, score_parts
 from falsify.reports.run.compare import compare_section
 from falsify.reports.run.maps import class_maps_section, heatmap_section, inserted_section
 from falsify.reports.run.plots import distance_section, search_section
@@ -82,16 +82,21 @@ def samples_json(data: RunData) -> dict:
     f = data.frame
     cx = snap(f["x"], data.space, "x")
     cy = snap(f["y"], data.space, "y")
+    others = other_dims(data)
     cols = ["cell", "eval", "x", "y", "yaw", "car_model", "count", "background", "status",
-            "iou", "precision", "recall", "reason"]
+            "iou", "precision", "recall", "reason"] + (["other"] if others else [])
     col = data.score_column
-    src = {"eval": "eval_index", "iou": col, "precision": col.replace("_iou", "_precision"),
-           "recall": col.replace("_iou", "_recall"), "car_model": data.space.model_dim}
+    prec, rec = score_parts(col)
+    src = {"eval": "eval_index", "iou": col, "precision": prec, "recall": rec,
+           "car_model": data.space.model_dim}
     rows = []
     for k in range(len(f)):
         r = f.iloc[k]
         row: list = [cell_key(cx.iloc[k], cy.iloc[k])]
         for c in cols[1:]:
+            if c == "other":
+                row.append(other_text(r, others))
+                continue
             name = src.get(c, c)
             v = r[name] if name in f.columns else None
             if v is not None and not isinstance(v, str) and pd.isna(v):

@@ -13,7 +13,15 @@ import pandas as pd
 
 from falsify.reports.charts import f3
 from falsify.reports.page import esc
-from falsify.reports.run.common import bg_text, dim_text, model_heading, objective_name
+from falsify.reports.run.common import (
+    bg_text,
+    dim_text,
+    model_heading,
+    objective_name,
+    other_dims,
+    other_text,
+    score_parts,
+)
 from falsify.results.store import RunData
 
 
@@ -93,12 +101,14 @@ def worst_section(data: RunData, scans: Mapping[int, ReplayedScan], note: str,
                   worst: int) -> str:
     rows = data.worst(worst)
     col, what = data.score_column, objective_name(data)
-    prec, rec = col.replace("_iou", "_precision"), col.replace("_iou", "_recall")
+    prec, rec = score_parts(col)
+    others = other_dims(data)
     previews = {ev: _preview(s) for ev, s in scans.items()}
     with_pred = any(p.pred_range for p in previews.values())
     head = ("<tr><th>#</th><th>eval</th><th>x, y (m)</th><th>yaw</th>"
             f"<th>{model_heading(data)}</th>"
-            f"<th>bg</th><th>{what}</th><th>precision /<br>recall</th>"
+            f"<th>bg</th>" + ("<th>other dims</th>" if others else "")
+            + f"<th>{what}</th><th>precision /<br>recall</th>"
             "<th>car points<br>label / pred.</th><th>scan: range image, bird's-eye view"
             + (" (label above, prediction below)" if with_pred else " (label)")
             + "</th></tr>")
@@ -118,8 +128,10 @@ def worst_section(data: RunData, scans: Mapping[int, ReplayedScan], note: str,
             f'<td class="num">{esc(dim_text(r, "yaw"))}</td>'
             f"<td>{esc(dim_text(r, data.space.model_dim))}</td>"
             f"<td>{esc(bg_text(data, r))}</td>"
-            f'<td class="num bad">{f3(r[col])}</td>'
-            f'<td class="num">{f3(r.get(prec))} /<br>{f3(r.get(rec))}</td>'
+            + (f"<td>{esc(other_text(r, others))}</td>" if others else "")
+            + f'<td class="num bad">{f3(r[col])}</td>'
+            f'<td class="num">{f3(r.get(prec) if prec else None)} /<br>'
+            f'{f3(r.get(rec) if rec else None)}</td>'
             f'<td class="num">{_int(r.get("label_points"))} / {_int(r.get("car_points"))}</td>'
             f'<td class="pics">{pics}</td></tr>')
     legend = ('<span class="key" style="background:#e63c32"></span>car '

@@ -23,7 +23,7 @@ from falsify.bench.tradeoff import (
     STEPS,
 )
 from falsify.cli import main
-from falsify.reports.tradeoff_page import pareto
+from falsify.reports.tradeoff_page import pareto, plot
 from falsify.results.miou_maps import CellMap, fill_nearest, jaccard, map_error
 
 pytestmark = pytest.mark.slow   # the heavy tier: whole trade-off runs
@@ -202,3 +202,12 @@ def test_fill_nearest_and_compare():
 def test_pareto_front():
     assert pareto([(1.0, 0.5), (2.0, 0.1), (1.5, 0.6), (3.0, 0.0)]) == [
         (1.0, 0.5), (2.0, 0.1), (3.0, 0.0)]
+
+
+def test_plot_with_every_error_under_a_hundredth():
+    """A run whose settings all change the map by < 0.01 (e.g. --knobs lod) still gets its
+    plot (before: TypeError from a float axis bound, after the csv and json were written)."""
+    rows = [{"knob": "lod", "setting": f"lod {k}", "is_reference": k == 2, "map_time_s": 0.16,
+             "map_mean_abs_error": err} for k, err in ((0, 0.001), (1, 0.0004), (2, 0.0))]
+    svg = plot(rows, 2)
+    assert svg.startswith("<svg") and "lod 0" in svg and "≤0.0001" in svg

@@ -239,3 +239,44 @@ def test_an_incomplete_run_says_so(runs, tmp_path: Path, capsys) -> None:
                  "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert (doc["samples"], doc["planned"], doc["complete"]) == (5, 8, False)
+
+
+WEATHER_MIOU = """name = "fog"
+sensor = "kitti-hdl64e-front"
+seed = 0
+[dims.car_model]
+values = ["sedan"]
+[dims.x]
+values = [2.0]
+[dims.y]
+values = [8.0]
+[dims.background]
+values = [0]
+[dims.fog]
+values = [0.0, 50.0]
+[dims.colour]
+values = ["red", "#00ff00"]
+"""
+
+
+def test_weather_dims_and_a_miou_objective_in_the_tables(tmp_path: Path) -> None:
+    """Samples that differ only in a weather or camera dim do not read alike in the worst and
+    cell tables (their values are listed), and an mIoU run shows no precision or recall (it
+    has none; before: its mIoU under both headings)."""
+    config = tmp_path / "fog.toml"
+    config.write_text(WEATHER_MIOU)
+    run = tmp_path / "run"
+    assert main(["grid", str(config), "--out", str(run), "--objective", "miou", "--quiet",
+                 "--no-report"]) == 0
+    page = render_report(run, predict=False)
+    worst = page[page.index('id="worst-section"'):]
+    assert "<th>other dims</th>" in worst and "<th>other dims</th>" in page[
+        page.index('id="cell-table"'):]
+    for fog in (0, 50):
+        assert f"colour #00ff00, fog {fog}</td>" in worst
+    rows = re.findall(r'<td class="num bad">([0-9.]+)</td><td class="num">(.*?)</td>', worst)
+    assert len(rows) == 4 and all(pr == "— /<br>—" for _, pr in rows), rows
+    blob = json.loads(re.search(r'id="falsify-data">(.*?)</script>', page, re.S).group(1))
+    cols, first = blob["samples"]["columns"], blob["samples"]["rows"][0]
+    assert first[cols.index("precision")] is None and first[cols.index("recall")] is None
+    assert first[cols.index("other")] == "colour red, fog 0"
