@@ -30,6 +30,11 @@ class Row:
     command: str
 
 
+def processes(n: int) -> str:
+    """"1 process", "2 processes"."""
+    return f"{n} process" + ("" if n == 1 else "es")
+
+
 def _num(v: float, spec: str = ",.1f") -> str:
     return format(v, spec)
 
@@ -50,7 +55,7 @@ def _scan(doc: dict) -> Row:
     spread = ("" if len(rounds) < 2 else
               f" (median of {len(rounds)} rounds, {_num(min(rounds))}-{_num(max(rounds))})")
     return Row("scan" + where,
-               f"{_num(fast)} scans/s on {n} processes{spread}, "
+               f"{_num(fast)} scans/s on {processes(n)}{spread}, "
                f"{_num(doc['fast_scans_per_s_1_process'])} on 1",
                f"{_num(speedup)}x the naive path ({doc['naive_scans_per_s']} scans/s)",
                NO_NETWORK, f"falsify bench scan --config {doc['config']} --samples "

@@ -23,6 +23,23 @@ MODEL_BENCH_FRAMES = 8
 BENCH_CONFIGS = {"scan": "bench.toml", "pipeline": "bench.toml", "nodes": "bench.toml",
                  "memory": "ci.toml", "search": "yaw.toml", "camera": "paper.toml",
                  "map": "weather.toml", "effects": "weather.toml"}
+# The options each benchmark reads (every one takes --json); one given to a benchmark that does
+# not read it is refused, not silently ignored.
+BENCH_OPTIONS = {
+    "scan": ("--config", "--samples", "--naive-samples", "--workers", "--repeats"),
+    "model": ("--samples", "--model", "--scans", "--repeats", "--calibration-scans",
+              "--threads"),
+    "pipeline": ("--config", "--samples", "--workers", "--executor", "--device", "--inference",
+                 "--model"),
+    "memory": ("--config", "--workers", "--model"),
+    "nodes": ("--config", "--samples", "--nodes", "--model"),
+    "search": ("--config", "--out", "--workers", "--model", "--fraction", "--seeds"),
+    "map": ("--config", "--out", "--workers", "--model", "--budgets", "--threshold",
+            "--confidence", "--timed", "--seeds"),
+    "camera": ("--config", "--samples", "--naive-samples", "--camera-preset"),
+    "effects": ("--config", "--samples"),
+    "table": ("--write",),
+}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -47,7 +64,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="how many samples (default: each benchmark's own)")
     p.add_argument("--naive-samples", type=int, default=None,
                    help="samples through the naive path (default: each benchmark's own)")
-    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--workers", type=int, default=2,
+                   help="bench scan, pipeline, memory, search, map: worker processes (default 2)")
     p.add_argument("--executor", choices=["process", "ray"], default="process",
                    help="bench pipeline: also measure Ray actors against the processes")
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
@@ -58,7 +76,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="bench pipeline: shared measures one inference process fed by the "
                    "workers (the default on cuda)")
     p.add_argument("--model", default=None,
-                   help="bench model, pipeline, memory: an ONNX model (default bundled)")
+                   help="bench model: an ONNX model; pipeline, memory, nodes, search, map: any "
+                   "model a run takes (default bundled)")
     p.add_argument("--scans", default=None,
                    help="bench model: a folder of labelled .npy scans (default: generated)")
     p.add_argument("--repeats", type=int, default=1,
@@ -107,6 +126,7 @@ def run(args) -> int:
 
 def _check_options(args) -> None:
     """The option values every benchmark refuses, before any work."""
+    _check_given(args.what, getattr(args, "argv", None))
     check_range(args.samples, "--samples", 1, MAX_SAMPLES)
     check_range(args.workers, "--workers", 1, 64)
     check_range(args.naive_samples, "--naive-samples", 1)
@@ -120,6 +140,23 @@ def _check_options(args) -> None:
         raise UsageError(f"--fraction: {args.fraction} must be in (0, 1]")
     if args.out:
         check_out_dir(args.out)
+
+
+def _check_given(what: str, argv: list[str] | None) -> None:
+    """UsageError for an option typed in `argv` (as argparse took it: `--opt=v` and unique
+    prefixes too) that bench `what` does not read; None (no command line): nothing to check."""
+    if argv is None:
+        return
+    every = sorted({o for opts in BENCH_OPTIONS.values() for o in opts})
+    allowed = BENCH_OPTIONS[what]
+    for token in argv:
+        if token == "--":
+            break
+        typed = token.split("=", 1)[0]
+        names = [o for o in every if o.startswith(typed)] if typed.startswith("--") else []
+        if len(names) == 1 and names[0] not in allowed:
+            raise UsageError(f"{names[0]}: bench {what} does not take it; it takes "
+                             f"{', '.join(allowed)} and --json")
 
 
 def _benchmark(args):
@@ -253,8 +290,9 @@ def _bench_search(args) -> tuple[dict, str]:
                           model=args.model, fraction=args.fraction, seeds=args.seeds)
     text = "\n".join(
         f"{r['algorithm']:12s} lowest {r['lowest']} after {r['evaluations']} evaluations; "
-        f"within 0.02 of the grid's {result['grid_lowest']} after "
-        f"{r['evaluations_to_target']}; {_search_timing(r)}" for r in result["algorithms"])
+        f"within 0.02 of the grid's {result['grid_lowest']} "
+        + (f"after {r['evaluations_to_target']}" if r["reached"] else "never")
+        + f"; {_search_timing(r)}" for r in result["algorithms"])
     text += f"\n{result['per_evaluation_goal']}; on {args.workers} workers"
     text += "\n" + over_seeds_text(result)
     return result, text
@@ -268,8 +306,10 @@ def _bench_map(args) -> tuple[dict, str]:
         budgets = BUDGETS if args.budgets is None else tuple(
             float(b) for b in args.budgets.split(",") if b.strip())
     except ValueError:
+        budgets = ()
+    if not budgets:
         raise UsageError(f"--budgets {args.budgets!r}: shares of the grid such as "
-                         "0.1,0.2,0.3") from None
+                         "0.1,0.2,0.3")
     result = bench_map(args.config, args.out, budgets, seeds=args.seeds, model=args.model,
                        threshold=args.threshold, confidence=args.confidence,
                        workers=args.workers, timed=args.timed)
@@ -279,6 +319,7 @@ def _bench_map(args) -> tuple[dict, str]:
 
 def _bench_scan(args) -> tuple[dict, str]:
     from falsify.bench.scan import bench_scan
+    from falsify.bench.tables import processes
 
     sb = bench_scan(args.config, workers=args.workers, repeats=args.repeats,
                     **given_options(args, "samples", "naive_samples"))
@@ -286,7 +327,7 @@ def _bench_scan(args) -> tuple[dict, str]:
     rounds = ("" if len(sb.rounds_n) < 2 else
               f", median of {len(sb.rounds_n)} rounds ({_span(sb.rounds_n)} on {sb.workers}, "
               f"{_span(sb.rounds_1)} on 1)")
-    text = (f"scan: {round(sb.fast_n, 1)} scans/s on {sb.workers} processes "
+    text = (f"scan: {round(sb.fast_n, 1)} scans/s on {processes(sb.workers)} "
             f"({round(sb.fast_1, 1)} on 1), naive {round(sb.naive, 3)} scans/s: "
             f"{round(sb.fast_n / sb.naive, 1)}x{rounds}")
     return result, text
@@ -298,6 +339,10 @@ def _span(values) -> str:
 
 def _bench_camera(args) -> tuple[dict, str]:
     from falsify.cli.camera import bench_camera_text
+    from falsify.sensor.camera import CAMERA_PRESETS
+    if args.camera_preset not in CAMERA_PRESETS:
+        raise UsageError(f"--camera-preset: unknown camera {args.camera_preset!r}; allowed: "
+                         f"{', '.join(CAMERA_PRESETS)}")
     result, text = bench_camera_text(args.config, args.camera_preset,
                                      **given_options(args, "samples", "naive_samples"))
     return result, text

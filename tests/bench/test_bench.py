@@ -135,12 +135,37 @@ def test_int8_matrix_rate_multiplies_integers_exactly():
     (["bench", "pipeline", "--samples", "0"], "--samples"),
     (["bench", "memory", "--workers", "0"], "--workers"),
     (["bench", "memory", "--config", "no-such-config.toml"], "no-such-config.toml"),
+    (["bench", "camera", "--camera-preset", "nope"], "--camera-preset: unknown camera 'nope'"),
 ])
 def test_bad_bench_options_exit_2(capsys, args, message):
     with pytest.raises(SystemExit) as exc:
         code = main(args)
         raise SystemExit(code)
     assert exc.value.code == 2 and message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("args, option", [
+    (["bench", "scan", "--config", "no-such.toml", "--model", "x.onnx"], "--model"),
+    (["bench", "model", "--config", "no-such.toml", "--scans", "no-such-dir"], "--config"),
+    (["bench", "effects", "--config", "no-such.toml", "--workers", "1"], "--workers"),
+    (["bench", "camera", "--config", "no-such.toml", "--thread=1"], "--threads"),
+    (["bench", "memory", "--config", "no-such.toml", "--device", "cuda"], "--device"),
+])
+def test_an_option_the_benchmark_does_not_read_exits_2(capsys, args, option):
+    """An option a benchmark would ignore (bench scan --model, bench model --config) is refused
+    by name with the ones it takes, before the config is read."""
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert f"{option}: bench {args[1]} does not take it; it takes" in err, err
+
+
+@pytest.mark.parametrize("budgets", [",", " , ", "x"])
+def test_bench_map_without_a_budget_exits_2(tmp_path, capsys, budgets):
+    """`--budgets ,` names no share: refused (before: silently only the no-budget case)."""
+    out = tmp_path / "m"
+    assert main(["bench", "map", "--out", str(out), "--budgets", budgets]) == 2
+    assert f"--budgets {budgets!r}: shares of the grid" in capsys.readouterr().err
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("what", ["scan", "pipeline", "camera"])
@@ -278,6 +303,22 @@ def test_bench_search_times_fresh_runs_and_not_resumed_ones(tmp_path):
         assert a["s_per_evaluation_vs_random"] is None and a["lowest"] == rows[
             a["algorithm"]]["lowest"]
     assert "resumed" in again["timing"]
+
+
+def test_bench_search_text_says_never_for_a_target_not_reached(tmp_path, monkeypatch, capsys):
+    """An algorithm that never comes within 0.02 of the grid's lowest reads "never", not
+    "after None"."""
+    import falsify.bench.search as search
+
+    row = {"algorithm": "random", "lowest": 0.9, "evaluations": 4, "evaluations_to_target": None,
+           "reached": False, "wall_s": 1.0, "s_per_evaluation": 0.25,
+           "s_per_evaluation_vs_random": 1.0}
+    monkeypatch.setattr(search, "bench_search", lambda *a, **k: {
+        "algorithms": [row], "grid_lowest": 0.84, "per_evaluation_goal": "goal"})
+    monkeypatch.setattr(search, "over_seeds_text", lambda result: "seeds")
+    assert main(["bench", "search", "--out", str(tmp_path / "b")]) == 0
+    out = capsys.readouterr().out
+    assert "of the grid's 0.84 never;" in out and "None" not in out, out
 
 
 def test_bench_camera_runs_the_samples_given(capsys):

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from falsify.bench.tables import BEGIN, END, load, render, splice
+from falsify.bench.tables import BEGIN, END, load, processes, render, splice
 from falsify.errors import FalsifyError
 
 EPYC = {"cpu": "AMD EPYC (family 25, model 1)", "cpus": 2}
@@ -117,3 +117,7 @@ def test_the_benchmarks_page_holds_the_tables_of_the_committed_results():
     assert splice(page, render(load(results))) == page, (
         "docs/benchmarks.md is stale: falsify bench table research/benchmarks/*/*.json "
         "--write docs/benchmarks.md")
+
+
+def test_process_counts_read_as_english():
+    assert (processes(1), processes(2)) == ("1 process", "2 processes")
