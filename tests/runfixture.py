@@ -70,12 +70,13 @@ def synthetic_result(sample: Sample, iou: float | None, index: int, status: str 
 def write_run(run: Path, config: Path | str = SMOKE, *, command: str = "grid",
               iou: IouFn | None = None, seed: int = 0, samples: list[Sample] | None = None,
               meta: Mapping[str, object] | None = None, undefined_every: int = 0,
-              invalid_every: int = 0, invalid_reason: str = "") -> Path:
+              invalid_every: int = 0, invalid_reason: str | Callable[[int], str] = "") -> Path:
     """Write `run`/results.sqlite for `config` (a path or TOML text) and return `run`.
 
     Grid runs score every grid sample; search runs score `samples` (default: 40 seeded random
     points). `iou(sample)` overrides the IoU (None marks the sample undefined); every k-th
-    sample can be made undefined or invalid (with `invalid_reason`). `meta` overrides
+    sample can be made undefined or invalid (with `invalid_reason`, or `invalid_reason(i)` for
+    the i-th sample). `meta` overrides
     metadata keys.
     """
     if isinstance(config, Path):
@@ -91,7 +92,8 @@ def write_run(run: Path, config: Path | str = SMOKE, *, command: str = "grid",
     results = []
     for i, s in enumerate(samples):
         if invalid_every and i % invalid_every == invalid_every - 1:
-            results.append(synthetic_result(s, None, i, "invalid", invalid_reason))
+            reason = invalid_reason(i) if callable(invalid_reason) else invalid_reason
+            results.append(synthetic_result(s, None, i, "invalid", reason))
             continue
         value = iou(s) if iou is not None else default_iou(s, seed)
         undefined = value is None or (undefined_every and i % undefined_every == 0)

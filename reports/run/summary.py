@@ -3,6 +3,9 @@ worst cell and sample, and the run's time."""
 
 from __future__ import annotations
 
+import re
+from collections import Counter
+
 import numpy as np
 
 from falsify.reports.charts import f3
@@ -23,6 +26,20 @@ def samples_text(data: RunData) -> str:
     state = '<span class="bad">incomplete</span>' if done.complete is False else \
         '<span class="note">not known whether it ended</span>'
     return f"{text}<br>{state}"
+
+
+def invalid_text(data: RunData, most: int = 3) -> str:
+    """The invalid count and its commonest reasons, numbers folded ("car # (sedan) intersects the
+    background's pole #"), so a run of mostly invalid samples says why on its first screen."""
+    frame = data.frame
+    bad = frame.loc[frame["status"] == Status.INVALID, "reason"]
+    if not len(bad):
+        return "0"
+    kinds = Counter(re.sub(r"\d+", "#", str(r)) for r in bad.fillna("no reason recorded"))
+    top = " · ".join(f"{n} {esc(k)}" for k, n in
+                     sorted(kinds.items(), key=lambda kn: (-kn[1], kn[0]))[:most])
+    more = f" · {len(kinds) - most} more kinds" if len(kinds) > most else ""
+    return f'{len(bad)}<br><span class="note">{top}{more}</span>'
 
 
 def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
@@ -70,7 +87,7 @@ def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
         ("Sensor", esc(meta.get("sensor", data.space.sensor))),
         ("Run", esc(search)),
         ("Samples", samples_text(data)),
-        ("Invalid samples", str(int((status == Status.INVALID).sum()))),
+        ("Invalid samples", invalid_text(data)),
         ("Undefined samples", str(int((status == Status.UNDEFINED).sum()))),
         ("Blind spots", f'<span class="{"bad" if blind else ""}">{len(blind)}</span> of '
          f"{scored} cells (mIoU &lt; {threshold:.3f})"),

@@ -280,3 +280,19 @@ def test_weather_dims_and_a_miou_objective_in_the_tables(tmp_path: Path) -> None
     cols, first = blob["samples"]["columns"], blob["samples"]["rows"][0]
     assert first[cols.index("precision")] is None and first[cols.index("recall")] is None
     assert first[cols.index("other")] == "colour red, fog 0"
+
+
+def test_the_summary_says_why_samples_are_invalid(tmp_path: Path) -> None:
+    """The invalid count comes with its commonest reasons, numbers folded, so a run of mostly
+    invalid samples says why on its first screen (before: a bare count)."""
+    kinds = ["car 1 (sedan) intersects the background's pole {}",
+             "car 1 (sedan) intersects the background's sign {}", "<b>odd</b> & {}"]
+    run = write_run(tmp_path / "r", invalid_every=1,
+                    invalid_reason=lambda i: kinds[min(i % 5, 2)].format(i))
+    page = render_report(run, predict=False)
+    card = page[page.index("<dt>Invalid samples</dt>"):]
+    card = card[:card.index("</dd>")]
+    assert card.startswith("<dt>Invalid samples</dt><dd>8<br>")
+    assert ("4 &lt;b&gt;odd&lt;/b&gt; &amp; # · 2 car # (sedan) intersects the background&#x27;s "
+            "pole # · 2 car # (sedan) intersects the background&#x27;s sign #") in card, card
+    assert "<b>" not in card
