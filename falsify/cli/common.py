@@ -87,6 +87,17 @@ def camera_option(p: argparse.ArgumentParser, help_text: str) -> None:
                    f"default {DEFAULT_CAMERA})")
 
 
+def check_backend(backend: str | None, model: str | None) -> str:
+    """The --backend to run `model` on (onnx when not given); UsageError for a backend other
+    than python given with a plug-in, which would otherwise be silently ignored."""
+    from falsify.models.plugin import is_plugin
+
+    if backend not in (None, "python") and is_plugin(model):
+        raise UsageError(f"--backend {backend}: the plug-in model {model} runs on python; "
+                         "leave --backend out (or give python)")
+    return backend or "onnx"
+
+
 def given_options(args, *names: str) -> dict:
     """The named options the user gave (not None): each benchmark's own defaults stand for the
     rest, since one shared parser default cannot suit scans, pipelines and camera images."""

@@ -12,6 +12,7 @@ from falsify.cli.common import (
     DEVICE_HELP,
     MODEL_HELP,
     UsageError,
+    check_backend,
     emit,
     predict_sequences,
 )
@@ -47,13 +48,11 @@ def run(args) -> int:
     from falsify.images.png import encode_png
     from falsify.images.scan_pictures import prediction_picture
     from falsify.jobs.predict import evaluate
-    from falsify.models.runners import backend_for, is_plugin, load_segmenter
+    from falsify.models.runners import backend_for, load_segmenter
     from falsify.sensor.lidar import load_sensor
 
     check_out_dir(args.out)
-    if args.backend not in (None, "python") and is_plugin(args.model):
-        raise UsageError(f"--backend {args.backend}: the plug-in model {args.model} runs on "
-                         "python; leave --backend out (or give python)")
+    backend = backend_for(args.model, check_backend(args.backend, args.model))
     sequences = predict_sequences(args.sequences, args.scans)
     sets = load_sets(args.scans, load_sensor(args.sensor or DEFAULT_SENSOR),
                      sequences=sequences)
@@ -70,7 +69,6 @@ def run(args) -> int:
         for label in s.orphan_labels:
             print(f"falsify: warning: {label}: labels without a scan (no "
                   f"{Path(label).stem}.bin among the set's scans); not scored", file=sys.stderr)
-    backend = backend_for(args.model, args.backend or "onnx")
     model = load_segmenter(args.model, backend=backend, device=args.device)
     result = evaluate(model, sets)
     for s, scans, stems in zip(result.sets, sets, targets, strict=True):

@@ -14,8 +14,8 @@ from falsify.cli.common import (
     BACKEND_HELP,
     DEVICE_HELP,
     MODEL_HELP,
-    UsageError,
     camera_option,
+    check_backend,
     emit,
 )
 from falsify.cli.progress import ProgressBar
@@ -144,15 +144,12 @@ def lock_early(out: Path | None, argv: list[str]) -> contextlib.AbstractContextM
 
 def run_job(args, command: str, algorithm: str) -> int:
     from falsify.jobs.run import RunRequest, RunStopped, execute
-    from falsify.models.plugin import is_plugin
 
-    if args.backend not in (None, "python") and is_plugin(args.model):
-        raise UsageError(f"--backend {args.backend}: the plug-in model {args.model} runs on "
-                         "python; leave --backend out (or give python)")
+    backend = check_backend(args.backend, args.model)
     req = RunRequest(
         config=Path(args.config), out=Path(args.out), command=command, algorithm=algorithm,
         budget=getattr(args, "budget", None), seed=args.seed, model=args.model,
-        backend=args.backend or "onnx", device=args.device, objective=args.objective,
+        backend=backend, device=args.device, objective=args.objective,
         workers=args.workers, resume=args.resume,
         threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
         camera=args.camera, max_samples=args.max_samples, executor=args.executor,
