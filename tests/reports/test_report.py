@@ -296,3 +296,26 @@ def test_the_summary_says_why_samples_are_invalid(tmp_path: Path) -> None:
     assert ("4 &lt;b&gt;odd&lt;/b&gt; &amp; # · 2 car # (sedan) intersects the background&#x27;s "
             "pole # · 2 car # (sedan) intersects the background&#x27;s sign #") in card, card
     assert "<b>" not in card
+
+
+def test_in_chromium_the_cell_table_lists_other_dims(browser, tmp_path: Path) -> None:
+    """Clicked, a cell of a run with weather and camera dims lists them per sample, and an mIoU
+    run's precision and recall read as dashes."""
+    from selenium.webdriver.common.by import By
+
+    config, run = tmp_path / "fog.toml", tmp_path / "fog"
+    config.write_text(WEATHER_MIOU)
+    assert main(["grid", str(config), "--out", str(run), "--objective", "miou", "--quiet",
+                 "--no-report"]) == 0
+    page = write_report(run, tmp_path / "report.html")
+    browser.get(page.as_uri())
+    browser.find_elements(By.CSS_SELECTOR, "#heatmap .cell")[0].click()
+    table = browser.find_element(By.ID, "cell-table")
+    heads = [th.text for th in table.find_elements(By.CSS_SELECTOR, "thead th")]
+    rows = [[td.text for td in tr.find_elements(By.TAG_NAME, "td")]
+            for tr in table.find_elements(By.CSS_SELECTOR, "tbody tr")]
+    assert heads[-1] == "other dims" and len(rows) == 4
+    assert all(len(r) == len(heads) for r in rows), (heads, rows)
+    assert {r[heads.index("precision")] for r in rows} == {"\u2014"}, rows
+    assert sorted(r[-1] for r in rows) == ["colour #00ff00, fog 0", "colour #00ff00, fog 50",
+                                           "colour red, fog 0", "colour red, fog 50"]
