@@ -445,10 +445,12 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
                            "beside it); train one with `falsify train`")
     space = load_space(config)
     space.require_streets("tradeoff")
+    ranged = [k for k in ("step", "budget") if k in knobs]   # the knobs that resample x, y
     for d in ("x", "y"):
-        if not isinstance(space.dims[d], Continuous):
+        if ranged and not isinstance(space.dims[d], Continuous):
             raise FalsifyError(f"{config}: dims.{d} must be a range (min, max, step) for the "
-                               "grid-step and budget knobs")
+                               f"{' and '.join(ranged)} knob{'s' if len(ranged) > 1 else ''}; "
+                               "give one, or leave them out of --knobs")
     space.check_size(MAX_SAMPLES, "the trade-off's limit")
     samples = space.grid()[:limit]
     t_start = time.perf_counter()

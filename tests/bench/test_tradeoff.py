@@ -171,6 +171,24 @@ def test_bad_input_exits_2_and_writes_nothing(config, model, tmp_path, capsys, a
     assert not out.exists()
 
 
+def test_listed_positions_need_a_range_only_for_the_knobs_that_resample_them(model, tmp_path,
+                                                                           capsys):
+    """x and y as `values`: the step and budget knobs, which resample them, name the dim and
+    the knob; the lod knob runs (before: refused for every knob)."""
+    config = tmp_path / "listed.toml"
+    config.write_text(CONFIG.replace("min = -2.0\nmax = -1.0\nstep = 1.0", "values = [-2.0, 2.0]"))
+    out = tmp_path / "out"
+    assert main(["tradeoff", str(config), "--out", str(out), "--model", str(model),
+                 "--knobs", "lod,step"]) == 2
+    assert "dims.x must be a range (min, max, step) for the step knob;" in capsys.readouterr().err
+    assert not out.exists()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("falsify.bench.tradeoff.TIMING_ROUNDS", 1)
+        assert main(["tradeoff", str(config), "--out", str(out), "--model", str(model),
+                     "--knobs", "lod", "--limit", "2"]) == 0
+    assert (out / "tradeoff.html").is_file()
+
+
 def test_jaccard_edge_cases():
     assert jaccard(set(), set()) == 1.0
     assert jaccard({(0, 0)}, set()) == 0.0
