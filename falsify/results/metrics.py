@@ -149,16 +149,16 @@ class Scoring:
         """The scoring for a model whose spec maps `mapped` class names; ConfigError names an
         objective the model cannot be scored on, with the allowed ones."""
         if all(n in CLASSES for n in mapped):
-            classes, scored = CLASSES, CLASSES
+            # a four-class model scores all four, but is judged only on those its spec maps
+            classes, scored, judged = CLASSES, CLASSES, tuple(mapped)
             objective = _TO_KITTI4.get(objective, objective)
         else:
             names = {_TO_TRAIN.get(n, n) for n in mapped}
             classes = TRAIN_CLASSES
-            scored = tuple(n for n in TRAIN_CLASSES[1:] if n in names)
+            scored = judged = tuple(n for n in TRAIN_CLASSES[1:] if n in names)
             objective = _TO_TRAIN.get(objective, objective)
-        # a four-class model scores all four, but is judged only on those its spec maps
-        allowed = [n for n in scored if n not in ("unknown", "unlabeled") and n in (
-            mapped if classes is CLASSES else scored)] + ["miou"]
+        allowed = [n for n in scored
+                   if n in judged and n not in ("unknown", "unlabeled")] + ["miou"]
         if objective not in allowed:
             raise ConfigError(f"--objective: {objective!r} is not a class this model "
                               f"predicts; allowed: {', '.join(allowed)}")
