@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import shutil
+import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -212,7 +214,7 @@ class Context:
     samples: list[Sample]
     scorer: SettingScorer
     reference: Setting
-    out: Path
+    models: Path          # where variant models are written (moved to OUT/models/ at the end)
     ref_map: CellMap
     user_model: Path | None = None   # --model as given; None runs the bundled model
 
@@ -286,9 +288,7 @@ def knob_precision(ctx: Context) -> list[Variant]:
     from falsify.data.training import calibration_scans
     from falsify.models.export import convert_fp16, quantize_int8
 
-    ref, onnx = ctx.reference, ctx.reference.model
-    models = ctx.out / "models"
-    models.mkdir(parents=True, exist_ok=True)
+    ref, onnx, models = ctx.reference, ctx.reference.model, ctx.models
     return [
         _build("precision", "torch fp32", lambda: dataclasses.replace(
             ref, model=_torch_weights(onnx), backend="torch")),
@@ -314,7 +314,7 @@ def knob_crf(ctx: Context) -> list[Variant]:
         else:
             out.append(_build("crf", f"crf {k}", lambda k=k: dataclasses.replace(
                 ctx.reference, model=export_crf(_torch_weights(ctx.reference.model), spec, k,
-                                                ctx.out / "models"))))
+                                                ctx.models))))
     return out
 
 
@@ -429,8 +429,8 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
                  threads: int = THREADS) -> dict:
     """Measure every knob; write DIR/tradeoff.csv, .json and .html; return the JSON summary.
 
-    Bad input raises FalsifyError before anything is written."""
-    from falsify.bench.machine import machine
+    Bad input raises FalsifyError before anything is written, and a failure while measuring
+    leaves nothing: variant models are moved to DIR/models/ with the results."""
     from falsify.fileio import write_bytes, write_json, write_text
     from falsify.models.runners import BUNDLED_ONNX
     from falsify.reports.tradeoff_page import render
@@ -458,8 +458,30 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
     reference = Setting(model=onnx.resolve())
     # Loads and checks the model against the sensor: may raise, and nothing is written yet.
     ref_map = miou_map(scorer.score(reference, samples), scorer.space, "x", "y")
-    ctx = Context(scorer.space, samples, scorer, reference, out, ref_map,
-                  Path(model) if model else None)
+    with tempfile.TemporaryDirectory(prefix="falsify-tradeoff-") as scratch:
+        summary, rows = _measure(Context(scorer.space, samples, scorer, reference, Path(scratch),
+                                         ref_map, Path(model) if model else None),
+                                 knobs, config, onnx, limit, t_start, out)
+        frame = pd.DataFrame([dataclasses.asdict(r) for r in rows],
+                             columns=list(Row.__annotations__))
+        page = render(summary)   # before any file: a page that fails leaves no csv without it
+        write_bytes(out / "tradeoff.csv", frame.to_csv(index=False).encode())
+        write_json(out / "tradeoff.json", summary)
+        write_text(out / "tradeoff.html", page)
+        variants = sorted(Path(scratch).iterdir())
+        if variants:
+            (out / "models").mkdir(parents=True, exist_ok=True)
+        for f in variants:
+            shutil.move(f, out / "models" / f.name)
+    return summary
+
+
+def _measure(ctx: Context, knobs: Sequence[str], config: str | Path, onnx: Path,
+             limit: int | None, t_start: float, out: Path) -> tuple[dict, list[Row]]:
+    """Time and score every knob's settings; the JSON summary and the rows."""
+    from falsify.bench.machine import machine
+
+    scorer, reference, space, samples = ctx.scorer, ctx.reference, ctx.space, ctx.samples
     variants = {k: VARIANT_KNOBS[k](ctx) for k in knobs if k in VARIANT_KNOBS}
     settings = [reference] + [v.setting for vs in variants.values() for v in vs
                               if v.setting is not None and v.setting != reference]
@@ -481,19 +503,14 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
                       "precision": "onnx fp32", "crf": ref_eval.model.spec.crf_iterations,
                       "grid": "the config's", "time_per_sample_ms": round(scorer.ms[reference], 2),
                       "blind_spots": len(ctx.ref_map.blind_spots(space.threshold)),
-                      "lowest_cell_miou": _r(float(np.nanmin(ref_map.miou)))
-                      if np.isfinite(ref_map.miou).any() else None},
+                      "lowest_cell_miou": _r(float(np.nanmin(ctx.ref_map.miou)))
+                      if np.isfinite(ctx.ref_map.miou).any() else None},
         "rows": [dataclasses.asdict(r) for r in rows], "notes": notes,
         "timing": {"samples": len(samples[::every][:TIMING_SAMPLES]),
                    "rounds": TIMING_ROUNDS, "statistic": "fastest round"},
         "elapsed_s": round(time.perf_counter() - t_start, 1),
         "files": {k: str(out / f"tradeoff.{k}") for k in ("csv", "json", "html")},
     }
-    frame = pd.DataFrame([dataclasses.asdict(r) for r in rows], columns=list(Row.__annotations__))
-    page = render(summary)   # before any file: a page that fails leaves no csv without it
-    write_bytes(out / "tradeoff.csv", frame.to_csv(index=False).encode())
-    write_json(out / "tradeoff.json", summary)
-    write_text(out / "tradeoff.html", page)
-    return summary
+    return summary, rows
 
 

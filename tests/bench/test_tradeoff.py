@@ -189,6 +189,20 @@ def test_listed_positions_need_a_range_only_for_the_knobs_that_resample_them(mod
     assert (out / "tradeoff.html").is_file()
 
 
+def test_a_failure_while_measuring_leaves_no_folder(config, model, tmp_path, monkeypatch):
+    """The CRF variants are exported, then timing fails: OUT is not made (before: OUT/models/
+    held the exported variants without any result beside them)."""
+    def broken(*_a, **_k):
+        raise RuntimeError("timing failed")
+
+    monkeypatch.setattr("falsify.bench.tradeoff.SettingScorer.time", broken)
+    out = tmp_path / "out"
+    with pytest.raises(RuntimeError, match="timing failed"):
+        main(["tradeoff", str(config), "--out", str(out), "--model", str(model),
+              "--knobs", "crf", "--limit", "1"])
+    assert not out.exists()
+
+
 def test_jaccard_edge_cases():
     assert jaccard(set(), set()) == 1.0
     assert jaccard({(0, 0)}, set()) == 0.0
