@@ -178,6 +178,7 @@ def _bench_model(args) -> tuple[dict, str]:
     from falsify.data.training import calibration_scans, held_out_scans
     from falsify.models.flops import count_flops
     from falsify.models.runners import BUNDLED_ONNX, WEIGHTS_DIR
+    from falsify.models.runners.base import open_model
     from falsify.models.variants import bench_models
     from falsify.sensor.lidar import load_sensor
     sensor = load_sensor("kitti-hdl64e-front")
@@ -190,6 +191,10 @@ def _bench_model(args) -> tuple[dict, str]:
     scans = (read_set(args.scans, files, sensor).images if files
              else held_out_scans(sensor, frames))
     onnx = Path(args.model) if args.model else BUNDLED_ONNX
+    if onnx.suffix != ".onnx":
+        raise UsageError(f"--model {onnx}: bench model takes an .onnx model (with its .json "
+                         "spec beside it)")
+    open_model(onnx, None)   # a missing model or spec is named before the rates take seconds
     rates = model_bench_rates(progress)
     # the bundled network's int8 is its shipped copy (calibrating one anew takes minutes)
     shipped = (onnx.resolve() == BUNDLED_ONNX.resolve()

@@ -159,6 +159,22 @@ def test_an_option_the_benchmark_does_not_read_exits_2(capsys, args, option):
     assert f"{option}: bench {args[1]} does not take it; it takes" in err, err
 
 
+@pytest.mark.parametrize("name, message", [
+    ("nope.onnx", "model file nope.onnx not found"),
+    ("x.pt", "--model x.pt: bench model takes an .onnx model"),
+])
+def test_bench_model_names_a_bad_model_before_timing_the_machine(capsys, monkeypatch, name,
+                                                                 message):
+    """A missing or non-ONNX --model is named before the matrix rates are timed (they took
+    about 20 s, then the error came)."""
+    def timed(*_a, **_k):
+        raise AssertionError("the matrix rates were timed before the model was checked")
+
+    monkeypatch.setattr("falsify.bench.model.model_bench_rates", timed)
+    assert main(["bench", "model", "--model", name, "--samples", "1"]) == 2
+    assert message in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("budgets", [",", " , ", "x"])
 def test_bench_map_without_a_budget_exits_2(tmp_path, capsys, budgets):
     """`--budgets ,` names no share: refused (before: silently only the no-budget case)."""
