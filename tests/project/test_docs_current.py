@@ -1,6 +1,7 @@
-"""Every `falsify ...` command line the docs show parses against today's command line: an option
-renamed or dropped in the code fails here, not in a user's shell. Placeholders in capitals (N,
-CONFIG, [--epochs N]) and required arguments a line leaves to the prose are allowed."""
+"""The docs name what exists today: every `falsify ...` command line they show parses against the
+command line (placeholders in capitals such as N, CONFIG or [--epochs N], and required arguments
+a line leaves to the prose, are allowed), and every file of the repository they name is there.
+A renamed option or a moved file fails here, not in a user's shell."""
 
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ DOCS = sorted([ROOT / "README.md", ROOT / "models" / "README.md",
                *(ROOT / "docs").glob("*.md"), *(ROOT / "docs" / "experiments").glob("*.md"),
                *(ROOT / "models" / "cards").glob("*.md")])
 PLACEHOLDER = re.compile(r"[A-Z][A-Z0-9_]*|.*[\[\]|].*")
+REPO_FILE = re.compile(r"(?:configs|research|models|docs|reports|sampler|tests|falsify)/"
+                       r"[\w./{},-]+\.(?:toml|py|json|sh|md|csv|onnx|pt)")
 OFFENDING = re.compile(r"unrecognized arguments: (.*)|invalid (?:choice|\w+ value): '([^']*)'")
 
 
@@ -66,6 +69,28 @@ def test_doc_commands_parse(doc: Path) -> None:
     bad = [f"{c}\n    {p}" for c in commands(doc.read_text(encoding="utf-8"))
            if (p := problem(parser, c))]
     assert not bad, "\n".join(bad)
+
+
+def named_files(text: str) -> list[str]:
+    """The repository files a text names, each {a,b} alternative spelled out; capitals or a
+    placeholder's name (EFFECT, my_net) make a name a pattern, not a file."""
+    out = []
+    for name in REPO_FILE.findall(text):
+        m = re.search(r"\{([^}]*)\}", name)
+        alts = m.group(1).split(",") if m else [""]
+        out += [name[:m.start()] + a + name[m.end():] if m else name for a in alts]
+    return [n for n in out if not re.search(r"/(?:[A-Z]+|my_\w+)\.", n)]
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_doc_files_exist(doc: Path) -> None:
+    missing = [n for n in named_files(doc.read_text(encoding="utf-8")) if not (ROOT / n).exists()]
+    assert not missing, missing
+
+
+def test_the_file_check_spells_out_alternatives_and_skips_patterns() -> None:
+    assert named_files("`configs/{paper,smoke}.toml`, research/experiments/robo3d/EFFECT.toml, "
+                       "models/my_net.onnx") == ["configs/paper.toml", "configs/smoke.toml"]
 
 
 def test_the_check_sees_a_renamed_option_and_a_wrong_choice() -> None:
