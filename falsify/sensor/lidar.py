@@ -36,6 +36,9 @@ SENSOR_KEYS = {
 }
 PROJECTIONS = ("rings", "spherical")
 MAX_RING_OFFSET_M = 1.0
+# Farthest max_range: ten times any automotive LiDAR's, where float32 ranges still hold a
+# millimetre; far beyond it the detection floor (1 / max_range^2) and the float32 scan overflow.
+MAX_RANGE_M = 10_000.0
 
 
 @dataclass(frozen=True)
@@ -132,7 +135,9 @@ class Sensor:
         if self.projection == "spherical":
             return self._spherical_pixel(p, r)
         az = np.degrees(np.arctan2(p[:, 1], p[:, 0]))
-        col = np.floor((self.az_left_deg - az) / self.az_step_deg).astype(np.int64)
+        # Degrees clockwise from the left edge, in [0, 360): a field of view across +-180 deg
+        # (e.g. [270, 90], looking back) holds azimuths that atan2 reports a turn away.
+        col = np.floor(np.mod(self.az_left_deg - az, 360.0) / self.az_step_deg).astype(np.int64)
         if self.full_circle:
             col %= self.columns
         if rows is not None:
@@ -257,7 +262,7 @@ def parse_sensor(raw: dict, source: str = "<sensor>") -> Sensor:
     cols = raw.get("columns")
     if isinstance(cols, bool) or not isinstance(cols, int) or not 1 <= cols <= 16384:
         raise ConfigError(f"{where}columns: {cols!r} must be an integer in 1..16384")
-    max_range = num("max_range", 120.0, lo=0.0, lo_open=True)
+    max_range = num("max_range", 120.0, lo=0.0, hi=MAX_RANGE_M, lo_open=True)
     min_range = num("min_range", 0.0, lo=0.0)
     if min_range >= max_range:
         raise ConfigError(f"{where}min_range {min_range} must be below max_range {max_range}")

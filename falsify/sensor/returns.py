@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -208,9 +209,36 @@ def load_return_model(name: str) -> ReturnModel:
                           f"wrote ({type(exc).__name__}: {exc})") from None
 
 
+# The scalar params' allowed values (lowest, highest, lowest excluded): the intensity divides by
+# atten_m, P(return) by i0 and raises to k, so those must be positive (0 or NaN gave a traceback
+# or a silently empty scan).
+PARAM_BOUNDS = {"cos_exp": (0.0, math.inf, False), "atten_m": (0.0, math.inf, True),
+                "p_min": (0.0, 1.0, False), "p_max": (0.0, 1.0, False),
+                "i0": (0.0, math.inf, True), "k": (0.0, math.inf, True),
+                "retro_gain": (0.0, math.inf, False)}
+
+
+def _check_params(p: dict) -> None:
+    """ValueError naming the first scalar param or reflectivity level outside its allowed
+    values (PARAM_BOUNDS; a level: a finite number >= 0)."""
+    for key, (lo, hi, open_lo) in PARAM_BOUNDS.items():
+        v = p[key]
+        if (isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v)
+                or v < lo or (open_lo and v == lo) or v > hi):
+            span = (f"{'>' if open_lo else '>='} {lo:g}" if hi == math.inf
+                    else f"in [{lo:g}, {hi:g}]")
+            raise ValueError(f"params.{key}: {v!r}; allowed: a finite number {span}")
+    for level, v in dict(p["reflectivity"]).items():
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+            raise ValueError(f"params.reflectivity.{level}: {v!r}; allowed: a finite number "
+                             ">= 0")
+
+
 def _model(name: str, p: dict) -> ReturnModel:
-    """The model from a JSON document's params; ValueError names a class table that is not one
-    row per training class over evenly spaced rising scores."""
+    """The model from a JSON document's params; ValueError names a scalar param out of its
+    bounds or a class table that is not one row per training class over evenly spaced rising
+    scores."""
+    _check_params(p)
     c = p.get("classes")
     classes = None
     if c is not None:

@@ -98,7 +98,9 @@ class Weather:
                 best, best_r, spur = best.copy(), hard_r.copy(), np.zeros(hard.shape, bool)
             particle_echoes(self.sensor, self.floor, p, stream(seed, which), alpha, hard_r,
                             best, best_r, spur)
-        ok = best >= self.floor
+        # An echo needs power: a floor of 0 (a model's darkest level 0, or exp(-range /
+        # atten_m) underflowing) would otherwise report every miss, at range inf.
+        ok = (best >= self.floor) & (best > 0)
         cls, inst, sem, intensity = e.cls, e.inst, e.semantic, None
         if spur is not None:
             real = ~(ok & spur)

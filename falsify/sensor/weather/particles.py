@@ -34,8 +34,9 @@ class Particles:
     def extinction(self) -> float:
         """Extinction, 1/m: geometric optics (extinction efficiency 2, large particles:
         van de Hulst 1957) over the distribution, 2 int (pi (g D)^2 / 4) N(D) dD =
-        pi n0 g^2 / lam^3 (1e-6 turns mm^2 m^-3 into 1/m). Rain: 0.365 R^0.63 per km."""
-        return math.pi * self.n0 * self.grow ** 2 / self.lam ** 3 * 1e-6
+        pi n0 g^2 / lam^3 (1e-6 turns mm^2 m^-3 into 1/m). Rain: 0.365 R^0.63 per km. Divided
+        by lam one factor at a time: lam^3 overflows for a snow rate below 1e-213 mm/h."""
+        return math.pi * 1e-6 * self.grow ** 2 * (self.n0 / self.lam) / self.lam / self.lam
 
     @property
     def hits_per_m(self) -> float:
@@ -88,7 +89,7 @@ def particle_echoes(s: Sensor, floor: float, p: Particles, gen: np.random.Genera
     the image out to the particles' reach and thinned by each ray's own length (uniform pixel
     and position each). Each particle covers (D / w(r))^2 of the beam: its echo, that share
     times its reflectivity, takes the ray where it is the strongest; one as wide as the beam
-    hides what is behind it."""
+    hides what is behind it (and, inside the sensor's min_range, leaves the ray empty)."""
     n_pix = hard_r.size
     reach = p.reach(floor, s.max_range)
     n = poisson_quantile(float(gen.random()), p.hits_per_m * reach * n_pix)
@@ -111,6 +112,7 @@ def particle_echoes(s: Sensor, floor: float, p: Particles, gen: np.random.Genera
     if block.any():
         order = np.argsort(-at[block], kind="stable")   # nearest last: it wins
         bp, ba, bw = pix[block][order], at[block][order], power[block][order]
+        bw = np.where(ba >= s.min_range, bw, 0.0)   # inside min_range: hides, is not reported
         farther = flat_r[bp] > ba
         flat_best[bp[farther]] = bw[farther]
         flat_r[bp[farther]] = ba[farther]
