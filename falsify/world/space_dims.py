@@ -18,6 +18,7 @@ MODEL_DIMS = ("actor", "car_model")   # the object dim's name, and its older ali
 # for yaw (one turn either way; the scene wraps any angle, a config needs no more).
 LIMITS = {"x": 1000.0, "y": 1000.0, "yaw": 360.0}
 MAX_VALUES = 1_000_000   # values one dim may list or range over
+MIN_STEP = 1e-9          # a range's smallest step: its values are rounded to 1e-10
 # Weather and sensor faults on the LiDAR: name -> (lowest, highest, unit, whole numbers only).
 # 0 is no effect; fog is the meteorological visibility (0 = no fog, small = dense).
 EFFECT_DIMS: dict[str, tuple[float, float, str, bool]] = {
@@ -50,6 +51,10 @@ class Continuous:
         return int(math.floor((self.hi - self.lo) / self.step + 1e-9)) + 1
 
     def grid(self) -> tuple[float, ...]:
+        """The values; a range's rounded to 1e-10 so that float steps land on their decimals,
+        a single value as given (fog at 1e-11 m stays fog, not 0)."""
+        if self.lo == self.hi:
+            return (self.lo,)
         return tuple(round(self.lo + i * self.step, 10) for i in range(self.size))
 
     def contains(self, value: float) -> bool:
@@ -185,6 +190,9 @@ def read_continuous_or_values(name: str, spec: Any, where: str) -> Dim:
         nums[k] = float(v)
     if nums["step"] <= 0:
         raise ConfigError(f"{where}{key}.step: {nums['step']:g} must be > 0")
+    if nums["step"] < MIN_STEP:
+        raise ConfigError(f"{where}{key}.step: {nums['step']:g} must be >= {MIN_STEP:g} (a "
+                          "range's values are rounded to 1e-10)")
     if nums["max"] < nums["min"]:
         raise ConfigError(f"{where}{key}: empty range, max {nums['max']:g} < min {nums['min']:g}")
     within(nums["min"], f"{key}.min")

@@ -59,6 +59,7 @@ def test_make_pins_inactive_dims_and_coerces_strings():
     (lambda r: r.pop("dims"), "missing table [dims]"),
     (lambda r: r["dims"]["x"].update(step=0.0), "dims.x.step: 0 must be > 0"),
     (lambda r: r["dims"]["x"].update(step=-1.0), "dims.x.step"),
+    (lambda r: r["dims"]["x"].update(step=1e-11), "dims.x.step: 1e-11 must be >= 1e-09"),
     (lambda r: r["dims"]["x"].update(min=3.0), "empty range"),
     (lambda r: r["dims"]["x"].update(min="a"), "dims.x.min: expected a finite number"),
     (lambda r: r["dims"]["x"].pop("step"), "missing 'step'"),
@@ -114,3 +115,12 @@ def test_continuous_grid_includes_max_and_fixed_values():
     assert Continuous("y", 0.0, 1.0, 0.3).grid() == (0.0, 0.3, 0.6, 0.9)
     space = parse_space({"dims": {**BASE["dims"], "yaw": {"values": [0.0, 90.0]}}})
     assert space.dims["yaw"].grid() == (0.0, 90.0)
+
+
+def test_a_single_tiny_value_is_kept_as_given():
+    """`fog = {values = [1e-11]}` was rounded to 1e-10 decimals: fog 0, no fog at all, the
+    opposite of the densest fog the config asked for."""
+    from falsify.world.space_dims import read_continuous_or_values
+    dim = read_continuous_or_values("fog", {"values": [1e-11]}, "")
+    assert dim.grid() == (1e-11,)
+    assert read_continuous_or_values("x", {"values": [2.5]}, "").grid() == (2.5,)
