@@ -39,6 +39,9 @@ MAX_RING_OFFSET_M = 1.0
 # Farthest max_range: ten times any automotive LiDAR's, where float32 ranges still hold a
 # millimetre; far beyond it the detection floor (1 / max_range^2) and the float32 scan overflow.
 MAX_RANGE_M = 10_000.0
+# Spin rates a sweep may take: spinning LiDARs turn at 5-20 Hz; at 1e-300 Hz a moving ego's sweep
+# never ends and every ray is lost.
+MIN_ROTATION_HZ, MAX_ROTATION_HZ = 0.1, 1000.0
 
 
 @dataclass(frozen=True)
@@ -277,7 +280,7 @@ def parse_sensor(raw: dict, source: str = "<sensor>") -> Sensor:
         mount_height=num("mount_height", 1.73, lo=0.0, hi=100.0),
         max_range=max_range,
         min_range=min_range,
-        rotation_hz=num("rotation_hz", 10.0, lo=0.0, lo_open=True),
+        rotation_hz=num("rotation_hz", 10.0, lo=MIN_ROTATION_HZ, hi=MAX_ROTATION_HZ),
         ray_drop=num("ray_drop", 0.0, lo=0.0, hi=1.0),
         range_noise=num("range_noise", 0.0, lo=0.0, hi=1.0),
         returns=_returns_name(raw.get("returns", ""), where, Path(source).parent),

@@ -163,6 +163,18 @@ def test_max_range_beyond_its_limit_is_a_config_error(tmp_path, capsys, value):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize(("value", "message"), [
+    (1e-300, "rotation_hz: 1e-300 must be >= 0.1"), (0.0, "must be >= 0.1"),
+    (5000.0, "rotation_hz: 5000.0 must be <= 1000.0"),
+])
+def test_rotation_rate_out_of_its_bounds_is_a_config_error(value, message):
+    """1e-300 Hz was accepted; with ego motion the sweep never ended and the scan was empty."""
+    with pytest.raises(ConfigError, match=message):
+        parse_sensor({**RING, "h_fov_deg": [180.0, -180.0], "rotation_hz": value})
+    assert parse_sensor({**RING, "h_fov_deg": [180.0, -180.0], "rotation_hz": 20.0}
+                        ).rotation_hz == 20.0
+
+
 @pytest.mark.parametrize(("key", "value", "allowed"), [
     ("atten_m", 0.0, "> 0"), ("atten_m", float("nan"), "> 0"), ("i0", 0.0, "> 0"),
     ("k", -1.0, "> 0"), ("cos_exp", -0.5, ">= 0"), ("p_max", 2.0, "in [0, 1]"),
