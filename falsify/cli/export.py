@@ -21,6 +21,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "training-style synthetic scenes")
     p.add_argument("--calibration-scans", type=int_in(1, 1024), default=None,
                    metavar="N", help="--int8: how many scenes to calibrate on (default 64)")
+    p.add_argument("--json", action="store_true",
+                   help="the files written are printed as JSON either way; accepted, as "
+                   "every command takes it")
 
 
 def run(args) -> int:

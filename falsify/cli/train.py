@@ -41,6 +41,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--holdout", action="append", default=[], metavar="SPLITS_TOML",
                    help="a split manifest whose held-out scans --data and --val-data may not "
                    "hold (also $FALSIFY_HOLDOUT and a splits.toml beside the data)")
+    p.add_argument("--json", action="store_true",
+                   help="the summary is printed as JSON either way; accepted, as every "
+                   "command takes it")
 
 
 def run(args) -> int:

@@ -67,6 +67,7 @@ class GateResult:
     baseline: str | None
     completeness: Completeness
     writer: str | None = None  # the process computing on the run (gated with --allow-incomplete)
+    objective: str = "car"     # the class whose IoU the cells average (or "miou")
 
     @property
     def passed(self) -> bool:
@@ -80,7 +81,8 @@ class GateResult:
 
     def to_json(self) -> dict:
         t = self.threshold
-        return {"run": self.run, "threshold": t, "limit": self.limit, "baseline": self.baseline,
+        return {"run": self.run, "objective": self.objective, "threshold": t,
+                "limit": self.limit, "baseline": self.baseline,
                 "cells": [c.to_json(t) for c in self.cells],
                 "blind_spots": [c.to_json(t) for c in self.blind_spots],
                 "new_blind_spots": [c.to_json(t) for c in self.new_blind_spots],
@@ -111,10 +113,26 @@ def worst_first(cells: list[GateCell]) -> list[GateCell]:
     return sorted((c for c in cells if c.blind), key=lambda c: (c.miou, c.x, c.y))
 
 
-def read_baseline(source: str | Path, threshold: float,
-                  allow_incomplete: bool = False) -> set[tuple[float, float]]:
+# The same class under a four-class network's name and SemanticKITTI's: a baseline of one
+# network gates another's run of the same objects.
+_SAME_CLASS = {"person": "pedestrian", "bicyclist": "cyclist"}
+
+
+def check_objective(baseline: str | Path, theirs: object, ours: str) -> None:
+    """FalsifyError when a baseline gated another class's IoU than the run's (None: a baseline
+    that does not say, as `gate --json` files written before it did, is taken as it is)."""
+    if theirs is None:
+        return
+    if _SAME_CLASS.get(str(theirs), str(theirs)) != _SAME_CLASS.get(ours, ours):
+        raise FalsifyError(f"--baseline {baseline}: its blind spots are of {theirs} IoU, this "
+                           f"run's of {ours} IoU; gate against a baseline of the same objective")
+
+
+def read_baseline(source: str | Path, threshold: float, allow_incomplete: bool = False,
+                  objective: str = "car") -> set[tuple[float, float]]:
     """Blind-spot cells of a baseline: a gate --json file, or a run directory (at `threshold`;
-    a complete one unless `allow_incomplete`)."""
+    a complete one unless `allow_incomplete`); FalsifyError when it gated another objective
+    than the run's (`objective`)."""
     path = Path(source)
     if path.is_dir():
         try:
@@ -122,6 +140,7 @@ def read_baseline(source: str | Path, threshold: float,
         except FalsifyError as exc:
             raise FalsifyError(f"--baseline: {exc}") from None
         check_complete(base, allow_incomplete, "--baseline ")
+        check_objective(source, base.objective, objective)
         return {_key(c.x, c.y) for c in gate_cells(base.cell_map(), threshold) if c.blind}
     try:
         raw = json.loads(path.read_text(encoding="utf-8"))
@@ -133,6 +152,7 @@ def read_baseline(source: str | Path, threshold: float,
     if not isinstance(spots, list):
         raise FalsifyError(f"--baseline {path}: expected a JSON object with a 'blind_spots' list "
                            "(the output of `falsify gate --json`)")
+    check_objective(source, raw.get("objective"), objective)
     keys = set()
     for i, s in enumerate(spots):
         try:
@@ -156,7 +176,8 @@ def judge(run: str | Path, threshold: float | None = None, max_blind_spots: int 
     t = data.threshold if threshold is None else float(threshold)
     check_threshold(t, f"{data.path / STORE_NAME}: stored threshold")
     done, busy = check_complete(data, allow_incomplete)
-    base = read_baseline(baseline, t, allow_incomplete) if baseline is not None else None
+    base = (read_baseline(baseline, t, allow_incomplete, data.objective)
+            if baseline is not None else None)
     cells = gate_cells(data.cell_map(), t)
     if not any(c.miou is not None for c in cells):
         counts = data.frame["status"].value_counts().to_dict() if len(data.frame) else {}
@@ -167,7 +188,8 @@ def judge(run: str | Path, threshold: float | None = None, max_blind_spots: int 
     new = [c for c in blind if _key(c.x, c.y) not in base] if base is not None else []
     return GateResult(str(run), t, tuple(cells), tuple(blind), tuple(new),
                       None if baseline is not None else (max_blind_spots or 0),
-                      None if baseline is None else str(baseline), done, busy)
+                      None if baseline is None else str(baseline), done, busy,
+                      data.objective)
 
 
 def completeness_note(result: GateResult) -> str | None:
@@ -190,13 +212,14 @@ def format_text(result: GateResult) -> str:
     t = result.threshold
     n = len(result.blind_spots)
     verdict = "PASS" if result.passed else "FAIL"
+    what = "" if result.objective in ("car", "miou") else f"{result.objective} "
     if result.baseline is None:
-        head = (f"falsify gate: {verdict}: {n} blind spot{'s' * (n != 1)} (mIoU < {t:.3f}) in "
-                f"{result.run}; limit {result.limit}")
+        head = (f"falsify gate: {verdict}: {n} blind spot{'s' * (n != 1)} ({what}mIoU < "
+                f"{t:.3f}) in {result.run}; limit {result.limit}")
     else:
         k = len(result.new_blind_spots)
-        head = (f"falsify gate: {verdict}: {n} blind spot{'s' * (n != 1)} (mIoU < {t:.3f}) in "
-                f"{result.run}, {k} new against baseline {result.baseline}")
+        head = (f"falsify gate: {verdict}: {n} blind spot{'s' * (n != 1)} ({what}mIoU < "
+                f"{t:.3f}) in {result.run}, {k} new against baseline {result.baseline}")
     lines = [head]
     if note := completeness_note(result):
         lines.append(f"  {note}")
@@ -220,7 +243,8 @@ def junit_xml(result: GateResult) -> str:
         "name": JUNIT_SUITE, "tests": str(len(result.cells)), "failures": str(failures),
         "errors": "0", "skipped": str(skipped)})
     props = ET.SubElement(suite, "properties")
-    for name, value in (("run", result.run), ("threshold", f"{t:.6g}"),
+    for name, value in (("run", result.run), ("objective", result.objective),
+                        ("threshold", f"{t:.6g}"),
                         ("limit", "" if result.limit is None else str(result.limit)),
                         ("baseline", result.baseline or ""), ("passed", str(result.passed)),
                         ("exit_code", str(result.exit_code)),

@@ -159,6 +159,10 @@ def read_continuous_or_values(name: str, spec: Any, where: str) -> Dim:
             raise ConfigError(f"{where}{what}: {v:g} is not a whole number of {unit}")
     if not isinstance(spec, dict):
         raise ConfigError(f"{where}{key}: expected a table with min, max, step (or values)")
+    extra = sorted(set(spec) - {"min", "max", "step", "values"})
+    if extra:
+        raise ConfigError(f"{where}{key}: unknown key {extra[0]!r}; allowed: min, max, step, "
+                          "values")
     if "values" in spec:
         if set(spec) != {"values"}:
             raise ConfigError(f"{where}{key}: give either values or min/max/step, not both")
@@ -178,10 +182,6 @@ def read_continuous_or_values(name: str, spec: Any, where: str) -> Dim:
     missing = [k for k in ("min", "max", "step") if k not in spec]
     if missing:
         raise ConfigError(f"{where}{key}: missing {missing[0]!r}; a range needs min, max, step")
-    extra = sorted(set(spec) - {"min", "max", "step"})
-    if extra:
-        raise ConfigError(f"{where}{key}: unknown key {extra[0]!r}; allowed: min, max, step, "
-                          "values")
     nums = {}
     for k in ("min", "max", "step"):
         v = spec[k]

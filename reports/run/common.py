@@ -34,6 +34,11 @@ def objective_title(data: RunData) -> str:
     return "" if data.objective == "car" else f": objective {esc(data.objective)}"
 
 
+def placed_name(data: RunData) -> str:
+    """What the space places: "car" in spaces that name the dim car_model, else "actor"."""
+    return "car" if data.space.model_dim == "car_model" else "actor"
+
+
 def model_heading(data: RunData) -> str:
     """The model column's heading: "car model" in spaces that name the dim so, else "actor"."""
     return "car model" if data.space.model_dim == "car_model" else "actor"

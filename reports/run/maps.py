@@ -15,6 +15,7 @@ from falsify.reports.run.common import (
     objective_name,
     objective_title,
     other_dims,
+    placed_name,
 )
 from falsify.results.metrics import Status, column
 from falsify.results.miou_maps import CellMap, fmt_value
@@ -80,7 +81,7 @@ def heatmap_section(data: RunData, cmap: CellMap, threshold: float) -> str:
 scored; each cell shows its estimate of the mean the full grid would give, and its tip the
 {float(options.get("confidence", 0.95)):.0%} interval. A cell is decided once its interval
 excludes the threshold.</p>""")
-    placed = "car" if data.space.model_dim == "car_model" else "actor"
+    placed = placed_name(data)
     return f"""
 <section id="map-section">
 <h2>mIoU over position ({placed} 1){objective_title(data)}</h2>

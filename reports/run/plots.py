@@ -1,4 +1,4 @@
-"""The run report's IoU plots: IoU against car 1's distance, and a search's lowest IoU
+"""The run report's IoU plots: IoU against object 1's distance, and a search's lowest IoU
 against evaluations beside where its evaluations went on the map."""
 
 from __future__ import annotations
@@ -20,13 +20,15 @@ from falsify.reports.charts import (
     viridis,
 )
 from falsify.reports.page import esc
-from falsify.reports.run.common import objective_name
+from falsify.reports.run.common import objective_name, placed_name
 from falsify.results.miou_maps import CellMap
 from falsify.results.store import RunData
 
 
 def distance_section(data: RunData, threshold: float) -> str:
-    """IoU of every valid sample against car 1's distance, with the mean per metre."""
+    """IoU of every valid sample against object 1's distance (car 1, or actor 1 in a space of
+    actors), with the mean per metre."""
+    placed = f"{placed_name(data)} 1"
     ok = data.ok
     d = np.hypot(ok["x"].astype(float), ok["y"].astype(float)).to_numpy()
     iou = ok[data.score_column].astype(float).to_numpy()
@@ -47,7 +49,7 @@ def distance_section(data: RunData, threshold: float) -> str:
         out.append(f'<text x="{num(sx(v))}" y="{top + ph + 15}" text-anchor="middle">'
                    f'{v:g}</text>')
     out.append(f'<text x="{left + pw / 2}" y="{h - 6}" text-anchor="middle" class="axis">'
-               "distance of car 1 from the sensor (m)</text>")
+               f"distance of {placed} from the sensor (m)</text>")
     out.append(f'<line class="thrline" x1="{left}" x2="{left + pw}" y1="{num(sy(threshold))}" '
                f'y2="{num(sy(threshold))}"/><text class="thr" x="{left + pw - 4}" '
                f'y="{num(sy(threshold) - 4)}" text-anchor="end">threshold {threshold:.3f}'
@@ -68,7 +70,7 @@ def distance_section(data: RunData, threshold: float) -> str:
 <section id="distance-section">
 <h2>IoU against distance</h2>
 <p class="note">Each dot is one valid sample; the orange line is the mean per metre of
-distance (hypot(x, y) of car 1).</p>
+distance (hypot(x, y) of {placed}).</p>
 <figure>{svg}</figure>
 </section>"""
 
@@ -154,7 +156,7 @@ def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
 <h2>Search</h2>
 <p class="note">{esc(data.meta.get("algorithm", "search"))}, {n} evaluations; lowest {what}
 found {lowest}. Left: each evaluation's IoU (dots) and the lowest so far (line). Right: where
-each evaluation put car 1, in order (grey path), coloured by IoU on the map's axes; the ring
-marks the lowest.</p>
+each evaluation put {placed_name(data)} 1, in order (grey path), coloured by IoU on the map's
+axes; the ring marks the lowest.</p>
 <div class="row"><figure>{curve_svg}</figure><figure>{path_svg}</figure></div>
 </section>"""
