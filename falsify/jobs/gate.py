@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from falsify.errors import FalsifyError
+from falsify.results.metrics import TO_KITTI4
 from falsify.results.miou_maps import CellMap, fmt_value
 from falsify.results.store import STORE_NAME, Completeness, check_complete, open_run
 
@@ -113,17 +114,13 @@ def worst_first(cells: list[GateCell]) -> list[GateCell]:
     return sorted((c for c in cells if c.blind), key=lambda c: (c.miou, c.x, c.y))
 
 
-# The same class under a four-class network's name and SemanticKITTI's: a baseline of one
-# network gates another's run of the same objects.
-_SAME_CLASS = {"person": "pedestrian", "bicyclist": "cyclist"}
-
-
 def check_objective(baseline: str | Path, theirs: object, ours: str) -> None:
-    """FalsifyError when a baseline gated another class's IoU than the run's (None: a baseline
-    that does not say, as `gate --json` files written before it did, is taken as it is)."""
+    """FalsifyError when a baseline gated another class's IoU than the run's, a class under a
+    four-class network's name and SemanticKITTI's being one (None: a baseline that does not say,
+    as `gate --json` files written before it did, is taken as it is)."""
     if theirs is None:
         return
-    if _SAME_CLASS.get(str(theirs), str(theirs)) != _SAME_CLASS.get(ours, ours):
+    if TO_KITTI4.get(str(theirs), str(theirs)) != TO_KITTI4.get(ours, ours):
         raise FalsifyError(f"--baseline {baseline}: its blind spots are of {theirs} IoU, this "
                            f"run's of {ours} IoU; gate against a baseline of the same objective")
 

@@ -114,8 +114,8 @@ def _ratio(num: int, den: int) -> float | None:
 PARTS = ("inserted_iou", "inserted_recall", "real_iou", "real_recall")
 
 # Our four classes' names for SemanticKITTI's, and back: one objective name works either way.
-_TO_KITTI4 = {"person": "pedestrian", "bicyclist": "cyclist"}
-_TO_TRAIN = {v: k for k, v in _TO_KITTI4.items()}
+TO_KITTI4 = {"person": "pedestrian", "bicyclist": "cyclist"}
+_TO_TRAIN = {v: k for k, v in TO_KITTI4.items()}
 
 
 def column(name: str) -> str:
@@ -151,7 +151,7 @@ class Scoring:
         if all(n in CLASSES for n in mapped):
             # a four-class model scores all four, but is judged only on those its spec maps
             classes, scored, judged = CLASSES, CLASSES, tuple(mapped)
-            objective = _TO_KITTI4.get(objective, objective)
+            objective = TO_KITTI4.get(objective, objective)
         else:
             names = {_TO_TRAIN.get(n, n) for n in mapped}
             classes = TRAIN_CLASSES

@@ -346,9 +346,8 @@ def parse_space(raw: dict[str, Any], source: str = "<config>", base_dir: Path | 
         builtin_cars = BUILTIN_MODELS
     where = f"{source}: "
     name, sensor, seed, threshold = _top_keys(raw, source, where)
-    local = (base_dir or Path(".")) / sensor
-    if sensor.endswith(".toml") and base_dir is not None and local.is_file():
-        sensor = str(local.resolve())   # beside the config, as its meshes, scans and world are
+    if sensor.endswith(".toml") and base_dir is not None and (base_dir / sensor).is_file():
+        sensor = str((base_dir / sensor).resolve())   # beside the config, as its meshes are
 
     from falsify.world.actors import ACTOR_NAMES
     user_cars = read_user_cars(raw.get("car_models", {}), where, base_dir or Path("."),

@@ -41,7 +41,7 @@ def placed_name(data: RunData) -> str:
 
 def model_heading(data: RunData) -> str:
     """The model column's heading: "car model" in spaces that name the dim so, else "actor"."""
-    return "car model" if data.space.model_dim == "car_model" else "actor"
+    return "car model" if placed_name(data) == "car" else "actor"
 
 
 def bg_text(data: RunData, row: pd.Series) -> str:
