@@ -54,6 +54,20 @@ def test_snow_extinction_is_gunn_marshalls(rate):
     assert snow(rate).extinction == pytest.approx(want, rel=1e-9)
 
 
+def test_a_subnormal_rate_with_flush_to_zero_on_gives_a_finite_extinction():
+    """Where a library has switched on flush-to-zero (torch does on request, and a test worker
+    inherits it), 5e-324 mm/h reads as 0 and 0 ** -0.21 raised ZeroDivisionError; it failed
+    only in a run whose earlier tests had switched it on."""
+    torch = pytest.importorskip("torch")
+    if not torch.set_flush_denormal(True):
+        pytest.skip("this CPU cannot flush denormals")
+    try:
+        for p in (rain(5e-324), snow(5e-324)):
+            assert math.isfinite(p.extinction) and p.extinction >= 0.0
+    finally:
+        torch.set_flush_denormal(False)
+
+
 @pytest.mark.parametrize("rate", [1e-300, 5e-324, 1e-12])
 def test_vanishing_rain_and_snow_rates_give_a_finite_extinction(rate):
     """Lambda^3 overflowed a float for a snow rate below 1e-213 mm/h (OverflowError: a config's

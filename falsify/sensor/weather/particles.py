@@ -18,6 +18,11 @@ BEAM_EXIT_M = 0.01           # the beam's diameter at the sensor
 BEAM_DIVERGENCE = 2e-3       # full angle, rad: diameter w(r) = 0.01 + 0.002 r m
 
 
+# The smallest rate the size distributions take: a subnormal rate reads as 0 where a library has
+# switched on flush-to-zero, and 0 ** -0.21 raises; below it rain and snow change nothing anyway.
+MIN_RATE = 1e-300
+
+
 @dataclass(frozen=True)
 class Particles:
     """An exponential size distribution N(D) = n0 exp(-lam D) (D in mm, melted for snow, drawn

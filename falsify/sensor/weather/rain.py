@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from falsify.sensor.weather.particles import Particles
+from falsify.sensor.weather.particles import MIN_RATE, Particles
 
 RAIN_N0 = 8000.0             # Marshall-Palmer: N(D) = N0 exp(-Lambda D), m^-3 mm^-1
 RAIN_LAMBDA = (4.1, -0.21)   # Lambda = 4.1 R^-0.21 mm^-1, R in mm/h
@@ -17,5 +17,6 @@ RAIN_MAX_MM = 8.0            # drops break up beyond about 8 mm (Pruppacher and 
 
 def rain(rate: float) -> Particles:
     """Marshall and Palmer (1948), J. Meteorology 5:165: N0 = 8000, Lambda = 4.1 R^-0.21."""
+    rate = max(rate, MIN_RATE)
     return Particles(RAIN_N0, RAIN_LAMBDA[0] * rate ** RAIN_LAMBDA[1], 1.0, RAIN_ECHO,
                      RAIN_MAX_MM)
