@@ -30,10 +30,16 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("dist")
-    # setuptools' build/ keeps files of earlier builds (weights since left out): start clean
-    shutil.rmtree(ROOT / "build", ignore_errors=True)
+    # Built from a copy of the sources: setuptools' build/ in the checkout keeps files of earlier
+    # builds (weights since left out), and a second build there at the same time collides.
+    src = tmp_path_factory.mktemp("src")
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy2(ROOT / name, src / name)
+    for folder in ("falsify", *GENERIC):
+        shutil.copytree(ROOT / folder, src / folder,
+                        ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
-                        "-q", "-w", str(out), str(ROOT)], capture_output=True, text=True)
+                        "-q", "-w", str(out), str(src)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     (found,) = out.glob("falsify-*.whl")
     return found
