@@ -9,6 +9,7 @@ from typing import Protocol
 
 import numpy as np
 
+from falsify.classes import CAR
 from falsify.rotations import rot_z
 from falsify.sensor.lidar import SensorPose
 from falsify.sensor.scanner import InvalidSample, PlacedCar
@@ -40,6 +41,12 @@ class Obstacles:
         return cls(items, lo, hi)
 
 
+def placed_label(obj: PlacedCar, number: int) -> str:
+    """How a reason names a placed object: "car 2 (sedan)", or "actor 1 (pedestrian-walking)"
+    for what is not a car, as the report names them."""
+    return f"{'car' if obj.cls == CAR else 'actor'} {number} ({obj.model})"
+
+
 def check_placement(placed: Sequence[PlacedCar], outlines: Sequence[np.ndarray],
                     obstacles: Obstacles, crosses_kerbs: Sequence[bool] | None = None,
                     ego: np.ndarray = EGO_FOOTPRINT) -> None:
@@ -47,14 +54,15 @@ def check_placement(placed: Sequence[PlacedCar], outlines: Sequence[np.ndarray],
     kerbs' outlines left out for the objects in `crosses_kerbs`: people and bicycles)."""
     for i, (car, poly) in enumerate(zip(placed, outlines, strict=True)):
         if polygons_overlap(poly, ego):
-            raise InvalidSample(f"car {i + 1} ({car.model}) intersects the ego vehicle")
+            raise InvalidSample(f"{placed_label(car, i + 1)} intersects the ego vehicle")
         for j in range(i):
             if polygons_overlap(poly, outlines[j]):
-                raise InvalidSample(f"car {i + 1} ({car.model}) intersects car {j + 1}")
+                raise InvalidSample(f"{placed_label(car, i + 1)} intersects "
+                                    f"{placed_label(placed[j], j + 1)}")
         kerbless = crosses_kerbs is not None and crosses_kerbs[i]
         obstacle = first_overlap(poly, obstacles, skip_kerbs=kerbless)
         if obstacle is not None:
-            raise InvalidSample(f"car {i + 1} ({car.model}) intersects the background's "
+            raise InvalidSample(f"{placed_label(car, i + 1)} intersects the background's "
                                 f"{obstacle.label}")
 
 
@@ -104,7 +112,8 @@ def check_surfaces(placed: Sequence[PlacedCar], surfaces: Sequence[str],
             continue
         found = surface_at(car.x, car.y)
         if found != on:
-            raise InvalidSample(f"actor {i + 1} ({car.model}) stands on {found}, not on the {on}")
+            raise InvalidSample(f"{placed_label(car, i + 1)} stands on {found}, "
+                                f"not on the {on}")
 
 
 def ego_outline(pose: SensorPose) -> np.ndarray:

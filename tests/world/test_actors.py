@@ -24,7 +24,7 @@ from falsify.sensor.simulator import Simulator
 from falsify.world.actors import ACTOR_NAMES, BUILTIN_ACTORS, actor_model, model_semantic
 from falsify.world.cars import BUILTIN_MODELS
 from falsify.world.space import parse_space
-from tests.data.test_real_backgrounds import street_cloud, write_scan
+from tests.data.test_real_backgrounds import WALL_X, street_cloud, write_scan
 
 # The class each built-in actor's points carry, in the four-class view and as raw ids.
 EXPECTED = {
@@ -136,6 +136,25 @@ def test_a_person_crosses_the_kerb_where_a_truck_cannot():
         scanner_for(truck).scan(truck.grid()[0])
 
 
+def test_invalid_reasons_name_an_actor_as_the_report_does():
+    """An actor is "actor N" in the reasons of invalid samples, as in the report; a car stays
+    "car N"."""
+    at_ego = space(x=0.0, y=0.0)
+    with pytest.raises(InvalidSample, match=r"^actor 1 \(pedestrian\) intersects the ego "):
+        scanner_for(at_ego).scan(at_ego.grid()[0])
+    raw = copy.deepcopy(BASE)
+    raw["dims"].update({"actor_2": {"values": ["truck"]}, "x_2": {"values": [0.3]},
+                        "y_2": {"values": [10.0]}, "count": {"values": [2]}})
+    both = parse_space(raw)
+    with pytest.raises(InvalidSample, match=r"^actor 2 \(truck\) intersects actor 1 "
+                                            r"\(pedestrian\)$"):
+        scanner_for(both).scan(both.grid()[0])
+    cars = parse_space({"dims": {"car_model": {"values": ["sedan"]}, "x": {"values": [0.0]},
+                                 "y": {"values": [0.0]}, "background": {"values": [0]}}})
+    with pytest.raises(InvalidSample, match=r"^car 1 \(sedan\) intersects the ego vehicle$"):
+        scanner_for(cars).scan(cars.grid()[0])
+
+
 @pytest.fixture(scope="module")
 def kerbside(tmp_path_factory):
     """The constructed real street, its ground right of y = -3 m labelled sidewalk."""
@@ -161,6 +180,16 @@ def test_actors_are_inserted_into_a_real_scan_with_their_class(kerbside, name):
     assert mine.sum() > 30
     assert set(np.unique(scan.semantic[mine])) == {RAW_ID[raw]}
     assert set(np.unique(scan.image[..., 5][mine])) == {cls}
+
+
+def test_an_actor_in_a_real_scans_wall_is_named_as_an_actor(kerbside):
+    raw = copy.deepcopy(BASE)
+    raw["dims"].update({"actor": {"values": ["truck"]}, "y": {"values": [WALL_X]},
+                        "background": {"real": [str(kerbside.bin)]}})
+    sp = parse_space(raw)
+    with pytest.raises(InvalidSample, match=r"^actor 1 \(truck\) intersects the real scan's "
+                                            r"building"):
+        scanner_for(sp).scan(sp.grid()[0])
 
 
 def test_on_reads_the_surface_from_a_real_scans_labels(kerbside):

@@ -49,6 +49,7 @@ from falsify.data.real_backgrounds.rays import column_azimuths, meets_box
 from falsify.errors import ConfigError, FalsifyError
 from falsify.semantic import RAW_NAMES, kitti4
 from falsify.sensor.lidar import Sensor, SensorPose
+from falsify.sensor.placement import placed_label
 from falsify.sensor.raycast import cast_through
 from falsify.sensor.returns import side_generator
 from falsify.sensor.scan import Scan
@@ -230,7 +231,7 @@ class RealScanner:
         if len(named):
             ids, counts = np.unique(named, return_counts=True)
             what = RAW_NAMES.get(int(ids[np.argmax(counts)]), "object")
-        raise InvalidSample(f"car {number} ({car.model}) intersects the real scan's {what} "
+        raise InvalidSample(f"{placed_label(car, number)} intersects the real scan's {what} "
                             f"({n} points in its body)")
 
     # -- casting ---------------------------------------------------------------------------
