@@ -130,7 +130,7 @@ def prepare(req: RunRequest) -> Prepared:
     check_beams(space, sensor)
     seg.spec.check_fits(sensor, req.model or "bundled")
     for car in space.user_cars.values():   # a missing or broken mesh fails before the run dir
-        load_user_car(car.file, car.scale, car.forward, car.up)
+        load_user_car(car.file, car.scale, car.forward, car.up, car.key)
     meta = {
         "command": req.command, "config_path": str(req.config),
         "config_text": config_path(req.config).read_text(), "config_hash": space.config_hash,

@@ -120,7 +120,7 @@ class Simulator:
         """A model as a trimesh mesh, for the naive paths and users (imports trimesh)."""
         if model in self.user_cars:
             u = self.user_cars[model]
-            return cars.load_user_car(u.file, u.scale, u.forward, u.up)
+            return cars.load_user_car(u.file, u.scale, u.forward, u.up, u.key)
         if model in road_users.OTHER_VEHICLES or model in actors.BUILTIN_ACTORS:
             import trimesh
 

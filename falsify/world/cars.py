@@ -319,14 +319,16 @@ def car_dimensions(mesh: trimesh.Trimesh) -> tuple[float, float, float]:
 
 
 def load_user_car(path: str | Path, scale: float = 1.0, forward: str = "+x",
-                  up: str = "+z") -> trimesh.Trimesh:
+                  up: str = "+z", key: str = "") -> trimesh.Trimesh:
     """Load a user mesh (OBJ, STL, PLY, GLB...) and bring it into the car frame.
 
     ``forward`` and ``up`` name the file's axes that point to the car's front and top; the mesh
     is turned so they become +x and +z, scaled by ``scale``, and moved so its footprint is
-    centred on the origin with its lowest point at z = 0.
+    centred on the origin with its lowest point at z = 0. Errors name the file by the config's
+    ``key`` when given ("cfg.toml: actors.mine.file"), else as a car model file.
     """
     path = Path(path)
+    named = f"{key}.file {path}" if key else f"car model file {path}"
     try:
         scale_f = float(scale)
     except (TypeError, ValueError):
@@ -343,18 +345,18 @@ def load_user_car(path: str | Path, scale: float = 1.0, forward: str = "+x",
         raise ConfigError(f"forward={forward!r} and up={up!r} for car model {path} are "
                           "parallel; they must be two different axes")
     if not path.is_file():
-        raise ConfigError(f"car model file {path}: not found")
+        raise ConfigError(f"{named}: not found")
     try:
         import trimesh
 
         loaded = trimesh.load(str(path), force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for unreadable files
-        raise ConfigError(f"car model file {path}: cannot be loaded as a mesh ({exc})") from exc
+        raise ConfigError(f"{named}: cannot be loaded as a mesh ({exc})") from exc
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise ConfigError(f"car model file {path}: contains no triangles")
+        raise ConfigError(f"{named}: contains no triangles")
     vertices = np.asarray(loaded.vertices, dtype=np.float64)
     if not np.isfinite(vertices).all():
-        raise ConfigError(f"car model file {path}: has non-finite (NaN or inf) vertices")
+        raise ConfigError(f"{named}: has non-finite (NaN or inf) vertices")
     rot = np.stack([f_axis, np.cross(u_axis, f_axis), u_axis])  # rows: new x, y, z
     vertices = _to_footprint_frame(vertices @ rot.T * scale_f)
     return trimesh.Trimesh(vertices=vertices, faces=np.asarray(loaded.faces), process=False)

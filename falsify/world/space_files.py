@@ -31,6 +31,7 @@ class UserCar:
     forward: str = "+x"
     up: str = "+z"
     semantic: int = 10
+    key: str = ""   # where the config declares it ("cfg.toml: actors.mine"), for its errors
 
 
 @dataclass(frozen=True)
@@ -199,5 +200,5 @@ def read_user_cars(raw: Any, where: str, base_dir: Path, builtin: tuple[str, ...
         if not file.is_absolute():
             file = base_dir / file
         out[name] = UserCar(name, file, float(scale), spec.get("forward", "+x"),
-                            spec.get("up", "+z"), semantic)
+                            spec.get("up", "+z"), semantic, f"{where}{key}")
     return out

@@ -361,3 +361,21 @@ def test_bad_actor_keys_exit_2_from_the_cli_and_write_nothing(tmp_path, table, n
     proc = run(cfg, tmp_path / "run")
     assert proc.returncode == 2 and named in proc.stderr
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("table, body", [("actors", 'class = "person"\n'), ("car_models", "")])
+@pytest.mark.parametrize("content", [None, "not a mesh\n"])
+def test_a_users_broken_mesh_is_named_by_its_key(tmp_path, table, body, content):
+    """A missing or unreadable mesh names the config and its table ("bad.toml: actors.kid.file"),
+    exit 2, no run folder."""
+    if content is not None:
+        (tmp_path / "kid.obj").write_text(content)
+    dim = "actor" if table == "actors" else "car_model"
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(f'[{table}.kid]\nfile = "kid.obj"\n{body}[dims.{dim}]\nvalues = ["kid"]\n'
+                   "[dims.x]\nvalues = [0.0]\n[dims.y]\nvalues = [10.0]\n[dims.background]\n"
+                   "values = [0]\n")
+    proc = run(cfg, tmp_path / "run")
+    assert proc.returncode == 2, proc.stderr
+    assert f"bad.toml: {table}.kid.file {tmp_path / 'kid.obj'}: " in proc.stderr, proc.stderr
+    assert not (tmp_path / "run").exists()
