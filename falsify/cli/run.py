@@ -75,7 +75,9 @@ def summary_text(s) -> str:
         f"blind spots: {s.blind_spots} of {s.cells} cells below mIoU {s.threshold}",
         f"lowest {what}: " + ("- (no valid sample)" if low is None else f"{low[key]} at {where}"),
         f"mean {what}: {'-' if mean is None else mean}",
-        f"retraining set: {s.retraining_samples} scans in {Path(s.run) / 'retrain'}",
+        (f"retraining set: {s.retraining_samples} scans in {Path(s.run) / 'retrain'}"
+         if s.retraining_samples else
+         "retraining set: none (no valid sample in a blind-spot cell), so no retrain/ folder"),
     ]
     if s.estimated:
         e = s.estimated

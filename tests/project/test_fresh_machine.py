@@ -62,6 +62,12 @@ def check_main_job(done: subprocess.CompletedProcess, cwd: Path) -> None:
         done.stdout
     report = cwd / "runs" / "paper" / "report.html"
     assert report.is_file() and report.stat().st_size > 10_000
+    # The retraining line names a folder only where one was written.
+    retrain = re.search(r"^retraining set: (.*)$", done.stdout, re.M)
+    assert retrain, done.stdout
+    made = (cwd / "runs" / "paper" / "retrain").is_dir()
+    assert made == retrain.group(1)[0].isdigit() and made != retrain.group(1).startswith(
+        "none"), retrain.group(0)
 
 
 def test_the_first_command_runs_with_nothing_beside_it(tmp_path: Path) -> None:
