@@ -77,6 +77,7 @@ def run(args) -> int:
     summary = {
         "sample": sample.as_dict(), "sensor": sensor.name, "shape": list(scan.image.shape),
         "points": int(scan.valid.sum()), "car_points": scan.count(1),
+        "placed_points": int((scan.valid & sim.placed_pixels(scan)).sum()),
         "files": [str(out / f"scan.{e}") for e in ("npy", "png", "bin", "label")],
     }
     extra: dict[str, bytes] = {}
@@ -97,5 +98,6 @@ def run(args) -> int:
             (out / name).unlink(missing_ok=True)
     camera_text = f"; the camera's {', '.join(extra)}" if extra else ""
     emit(args, summary, f"wrote {out / 'scan.npy'}, .png, .bin and .label{camera_text}: "
-         f"{summary['points']} points, {summary['car_points']} on cars")
+         f"{summary['points']} points, {summary['car_points']} on cars, "
+         f"{summary['placed_points']} on the placed {', '.join(c.model for c in sample.cars)}")
     return 0

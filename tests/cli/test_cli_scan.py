@@ -22,7 +22,25 @@ def test_scan_writes_npy_and_png(tmp_path, capsys):
     img = np.load(out / "scan.npy")
     assert img.shape == (64, 512, 6) and img.dtype == np.float32
     assert (out / "scan.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert summary["car_points"] == int((img[..., 5] == 1).sum()) or summary["car_points"] > 0
+    valid = img[..., 4] > 0
+    assert summary["car_points"] == int((valid & (img[..., 5] == 1)).sum()) > 0
+
+
+def test_scan_counts_the_placed_objects_points_by_their_instance(tmp_path, capsys):
+    """Besides every car's points, the summary counts the placed object's own: in an actor run
+    the pedestrian's, which the car count leaves out."""
+    config = tmp_path / "ped.toml"
+    config.write_text('[dims.actor]\nvalues = ["pedestrian"]\n[dims.x]\nvalues = [0.0]\n'
+                      "[dims.y]\nvalues = [10.0]\n[dims.background]\nvalues = [0]\n")
+    out = tmp_path / "s"
+    assert main(["scan", str(config), "--out", str(out)]) == 0
+    assert "on the placed pedestrian" in capsys.readouterr().out
+    assert main(["scan", str(config), "--out", str(out), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    labels = np.fromfile(out / "scan.label", dtype=np.uint32)
+    mine = (labels >> 16) == 1
+    assert summary["placed_points"] == int(mine.sum()) > 30
+    assert set(np.unique(labels[mine] & 0xFFFF)) == {30}   # SemanticKITTI's person
 
 
 def test_scan_is_deterministic(tmp_path):
