@@ -34,12 +34,13 @@ class Level:
     """One effect at one severity: the run's mean score, its rows, the reference's mean."""
 
     severity: float
-    score: float
+    score: float | None    # None: no valid sample at this severity (every row undefined)
     samples: int
     reference: float | None = None
 
     def to_json(self) -> dict:
-        return {"severity": self.severity, "score": round(self.score, 4),
+        return {"severity": self.severity,
+                "score": None if self.score is None else round(self.score, 4),
                 "samples": self.samples,
                 "reference": None if self.reference is None else round(self.reference, 4)}
 
@@ -51,11 +52,13 @@ class EffectRobustness:
     effect: str
     levels: tuple[Level, ...]
     ce: float | None
-    rr: float
+    rr: float | None       # None: a severity without a valid sample
+    note: str = ""         # why CE or RR is undefined, when one is (beyond "no --reference")
 
     def to_json(self) -> dict:
         return {"effect": self.effect, "levels": [lv.to_json() for lv in self.levels],
-                "ce": None if self.ce is None else round(self.ce, 4), "rr": round(self.rr, 4)}
+                "ce": None if self.ce is None else round(self.ce, 4),
+                "rr": None if self.rr is None else round(self.rr, 4), "note": self.note}
 
 
 @dataclass(frozen=True)
@@ -71,7 +74,7 @@ class RobustnessResult:
     effects: tuple[EffectRobustness, ...]
     mixed_samples: int          # rows with two or more effects at once, left out
     mce: float | None
-    mrr: float
+    mrr: float | None           # None when an effect's RR is undefined (see its note)
 
     def to_json(self) -> dict:
         return {"run": self.run, "reference": self.reference, "column": self.column,
@@ -81,7 +84,7 @@ class RobustnessResult:
                 "effects": [e.to_json() for e in self.effects],
                 "mixed_samples": self.mixed_samples,
                 "mce": None if self.mce is None else round(self.mce, 4),
-                "mrr": round(self.mrr, 4),
+                "mrr": None if self.mrr is None else round(self.mrr, 4),
                 "definitions": "CE_e = sum_l (1 - s_el) / sum_l (1 - s_ref_el), mCE its mean; "
                                "RR_e = sum_l s_el / (L_e s_clean), mRR its mean (Robo3D, "
                                "ICCV 2023)"}
@@ -99,25 +102,35 @@ def score_column(data: RunData, column: str | None) -> str:
 
 def levels_of(data: RunData, column: str) -> tuple[pd.Series, dict[str, dict[float, pd.Series]],
                                                      int]:
-    """(clean scores, {effect: {severity: scores}}, mixed rows) over the ok rows with a score."""
+    """(clean scores, {effect: {severity: scores}}, mixed rows) over the ok rows with a score;
+    a severity the run holds rows of but none valid keeps an empty Series, so that it is
+    reported undefined rather than dropped (dropping it would shrink Robo3D's L unsaid)."""
     effects = [d for d in EFFECT_DIMS if d in data.space.dims]
     if not effects:
         raise FalsifyError(f"{data.path}: its space has no effect dim (one of "
                            f"{', '.join(EFFECT_DIMS)}); robustness needs the same space with "
                            "and without them")
-    f = data.frame[data.frame["status"] == Status.OK]
-    f = f[f[column].notna()]
-    values = f[effects].astype(float).fillna(0.0)
-    active = (values != 0).sum(axis=1)
+    every = data.frame[effects].astype(float).fillna(0.0)
+    every_active = (every != 0).sum(axis=1)
+    scored = (data.frame["status"] == Status.OK) & data.frame[column].notna()
+    f = data.frame[scored]
+    values, active = every[scored], every_active[scored]
     clean = f[active == 0][column].astype(float)
     if not len(clean):
+        n = int((every_active == 0).sum())
+        if n:
+            raise FalsifyError(f"{data.path}: none of its {n} rows without effects has a valid "
+                               f"{column}; nothing to compare the effects with")
         raise FalsifyError(f"{data.path}: no row without effects (every effect dim at 0) to "
                            "compare with; add 0 to each effect dim's values")
     out: dict[str, dict[float, pd.Series]] = {}
     for e in effects:
-        rows = f[(active == 1) & (values[e] != 0)]
-        groups = rows.groupby(values.loc[rows.index, e])[column]
-        out[e] = {float(sev): g.astype(float) for sev, g in groups}
+        single = (every_active == 1) & (every[e] != 0)
+        rows = f[single[scored]]
+        groups = {float(sev): g.astype(float)
+                  for sev, g in rows.groupby(values.loc[rows.index, e])[column]}
+        out[e] = {float(sev): groups.get(float(sev), pd.Series(dtype=float))
+                  for sev in sorted(set(every.loc[single, e]))}
     return clean, out, int((active > 1).sum())
 
 
@@ -174,26 +187,47 @@ def robustness(run: str | Path | list, reference: str | Path | list | None = Non
                                    "(their config hashes differ)")
         ref_clean_rows, ref_levels, _ = merged_levels(ref_datas, column)
         ref_clean = float(ref_clean_rows.mean())
-    effects = []
-    for e, by_sev in levels.items():
-        lv = tuple(Level(s, float(g.mean()), int(len(g)),
-                         float(ref_levels[e][s].mean()) if s in ref_levels.get(e, {}) else None)
-                   for s, g in sorted(by_sev.items()))
-        rr = float(np.sum([x.score for x in lv]) / (len(lv) * clean))
-        ce = None
-        if refs is not None and all(x.reference is not None for x in lv):
-            denom = float(np.sum([1.0 - x.reference for x in lv]))
-            ce = float(np.sum([1.0 - x.score for x in lv]) / denom) if denom > 0 else None
-        effects.append(EffectRobustness(e, lv, ce, rr))
+    effects = [effect_robustness(e, by_sev, clean, None if refs is None else
+                                 ref_levels.get(e, {}))
+               for e, by_sev in levels.items()]
     if not effects:
         raise FalsifyError(f"{name}: no row with exactly one effect non-zero; robustness "
                            "compares each effect alone with the clean rows")
-    ces = [e.ce for e in effects if e.ce is not None]
+    ces, rrs = [e.ce for e in effects], [e.rr for e in effects]
     return RobustnessResult(
         name, None if refs is None else ", ".join(str(r) for r in refs), col, clean,
         int(len(clean_rows)), ref_clean, tuple(effects), mixed,
-        float(np.mean(ces)) if refs is not None and len(ces) == len(effects) else None,
-        float(np.mean([e.rr for e in effects])))
+        float(np.mean(ces)) if refs is not None and None not in ces else None,
+        float(np.mean(rrs)) if None not in rrs else None)
+
+
+def _mean(g: pd.Series | None) -> float | None:
+    """A level's mean score; None where it has no valid sample (or is not held at all)."""
+    return float(g.mean()) if g is not None and len(g) else None
+
+
+def effect_robustness(effect: str, by_sev: dict[float, pd.Series], clean: float,
+                      ref: dict[float, pd.Series] | None) -> EffectRobustness:
+    """One effect's levels, CE_e and RR_e as Robo3D (Kong et al., ICCV 2023, Sec. 3.2) defines
+    them over all L_e severities the run holds; either is None, with a note, where a severity
+    has no valid score (in the run or, for CE, the reference) or the reference scores 1 at
+    every severity (CE's denominator 0): a level left out would change the sums unsaid."""
+    lv = tuple(Level(s, _mean(g), int(len(g)), None if ref is None else _mean(ref.get(s)))
+               for s, g in sorted(by_sev.items()))
+    sev = ", ".join(f"{x.severity:g}" for x in lv if x.score is None)
+    notes = [f"no valid sample at severity {sev}"] if sev else []
+    rr = None if sev else float(sum(x.score for x in lv) / (len(lv) * clean))
+    ce = None
+    if ref is not None:
+        ref_sev = ", ".join(f"{x.severity:g}" for x in lv if x.reference is None)
+        denom = 0.0 if ref_sev else float(sum(1.0 - x.reference for x in lv))
+        if ref_sev:
+            notes.append(f"no valid reference sample at severity {ref_sev}")
+        elif denom <= 0:
+            notes.append("the reference scores 1 at every severity: CE's denominator is 0")
+        elif not sev:
+            ce = float(sum(1.0 - x.score for x in lv) / denom)
+    return EffectRobustness(effect, lv, ce, rr, "; ".join(notes))
 
 
 def robustness_text(r: RobustnessResult) -> str:
@@ -205,12 +239,19 @@ def robustness_text(r: RobustnessResult) -> str:
     for e in r.effects:
         for lv in e.levels:
             table.append({"effect": e.effect, "severity": f"{lv.severity:g}",
-                          "score": f"{lv.score:.3f}", "rows": lv.samples,
+                          "score": "-" if lv.score is None else f"{lv.score:.3f}",
+                          "rows": lv.samples,
                           "reference": "" if lv.reference is None else f"{lv.reference:.3f}",
-                          "CE": "" if e.ce is None else f"{e.ce:.3f}", "RR": f"{e.rr:.3f}"})
+                          "CE": "" if e.ce is None else f"{e.ce:.3f}",
+                          "RR": "" if e.rr is None else f"{e.rr:.3f}"})
     lines.append(pd.DataFrame(table).to_string(index=False))
-    lines.append(("mCE " + ("- (no --reference)" if r.mce is None else f"{r.mce:.3f}"))
-                 + f", mRR {r.mrr:.3f}"
+    lines.extend(f"{e.effect}: {e.note}" for e in r.effects if e.note)
+    why = ("no --reference" if r.reference is None
+           else "CE undefined for " + ", ".join(e.effect for e in r.effects if e.ce is None))
+    lines.append(("mCE " + (f"- ({why})" if r.mce is None else f"{r.mce:.3f}"))
+                 + ", mRR " + ("- (RR undefined for " + ", ".join(
+                     e.effect for e in r.effects if e.rr is None) + ")"
+                     if r.mrr is None else f"{r.mrr:.3f}")
                  + (f"; {r.mixed_samples} rows with several effects at once left out"
                     if r.mixed_samples else ""))
     return "\n".join(lines)
