@@ -125,11 +125,30 @@ def check_objective(baseline: str | Path, theirs: object, ours: str) -> None:
                            f"run's of {ours} IoU; gate against a baseline of the same objective")
 
 
+def _grid_text(keys: set[tuple[float, float]]) -> str:
+    """A set of (x, y) cells as their x and y values, for messages."""
+    xs, ys = sorted({k[0] for k in keys}), sorted({k[1] for k in keys})
+    return (f"x [{', '.join(fmt_value(v) for v in xs)}] × "
+            f"y [{', '.join(fmt_value(v) for v in ys)}]")
+
+
+def check_same_cells(baseline: str | Path, theirs: set[tuple[float, float]],
+                     ours: set[tuple[float, float]] | None) -> None:
+    """FalsifyError when a baseline's cells are not the run's: its blind spots would be
+    compared with other positions' (a cell it lacks always new, one it holds never checked)."""
+    if ours is not None and theirs != ours:
+        raise FalsifyError(f"--baseline {baseline}: its cells are {_grid_text(theirs)}, this "
+                           f"run's {_grid_text(ours)}; gate against a baseline of the same "
+                           "x, y grid")
+
+
 def read_baseline(source: str | Path, threshold: float, allow_incomplete: bool = False,
-                  objective: str = "car") -> set[tuple[float, float]]:
+                  objective: str = "car", cells: set[tuple[float, float]] | None = None
+                  ) -> set[tuple[float, float]]:
     """Blind-spot cells of a baseline: a gate --json file, or a run directory (at `threshold`;
     a complete one unless `allow_incomplete`); FalsifyError when it gated another objective
-    than the run's (`objective`)."""
+    than the run's (`objective`), other (x, y) cells than the run's `cells`, or (a JSON file)
+    at another threshold."""
     path = Path(source)
     if path.is_dir():
         try:
@@ -138,7 +157,9 @@ def read_baseline(source: str | Path, threshold: float, allow_incomplete: bool =
             raise FalsifyError(f"--baseline: {exc}") from None
         check_complete(base, allow_incomplete, "--baseline ")
         check_objective(source, base.objective, objective)
-        return {_key(c.x, c.y) for c in gate_cells(base.cell_map(), threshold) if c.blind}
+        theirs = gate_cells(base.cell_map(), threshold)
+        check_same_cells(source, {_key(c.x, c.y) for c in theirs}, cells)
+        return {_key(c.x, c.y) for c in theirs if c.blind}
     try:
         raw = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -150,6 +171,18 @@ def read_baseline(source: str | Path, threshold: float, allow_incomplete: bool =
         raise FalsifyError(f"--baseline {path}: expected a JSON object with a 'blind_spots' list "
                            "(the output of `falsify gate --json`)")
     check_objective(source, raw.get("objective"), objective)
+    t = raw.get("threshold")
+    if isinstance(t, int | float) and not isinstance(t, bool) and abs(t - threshold) > 1e-9:
+        raise FalsifyError(f"--baseline {path}: its blind spots are below mIoU {t:g}, this "
+                           f"gate's below {threshold:g}; gate at the same threshold "
+                           f"(--threshold {t:g}) or write the baseline again")
+    if isinstance(raw.get("cells"), list):
+        try:
+            theirs = {_key(c["x"], c["y"]) for c in raw["cells"]}
+        except (KeyError, TypeError, ValueError):
+            raise FalsifyError(f"--baseline {path}: each of its cells needs numeric x and y") \
+                from None
+        check_same_cells(source, theirs, cells)
     keys = set()
     for i, s in enumerate(spots):
         try:
@@ -173,9 +206,10 @@ def judge(run: str | Path, threshold: float | None = None, max_blind_spots: int 
     t = data.threshold if threshold is None else float(threshold)
     check_threshold(t, f"{data.path / STORE_NAME}: stored threshold")
     done, busy = check_complete(data, allow_incomplete)
-    base = (read_baseline(baseline, t, allow_incomplete, data.objective)
-            if baseline is not None else None)
     cells = gate_cells(data.cell_map(), t)
+    base = (read_baseline(baseline, t, allow_incomplete, data.objective,
+                          {_key(c.x, c.y) for c in cells})
+            if baseline is not None else None)
     if not any(c.miou is not None for c in cells):
         counts = data.frame["status"].value_counts().to_dict() if len(data.frame) else {}
         what = ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) or "no rows"
