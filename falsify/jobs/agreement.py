@@ -37,9 +37,12 @@ MAX_FP_SAMPLES = 10_000
 def wasserstein1(u: Sequence[float], v: Sequence[float]) -> float | None:
     """The 1-Wasserstein distance between two empirical 1-D distributions (equal weights per
     value): W1 = ∫ |F_u(t) − F_v(t)| dt, the area between their empirical CDFs (Villani,
-    "Optimal Transport: Old and New", 2009, Remark 2.19); None if either is empty."""
-    a = np.sort(np.asarray(u, np.float64))
-    b = np.sort(np.asarray(v, np.float64))
+    "Optimal Transport: Old and New", 2009, Remark 2.19); NaNs are left out, as
+    Distribution.of leaves them out beside it (one NaN would make the whole distance NaN);
+    None if either is empty."""
+    a = np.asarray(u, np.float64)
+    b = np.asarray(v, np.float64)
+    a, b = np.sort(a[np.isfinite(a)]), np.sort(b[np.isfinite(b)])
     if not len(a) or not len(b):
         return None
     both = np.sort(np.concatenate([a, b]))

@@ -59,7 +59,11 @@ def frechet_from_samples(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def wasserstein_hist(a: np.ndarray, b: np.ndarray, edges: np.ndarray) -> float:
-    """1-Wasserstein distance between two histograms on the same bins (in the bins' unit)."""
+    """1-Wasserstein distance between two histograms on the same bins (in the bins' unit), each
+    bin's mass at its centre: sum_k |F_a(k) - F_b(k)| (c_{k+1} - c_k), the gaps between bin
+    centres (which are the bin widths only where the bins are equal)."""
     ca, cb = np.cumsum(normalised(a)), np.cumsum(normalised(b))
-    return float((np.abs(ca - cb) * np.diff(edges)).sum())
+    edges = np.asarray(edges, np.float64)
+    centres = (edges[1:] + edges[:-1]) / 2
+    return float((np.abs(ca - cb)[:-1] * np.diff(centres)).sum())
 

@@ -43,8 +43,10 @@ def confusion(pred: np.ndarray, label: np.ndarray, n_classes: int = 4) -> np.nda
         if lo < 0 or hi >= n_classes:
             bad = lo if lo < 0 else hi
             raise ValueError(f"{what} holds class id {bad}; allowed 0..{n_classes - 1}")
-    # Rows: label, columns: prediction.
-    joint = label.astype(np.int64, copy=False).ravel() * n_classes + pred.ravel()
+    # Rows: label, columns: prediction; both int64 (int64 + uint64 would be float64, which
+    # bincount refuses).
+    joint = (label.astype(np.int64, copy=False).ravel() * n_classes
+             + pred.astype(np.int64, copy=False).ravel())
     matrix = np.bincount(joint, minlength=n_classes * n_classes).reshape(n_classes, n_classes)
     tp = np.diagonal(matrix)
     out = np.empty((n_classes, 3), np.int64)
@@ -127,7 +129,8 @@ def column(name: str) -> str:
 class Scoring:
     """What a run scores: the classes by id (id 0 is unknown / unlabeled), which of them get
     columns, and the objective its samplers minimise (a class or "miou", the mean IoU over the
-    scored classes other than id 0 that a sample's label or prediction holds).
+    scored classes the model maps (`judged`), other than id 0, that a sample's label or
+    prediction holds).
 
     Four-class scoring (our SqueezeSeg networks) counts every pixel, empty ones as unknown, as
     SqueezeSeg's own evaluation does. SemanticKITTI scoring ignores pixels labelled unlabeled
@@ -143,6 +146,9 @@ class Scoring:
     # Real backgrounds whose placed actors are of several classes: each of these scored apart
     # on the inserted objects too, as inserted_<class>_iou and _recall columns.
     placed: tuple[str, ...] = ()
+    # The classes the model's spec maps, which "miou" averages (empty: all of `scored`): a
+    # four-class model scores all four, but a class it cannot predict is not its failure.
+    judged: tuple[str, ...] = ()
 
     @classmethod
     def of(cls, mapped: Sequence[str], objective: str = "car") -> Scoring:
@@ -162,7 +168,11 @@ class Scoring:
         if objective not in allowed:
             raise ConfigError(f"--objective: {objective!r} is not a class this model "
                               f"predicts; allowed: {', '.join(allowed)}")
-        return cls(classes, scored, objective)
+        # only miou reads `judged`; left empty where it changes nothing, so that a car run's
+        # Scoring stays equal to CAR_SCORING (its metadata as before)
+        narrower = objective == "miou" and not set(scored) <= set(judged)
+        return cls(classes, scored, objective,
+                   judged=tuple(n for n in scored if n in judged) if narrower else ())
 
     @staticmethod
     def placed_classes(mapped: Sequence[str], semantics: Iterable[int]) -> list[str]:
@@ -229,13 +239,15 @@ class Scoring:
             for m in ("tp", "fp", "fn", "iou", "precision", "recall"):
                 metrics[f"{column(cs.name)}_{m}"] = getattr(cs, m)
             notes[cs.name] = cs.note
-            if cs.iou is not None and cs.name not in ("unknown", "unlabeled"):
+            if (cs.iou is not None and cs.name not in ("unknown", "unlabeled")
+                    and cs.name in (self.judged or self.scored)):
                 ious.append(cs.iou)
         if "miou" in self.columns:
             metrics["miou"] = float(np.mean(ious)) if ious else None
         metrics.update(parts)
         if self.objective == "miou":
-            return metrics, "" if ious else "no scored class in label or prediction"
+            return metrics, ("" if ious else
+                             "no class the model predicts in label or prediction")
         return metrics, notes[self.objective]
 
     def part_scores(self, pred: np.ndarray, truth: np.ndarray, inserted: np.ndarray | None,
