@@ -253,7 +253,7 @@ class Scoring:
     def part_scores(self, pred: np.ndarray, truth: np.ndarray, inserted: np.ndarray | None,
                     real_labelled: bool = True) -> dict[str, float | None]:
         """IoU and recall of the objective class on the inserted objects (the real pixels of
-        that class left out) and on the real ones (the inserted pixels left out; None where the
+        that class left out; None where no inserted point is of that class) and on the real ones (the inserted pixels left out; None where the
         background is not `real_labelled`: its objects are unknown, not absent); unlabeled
         pixels are left out where the classes are SemanticKITTI's."""
         ins = np.zeros(truth.shape, bool) if inserted is None else np.asarray(inserted, bool)
@@ -264,7 +264,10 @@ class Scoring:
             keep = keep & labelled
             p, t = pred[keep] == c, truth[keep] == c
             tp, fp, fn = int((p & t).sum()), int((p & ~t).sum()), int((~p & t).sum())
-            out[f"{prefix}_iou"] = _ratio(tp, tp + fp + fn)
+            # A placed object's IoU is undefined where no placed point is of class c (a cyclist
+            # sample's inserted_pedestrian_iou): the scan's false positives alone made it 0.
+            placed_none = prefix.startswith("inserted") and tp + fn == 0
+            out[f"{prefix}_iou"] = None if placed_none else _ratio(tp, tp + fp + fn)
             out[f"{prefix}_recall"] = _ratio(tp, tp + fn)
 
         if self.objective != "miou":

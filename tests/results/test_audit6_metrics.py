@@ -32,6 +32,22 @@ def test_confusion_takes_uint64_predictions() -> None:
     assert confusion(pred, label).tolist() == [[0, 0, 0], [1, 0, 1], [0, 1, 0], [1, 0, 0]]
 
 
+def test_a_placed_class_absent_from_the_sample_leaves_its_inserted_iou_undefined() -> None:
+    """A pedestrian-and-cyclist run's cyclist sample: inserted_pedestrian_iou is undefined, not
+    0 because the network painted a pedestrian somewhere in the scan; the cyclist's is scored."""
+    scoring = Scoring(objective="pedestrian", parts=True, placed=("cyclist", "pedestrian"))
+    #              inserted cyclist | real pedestrian | background
+    truth = np.array([3, 3, 3, 3, 2, 2, 0, 0, 0, 0])
+    pred = np.array([3, 3, 3, 0, 2, 0, 2, 0, 0, 0])
+    inserted = np.array([1, 1, 1, 1, 0, 0, 0, 0, 0, 0], bool)
+    m, _ = scoring.score(pred, truth, inserted)
+    assert m["inserted_pedestrian_iou"] is None and m["inserted_pedestrian_recall"] is None
+    assert m["inserted_iou"] is None and m["inserted_recall"] is None
+    assert m["inserted_cyclist_iou"] == pytest.approx(3 / 4)
+    assert m["real_iou"] == pytest.approx(1 / 3)   # the scan's own pedestrians keep their fp
+    assert m["pedestrian_iou"] == pytest.approx(1 / 3)
+
+
 def test_four_class_miou_averages_only_the_classes_the_model_maps() -> None:
     """A car-only four-class model is judged on car: a pedestrian in the label is not a class
     it could predict, so it must not enter miou as IoU 0 (0.25 instead of 0.5)."""
