@@ -22,6 +22,7 @@ from falsify.reports.run.common import (
     other_text,
     score_parts,
 )
+from falsify.results.metrics import column
 from falsify.results.store import RunData
 
 
@@ -109,7 +110,8 @@ def worst_section(data: RunData, scans: Mapping[int, ReplayedScan], note: str,
             f"<th>{model_heading(data)}</th>"
             f"<th>bg</th>" + ("<th>other dims</th>" if others else "")
             + f"<th>{what}</th><th>precision /<br>recall</th>"
-            "<th>car points<br>label / pred.</th><th>scan: range image, bird's-eye view"
+            f"<th>{esc(points_name(data))} points<br>label / pred.</th>"
+            "<th>scan: range image, bird's-eye view"
             + (" (label above, prediction below)" if with_pred else " (label)")
             + "</th></tr>")
     body = []
@@ -132,7 +134,7 @@ def worst_section(data: RunData, scans: Mapping[int, ReplayedScan], note: str,
             + f'<td class="num bad">{f3(r[col])}</td>'
             f'<td class="num">{f3(r.get(prec) if prec else None)} /<br>'
             f'{f3(r.get(rec) if rec else None)}</td>'
-            f'<td class="num">{_int(r.get("label_points"))} / {_int(r.get("car_points"))}</td>'
+            f'<td class="num">{points_text(data, r)}</td>'
             f'<td class="pics">{pics}</td></tr>')
     legend = ('<span class="key" style="background:#e63c32"></span>car '
               '<span class="key" style="background:#3278e6"></span>pedestrian '
@@ -155,6 +157,24 @@ def _pics_html(ranges: str, bev: str, what: str) -> str:
     return (f'<div class="pic"><img src="{ranges}" alt="range image, {what}" width="448">'
             f'<img src="{bev}" alt="bird\'s-eye view, {what}" width="112" '
             f'height="112"></div>')
+
+
+def points_name(data: RunData) -> str:
+    """The class whose points the worst table counts: the objective's, car for car and miou
+    runs (the store's own car_points and label_points)."""
+    return "car" if data.objective in ("car", "miou") else data.objective
+
+
+def points_text(data: RunData, r: pd.Series) -> str:
+    """A row's labelled / predicted points of `points_name`'s class: another objective's from
+    its tp, fp and fn (a pedestrian run's car counts said nothing of the pedestrian)."""
+    name = points_name(data)
+    if name == "car":
+        return f"{_int(r.get('label_points'))} / {_int(r.get('car_points'))}"
+    tp, fp, fn = (r.get(f"{column(name)}_{m}") for m in ("tp", "fp", "fn"))
+    if any(v is None or pd.isna(v) for v in (tp, fp, fn)):
+        return "— / —"
+    return f"{int(tp) + int(fn)} / {int(tp) + int(fp)}"
 
 
 def _int(v: object) -> str:

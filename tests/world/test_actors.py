@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from falsify.classes import CAR, CYCLIST, PEDESTRIAN, UNKNOWN
@@ -347,6 +348,13 @@ real = ['{kerbside.bin}']
     cells = [td.text for td in browser.find_elements(By.CSS_SELECTOR, "td")]
     assert odd in cells
     assert not browser.find_elements(By.CSS_SELECTOR, "td b")
+    # The worst table counts the pedestrians' points (label / predicted), not the cars'.
+    heads = [th.text for th in browser.find_elements(By.CSS_SELECTOR, "#worst-section th")]
+    assert "pedestrian points\nlabel / pred." in heads, heads
+    rows = pd.read_csv(out / "results.csv")
+    want = {f"{int(r.pedestrian_tp + r.pedestrian_fn)} / {int(r.pedestrian_tp + r.pedestrian_fp)}"
+            for r in rows.itertuples()}
+    assert want <= set(cells), (want, cells)
     assert_offline(browser)
 
 
