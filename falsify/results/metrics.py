@@ -253,9 +253,10 @@ class Scoring:
     def part_scores(self, pred: np.ndarray, truth: np.ndarray, inserted: np.ndarray | None,
                     real_labelled: bool = True) -> dict[str, float | None]:
         """IoU and recall of the objective class on the inserted objects (the real pixels of
-        that class left out; None where no inserted point is of that class) and on the real ones (the inserted pixels left out; None where the
-        background is not `real_labelled`: its objects are unknown, not absent); unlabeled
-        pixels are left out where the classes are SemanticKITTI's."""
+        that class left out; None where no inserted point is of that class) and on the real
+        ones (the inserted pixels left out; None where the background is not `real_labelled`:
+        its objects are unknown, not absent); unlabeled pixels are left out where the classes
+        are SemanticKITTI's."""
         ins = np.zeros(truth.shape, bool) if inserted is None else np.asarray(inserted, bool)
         labelled = truth != 0 if self.semantic else np.ones(truth.shape, bool)
         out: dict[str, float | None] = {}
