@@ -48,7 +48,14 @@ from statistics import NormalDist
 import numpy as np
 
 from falsify.errors import ConfigError
-from falsify.sampler.base import CellEstimate, Evaluate, Recorder, SearchResult, check_budget
+from falsify.sampler.base import (
+    CellEstimate,
+    Evaluate,
+    Recorder,
+    SearchResult,
+    check_budget,
+    defined,
+)
 from falsify.world.space import Sample, Space
 
 LENGTH_SCALES = (0.5, 1.0, 2.0, 3.0, 5.0)   # in cells; 0.5 leaves cells almost independent
@@ -57,6 +64,10 @@ FIT_ITERATIONS = 30
 VAR_FLOOR = 1e-6
 SAFE_FACTOR = 4    # a cell is called safe at one-sided 1 - (1 - confidence) / 4, blind at / 2
 NUGGET = 1e-4      # independent share of each cell's prior variance (keeps the GP invertible)
+UNKNOWN_VAR = 0.25  # a residual variance no score measures: the most a score in [0, 1] can have
+# Every round solves the model over all cells and replicates at once (dense matrices of that
+# side: 4.2 s at 1,000 on one core, 23 s at 2,000, terabytes at a fine step's 800,000 cells).
+MAX_UNKNOWNS = 2_000
 
 
 @dataclass(frozen=True)
@@ -77,6 +88,7 @@ def cells_of(space: Space, seed: int) -> Cells:
     for dim in ("x", "y"):
         if dim not in space.dims:
             raise ConfigError(f"sampler level-set maps x × y; the space has no dim {dim!r}")
+    check_model_size(space)
     xs, ys = list(space.dims["x"].grid()), list(space.dims["y"].grid())
     by_cell: dict[tuple, list[Sample]] = {}
     rep_of: dict[tuple, int] = {}
@@ -96,6 +108,20 @@ def cells_of(space: Space, seed: int) -> Cells:
         replicates.append(tuple(reps[k] for k in order))
     index = np.array([[xs.index(k[0]), ys.index(k[1])] for k in keys], dtype=np.float64)
     return Cells(tuple(keys), index.reshape(-1, 2), tuple(samples), tuple(replicates), n_rep)
+
+
+def check_model_size(space: Space) -> None:
+    """ConfigError, before any sample, when the map's cells and replicates are more than the
+    model can be fitted over each round (it would run for hours, or exhaust memory)."""
+    n_x, n_y = space.dims["x"].size, space.dims["y"].size
+    cells = n_x * n_y
+    replicates = space.size() // cells   # every cell holds the same combinations of the rest
+    if cells + replicates > MAX_UNKNOWNS:
+        raise ConfigError(
+            f"sampler level-set: the map has {cells:,} cell{'s' * (cells != 1)} (x: {n_x:,} "
+            f"values, y: {n_y:,}) and {replicates:,} samples per cell; it fits its model over "
+            f"at most {MAX_UNKNOWNS:,} cells and samples per cell together: take larger dims.x "
+            "or dims.y steps (or fewer values of the other dims), or search with random or sobol")
 
 
 def _replicate_key(s: Sample) -> tuple:
@@ -252,7 +278,7 @@ class LevelSetSampler:
             if len(got) != len(batch):
                 raise RuntimeError(f"evaluate returned {len(got)} scores for {len(batch)} samples")
             for c, s in zip(picks, got, strict=True):
-                scores[c].append(None if s is None or math.isnan(s) else float(s))
+                scores[c].append(defined(s))
 
         first = [c for k in range(self.initial) for c in range(n_cells)
                  if k < len(cells.samples[c])]
@@ -302,6 +328,11 @@ class LevelSetSampler:
             return out
         post = fit(np.asarray(cidx), np.asarray(ridx), np.asarray(ys), cells.index,
                    cells.n_replicates, self.prior_dof)
+        # Until some cell holds two scores nothing measures the residual variance (each cell's
+        # mean fits its one score exactly, and the fit's variance is the floor): a budget cut in
+        # the first round must not call cells decided, on intervals a hundredth wide, from one
+        # score each. The unscored samples' spread is then the most a score can have.
+        replicated = bool((np.bincount(cidx, minlength=n_cells) >= 2).any())
         k = n_cells
         for c, key in enumerate(cells.keys):
             defined = [s for s in scores[c] if s is not None]
@@ -319,7 +350,7 @@ class LevelSetSampler:
             rb = k + rest
             v_est = (m * m * post.cov[c, c] + 2 * m * float(post.cov[c, rb].sum())
                      + float(post.cov[np.ix_(rb, rb)].sum()))
-            v_resid = float(post.var_cell[c]) * m
+            v_resid = (float(post.var_cell[c]) if replicated else UNKNOWN_VAR) * m
             sd = math.sqrt(max(v_est, 0.0) + v_resid) / total
             dof = self.prior_dof + max(len(defined) - 1, 0)
             q, q_safe = t_quantile(z, dof), t_quantile(z_safe, dof)
@@ -328,7 +359,8 @@ class LevelSetSampler:
             # alone: the grid may well have no value for it (every sample invalid)
             # safe needs the stricter bound: a blind spot missed costs more than a safe cell
             # scored once more
-            decided = m == 0 or (bool(defined) and (hi < t or value - q_safe * sd >= t))
+            decided = m == 0 or (replicated and bool(defined)
+                                 and (hi < t or value - q_safe * sd >= t))
             out.append(CellEstimate(key[0], key[1], float(value), float(lo), float(hi),
                                     int(taken[c]), len(cells.samples[c]), bool(decided),
                                     sd=float(sd)))
