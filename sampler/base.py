@@ -22,6 +22,16 @@ Evaluate = Callable[[Sequence[Sample]], list[Score]]
 
 BATCH = 64
 
+
+def defined(score: Score) -> float | None:
+    """The score as a float, or None where it is none (invalid, undefined) or not finite (nan,
+    inf): no sampler steers by, or reports, a score that is not a number in range."""
+    if score is None:
+        return None
+    value = float(score)
+    return value if math.isfinite(value) else None
+
+
 _NLOPT_CANDIDATES = (
     "GN_DIRECT_L", "GN_CRS2_LM", "GN_ISRES", "GN_ESCH", "G_MLSL_LDS",
     "LN_BOBYQA", "LN_COBYLA", "LN_NELDERMEAD", "LN_SBPLX",
@@ -123,9 +133,10 @@ class Recorder:
     def result(self) -> SearchResult:
         samples, scores = self.samples, self.scores
         best: tuple[float, Sample] | None = None
-        for sample, s in zip(samples, scores, strict=True):
-            if s is not None and not math.isnan(s) and (best is None or s < best[0]):
-                best = (float(s), sample)
+        for sample, score in zip(samples, scores, strict=True):
+            s = defined(score)
+            if s is not None and (best is None or s < best[0]):
+                best = (s, sample)
         return SearchResult(tuple(scores), None if best is None else best[0],
                             None if best is None else best[1], tuple(samples))
 
@@ -179,12 +190,22 @@ def evaluate_all(name: str, evaluate: Evaluate, samples: Sequence[Sample],
     return rec.result()
 
 
+def covering_grid(space: Space, budget: int) -> list[Sample] | None:
+    """The grid, when the space is finite (no continuous dim with lo < hi) and the budget
+    covers it: there is nothing left to search, and drawing `budget` samples would score some
+    twice and miss others; None otherwise."""
+    if any(d.hi > d.lo for d in space.continuous()):
+        return None
+    return space.grid() if budget >= space.size() else None
+
+
 def lowest_so_far(scores: Sequence[Score]) -> list[Score]:
-    """Running minimum of the scores, skipping None and nan (None until the first defined)."""
+    """Running minimum of the scores, skipping None, nan and inf (None until the first defined)."""
     out: list[Score] = []
     best: float | None = None
-    for s in scores:
-        if s is not None and not math.isnan(s) and (best is None or s < best):
-            best = float(s)
+    for score in scores:
+        s = defined(score)
+        if s is not None and (best is None or s < best):
+            best = s
         out.append(best)
     return out

@@ -17,9 +17,9 @@ only when a `bo` sampler is made, so scoring and gating never import it.
   The round (default 8, the driver's chunk for one worker) is part of the algorithm, as
   cross-entropy's is, so it does not follow --workers and the samples never depend on them;
   smaller rounds learn more per evaluation, larger ones keep more workers busy.
-- A None (or nan) score (an invalid sample, an undefined IoU) is told as `penalty` (default 1.0,
-  the best possible IoU, as NLopt's penalty), not as a failed trial: TPE ignores failed trials,
-  and would keep proposing the region; the penalty steers it away.
+- A None (or non-finite) score (an invalid sample, an undefined IoU) is told as `penalty`
+  (default 1.0, the best possible IoU, as NLopt's penalty), not as a failed trial: TPE ignores
+  failed trials, and would keep proposing the region; the penalty steers it away.
 - Deterministic: the TPE sampler is seeded with the run's seed, and Optuna draws nothing else at
   random, so the samples are a function of (space, budget, seed, the scores told).
 """
@@ -31,7 +31,16 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from falsify.errors import ConfigError, FalsifyError
-from falsify.sampler.base import Evaluate, Recorder, SearchResult, check_batch, check_budget
+from falsify.sampler.base import (
+    Evaluate,
+    Recorder,
+    SearchResult,
+    check_batch,
+    check_budget,
+    covering_grid,
+    defined,
+    evaluate_all,
+)
 from falsify.world.space import Categorical, Sample, Space
 
 INSTALL = 'pip install "falsify[bo]"'
@@ -49,7 +58,8 @@ def import_optuna() -> Any:
 @dataclass(frozen=True)
 class BayesSampler:
     """Rounds of `batch_size` TPE suggestions; `startup` seeded uniform trials first; `penalty`
-    the value told for a sample without a score. Making one checks that Optuna is installed."""
+    the value told for a sample without a score. Making one checks that Optuna is installed. A
+    budget that covers a finite space (every dim discrete) scores its grid once, in order."""
 
     batch_size: int = 8
     startup: int = 10
@@ -70,6 +80,9 @@ class BayesSampler:
             seed: int) -> SearchResult:
         n = check_budget(self.name, budget, required=True)
         assert n is not None
+        grid = covering_grid(space, n)
+        if grid is not None:
+            return evaluate_all(self.name, evaluate, grid, self.batch_size)
         optuna = import_optuna()
         optuna.logging.set_verbosity(optuna.logging.WARNING)   # no line per trial
         tpe = optuna.samplers.TPESampler(seed=seed, n_startup_trials=self.startup,
@@ -85,8 +98,8 @@ class BayesSampler:
                 raise RuntimeError(f"evaluate returned {len(scores)} scores for "
                                    f"{len(batch)} samples")
             for trial, s in zip(trials, scores, strict=True):
-                ok = s is not None and not math.isnan(s)
-                study.tell(trial, float(s) if ok else float(self.penalty))
+                v = defined(s)
+                study.tell(trial, float(self.penalty) if v is None else v)
             done += len(batch)
         return rec.result()
 

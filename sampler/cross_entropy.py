@@ -18,7 +18,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from falsify.errors import ConfigError
-from falsify.sampler.base import Evaluate, Recorder, SearchResult, check_batch, check_budget
+from falsify.sampler.base import (
+    Evaluate,
+    Recorder,
+    SearchResult,
+    check_batch,
+    check_budget,
+    covering_grid,
+    defined,
+    evaluate_all,
+)
 from falsify.world.space import Categorical, Sample, Space
 
 
@@ -26,7 +35,8 @@ from falsify.world.space import Categorical, Sample, Space
 class CrossEntropySampler:
     """Rounds of `batch_size` samples; `buckets` bins per continuous dim; `elite` the share of
     a round kept when fewer than that fail; `smoothing` the step towards the elite; `floor` the
-    least probability of any bin or value, as a share of uniform."""
+    least probability of any bin or value, as a share of uniform. A budget that covers a finite
+    space (every dim discrete) scores its grid once, in order, in rounds of `batch_size`."""
 
     batch_size: int = 20
     buckets: int = 10
@@ -49,6 +59,9 @@ class CrossEntropySampler:
             seed: int) -> SearchResult:
         n = check_budget(self.name, budget, required=True)
         assert n is not None
+        grid = covering_grid(space, n)
+        if grid is not None:
+            return evaluate_all(self.name, evaluate, grid, self.batch_size)
         rng = np.random.default_rng(seed)
         probs = {name: np.full(self._bins(dim), 1.0 / self._bins(dim))
                  for name, dim in space.dims.items()}
@@ -87,21 +100,24 @@ class CrossEntropySampler:
 
     def _update(self, space: Space, probs: dict[str, np.ndarray], batch: list[Sample],
                 scores: list) -> None:
-        """Move each dim's histogram towards the elite of this round."""
-        defined = [(float(s), i) for i, s in enumerate(scores)
-                   if s is not None and not np.isnan(s)]
-        if not defined:
+        """Move each dim's histogram towards the elite of this round; a car's dims only towards
+        the elite samples holding that car (the others' values were pinned, not drawn)."""
+        ranked = sorted((v, i) for i, s in enumerate(scores) if (v := defined(s)) is not None)
+        if not ranked:
             return
-        defined.sort()
-        failing = [i for s, i in defined if s < space.threshold]
-        keep = max(1, int(round(self.elite * len(defined))))
-        if len(failing) < keep and defined[keep - 1][0] >= defined[-1][0]:
+        failing = [i for s, i in ranked if s < space.threshold]
+        keep = max(1, int(round(self.elite * len(ranked))))
+        if len(failing) < keep and ranked[keep - 1][0] >= ranked[-1][0]:
             return   # no failure and no spread: the round says nothing about where to look
-        elite = failing if len(failing) >= keep else [i for _, i in defined[:keep]]
+        elite = failing if len(failing) >= keep else [i for _, i in ranked[:keep]]
         for name, dim in space.dims.items():
+            # a dim of a car beyond a sample's count was pinned, not drawn: it says nothing
+            active = [i for i in elite if space.active(name, batch[i].count)]
+            if not active:
+                continue
             k = len(probs[name])
-            freq = np.bincount([self._bin_of(dim, batch[i][name]) for i in elite],
-                               minlength=k) / len(elite)
+            freq = np.bincount([self._bin_of(dim, batch[i][name]) for i in active],
+                               minlength=k) / len(active)
             p = (1 - self.smoothing) * probs[name] + self.smoothing * freq
             p = np.maximum(p, self.floor / k)
             probs[name] = p / p.sum()

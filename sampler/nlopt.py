@@ -8,8 +8,8 @@
   going one each to the first ones. A budget below the number of combinations is a ConfigError.
 - NLopt works in the unit cube over the free continuous dims (lo < hi); fixed dims (lo == hi)
   stay out of the vector. Proposals are clipped into [lo, hi] before a sample is built.
-- A None (or nan) score becomes `penalty` (default 1.0, the best possible IoU) so the optimiser
-  moves away from invalid samples.
+- A None (or nan, or inf) score becomes `penalty` (default 1.0, the best possible IoU) so the
+  optimiser moves away from invalid samples (an infinite score stopped DIRECT with an error).
 - Local methods start at the centre of the box with an initial step of `initial_step` (1/4) of
   each range and stop when a step is below `xtol` of the range or the score is exactly flat. A
   run that stops before its share is restarted from a seeded uniform point (except DIRECT, which
@@ -49,6 +49,7 @@ from falsify.sampler.base import (
     Recorder,
     SearchResult,
     check_budget,
+    defined,
     part_of,
 )
 from falsify.world.space import Categorical, Continuous, Sample, Space, Value
@@ -102,22 +103,23 @@ class NloptSampler:
         self._check()
         n = check_budget(self.name, budget, required=True)
         assert n is not None
-        combos = discrete_combos(space)
         if n == 0:
             return []
-        if n < len(combos):
-            raise ConfigError(f"sampler {self.name}: budget {n} is smaller than the "
-                              f"{len(combos)} combinations of discrete dims; give a budget of "
-                              f"at least {len(combos)} or fix some discrete dims")
+        needed = combo_count(space)   # counted, not made: there may be millions
+        if n < needed:
+            raise ConfigError(f"sampler {self.name}: budget {n:,} is smaller than the "
+                              f"{needed:,} combinations of discrete dims; give a budget of "
+                              f"at least {needed:,} or fix some discrete dims")
+        combos = discrete_combos(space)
         fixed = [c for c in combos if not _free(space, c)]
         results: dict[int, ComboResult] = {}
         if fixed:
             samples = [space.make(c) for c in fixed]
             scores = evaluate(samples)
             for c, s, sc in zip(fixed, samples, scores, strict=True):
-                ok = sc is not None and not math.isnan(sc)
+                v = defined(sc)
                 results[combos.index(c)] = ComboResult(
-                    tuple(c.items()), 1, 0, float(sc) if ok else None, s if ok else None)
+                    tuple(c.items()), 1, 0, v, None if v is None else s)
         free = [i for i, c in enumerate(combos) if _free(space, c)]
         left = n - len(fixed)
         quotas = {i: left // len(free) + (1 if k < left % len(free) else 0)
@@ -178,13 +180,13 @@ class NloptSampler:
             x = np.clip(lo + np.clip(u, 0.0, 1.0) * width, lo, hi)
             point = {d.name: float(v) for d, v in zip(dims, x, strict=True)}
             sample = space.make({**combo, **point})
-            score = evaluate([sample])[0]
+            score = defined(evaluate([sample])[0])
             used += 1
-            if score is None or math.isnan(score):
+            if score is None:   # invalid, undefined, nan or inf: NLopt is told the penalty
                 return self.penalty
             if best is None or score < best[0]:
-                best = (float(score), sample)
-            return float(score)
+                best = (score, sample)
+            return score
 
         def objective(u: np.ndarray, grad: np.ndarray) -> float:
             # Nothing is raised through NLopt: an exception raised there stays pending while
@@ -269,6 +271,14 @@ def discrete_combos(space: Space) -> list[dict[str, Value]]:
             combo.update(zip((d.name for d in cats), values, strict=True))
             out.append(combo)
     return out
+
+
+def combo_count(space: Space) -> int:
+    """How many combinations `discrete_combos` makes, computed without making them."""
+    counts = space.dims["count"].grid() if "count" in space.dims else (1,)
+    return sum(math.prod(len(d.values) for d in space.discrete()
+                         if d.name != "count" and space.active(d.name, int(count)))
+               for count in counts)
 
 
 def _free(space: Space, combo: dict[str, Value]) -> tuple[Continuous, ...]:

@@ -7,19 +7,30 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from falsify.sampler.base import BATCH, Evaluate, SearchResult, check_budget, evaluate_all
+from falsify.sampler.base import (
+    BATCH,
+    Evaluate,
+    SearchResult,
+    check_budget,
+    covering_grid,
+    evaluate_all,
+)
 from falsify.world.space import Categorical, Sample, Space
 
 
 @dataclass(frozen=True)
 class RandomSampler:
     """Draws all `budget` samples up front (one column per dim, in dim order), so the samples do
-    not depend on the batch size; dims of cars beyond a sample's count are pinned by Space.make."""
+    not depend on the batch size; dims of cars beyond a sample's count are pinned by Space.make.
+    A budget that covers a finite space (every dim discrete) scores its grid once, in order."""
 
     batch_size: int = BATCH
     name: str = field(default="random", init=False)
 
     def samples(self, space: Space, budget: int, seed: int) -> list[Sample]:
+        grid = covering_grid(space, budget)
+        if grid is not None:
+            return grid
         rng = np.random.default_rng(seed)
         columns: dict[str, list] = {}
         for name, dim in space.dims.items():

@@ -9,14 +9,22 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import qmc
 
-from falsify.sampler.base import BATCH, Evaluate, SearchResult, check_budget, evaluate_all
+from falsify.sampler.base import (
+    BATCH,
+    Evaluate,
+    SearchResult,
+    check_budget,
+    covering_grid,
+    evaluate_all,
+)
 from falsify.world.space import Categorical, Continuous, Sample, Space
 
 
 @dataclass(frozen=True)
 class SobolSampler:
     """Coordinates: free continuous dims first, then categorical dims, each in dim order. A space
-    with no free coordinate holds one sample, which is evaluated once."""
+    with no free coordinate holds one sample, which is evaluated once; more generally a budget
+    that covers a finite space (every dim discrete) scores its grid once, in order."""
 
     batch_size: int = BATCH
     name: str = field(default="sobol", init=False)
@@ -26,6 +34,9 @@ class SobolSampler:
         cat = [d for d in space.dims.values() if isinstance(d, Categorical) and len(d.values) > 1]
         if not cont and not cat:
             return [space.make({})][:budget]
+        grid = covering_grid(space, budget)
+        if grid is not None:
+            return grid
         engine = qmc.Sobol(len(cont) + len(cat), scramble=True, rng=seed)
         with warnings.catch_warnings():  # budgets need not be powers of two
             warnings.simplefilter("ignore", UserWarning)

@@ -99,21 +99,35 @@ class Driver:
         """The samplers' callback: scores in order, stored ones read back, the rest computed.
 
         Safe to call from several threads. Two threads asking for the same new sample at once
-        may both compute it; the store keeps the first row and counts it once."""
+        may both compute it; the store keeps the first row and counts it once. Every sample
+        asked for counts as one done in the progress, a repeat of a new one too (computed once)."""
         todo: list[Sample] = []
         seen = set()
         for s in samples:
             if s not in self.store and s not in seen:
                 todo.append(s)
                 seen.add(s)
-        known = [s for s in samples if s in self.store and s not in seen]
+        known = [s for s in samples if s not in seen]
         if known:
-            col = self.store.scoring.score_column
-            self.progress.update([SampleResult(s, Status.OK, metrics={col: self.store.score(s)},
-                                               score_column=col) for s in known], 0)
+            self.progress.update(self._stored(known), 0)
         chunks = [todo[i:i + self.batch] for i in range(0, len(todo), self.batch)]
         for chunk_results in self.executor.map(chunks):
             fresh = self.store.add(chunk_results, self.model_hash,
                                    self.settings.space.config_hash)
             self.progress.update(chunk_results, fresh)
+        first: set[Sample] = set()
+        repeats: list[Sample] = []
+        for s in samples:
+            if s in seen:
+                if s in first:
+                    repeats.append(s)
+                first.add(s)
+        if repeats:
+            self.progress.update(self._stored(repeats), 0)
         return [self.store.score(s) for s in samples]
+
+    def _stored(self, samples: Sequence[Sample]) -> list[SampleResult]:
+        """Stored samples as results carrying just their score, for the progress."""
+        col = self.store.scoring.score_column
+        return [SampleResult(s, Status.OK, metrics={col: self.store.score(s)}, score_column=col)
+                for s in samples]
