@@ -87,9 +87,10 @@ def summary_text(s) -> str:
     if s.unlabelled_backgrounds:
         u = s.unlabelled_backgrounds
         names = ", ".join(u[:3]) + (f", and {len(u) - 3} more" if len(u) > 3 else "")
+        obj = "car" if s.objective in (None, "miou") else s.objective
         lines.append(f"real scans without labels: {len(u)} ({names}); their real_iou and "
-                     "real_recall are empty, and a car predicted on one of their real cars "
-                     "counts against the inserted car (read inserted_recall)")
+                     f"real_recall are empty, and a {obj} predicted on one of their real "
+                     f"{obj}s counts against the inserted {obj} (read inserted_recall)")
     if s.executors:
         lines.append(f"computed on executors {', then '.join(s.executors)} (resumed on another; "
                      "the rows do not depend on the executor)")

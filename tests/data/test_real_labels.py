@@ -175,6 +175,22 @@ def test_a_bare_real_scan_leaves_real_iou_empty_and_the_summary_names_it(tmp_pat
     assert all(r[0] != "ok" or r[2] is None for r in rows)
 
 
+@pytest.mark.parametrize("objective, named", [(None, "car"), ("pedestrian", "pedestrian")])
+def test_the_unlabelled_scans_line_names_the_runs_class(objective, named):
+    """A pedestrian run's summary says a pedestrian predicted on a real one counts against the
+    inserted pedestrian, not a car."""
+    from types import SimpleNamespace
+
+    from falsify.cli.run import summary_text
+    s = SimpleNamespace(
+        lowest=None, objective=objective, mean_car_iou=None, mean_objective=None, samples=2,
+        computed_this_time=2, invalid=0, undefined=0, elapsed_s=1.0, blind_spots=0, cells=1,
+        threshold=0.65, retraining_samples=0, run="r", estimated=None, executors=None,
+        report=None, unlabelled_backgrounds=["seq/scan"])
+    assert (f"a {named} predicted on one of their real {named}s counts against the inserted "
+            f"{named}") in summary_text(s)
+
+
 @pytest.mark.skipif(not SK20.exists(), reason="models/weights/squeezeseg20.onnx not present")
 def test_a_semantickitti_model_refuses_unlabelled_scans_before_the_run(tmp_path, capsys):
     sequence(tmp_path / "sk", "11", 2, labels=False)
