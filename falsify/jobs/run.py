@@ -385,9 +385,11 @@ def _execute(req: RunRequest, on_progress: ProgressListener | None,
 
 def planned_samples(req: RunRequest, space: Space) -> int:
     """The samples a run sets out to score: the grid (or its first `budget`); for level-set
-    at most as many (it stops once every cell is decided); for other searches their budget
-    (fewer rows where a sampler draws a sample twice or converges early)."""
-    if req.algorithm in ("grid", LEVEL_SET):
+    at most as many (it stops once every cell is decided); for other searches their budget, at
+    most the grid of a space with no free continuous dim, which they score once (fewer rows
+    where a sampler draws a sample twice or converges early)."""
+    finite = not any(d.hi > d.lo for d in space.continuous())
+    if req.algorithm in ("grid", LEVEL_SET) or finite:
         size = space.size()
         return size if req.budget is None else min(req.budget, size)
     return int(req.budget or 0)

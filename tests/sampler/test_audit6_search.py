@@ -83,6 +83,7 @@ def test_search_command_scores_a_covered_finite_space_once(tmp_path, capsys):
     assert sorted(zip(frame["car_model"], frame["background"], strict=True)) == [
         ("sedan", 0), ("sedan", 1), ("suv", 0), ("suv", 1)]
     assert len(read_meta(out)["curve"]) == 4
+    assert read_meta(out)["planned"] == 4   # the plan is the grid, not the budget of 10
     assert "4 samples (4 computed now" in capsys.readouterr().out
 
 
