@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from falsify.errors import FalsifyError
-from falsify.fileio import read_bytes
+from falsify.fileio import read_bytes, write_bytes
 from falsify.semantic import join_label, kitti4, split_label
 from falsify.sensor.lidar import Sensor
 from falsify.sensor.scan import Scan, image_from_points
@@ -26,7 +26,7 @@ def kitti_arrays(scan: Scan) -> tuple[np.ndarray, np.ndarray]:
     else its classes as SemanticKITTI ids."""
     m = scan.valid
     points = scan.image[m][:, :4].astype(np.float32)
-    inst = scan.instance[m].astype(np.uint32) & 0xFFFF
+    inst = label_instances(scan.instance[m])
     if scan.semantic is not None:
         sem = scan.semantic[m].astype(np.uint32)
     else:
@@ -34,11 +34,35 @@ def kitti_arrays(scan: Scan) -> tuple[np.ndarray, np.ndarray]:
     return points, join_label(sem, inst).astype(np.uint32)
 
 
+def label_instances(instance: np.ndarray) -> np.ndarray:
+    """Instance ids as a .label's upper 16 bits hold them (uint32, 0..65535): ids that fit are
+    kept; each id above 65535 (inserted cars are 65536 + k, real_backgrounds.INSERTED_INSTANCE)
+    gets its own id unused by the scan, the first free ones above the largest kept id, so no
+    instance is cut to 0 ("none") or merged with another, as masking the high bits did
+    (SemanticKITTI: label = instance << 16 | semantic id, semantic-kitti-api's laserscan.py)."""
+    inst = np.asarray(instance).astype(np.int64)
+    big = inst > 0xFFFF
+    if not big.any():
+        return np.clip(inst, 0, None).astype(np.uint32)
+    used = np.unique(inst[(inst > 0) & ~big])
+    wide = np.unique(inst[big])
+    free = np.setdiff1d(np.arange(1, 0x10000), used)
+    top = used.max() if len(used) else 0
+    free = np.concatenate([free[free > top], free[free <= top]])
+    if len(free) < len(wide):
+        raise FalsifyError(f"{len(used) + len(wide)} instances in one scan: a SemanticKITTI "
+                           ".label holds at most 65535 (16 bits)")
+    out = np.clip(inst, 0, None)
+    out[big] = free[np.searchsorted(wide, inst[big])]
+    return out.astype(np.uint32)
+
+
 def write_kitti(scan: Scan, bin_path: str | Path, label_path: str | Path) -> None:
-    """Write the valid points as KITTI .bin and SemanticKITTI .label (`kitti_arrays`)."""
+    """Write the valid points as KITTI .bin and SemanticKITTI .label (`kitti_arrays`), each
+    through a temporary file renamed over the path, so no reader takes a cut file for whole."""
     points, labels = kitti_arrays(scan)
-    points.tofile(bin_path)
-    labels.tofile(label_path)
+    write_bytes(bin_path, points.tobytes())   # atomic: a killed write leaves no short file
+    write_bytes(label_path, labels.tobytes())
 
 
 def fit_frames(paths: list[str | Path], holdout: Sequence[str | Path] = (),
