@@ -14,6 +14,10 @@ from falsify.fileio import write_json
 UNIFORM_RAY_DROP = 0.05
 
 
+# Scan and frame files are NNNNNN (KITTI's and SemanticKITTI's 6 digits): a 7th digit would sort
+# 1000000 before 100001, out of index (and poses.txt) order.
+MAX_SCANS = 1_000_000
+
 # index.json's keys and the options (or config) that set them, for a resume that differs
 INDEX_OPTIONS = {"seed": "--seed", "sensor": "the config's sensor", "camera": "--camera",
                  "first_background": "--first-background", "backgrounds": "--backgrounds",
@@ -73,8 +77,9 @@ def run(args) -> int:
     check_out_dir(args.out)
     check_seed(args.seed)
     space = load_space(args.config)
-    if args.scans <= 0:
-        raise UsageError(f"--scans: {args.scans} must be > 0")
+    if not 0 < args.scans <= MAX_SCANS:
+        raise UsageError(f"--scans: {args.scans} must be in 1..{MAX_SCANS} (scans are named "
+                         "000000 to 999999, 6 digits as KITTI's, so names sort as indices)")
     if not 0 <= args.first_background <= 999_000:
         raise UsageError(f"--first-background: {args.first_background} must be in 0..999000")
     if not 0 <= args.max_cars <= 40:
@@ -106,6 +111,14 @@ def run(args) -> int:
     if args.camera is not None and args.format != "kitti-object":
         raise UsageError(f"--camera {args.camera}: only --format kitti-object renders the "
                          f"camera (--format {args.format} writes LiDAR scans alone)")
+    # before any branch: an option the chosen format does not use is refused, not ignored
+    if args.workers < 1 or args.workers > 64:
+        raise UsageError(f"--workers: {args.workers} must be in 1..64")
+    if args.workers > 1 and args.format != "npy":
+        raise UsageError(f"--workers {args.workers}: only --format npy writes in parallel")
+    if args.labels != "kitti4" and args.format != "npy":
+        raise UsageError(f"--labels {args.labels}: only --format npy holds labels in channel 5 "
+                         "(semantickitti and kitti-object files carry their own labels)")
     if args.format == "kitti-object":
         args.camera = args.camera or "kitti-centre"
         from falsify.data.kitti_export import kitti_object_index
@@ -120,13 +133,6 @@ def run(args) -> int:
     def progress(done: int, total: int) -> None:
         print(f"  {done}/{total} scans", flush=True)
 
-    if args.workers < 1 or args.workers > 64:
-        raise UsageError(f"--workers: {args.workers} must be in 1..64")
-    if args.workers > 1 and args.format != "npy":
-        raise UsageError(f"--workers {args.workers}: only --format npy writes in parallel")
-    if args.labels != "kitti4" and args.format != "npy":
-        raise UsageError(f"--labels {args.labels}: only --format npy holds labels in channel 5 "
-                         "(semantickitti files carry SemanticKITTI's ids anyway)")
     kwargs = dict(seed=args.seed, opts=opts, weather=space, fmt=args.format, labels=args.labels)
     check_resumable(Path(args.out), dataset_index(sensor, args.scans, **kwargs))
     if args.workers > 1:
@@ -163,8 +169,10 @@ def check_resumable(out: Path, index: dict) -> None:
             there, now = (d.get(key, INDEX_DEFAULTS.get(key)) for d in (old, index))
             if there != now:
                 option = INDEX_OPTIONS.get(key, key)
+                was = "not recorded there (an older set)" if key not in old else \
+                    f"{there!r} there"
                 raise UsageError(f"--out {out} holds a dataset made with other options: {key} "
-                                 f"({option}) is {there!r} there, {now!r} now; "
+                                 f"({option}) is {was}, {now!r} now; "
                                  "give the same options to resume or extend it, or choose "
                                  "another --out")
         if not isinstance(old.get(count), int) or index[count] < old[count]:

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from falsify.data.kitti_object import Box3D, format_calib, object_label, oriented_box
-from falsify.data.training import TrafficOptions, scene_for
+from falsify.data.training import TrafficOptions, scene_for, training_simulator
 from falsify.errors import ConfigError
 from falsify.fileio import write_bytes, write_json, write_text
 from falsify.images.png import encode_png
@@ -88,10 +88,19 @@ def boxes_in_view(sim: Simulator, bg_id: int, placed: list[PlacedCar], pose: Sen
 def kitti_object_index(sensor: Sensor, camera: str, frames: int, seed: int = 0,
                        opts: TrafficOptions = TrafficOptions()) -> dict:
     """The index.json `write_kitti_object` writes: what decides its frames, so a resumed set
-    can be checked against the one already there."""
-    return {"format": "kitti-object", "frames": frames, "seed": seed, "sensor": sensor.name,
-            "camera": camera, "first_background": opts.first_background,
-            "backgrounds": opts.backgrounds, "max_cars": opts.max_cars}
+    can be checked against the one already there. The sensor's noise, the traffic and the world
+    profile decide them too (left out, a resume with another --traffic or --world mixed two
+    kinds of frame in one set); traffic and world are only named when set, as in the npy
+    index."""
+    index = {"format": "kitti-object", "frames": frames, "seed": seed, "sensor": sensor.name,
+             "camera": camera, "first_background": opts.first_background,
+             "backgrounds": opts.backgrounds, "max_cars": opts.max_cars,
+             "ray_drop": sensor.ray_drop, "range_noise": sensor.range_noise}
+    if opts.traffic != "scattered":
+        index["traffic"] = opts.traffic
+    if opts.world is not None:
+        index["world"] = opts.world.name
+    return index
 
 
 def write_kitti_object(sensor: Sensor, camera: Camera, out: Path, frames: int, seed: int = 0,
@@ -99,7 +108,9 @@ def write_kitti_object(sensor: Sensor, camera: Camera, out: Path, frames: int, s
     """Write frames 0..frames-1 (skipping complete ones already there) and index.json."""
     if frames <= 0:
         raise ConfigError(f"--scans: {frames} must be > 0")
-    sim = Simulator(sensor, max_bvh=1, max_hits=8)
+    # the npy and semantickitti sets' simulator: a --world profile's streets (parked cars
+    # thinned) too, so frame i is their scan i
+    sim = training_simulator(sensor, opts, max_hits=8)
     renderer = CameraRenderer(sim, camera)
     calib = camera.kitti_calib()
     calib_text = format_calib(calib)

@@ -27,7 +27,7 @@ from falsify.data.kitti_object import (
 from falsify.data.velodyne import kitti_rows
 from falsify.errors import FalsifyError
 from falsify.images.png import png_size
-from falsify.sensor.calibration import KittiCalib
+from falsify.sensor.calibration import KITTI_PIXEL_SHIFT, KittiCalib
 from falsify.sensor.lidar import Sensor
 from falsify.sensor.scan import Scan, image_from_points
 
@@ -57,7 +57,7 @@ def label_points(points: np.ndarray, boxes: list[KittiObject], calib: KittiCalib
     counts for nothing rather than for car."""
     cls = np.zeros(len(points), np.uint8)
     if image_size is not None:
-        whole = (0.0, 0.0, float(image_size[0]), float(image_size[1]))
+        whole = image_rect(image_size)
         cls[~points_in_rect(points, whole, calib)] = _IGNORE_ID
     for box in boxes:
         if box.type in LABELLED and box.has_3d:
@@ -68,6 +68,15 @@ def label_points(points: np.ndarray, boxes: list[KittiObject], calib: KittiCalib
                       else points_in_rect(points, box.box2d, calib))
             cls[inside] = _IGNORE_ID
     return cls
+
+
+def image_rect(image_size: tuple[int, int]) -> tuple[float, float, float, float]:
+    """The (left, top, right, bottom) a (width, height) image spans in KITTI's pixel coordinates:
+    P2 puts pixel centres on integers, so pixel 0 spans [-0.5, 0.5] and the image
+    [-0.5, width - 0.5], not [0, width] (half a pixel of points seen at each edge)."""
+    w, h = image_size
+    s = KITTI_PIXEL_SHIFT
+    return (-s, -s, float(w) - s, float(h) - s)
 
 
 def read_object_frame(root: Path, name: str, sensor: Sensor) -> ObjectFrame:

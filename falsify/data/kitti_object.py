@@ -57,8 +57,11 @@ def read_calib(path: str | Path) -> KittiCalib:
 
 
 def format_calib(calib: KittiCalib) -> str:
+    """A KITTI object calib file (the devkit's P0..P3, R0_rect, Tr_velo_to_cam, Tr_imu_to_velo
+    lines, %e numbers), with 17 significant digits so read_calib gets the very float64 back:
+    KITTI's own 7 digits, or the 13 written before, moved kitti-rig's Tr by up to 5e-14."""
     def row(a: np.ndarray) -> str:
-        return " ".join(f"{v:.12e}" for v in np.asarray(a, dtype=np.float64).ravel())
+        return " ".join(f"{v:.16e}" for v in np.asarray(a, dtype=np.float64).ravel())
     lines = [f"P{k}: {row(calib.P[k])}" for k in range(4)]
     lines += [f"R0_rect: {row(calib.R0_rect)}", f"Tr_velo_to_cam: {row(calib.Tr_velo_to_cam)}"]
     imu = calib.Tr_imu_to_velo if calib.Tr_imu_to_velo is not None else np.eye(3, 4)
@@ -238,8 +241,11 @@ def object_label(box: Box3D, calib: KittiCalib, visible: tuple[int, int, int, in
     hidden = 1.0 - visible_px / max(unoccluded_px, 1)
     occluded = 0 if hidden < 0.1 else (1 if hidden < 0.5 else 2)
     c0, r0, c1, r1 = visible if visible is not None else (0, 0, -1, -1)
-    box2d = (c0 - KITTI_PIXEL_SHIFT, r0 - KITTI_PIXEL_SHIFT, c1 + KITTI_PIXEL_SHIFT,
-             r1 + KITTI_PIXEL_SHIFT)
+    # the pixels' outer edges, clipped to the image as the devkit's 0-based pixel indices:
+    # KITTI's labels keep boxes within [0, W - 1] x [0, H - 1] (a truncated car's left is 0.00,
+    # its bottom 374.00), never -0.50 or 1241.50
+    box2d = (max(c0 - KITTI_PIXEL_SHIFT, 0.0), max(r0 - KITTI_PIXEL_SHIFT, 0.0),
+             min(c1 + KITTI_PIXEL_SHIFT, w - 1.0), min(r1 + KITTI_PIXEL_SHIFT, h - 1.0))
     return KittiObject(obj.type, round(truncated, 2), occluded, alpha, box2d, obj.dimensions,
                        obj.location, obj.rotation_y)
 

@@ -9,11 +9,20 @@ import numpy as np
 from falsify.errors import FalsifyError
 from falsify.sensor.scan import CHANNELS
 
+NPY_MAGIC = b"\x93NUMPY"   # the first bytes of every .npy file (NumPy's format.py, NEP 1)
+
 
 def load_scan_npy(path: str | Path) -> np.ndarray:
     """Load an H×W×6 range image (ours or SqueezeSeg's KITTI files), checking shape and values."""
     path = Path(path)
     try:
+        with open(path, "rb") as fh:
+            magic = fh.read(len(NPY_MAGIC))
+        # np.load alone takes a .npz (a zip) too, whose NpzFile has no shape (AttributeError),
+        # and says any other file "contains pickled data"
+        if magic != NPY_MAGIC:
+            raise FalsifyError(f"{path}: not a .npy file (it does not start with NumPy's "
+                               "\\x93NUMPY header); expected an (H, W, 6) range image")
         arr = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as exc:
         raise FalsifyError(f"{path}: not a readable .npy range image "

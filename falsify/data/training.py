@@ -246,14 +246,20 @@ def world_from_sensor(sensor: Sensor, pose: SensorPose) -> np.ndarray:
 
 
 def _write_calib_and_poses(seq: Path, poses: list[np.ndarray]) -> None:
-    """calib.txt (Tr: the velodyne-to-camera axes) and poses.txt (each scan's pose in the camera
-    frame, Tr P Tr^-1, 12 values a row): what SemanticKITTI's tools read to aggregate scans
-    (generate_sequential.py). Poses are in each scan's street frame: only scans of one
-    background (SCANS_PER_BACKGROUND in a row) share a frame."""
-    def row(m: np.ndarray) -> str:
-        return " ".join(f"{v:.12e}" for v in m[:3].ravel()) + "\n"
+    """calib.txt and poses.txt as SemanticKITTI's (KITTI odometry's) files: calib.txt holds
+    P0..P3 (our kitti-centre camera, what --format kitti-object renders from the same pose; the
+    odometry devkit's calib.txt has all four) and Tr (the velodyne-to-camera axes); poses.txt
+    each scan's pose in the camera frame, Tr P Tr^-1, 12 values a row: what SemanticKITTI's
+    tools read to aggregate scans (generate_sequential.py). Poses are in each scan's street
+    frame: only scans of one background (SCANS_PER_BACKGROUND in a row) share a frame."""
+    from falsify.sensor.camera import camera_preset
 
-    write_text(seq / "calib.txt", "Tr: " + row(VELO_TO_CAM))
+    def row(m: np.ndarray) -> str:
+        return " ".join(f"{v:.12e}" for v in np.asarray(m)[:3].ravel()) + "\n"
+
+    cams = camera_preset("kitti-centre").kitti_calib().P
+    write_text(seq / "calib.txt", "".join(f"P{k}: {row(cams[k])}" for k in range(4))
+               + "Tr: " + row(VELO_TO_CAM))
     inv = np.linalg.inv(VELO_TO_CAM)
     write_text(seq / "poses.txt", "".join(row(VELO_TO_CAM @ p @ inv) for p in poses))
 
