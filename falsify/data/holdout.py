@@ -11,8 +11,8 @@ it; a SemanticKITTI root without one holds out the official split (08 validation
 from __future__ import annotations
 
 import hashlib
-import json
 import os
+import re
 import tomllib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -112,7 +112,7 @@ def load_manifest(path: str | Path) -> Holdout:
     fault."""
     path = Path(path)
     try:
-        raw = tomllib.loads(path.read_text())
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))   # TOML is UTF-8, whatever the locale
     except FileNotFoundError:
         raise FalsifyError(f"{path}: no such split manifest") from None
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
@@ -240,13 +240,31 @@ def scans_under(paths: Sequence[str | Path], sequences: list[str] | None = None
     return out
 
 
+# What a TOML basic string or comment may not hold raw: control characters but tab (TOML 1.0).
+_TOML_CONTROL = re.compile("[\x00-\x08\x0a-\x1f\x7f]")
+
+
+def toml_string(text: str) -> str:
+    """`text` as a TOML basic string (TOML 1.0). Not json.dumps: JSON writes a character beyond
+    U+FFFF as a surrogate pair (\\ud83d\\ude00), which TOML refuses, so the manifest of a file
+    named so could not be read back. A name's undecoded bytes (surrogateescape, as an ASCII
+    locale decodes a UTF-8 name) are decoded as UTF-8; what is not UTF-8 becomes U+FFFD."""
+    try:
+        raw = text.encode("utf-8", "surrogateescape")
+    except UnicodeEncodeError:   # a surrogate no file system decoding made
+        raw = text.encode("utf-8", "surrogatepass")
+    text = raw.decode("utf-8", "replace")
+    text = text.replace("\\", "\\\\").replace('"', '\\"')
+    return '"' + _TOML_CONTROL.sub(lambda m: f"\\u{ord(m.group()):04x}", text) + '"'
+
+
 def manifest_text(scans: Sequence[tuple[Path, str]], note: str = "") -> str:
     """A split manifest holding out `scans` ((file, name) pairs) by content (sha256, size)."""
     lines = ["# Held-out scans: only ever reported on; falsify refuses to fit, train or choose",
              "# on them (matched by content, wherever they are)."]
-    lines += [f"# {line}" for line in note.splitlines()]
+    lines += [f"# {_TOML_CONTROL.sub(' ', line)}" for line in note.splitlines()]
     lines += ["[holdout]", ""]
     for p, name in scans:
-        lines += ["[[holdout.scan]]", f"name = {json.dumps(name)}",
+        lines += ["[[holdout.scan]]", f"name = {toml_string(name)}",
                   f'sha256 = "{file_sha256(p)}"', f"bytes = {p.stat().st_size}", ""]
     return "\n".join(lines)
