@@ -3,10 +3,12 @@ names the file, as one line for the user."""
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +51,20 @@ def write_bytes(path: str | Path, data: bytes) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """A temporary path beside `path`, for a writer that takes a path (torch.save, ONNX export),
+    renamed over `path` once the block succeeds and removed if it fails: no half file at `path`.
+    Same stem as `path` (torch.save names its archive by it, so the bytes are a direct write's)."""
+    path = Path(path)
+    tmp = path.with_suffix(".tmp")
+    try:
+        yield tmp
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def write_text(path: str | Path, text: str) -> None:

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from falsify.checks import check_out_file
 from falsify.classes import CAR
 from falsify.errors import FalsifyError
 from falsify.models.train import (
@@ -81,13 +82,15 @@ class Adjustment:
 
 
 def choose_alpha(state: dict, val: str | Path, alphas: Sequence[float] = DEFAULT_ALPHAS,
-                 crf_iterations: int = 3, threads: int | None = 2) -> Adjustment:
+                 crf_iterations: int = 3, threads: int | None = 2,
+                 weights: str | Path = "the weights") -> Adjustment:
     """Score every alpha on the scans of `val` (the backbone runs once a batch, the CRF once
-    per alpha; fp32) and choose the highest pooled car IoU, the smaller alpha on a tie."""
+    per alpha; fp32) and choose the highest pooled car IoU, the smaller alpha on a tie;
+    `weights` names the state's file in errors."""
     import torch
 
     from falsify.models.spec import DEFAULT_CHANNELS
-    from falsify.models.squeezeseg import SqueezeSeg
+    from falsify.models.squeezeseg import SqueezeSeg, load_weights_into
 
     if not alphas:
         raise FalsifyError("--alphas: give at least one value")
@@ -97,10 +100,7 @@ def choose_alpha(state: dict, val: str | Path, alphas: Sequence[float] = DEFAULT
     check_labels(str(val), "kitti4", "--val", "adjust scores our four classes: name a folder "
                  "of `falsify dataset --labels kitti4` scans")
     model = SqueezeSeg(DEFAULT_CHANNELS, crf_iterations=crf_iterations)
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as exc:
-        raise FalsifyError(f"not SqueezeSeg weights ({str(exc).splitlines()[0]})") from None
+    load_weights_into(model, state, weights)
     model.eval()
     alphas = sorted(set(float(a) for a in alphas))
     counts = np.zeros((len(alphas), 4, 3), np.int64)  # per alpha: TP, FP, FN per class
@@ -139,16 +139,16 @@ def adjust_weights(weights: str | Path, val: str | Path, out: str | Path,
     FalsifyError, with nothing written, on bad input."""
     import torch
 
+    from falsify.fileio import atomic_path
     from falsify.models.squeezeseg import load_state
 
-    out = Path(out)
+    out = check_out_file(out)
     if out.suffix != ".pt":
         raise FalsifyError(f"--out {out}: must end in .pt")
     state = load_state(weights)
-    result = choose_alpha(state, val, alphas)
+    result = choose_alpha(state, val, alphas, weights=weights)
     adjusted = adjust_state(state, result.chosen)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp")
-    torch.save(adjusted, tmp)
-    tmp.replace(out)
+    with atomic_path(out) as tmp:
+        torch.save(adjusted, tmp)
     return result

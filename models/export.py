@@ -13,6 +13,7 @@ import numpy as np
 
 from falsify.checks import check_out_file, check_range
 from falsify.errors import FalsifyError
+from falsify.fileio import atomic_path
 from falsify.models.spec import (
     ModelSpec,
     default_spec,
@@ -67,9 +68,9 @@ def export_onnx(model: SqueezeSeg, path: str | Path, H: int = 64, W: int = 512,
         args += (torch.zeros(1, 3, H, W), torch.ones(1, 1, H, W))
         names += [spec.xyz_input, spec.mask_input]
     dyn = {n: {0: "batch"} for n in [*names, spec.output_name]}
-    with warnings.catch_warnings(), torch.no_grad():
+    with warnings.catch_warnings(), torch.no_grad(), atomic_path(path) as tmp:
         warnings.simplefilter("ignore")
-        torch.onnx.export(m, args, str(path), dynamo=False, opset_version=OPSET,
+        torch.onnx.export(m, args, str(tmp), dynamo=False, opset_version=OPSET,
                           input_names=names, output_names=[spec.output_name],
                           dynamic_axes=dyn, do_constant_folding=True)
     save_spec(spec, spec_path_for(path))
@@ -180,26 +181,28 @@ def quantize_int8(onnx_in: str | Path, onnx_out: str | Path, scans: np.ndarray |
     level = root.level
     root.setLevel(logging.ERROR)  # its 'consider pre-processing' advice, on every call
     try:
-        if method == "dynamic":
-            quantize_dynamic(str(onnx_in), str(onnx_out), weight_type=QuantType.QInt8,
-                             nodes_to_exclude=exclude, op_types_to_quantize=["Conv"])
-        elif method == "static":
-            if scans is None:
-                from falsify.models.plausible import plausible_scans
+        with atomic_path(onnx_out) as tmp_out:
+            if method == "dynamic":
+                quantize_dynamic(str(onnx_in), str(tmp_out), weight_type=QuantType.QInt8,
+                                 nodes_to_exclude=exclude, op_types_to_quantize=["Conv"])
+            elif method == "static":
+                if scans is None:
+                    from falsify.models.plausible import plausible_scans
 
-                scans = plausible_scans(8, spec.height, spec.width, seed=123)
-            import tempfile
+                    scans = plausible_scans(8, spec.height, spec.width, seed=123)
+                import tempfile
 
-            import onnx
+                import onnx
 
-            model = onnx.load(str(onnx_in))
-            with tempfile.TemporaryDirectory() as tmp:
-                src = Path(tmp) / "padded.onnx"
-                pad_input_channels(model, spec.input_name)  # changes nothing if it cannot
-                onnx.save(model, str(src))
-                _quantize_static(src, onnx_out, spec, scans, exclude)
-        else:
-            raise FalsifyError(f"quantisation method must be 'static' or 'dynamic', got {method!r}")
+                model = onnx.load(str(onnx_in))
+                with tempfile.TemporaryDirectory() as tmp:
+                    src = Path(tmp) / "padded.onnx"
+                    pad_input_channels(model, spec.input_name)  # changes nothing if it cannot
+                    onnx.save(model, str(src))
+                    _quantize_static(src, tmp_out, spec, scans, exclude)
+            else:
+                raise FalsifyError("quantisation method must be 'static' or 'dynamic', got "
+                                   f"{method!r}")
     finally:
         root.setLevel(level)
 
@@ -293,7 +296,11 @@ def export_weights(weights: str | Path, out: str | Path, crf_iterations: int = 3
     check_range(height, "--height", 1)
     check_range(width, "--width", 1)
     if int8:
-        check_out_file(int8, "--int8")
+        int8 = check_out_file(int8, "--int8")
+        if int8.suffix != ".onnx":   # its spec goes beside it as .json
+            raise FalsifyError(f"--int8 {int8}: must end in .onnx")
+        if int8.resolve() == out.resolve():   # it would overwrite the fp32 model
+            raise FalsifyError(f"--int8 {int8}: is --out; give the int8 copy another name")
     if int8 and (height, width) != (64, 512):
         raise FalsifyError("--int8 calibrates on the kitti-hdl64e-front preset: 64 x 512 only")
     bad = [n for n in notes if "=" not in n or not n.split("=", 1)[0]]
@@ -301,17 +308,14 @@ def export_weights(weights: str | Path, out: str | Path, crf_iterations: int = 3
         raise FalsifyError(f"--note {bad[0]!r}: write KEY=VALUE")
     import torch
 
-    from falsify.models.squeezeseg import SqueezeSeg, load_state
+    from falsify.models.squeezeseg import SqueezeSeg, load_state, load_weights_into
     state = load_state(weights)
     model = SqueezeSeg(crf_iterations=crf_iterations)
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as exc:
-        raise FalsifyError(f"{weights}: not SqueezeSeg weights "
-                           f"({str(exc).splitlines()[0]})") from None
+    load_weights_into(model, state, weights)
     extra = dict(n.split("=", 1) for n in notes)
     path, spec = export_onnx(model, out, H=height, W=width, name=out.stem, **extra)
-    torch.save({k: v.contiguous() for k, v in model.state_dict().items()}, out.with_suffix(".pt"))
+    with atomic_path(out.with_suffix(".pt")) as tmp:
+        torch.save({k: v.contiguous() for k, v in model.state_dict().items()}, tmp)
     written = {"onnx": str(path), "spec": str(spec_path_for(path)),
                "weights": str(out.with_suffix(".pt"))}
     if int8:

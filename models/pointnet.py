@@ -147,9 +147,11 @@ def export_onnx(model: PointNetSeg, path: str | PathLike, name: str | None = Non
     path.parent.mkdir(parents=True, exist_ok=True)
     spec = pointnet_spec(name or path.stem)
     m = copy.deepcopy(model).float().cpu().eval()
-    with warnings.catch_warnings(), torch.no_grad():
+    from falsify.fileio import atomic_path
+
+    with warnings.catch_warnings(), torch.no_grad(), atomic_path(path) as tmp:
         warnings.simplefilter("ignore")
-        torch.onnx.export(m, (torch.zeros(1, 64, 4),), str(path), dynamo=False,
+        torch.onnx.export(m, (torch.zeros(1, 64, 4),), str(tmp), dynamo=False,
                           opset_version=OPSET, input_names=[spec.input_name],
                           output_names=[spec.output_name],
                           dynamic_axes={spec.input_name: {1: "points"},

@@ -189,6 +189,27 @@ def load_state(weights) -> dict:
     return state.get("model", state)
 
 
+def load_weights_into(model: SqueezeSeg, state: dict, weights: object) -> None:
+    """Load `state` into `model`; FalsifyError naming `weights` and, for SqueezeSeg weights of
+    another class set or input channels, both shapes (torch's own message names neither)."""
+    from falsify.errors import FalsifyError
+
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as exc:
+        bias, conv1 = state.get("conv14.conv.bias"), state.get("conv1.conv.weight")
+        want = (model.conv14.conv.out_channels, len(model.channels))
+        if (isinstance(bias, torch.Tensor) and bias.ndim == 1 and isinstance(conv1, torch.Tensor)
+                and conv1.ndim == 4 and (bias.shape[0], conv1.shape[1] - 1) != want):
+            raise FalsifyError(
+                f"{weights}: SqueezeSeg weights for {bias.shape[0]} classes and "
+                f"{conv1.shape[1] - 1} input channels; this needs {want[0]} classes and "
+                f"{want[1]} channels ({','.join(model.channels)})") from None
+        detail = [ln.strip() for ln in str(exc).splitlines()[1:] if ln.strip()]
+        raise FalsifyError(f"{weights}: not SqueezeSeg weights "
+                           f"({(detail or [str(exc)])[0][:200]})") from None
+
+
 def count_parameters(model: nn.Module, include_crf: bool = False) -> int:
     """Trainable parameter count, by default without the CRF's compatibility matrices."""
     return sum(p.numel() for n, p in model.named_parameters() if include_crf or "crf." not in n)
