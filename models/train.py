@@ -9,10 +9,12 @@ SemanticKITTI's 19 train ids (falsify.semantic; 0 unlabeled is ignored by the lo
 by ``falsify dataset --labels semantickitti``. bf16 autocast on a CUDA device where it has it.
 
 Writes into --out: ``checkpoint.pt`` (every epoch and at the time limit: model, optimiser, epoch,
-step, torch RNG, the run's options), ``train_log.jsonl`` (one line per epoch), and at the end
-``squeezeseg.pt`` (weights only), ``squeezeseg.onnx`` + ``squeezeseg.json``. Real KITTI scans
+step, torch RNG, precision, the log so far, the run's options), ``train_log.jsonl`` (one line per
+epoch, rewritten from the checkpoint on --resume), and at the end ``squeezeseg.pt`` (weights
+only), ``squeezeseg.onnx`` + ``squeezeseg.json``; each file whole or not at all. Real KITTI scans
 must not be --data. An --out holding a run is continued only with --resume, and only with the
-options that decide its weights unchanged (RESUME_KEYS; --epochs may grow).
+options that decide its weights unchanged (RESUME_KEYS and the precision trained at; --epochs may
+grow).
 """
 
 from __future__ import annotations
@@ -20,7 +22,6 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import os
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -36,6 +37,8 @@ from falsify.models.spec import ALL_CHANNELS, DEFAULT_CHANNELS, normalise
 CLASS_WEIGHTS = (1.0 / 15.0, 1.0, 10.0, 10.0)
 CLASS_SETS = ("kitti4", "semantickitti")
 WEIGHT_SCANS = 200   # scans whose label counts set the semantickitti class weights
+# Adam's first step is lr / (1 - beta1) = 10 x lr: above this it overflows float32 in torch
+LR_MAX = 1e37
 CHECKPOINT = "checkpoint.pt"
 LOG = "train_log.jsonl"
 RUN_FILES = (CHECKPOINT, LOG, "squeezeseg.pt", "squeezeseg.onnx")   # what a run leaves in --out
@@ -99,6 +102,20 @@ def load_scan(path: Path, shape: tuple[int, int] | None = None) -> np.ndarray:
     return a
 
 
+def check_scans(files: list[Path], shape: tuple[int, int], option: str) -> None:
+    """Every scan of an option's folder is an (H, W, 6) array of the training scans' H and W,
+    read from the headers only: a bad one would otherwise stop the run after an epoch (a
+    --val-data scan: once its checkpoint is written)."""
+    for f in files:
+        try:
+            got = np.load(f, mmap_mode="r").shape
+        except (OSError, ValueError) as e:
+            raise FalsifyError(f"{option}: cannot read scan {f}: {e}") from e
+        if got != (*shape, 6):
+            raise FalsifyError(f"{option}: scan {f} has shape {got}, expected ({shape[0]}, "
+                               f"{shape[1]}, 6) like the first --data scan")
+
+
 def bf16_supported() -> bool:
     """True if this CPU runs bf16 autocast convolutions in hardware (AVX512-BF16 / AMX via
     oneDNN). oneDNN also emulates bf16 on plain AVX-512, slower than fp32, so a CPU whose flags
@@ -151,10 +168,11 @@ def masked_loss(logits, labels, mask, weights):
     return (ce * weights[labels] * m).sum() / m.sum().clamp(min=1.0)
 
 
-def semantic_weights(files: list[Path], shape) -> np.ndarray:
+def semantic_weights(files: list[Path], shape, option: str = "--data") -> np.ndarray:
     """SemanticKITTI class weights 1 / sqrt(frequency) over the first scans' labelled pixels,
     scaled to mean 1 over the classes seen (SalsaNext's inverse square root; unseen classes and
-    unlabeled get 0, so the loss ignores them)."""
+    unlabeled get 0, so the loss ignores them). FalsifyError naming `option` if no pixel is
+    labelled: every weight would be 0 and the run would train nothing (or divide 0 by 0)."""
     from falsify.semantic import TRAIN_CLASSES
 
     n = len(TRAIN_CLASSES)
@@ -166,8 +184,12 @@ def semantic_weights(files: list[Path], shape) -> np.ndarray:
     counts[0] = 0.0
     w = np.zeros(n)
     seen = counts > 0
+    if not seen.any():
+        raise FalsifyError(f"{option} {files[0].parent}: no labelled pixel (train ids 1-{n - 1}) "
+                           f"in its first {min(len(files), WEIGHT_SCANS)} scans; nothing to "
+                           "train on")
     w[seen] = 1.0 / np.sqrt(counts[seen] / counts.sum())
-    return w / w[seen].mean() if seen.any() else w
+    return w / w[seen].mean()
 
 
 def validate(model, files: list[Path], cfg: TrainConfig, shape, autocast) -> dict:
@@ -213,11 +235,14 @@ def num_classes(cfg: TrainConfig) -> int:
 
 
 def _save_atomic(obj, path: Path) -> None:
+    """torch.save `obj` to `path` whole or not at all (a stop or kill mid-write leaves the
+    previous file, and no temporary one but after a SIGKILL)."""
     import torch
 
-    tmp = path.with_suffix(".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    from falsify.fileio import atomic_path
+
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
 
 
 def _load(path: Path, option: str, torch) -> dict:
@@ -248,10 +273,21 @@ def train(cfg: TrainConfig) -> dict:
 
     model, opt, weights = _build(cfg, files, shape, torch)
     ckpt_path = out / CHECKPOINT
-    run = _Progress(*_restore(cfg, model, opt, ckpt_path, torch))
+    precision = "bf16" if use_bf16 else "fp32"
+    run = _Progress(*_restore(cfg, model, opt, ckpt_path, precision, torch))
     model.train(not cfg.crf_only)  # CRF-only: the frozen backbone runs as at inference
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)   # only once every input has been checked
+    if cfg.resume:
+        _write_log(out, run.log)   # a stop between checkpoint and log left the log behind
+
+    def save(log: list[dict]) -> None:
+        """Checkpoint the run as it stands, with its log records `log`, whole or not at all."""
+        _save_atomic({"model": model.state_dict(), "optim": opt.state_dict(),
+                      "epoch": run.epoch, "step": run.step, "torch_rng": torch.get_rng_state(),
+                      "config": json.dumps(asdict(cfg)), "precision": precision,
+                      "log": json.dumps(log), "data_path": str(Path(cfg.data).resolve())},
+                     ckpt_path)
 
     limit = cfg.time_limit_min * 60.0 if cfg.time_limit_min else None
     while run.epoch < cfg.epochs and run.stopped == "done":
@@ -259,24 +295,25 @@ def train(cfg: TrainConfig) -> dict:
             losses, frames, batches, sec = _train_epoch(
                 cfg, model, opt, weights, files, shape, autocast, run,
                 lambda: limit is not None and time.monotonic() - t_start > limit)
-        except FalsifyError:   # diverged: a folder made for this run and still empty goes
-            if created and not any(out.iterdir()):
+        except (FalsifyError, KeyboardInterrupt):   # diverged or stopped: a folder made for
+            if created and not any(out.iterdir()):    # this run and still empty goes
                 out.rmdir()
             raise
         end_of_epoch = run.step >= batches
         if end_of_epoch:
             run.epoch, run.step = run.epoch + 1, 0
-        _save_atomic({"model": model.state_dict(), "optim": opt.state_dict(), "epoch": run.epoch,
-                      "step": run.step, "torch_rng": torch.get_rng_state(),
-                      "config": json.dumps(asdict(cfg)),
-                      "data_path": str(Path(cfg.data).resolve())}, ckpt_path)
-        run.last = _epoch_record(cfg, run, end_of_epoch, batches, losses, frames, sec, use_bf16)
+        record = _epoch_record(cfg, run, end_of_epoch, batches, losses, frames, sec, use_bf16)
+        stop = {"stopped": run.stopped} if run.stopped != "done" else {}
+        run.log.append({**record, **stop})
+        # saved before validation, so that a stop during it loses no training; again after it
+        save(run.log)
+        _write_log(out, run.log)
         if val_files and (end_of_epoch or run.stopped != "done"):
-            run.last.update(validate(model, val_files, cfg, shape, autocast))
-        if run.stopped != "done":
-            run.last["stopped"] = run.stopped
-        with open(out / LOG, "a", encoding="utf-8") as fh:
-            fh.write(json.dumps(run.last) + "\n")
+            record.update(validate(model, val_files, cfg, shape, autocast))
+            run.log[-1] = {**record, **stop}
+            save(run.log)
+            _write_log(out, run.log)
+        run.last = run.log[-1]
         print(json.dumps(run.last), flush=True)
 
     if run.stopped == "max_steps":
@@ -286,11 +323,12 @@ def train(cfg: TrainConfig) -> dict:
 
 @dataclass
 class _Progress:
-    """Where a training run stands: the epoch, the step in it, the steps run by this call, why
-    it stopped ("done" while it runs on) and the last epoch's log record."""
+    """Where a training run stands: the epoch, the step in it, its log records, the steps run
+    by this call, why it stopped ("done" while it runs on) and the last epoch's log record."""
 
     epoch: int
     step: int
+    log: list[dict] = field(default_factory=list)   # every record so far (train_log.jsonl)
     steps_run: int = 0
     stopped: str = "done"
     last: dict = field(default_factory=dict)
@@ -305,6 +343,8 @@ def _checked_inputs(cfg: TrainConfig, torch) -> tuple[list[Path], list[Path], tu
     first = load_scan(files[0])
     shape = first.shape[:2]
     val_files = list_scans(cfg.val_data, "--val-data") if cfg.val_data else []
+    check_scans(files, shape, "--data")
+    check_scans(val_files, shape, "--val-data")
     from falsify.data.holdout import check_not_held_out
     check_not_held_out(files, cfg.holdout, "--data (trained on)")
     check_not_held_out(val_files, cfg.holdout, "--val-data (chooses the checkpoint)")
@@ -344,8 +384,8 @@ def check_run_numbers(cfg: Any) -> None:
     check_range(cfg.epochs, "--epochs", 1)
     check_range(cfg.batch, "--batch", 1)
     check_seed(cfg.seed)
-    if not (math.isfinite(cfg.lr) and cfg.lr > 0):
-        raise FalsifyError(f"--lr: {cfg.lr} must be a number > 0")
+    if not (math.isfinite(cfg.lr) and 0 < cfg.lr <= LR_MAX):
+        raise FalsifyError(f"--lr: {cfg.lr} must be a number > 0 and <= {LR_MAX:g}")
     if cfg.time_limit_min is not None and not cfg.time_limit_min > 0:
         raise FalsifyError(f"--time-limit-min: {cfg.time_limit_min} must be > 0")
 
@@ -444,16 +484,28 @@ def _build(cfg: TrainConfig, files: list[Path], shape, torch):
     return model, opt, weights
 
 
-def _restore(cfg: TrainConfig, model, opt, ckpt_path: Path, torch) -> tuple[int, int]:
-    """--resume: the checkpoint's model, optimiser and RNG, and its (epoch, step); --init: the
-    weights only, from (0, 0); neither: (0, 0)."""
-    epoch, step = 0, 0
+def _restore(cfg: TrainConfig, model, opt, ckpt_path: Path, precision: str,
+             torch) -> tuple[int, int, list[dict]]:
+    """--resume: the checkpoint's model, optimiser and RNG, and its (epoch, step, log records),
+    refused if it trained at another `precision` (bf16 or fp32: its weights would differ);
+    --init: the weights only, from (0, 0); neither: (0, 0)."""
+    epoch, step, log = 0, 0, []
     if cfg.resume:   # the checkpoint is there and of this run (_check_out)
         ck = _load(ckpt_path, "--resume", torch)
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optim"])
-        epoch, step = int(ck["epoch"]), int(ck["step"])
-        torch.set_rng_state(ck["torch_rng"])
+        if ck.get("precision", precision) != precision:
+            raise FalsifyError(f"--resume: precision differs from the run in {cfg.out} "
+                               f"({ck['precision']!r} there, {precision!r} now); pass "
+                               f"--precision {ck['precision']}")
+        try:
+            model.load_state_dict(ck["model"])
+            opt.load_state_dict(ck["optim"])
+            epoch, step = int(ck["epoch"]), int(ck["step"])
+            torch.set_rng_state(ck["torch_rng"])
+            log = json.loads(ck["log"]) if "log" in ck else _read_log(Path(cfg.out))
+        except (KeyError, RuntimeError, TypeError, ValueError) as exc:
+            what = f"no {exc}" if isinstance(exc, KeyError) else str(exc).splitlines()[0]
+            raise FalsifyError(f"--resume {ckpt_path}: not a whole training checkpoint of this "
+                               f"run ({what}); train again into another --out") from None
     elif cfg.init:
         ck = _load(Path(cfg.init), "--init", torch)
         try:
@@ -461,7 +513,27 @@ def _restore(cfg: TrainConfig, model, opt, ckpt_path: Path, torch) -> tuple[int,
         except RuntimeError as exc:
             raise FalsifyError(f"--init {cfg.init}: not SqueezeSeg weights for these channels "
                                f"({str(exc).splitlines()[0]})") from exc
-    return epoch, step
+    return epoch, step, log
+
+
+def _read_log(out: Path) -> list[dict]:
+    """The records of train_log.jsonl (a checkpoint written before the log was kept in it)."""
+    try:
+        lines = (out / LOG).read_text(encoding="utf-8").splitlines()
+    except OSError:
+        return []
+    log = []
+    for line in lines:
+        with contextlib.suppress(ValueError):
+            log.append(json.loads(line))
+    return log
+
+
+def _write_log(out: Path, log: list[dict]) -> None:
+    """train_log.jsonl, one line per record, written whole and atomically."""
+    from falsify.fileio import write_text
+
+    write_text(out / LOG, "".join(json.dumps(r) + "\n" for r in log))
 
 
 def _train_epoch(cfg: TrainConfig, model, opt, weights, files: list[Path], shape, autocast,
@@ -539,7 +611,7 @@ def _finish(cfg: TrainConfig, model, out: Path, shape, run: _Progress, torch) ->
     last = run.last
     final = model.to("cpu", memory_format=torch.contiguous_format).eval()
     state = {k: v.contiguous() for k, v in final.state_dict().items()}
-    torch.save(state, out / "squeezeseg.pt")
+    _save_atomic(state, out / "squeezeseg.pt")
     summary = {"stopped": run.stopped, "epoch": run.epoch, "step": run.step, **{
         k: last.get(k) for k in ("loss", "val_car_iou")}}
     if cfg.export:

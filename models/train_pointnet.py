@@ -79,10 +79,15 @@ def train(cfg: PointNetTrainConfig, on_epoch: Callable[[dict], None] | None = No
     epoch, log = 0, []
     if cfg.resume:   # the checkpoint is there and of this run (_checked_inputs)
         ck = _load(out / CHECKPOINT, "--resume", torch)
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optim"])
-        epoch, log = int(ck["epoch"]), json.loads(ck["log"])
-        rng.bit_generator.state = json.loads(ck["rng"])
+        try:
+            model.load_state_dict(ck["model"])
+            opt.load_state_dict(ck["optim"])
+            epoch, log = int(ck["epoch"]), json.loads(ck["log"])
+            rng.bit_generator.state = json.loads(ck["rng"])
+        except (KeyError, RuntimeError, TypeError, ValueError) as exc:
+            what = f"no {exc}" if isinstance(exc, KeyError) else str(exc).splitlines()[0]
+            raise FalsifyError(f"--resume {out / CHECKPOINT}: not a whole training checkpoint "
+                               f"of this run ({what}); train again into another --out") from None
         _write_log(out, log)   # a stop between checkpoint and log left the log behind
     seconds = log[-1]["seconds"] if log else 0.0
     limit = 60.0 * cfg.time_limit_min if cfg.time_limit_min else None
@@ -106,7 +111,7 @@ def train(cfg: PointNetTrainConfig, on_epoch: Callable[[dict], None] | None = No
         if limit is not None and time.monotonic() - t_start > limit:
             stopped = "time_limit"
     final = model.cpu().eval()
-    torch.save({k: v.contiguous() for k, v in final.state_dict().items()}, out / WEIGHTS)
+    _save_atomic({k: v.contiguous() for k, v in final.state_dict().items()}, out / WEIGHTS)
     export_onnx(final, out / ONNX)
     last = log[-1]
     return {"stopped": stopped, "epoch": epoch, "epochs": cfg.epochs, "loss": last["loss"],
@@ -155,8 +160,9 @@ def _train_epoch(cfg: PointNetTrainConfig, model, opt, weights, files: list[Path
                  spec: ModelSpec, rng: np.random.Generator, epoch: int) -> float:
     """One epoch: each step takes `cfg.points` valid points of each of `cfg.batch` scans (drawn
     with replacement where a scan has fewer), cross-entropy weighted as SqueezeSeg's (1 /
-    sqrt(frequency), unlabeled ignored); returns the mean loss. FalsifyError on a loss that is
-    not finite: the weights have diverged and would be saved as NaN."""
+    sqrt(frequency), unlabeled ignored); a step that drew no labelled point (of a weighted
+    class) is skipped; returns the mean loss. FalsifyError on a loss that is not finite: the
+    weights have diverged and would be saved as NaN."""
     import torch
     from torch import nn
 
@@ -182,6 +188,8 @@ def _train_epoch(cfg: PointNetTrainConfig, model, opt, weights, files: list[Path
         drawn = [draw(files[j]) for j in perm[i:i + cfg.batch]]
         x = torch.from_numpy(np.stack([d[0] for d in drawn])).to(cfg.device)
         y = torch.from_numpy(np.stack([d[1] for d in drawn])).to(cfg.device)
+        if not bool((weights[y] > 0).any()):   # no labelled point of a weighted class drawn:
+            continue                           # the mean loss would be 0 / 0, so no step
         loss = nn.functional.cross_entropy(model(x).transpose(1, 2), y, weight=weights,
                                            ignore_index=0)
         opt.zero_grad(set_to_none=True)
@@ -190,6 +198,10 @@ def _train_epoch(cfg: PointNetTrainConfig, model, opt, weights, files: list[Path
         losses.append(float(loss.detach()))
         if not math.isfinite(losses[-1]):
             raise diverged(cfg.out, cfg.lr, epoch, f"the loss is {losses[-1]}")
+    if not losses:
+        raise FalsifyError(f"epoch {epoch}: no step drew a labelled point of a class seen in "
+                           f"the first scans of --data {Path(cfg.data)}; nothing to train on "
+                           "(more --points may draw some)")
     if not all(bool(torch.isfinite(p).all()) for p in model.parameters()):
         raise diverged(cfg.out, cfg.lr, epoch, "the weights are not finite")
     return float(np.mean(losses))

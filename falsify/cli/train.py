@@ -4,7 +4,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import shlex
+import sys
+from pathlib import Path
+
+from falsify.cli.signals import stop_name, stop_signals
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -42,15 +48,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="a split manifest whose held-out scans --data and --val-data may not "
                    "hold (also $FALSIFY_HOLDOUT and a splits.toml beside the data)")
     p.add_argument("--json", action="store_true",
-                   help="the summary is printed as JSON either way; accepted, as every "
-                   "command takes it")
+                   help="print the summary as one JSON document on stdout (the epochs' JSON "
+                   "lines go to stderr)")
 
 
 def run(args) -> int:
-    """Train (or resume) with the options given; print the run's summary as JSON."""
-    from falsify.models.train import TrainConfig, train
+    """Train (or resume) with the options given; print each epoch's JSON line and the run's
+    summary as JSON (with --json the epochs' lines go to stderr, so stdout is one document). A
+    signal stops it with every finished step saved and prints the command that continues it."""
+    from falsify.models.train import CHECKPOINT, TrainConfig, train
 
-    summary = train(TrainConfig(
+    cfg = TrainConfig(
         data=args.data, out=args.out, epochs=args.epochs, batch=args.batch, seed=args.seed,
         lr=args.lr, lr_decay=args.lr_decay, crf_iterations=args.crf_iterations,
         channels=tuple(c.strip() for c in args.channels.split(",") if c.strip()),
@@ -58,6 +66,21 @@ def run(args) -> int:
         val_data=args.val_data, resume=args.resume, max_steps=args.max_steps,
         export=not args.no_export, loss_on=args.loss_on, init=args.init,
         crf_only=args.crf_only, classes=args.classes, device=args.device,
-        holdout=tuple(args.holdout)))
+        holdout=tuple(args.holdout))
+    try:
+        with stop_signals(), contextlib.redirect_stdout(sys.stderr) if args.json else \
+                contextlib.nullcontext():
+            summary = train(cfg)
+    except KeyboardInterrupt as exc:   # SIGINT, SIGTERM: the checkpoint holds every step done
+        what, code = stop_name(exc)
+        argv = ["falsify", *getattr(args, "argv", sys.argv[1:])]
+        if (Path(cfg.out) / CHECKPOINT).is_file():
+            again = argv if "--resume" in argv else [*argv, "--resume"]
+            how = f"its finished steps are saved in {cfg.out}; continue with"
+        else:
+            again = [a for a in argv if a != "--resume"]
+            how = f"no checkpoint was saved in {cfg.out}; run it again with"
+        print(f"falsify: {what}: {how}: {shlex.join(again)}", file=sys.stderr)
+        return code
     print(json.dumps(summary))
     return 0
