@@ -281,14 +281,17 @@ class RayExecutor:
         killed and a Ray instance started here is shut down before the error is raised."""
         ray = self.ray
         if not ray.is_initialized():
+            # Without --address a new local instance, as documented: Ray's default would join
+            # the machine's latest `ray start` cluster (and refuse num_cpus there).
             kw = {"address": self.address} if self.address else {
-                "num_cpus": self.workers, "include_dashboard": False}
+                "address": "local", "num_cpus": self.workers, "include_dashboard": False}
             try:
                 with keep_stop_handlers():
                     ray.init(log_to_driver=False, logging_level="ERROR", **kw)
             except (ConnectionError, RuntimeError, ValueError) as exc:
-                raise FalsifyError(f"--address {self.address}: cannot join the Ray cluster "
-                                   f"({exc})") from None
+                where = (f"--address {self.address}: cannot join the Ray cluster"
+                         if self.address else "--executor ray: cannot start a local Ray instance")
+                raise FalsifyError(f"{where} ({exc})") from None
             self._started_ray = True
         try:
             self._shipment_ref = ray.put(Shipment.of(self.settings))

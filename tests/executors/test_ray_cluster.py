@@ -5,6 +5,7 @@ Skipped where ray is not installed."""
 
 from __future__ import annotations
 
+import os
 import threading
 from dataclasses import replace
 from pathlib import Path
@@ -50,6 +51,22 @@ def cluster():
     yield c, nodes
     ray.shutdown()
     c.shutdown()
+
+
+def test_without_address_a_run_starts_its_own_ray_beside_a_running_cluster(cluster, tmp_path):
+    """A cluster started on the machine (`ray start`, here the fixture's) is the one Ray's
+    default joins; without --address falsify starts its own local instance, as documented (it
+    joined the cluster and failed: "num_cpus and num_gpus must not be provided")."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "own"
+    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
+    done = subprocess.run([sys.executable, "-m", "falsify", "grid", str(CI), "--out", str(out),
+                           "--quiet", "--no-report", "--workers", "1", "--executor", "ray"],
+                          capture_output=True, text=True, timeout=600, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert len(read_frame(out)) == 24
 
 
 def test_a_removed_node_and_a_joining_one_give_the_process_rows(cluster, tmp_path):
