@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import contextlib
+import shlex
 import signal
+import sys
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 
 
 class Terminated(KeyboardInterrupt):
@@ -47,3 +50,18 @@ def stop_name(exc: KeyboardInterrupt) -> tuple[str, int]:
     the exception says so or our handler took it, whatever the exception became on its way."""
     term = isinstance(exc, Terminated) or signal.SIGTERM in _received
     return ("terminated", 143) if term else ("interrupted", 130)
+
+
+def stopped_training(exc: KeyboardInterrupt, args, checkpoint: Path, done: str) -> int:
+    """Say on stderr how a stopped training goes on (with --resume where `checkpoint` holds its
+    finished `done`, else run again); return the exit status."""
+    what, code = stop_name(exc)
+    argv = ["falsify", *getattr(args, "argv", sys.argv[1:])]
+    if checkpoint.is_file():
+        again = argv if "--resume" in argv else [*argv, "--resume"]
+        how = f"its finished {done} are saved in {checkpoint.parent}; continue with"
+    else:
+        again = [a for a in argv if a != "--resume"]
+        how = f"no checkpoint was saved in {checkpoint.parent}; run it again with"
+    print(f"falsify: {what}: {how}: {shlex.join(again)}", file=sys.stderr)
+    return code

@@ -6,11 +6,10 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import shlex
 import sys
 from pathlib import Path
 
-from falsify.cli.signals import stop_name, stop_signals
+from falsify.cli.signals import stop_signals, stopped_training
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -72,15 +71,6 @@ def run(args) -> int:
                 contextlib.nullcontext():
             summary = train(cfg)
     except KeyboardInterrupt as exc:   # SIGINT, SIGTERM: the checkpoint holds every step done
-        what, code = stop_name(exc)
-        argv = ["falsify", *getattr(args, "argv", sys.argv[1:])]
-        if (Path(cfg.out) / CHECKPOINT).is_file():
-            again = argv if "--resume" in argv else [*argv, "--resume"]
-            how = f"its finished steps are saved in {cfg.out}; continue with"
-        else:
-            again = [a for a in argv if a != "--resume"]
-            how = f"no checkpoint was saved in {cfg.out}; run it again with"
-        print(f"falsify: {what}: {how}: {shlex.join(again)}", file=sys.stderr)
-        return code
+        return stopped_training(exc, args, Path(cfg.out) / CHECKPOINT, "steps")
     print(json.dumps(summary))
     return 0

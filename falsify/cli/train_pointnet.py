@@ -5,12 +5,11 @@ writes)."""
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 from pathlib import Path
 
 from falsify.cli.common import emit, holdout_option
-from falsify.cli.signals import stop_name, stop_signals
+from falsify.cli.signals import stop_signals, stopped_training
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -59,16 +58,7 @@ def run(args) -> int:
             summary = train(cfg, lambda r: print(epoch_text(r, cfg.epochs), file=stream,
                                                   flush=True))
     except KeyboardInterrupt as exc:   # SIGINT, SIGTERM: the checkpoint holds every epoch done
-        what, code = stop_name(exc)
-        argv = ["falsify", *getattr(args, "argv", sys.argv[1:])]
-        if (Path(cfg.out) / CHECKPOINT).is_file():
-            again = argv if "--resume" in argv else [*argv, "--resume"]
-            how = f"its finished epochs are saved in {cfg.out}; continue with"
-        else:
-            again = [a for a in argv if a != "--resume"]
-            how = f"no epoch had finished, nothing was saved in {cfg.out}; run it again with"
-        print(f"falsify: {what}: {how}: {shlex.join(again)}", file=sys.stderr)
-        return code
+        return stopped_training(exc, args, Path(cfg.out) / CHECKPOINT, "epochs")
     emit(args, summary, summary_text(summary))
     return 0
 
