@@ -345,9 +345,10 @@ def _checked_inputs(cfg: TrainConfig, torch) -> tuple[list[Path], list[Path], tu
     val_files = list_scans(cfg.val_data, "--val-data") if cfg.val_data else []
     check_scans(files, shape, "--data")
     check_scans(val_files, shape, "--val-data")
-    from falsify.data.holdout import check_not_held_out
+    from falsify.data.holdout import check_apart, check_not_held_out
     check_not_held_out(files, cfg.holdout, "--data (trained on)")
     check_not_held_out(val_files, cfg.holdout, "--val-data (chooses the checkpoint)")
+    check_apart(files, val_files, "--val-data")
     bad = [c for c in cfg.channels if c not in ALL_CHANNELS]
     if bad:
         raise FalsifyError(f"--channels: unknown {bad}; choose from {list(ALL_CHANNELS)}")
@@ -420,6 +421,10 @@ def _same_path(a: str | None, b: str | None) -> bool:
     return a == b or Path(a).resolve() == Path(b).resolve()
 
 
+# An option only one trainer has, and that trainer: tells whose checkpoint an --out holds.
+TRAINER_KEYS = {"crf_iterations": "falsify train", "points": "falsify train-pointnet"}
+
+
 def _check_out(cfg: Any, torch, keys: Sequence[str] = RESUME_KEYS,
                run_files: Sequence[str] = RUN_FILES) -> None:
     """--out without a training run in it (`run_files`), or (with --resume) one of the same run:
@@ -442,6 +447,10 @@ def _check_out(cfg: Any, torch, keys: Sequence[str] = RESUME_KEYS,
         raise FalsifyError(f"--resume {ckpt_path}: holds no run options (not a training "
                            "checkpoint of falsify)") from None
     now = json.loads(json.dumps(asdict(cfg)))   # tuples as lists, as stored
+    for key, trainer in TRAINER_KEYS.items():   # both trainers write checkpoint.pt
+        if key in old and key not in now:
+            raise FalsifyError(f"--resume {ckpt_path}: a checkpoint of `{trainer}`, not of "
+                               f"this trainer; continue it with `{trainer} --resume`")
     for key in keys:
         there, here = old.get(key), now[key]
         same = there == here

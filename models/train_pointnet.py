@@ -124,7 +124,7 @@ def _checked_inputs(cfg: PointNetTrainConfig, torch) -> tuple[list[Path], list[P
     """The training and validation scans once every option has been checked (numbers, --out,
     the scans and their labels, held-out scans, the device, a run already in --out): a bad
     value fails here, as one line, before anything is written."""
-    from falsify.data.holdout import check_not_held_out
+    from falsify.data.holdout import check_apart, check_not_held_out
     from falsify.models.plugin import torch_device
     from falsify.models.train import _check_out, check_labels, check_run_numbers, list_scans
 
@@ -135,6 +135,7 @@ def _checked_inputs(cfg: PointNetTrainConfig, torch) -> tuple[list[Path], list[P
     val_files = list_scans(cfg.val_data, "--val-data") if cfg.val_data else []
     check_not_held_out(files, cfg.holdout, "--data (trained on)")
     check_not_held_out(val_files, cfg.holdout, "--val-data (watched while training)")
+    check_apart(files, val_files, "--val-data")
     check_labels(cfg.data, "semantickitti", "--data", LABELS_FIX)
     if cfg.val_data:
         check_labels(cfg.val_data, "semantickitti", "--val-data", LABELS_FIX)

@@ -222,6 +222,35 @@ def check_each_once(paths: Sequence[str | Path], what: str) -> None:
                 raise FalsifyError(f"{p}: {same}; {what} take each scan once")
 
 
+def _sampled_digest(path: Path, blocks: int = 8, block: int = 4096) -> tuple[int, str]:
+    """A file's size and the SHA-256 of `blocks` blocks spread over it: equal for equal files,
+    cheap enough for every training scan (a full hash confirms a match)."""
+    size = path.stat().st_size
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for k in range(blocks):
+            f.seek(max(0, (size - block) * k // max(1, blocks - 1)))
+            digest.update(f.read(block))
+    return size, digest.hexdigest()
+
+
+def check_apart(trained: Sequence[str | Path], watched: Sequence[str | Path],
+                what: str) -> None:
+    """FalsifyError naming a scan of `watched` (say --val-data) that is one of `trained`, by
+    path or by content: a checkpoint chosen on its own training scans is chosen on nothing."""
+    by_path = {Path(p).resolve(): Path(p) for p in trained}
+    for p in map(Path, watched):
+        if p.resolve() in by_path:
+            raise FalsifyError(f"{what} {p}: also a --data scan ({by_path[p.resolve()]}); "
+                               "validate on scans the training does not see")
+    wanted: dict[tuple[int, str], Path] = {_sampled_digest(Path(p)): Path(p) for p in watched}
+    for t in map(Path, trained):
+        v = wanted.get(_sampled_digest(t))
+        if v is not None and file_sha256(v) == file_sha256(t):
+            raise FalsifyError(f"{what} {v}: the same bytes as --data scan {t}; validate on "
+                               "scans the training does not see")
+
+
 def scans_under(paths: Sequence[str | Path], sequences: list[str] | None = None
                 ) -> list[tuple[Path, str]]:
     """(file, name) of every scan the paths name: .npy and .bin files, folders of them and

@@ -25,6 +25,12 @@ def data(tmp_path_factory) -> Path:
     return write_crops(tmp_path_factory.mktemp("scans"), 4, seed=11)
 
 
+@pytest.fixture(scope="module")
+def val(tmp_path_factory) -> Path:
+    """Two crops of other scenes than `data`'s: validation scans apart from the training's."""
+    return write_crops(tmp_path_factory.mktemp("val"), 2, seed=12)
+
+
 def copy_of(data: Path, folder: Path, labels: str | None = None) -> Path:
     """The scans of `data` copied into `folder`, with an index.json naming `labels` if given."""
     folder.mkdir()

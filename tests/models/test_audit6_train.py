@@ -117,12 +117,12 @@ def test_a_failing_write_leaves_no_half_file(weights, data, tmp_path, monkeypatc
     assert sorted(p.name for p in run.iterdir()) == ["checkpoint.pt", "train_log.jsonl"]
 
 
-def test_a_stop_during_validation_keeps_the_epoch_and_its_log_line(data, tmp_path, capsys,
+def test_a_stop_during_validation_keeps_the_epoch_and_its_log_line(data, val, tmp_path, capsys,
                                                                      monkeypatch):
     """The checkpoint was written before validation, the log line after it: a SIGTERM while
     validating kept the epoch but lost its line for good."""
     full, part = tmp_path / "full", tmp_path / "part"
-    argv = ["--data", str(data), "--epochs", "2", "--val-data", str(data), "--no-export", *ARGS]
+    argv = ["--data", str(data), "--epochs", "2", "--val-data", str(val), "--no-export", *ARGS]
     assert _train(["--out", str(full), *argv]) == 0
     validate = train_module.validate
     calls = []

@@ -28,10 +28,10 @@ def _weights(out):
 
 
 @pytest.mark.slow
-def test_train_writes_outputs_and_resume_is_exact(data, tmp_path):
+def test_train_writes_outputs_and_resume_is_exact(data, val, tmp_path):
     full = tmp_path / "full"
     assert main(["--data", str(data), "--out", str(full), "--epochs", "2",
-                 "--val-data", str(data), *ARGS]) == 0
+                 "--val-data", str(val), *ARGS]) == 0
     for name in ("checkpoint.pt", "train_log.jsonl", "squeezeseg.pt", "squeezeseg.onnx",
                  "squeezeseg.json"):
         assert (full / name).is_file(), name

@@ -101,10 +101,10 @@ def test_help_states_every_default():
         assert "default" in (action.help or ""), action.dest
 
 
-def test_json_prints_one_document_and_a_rerun_needs_resume(data, tmp_path, capsys):
+def test_json_prints_one_document_and_a_rerun_needs_resume(data, val, tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["--data", str(data), "--out", str(out), "--epochs", "1", "--val-data",
-                 str(data), *ARGS, "--json"]) == 0
+                 str(val), *ARGS, "--json"]) == 0
     captured = capsys.readouterr()
     summary = json.loads(captured.out)   # the whole of stdout: one strict JSON document
     assert summary["stopped"] == "done" and (summary["epoch"], summary["epochs"]) == (1, 1)

@@ -177,10 +177,13 @@ def test_trainer_learns_semantickitti_classes(tmp_path: Path, capsys) -> None:
     data = tmp_path / "d"
     assert main(["dataset", str(SMOKE), "--scans", "8", "--labels", "semantickitti",
                  "--max-cars", "3", "--out", str(data), "--json"]) == 0
+    val = tmp_path / "v"
+    assert main(["dataset", str(SMOKE), "--scans", "2", "--labels", "semantickitti",
+                 "--max-cars", "3", "--seed", "1", "--out", str(val), "--json"]) == 0
     out = tmp_path / "t"
     assert train_main(["--data", str(data), "--out", str(out), "--classes", "semantickitti",
                        "--crf-iterations", "0", "--epochs", "1", "--batch", "4",
-                       "--val-data", str(data), "--precision", "fp32"]) == 0
+                       "--val-data", str(val), "--precision", "fp32"]) == 0
     spec = json.loads((out / "squeezeseg.json").read_text())
     assert spec["num_classes"] == 20 and spec["classes"]["traffic-sign"] == 19
     log = json.loads((out / "train_log.jsonl").read_text().splitlines()[-1])
