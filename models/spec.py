@@ -20,6 +20,7 @@ import numpy as np
 
 from falsify.classes import CLASSES
 from falsify.errors import FalsifyError
+from falsify.fileio import write_text
 from falsify.semantic import KITTI4_OF_RAW, LEARNING_MAP, TRAIN_CLASSES, TRAIN_ID
 
 ALL_CHANNELS = ("x", "y", "z", "intensity", "range")
@@ -156,9 +157,10 @@ def spec_path_for(model_path: str | Path) -> Path:
 
 
 def save_spec(spec: ModelSpec, path: str | Path) -> Path:
-    """Write the spec JSON; returns the path."""
+    """Write the spec JSON atomically (a stop mid-write leaves the old spec or none, never half
+    of one beside its model); returns the path."""
     path = Path(path)
-    path.write_text(spec.to_json(), encoding="utf-8")
+    write_text(path, spec.to_json())
     return path
 
 

@@ -65,3 +65,25 @@ def test_resuming_the_other_trainers_checkpoint_names_that_trainer(data, tmp_pat
     err = capsys.readouterr().err
     assert f"a checkpoint of `falsify {first}`" in err and f"falsify {first} --resume" in err
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_a_failed_spec_write_leaves_the_old_spec_whole(tmp_path, monkeypatch):
+    """save_spec wrote in place: a stop mid-write left half a JSON beside the model."""
+    import os
+    from dataclasses import replace
+    from pathlib import Path
+
+    import falsify.models
+    from falsify.models.spec import load_spec, save_spec
+
+    spec = load_spec(Path(falsify.models.__file__).parent / "weights" / "squeezeseg.json")
+    path = save_spec(spec, tmp_path / "net.json")
+    before = path.read_bytes()
+
+    def broken(fd):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", broken)
+    with pytest.raises(OSError):
+        save_spec(replace(spec, name="other"), path)
+    assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["net.json"]
