@@ -23,6 +23,7 @@ from falsify.sensor.lidar import Sensor, SensorPose
 from falsify.sensor.look import COLOURS, TIMES, Look
 from falsify.sensor.render import CameraRenderer
 from falsify.sensor.simulator import PlacedCar, Simulator
+from falsify.world.streets import Background
 
 _PAINTS = tuple(c for c in COLOURS if c != "gray")
 _WEATHER_P = {"clear": 0.7, "cloudy": 0.15, "rain": 0.1, "fog": 0.05}
@@ -73,16 +74,26 @@ def boxes_in_view(sim: Simulator, bg_id: int, placed: list[PlacedCar], pose: Sen
                         float(size[1]), float(size[2]), np.radians(car.heading_deg) - heading0)
             out.append((box, visible, count, image.unoccluded.get(iid, -1)))
             continue
-        faces = bg.face_instance == iid
-        cls = int(bg.face_class[faces][0])
-        if cls not in (1, 2, 3):
+        world = street_object(bg, iid)
+        if world is None:
             continue
-        verts = bg.vertices[np.unique(bg.faces[faces])]
-        centre_w, length, width, height, heading = oriented_box(verts)
-        box = Box3D(cls, iid, s_rot.T @ (centre_w - origin), length, width, height,
-                    heading - heading0)
+        box = replace(world, centre=s_rot.T @ (world.centre - origin),
+                      heading=world.heading - heading0)
         out.append((box, visible, count, -1))
     return out
+
+
+def street_object(bg: Background, iid: int) -> Box3D | None:
+    """The world-frame box of a street's car, pedestrian or cyclist `iid` (None for other
+    objects), facing where the street placed it (its vertices alone leave the front unknown)."""
+    faces = bg.face_instance == iid
+    cls = int(bg.face_class[faces][0])
+    if cls not in (1, 2, 3):
+        return None
+    facing = next((o.heading for o in bg.obstacles if o.instance == iid), None)
+    centre, length, width, height, heading = oriented_box(
+        bg.vertices[np.unique(bg.faces[faces])], facing)
+    return Box3D(cls, iid, centre, length, width, height, heading)
 
 
 def kitti_object_index(sensor: Sensor, camera: str, frames: int, seed: int = 0,

@@ -250,14 +250,19 @@ def object_label(box: Box3D, calib: KittiCalib, visible: tuple[int, int, int, in
                        obj.location, obj.rotation_y)
 
 
-def oriented_box(vertices: np.ndarray) -> tuple[np.ndarray, float, float, float, float]:
-    """Bottom centre, length, width, height and heading of an object's vertices (principal
-    axis of the footprint; heading is ambiguous by 180 degrees, which leaves the box alike)."""
+def oriented_box(vertices: np.ndarray, heading: float | None = None
+                 ) -> tuple[np.ndarray, float, float, float, float]:
+    """Bottom centre, length, width, height and heading of an object's vertices: along
+    `heading` (rad, where the object faces) when known, else along the footprint's principal
+    axis, whose sign is arbitrary (a box alike, but rotation_y and alpha off by 180 degrees)."""
     xy = vertices[:, :2]
     c = xy.mean(axis=0)
     d = xy - c
-    _, vec = np.linalg.eigh(d.T @ d)
-    ax = vec[:, 1]
+    if heading is None:
+        _, vec = np.linalg.eigh(d.T @ d)
+        ax = vec[:, 1]
+    else:
+        ax = np.array([math.cos(heading), math.sin(heading)])
     perp = np.array([-ax[1], ax[0]])
     a, b = d @ ax, d @ perp
     centre = c + (a.max() + a.min()) / 2 * ax + (b.max() + b.min()) / 2 * perp

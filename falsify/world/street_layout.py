@@ -39,6 +39,7 @@ class Footprint:
     label: str
     polygon: np.ndarray  # (K, 2) float64
     instance: int = 0    # the object's face_instance; 0 for stuff (kerbs)
+    heading: float | None = None   # where the object faces (rad from +x); None: no front
 
 
 
@@ -103,8 +104,9 @@ class _Street:
                 return False
         return True
 
-    def occupy(self, label: str, poly: np.ndarray, instance: int = 0) -> None:
-        self.obstacles.append(Footprint(label, poly, instance))
+    def occupy(self, label: str, poly: np.ndarray, instance: int = 0,
+               heading: float | None = None) -> None:
+        self.obstacles.append(Footprint(label, poly, instance, heading))
         lo, hi = poly.min(axis=0), poly.max(axis=0)
         self.boxes.append(np.array([lo[0], hi[0], lo[1], hi[1]]))
 

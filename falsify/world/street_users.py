@@ -40,7 +40,7 @@ def _place(st: _Street, t: Terrain, v: np.ndarray, f: np.ndarray, mat: np.ndarra
     v = v @ rot.T + [x, y, z]
     iid = st.new_instance()
     st.add((v, f), cls, iid, mat, sem)
-    st.occupy(label, _footprint(v), iid)
+    st.occupy(label, _footprint(v), iid, yaw)
 
 
 def _footprint(v: np.ndarray) -> np.ndarray:
