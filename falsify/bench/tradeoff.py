@@ -179,7 +179,7 @@ def narrow(space: Space, samples: Sequence[Sample]) -> Space:
     for name, dim in space.dims.items():
         seen = [x[name] for x in samples]
         if isinstance(dim, Continuous):
-            dims[name] = Continuous(name, float(min(seen)), float(max(seen)), dim.step)
+            dims[name] = dataclasses.replace(dim, lo=float(min(seen)), hi=float(max(seen)))
         else:
             dims[name] = Categorical(name, tuple(v for v in dim.values if v in set(seen)))
     return dataclasses.replace(space, dims=dims)
@@ -191,7 +191,7 @@ def with_step(space: Space, step: float) -> Space:
     for name in ("x", "y"):
         d = dims[name]
         assert isinstance(d, Continuous)
-        dims[name] = Continuous(name, d.lo, d.hi, step)
+        dims[name] = dataclasses.replace(d, step=step)
     return dataclasses.replace(space, dims=dims)
 
 

@@ -44,11 +44,19 @@ class Continuous:
     lo: float
     hi: float
     step: float
+    period: float | None = None   # an angle's turn (360 for yaw): lo and lo + period are one
 
     @property
     def size(self) -> int:
-        """How many values the grid takes, computed without making them."""
-        return int(math.floor((self.hi - self.lo) / self.step + 1e-9)) + 1
+        """How many values the grid takes, computed without making them: an angle's grid
+        stops before it comes round to a value it holds (-180..180 every 45: 8 headings)."""
+        n = int(math.floor((self.hi - self.lo) / self.step + 1e-9)) + 1
+        if self.period is not None:
+            for turns in (1, 2):   # the grid's first repeat: k steps make whole turns
+                k = round(turns * self.period / self.step)
+                if abs(k * self.step - turns * self.period) < 1e-9 * max(1.0, self.period):
+                    return min(n, k)
+        return n
 
     def grid(self) -> tuple[float, ...]:
         """The values; a range's rounded to 1e-10 so that float steps land on their decimals,
@@ -150,6 +158,7 @@ def read_continuous_or_values(name: str, spec: Any, where: str) -> Dim:
         limit = LIMITS[name.split("_")[0]]
         lo, hi = -limit, limit
         unit = "degrees" if name.startswith("yaw") else "m"
+    period = 360.0 if name.startswith("yaw") else None
 
     def within(v: float, what: str) -> None:
         if not lo <= v <= hi:
@@ -175,9 +184,16 @@ def read_continuous_or_values(name: str, spec: Any, where: str) -> Dim:
             within(float(v), f"{key}.values")
         if len(values) > MAX_VALUES:
             raise ConfigError(f"{where}{key}.values: {len(values)} values; at most {MAX_VALUES}")
+        if period is not None:
+            turned = [round(float(v) % period, 9) % period for v in values]
+            for i, t in enumerate(turned):
+                j = turned.index(t)
+                if j < i:
+                    raise ConfigError(f"{where}{key}.values: {values[j]:g} and {values[i]:g} "
+                                      f"degrees are one heading; list each heading once")
         if len(values) == 1:
             v = float(values[0])
-            return Continuous(name, v, v, 1.0)
+            return Continuous(name, v, v, 1.0, period)
         return Categorical(name, tuple(float(v) for v in values))
     missing = [k for k in ("min", "max", "step") if k not in spec]
     if missing:
@@ -199,7 +215,7 @@ def read_continuous_or_values(name: str, spec: Any, where: str) -> Dim:
     within(nums["max"], f"{key}.max")
     if whole and nums["step"] != int(nums["step"]):
         raise ConfigError(f"{where}{key}.step: {nums['step']:g} is not a whole number of {unit}")
-    dim = Continuous(name, nums["min"], nums["max"], nums["step"])
+    dim = Continuous(name, nums["min"], nums["max"], nums["step"], period)
     if dim.size > MAX_VALUES:
         raise ConfigError(f"{where}{key}.step: {nums['step']:g} makes {dim.size} values; at most "
                           f"{MAX_VALUES} (take a larger step)")
