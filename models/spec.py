@@ -164,11 +164,28 @@ def save_spec(spec: ModelSpec, path: str | Path) -> Path:
     return path
 
 
+# What each required key holds, named when it is missing (docs/network.md has an example spec).
+KEY_HINTS = {
+    "name": "a name for the model, e.g. \"rangenet\"",
+    "channels": f"the input channels in the network's order, names from {[*ALL_CHANNELS, 'mask']}",
+    "mean": "one number per channel, subtracted before dividing by std",
+    "std": "one number per channel, > 0",
+    "height": "the range image's rows, e.g. 64",
+    "width": "the range image's columns, e.g. 2048",
+    "input_name": "the ONNX graph's input name, e.g. \"input\"",
+    "output_name": "the ONNX graph's output name",
+    "output_kind": f"one of {list(OUTPUT_KINDS)}",
+    "num_classes": "the number of output channels, e.g. 20",
+    "classes": f"class name -> output index, names from {list(SPEC_CLASSES)}",
+}
+
+
 def _get(d: Mapping[str, Any], key: str, path: str | Path, kind: type | tuple[type, ...],
          default: Any = ..., nullable: bool = False) -> Any:
     if key not in d:
         if default is ...:
-            raise FalsifyError(f"model spec {path}: missing key '{key}'")
+            hint = f": {KEY_HINTS[key]}" if key in KEY_HINTS else ""
+            raise FalsifyError(f"model spec {path}: missing key '{key}'{hint}")
         return default
     v = d[key]
     if v is None and nullable:

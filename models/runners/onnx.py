@@ -22,6 +22,11 @@ from falsify.models.runners.base import (
     to_prediction,
 )
 
+# ONNX input element types a runner feeds, as numpy dtypes: scans are made in float32 and cast
+# to the graph's own type (an fp16 export takes float16); outputs are read back as float32.
+INPUT_TYPES = {"tensor(float)": np.float32, "tensor(float16)": np.float16,
+               "tensor(double)": np.float64}
+
 
 def cpu_session(model: str | bytes, threads: int | None = None):
     """An ONNX Runtime CPU session for a model file (path) or serialised graph (bytes): `threads`
@@ -79,7 +84,25 @@ class OnnxSegmenter:
             raise
         except Exception as e:  # onnxruntime raises its own exception types
             raise FalsifyError(f"cannot load ONNX model {self.path}: {e}") from e
+        self._dtypes = self._input_dtypes()
         self._check_points() if self.points else self._check()
+
+    def _input_dtypes(self) -> dict[str, Any]:
+        """Each graph input's numpy dtype; FalsifyError naming the input and the allowed types
+        for any other (an integer input is no segmentation network's scan)."""
+        out = {}
+        for i in self.session.get_inputs():
+            if i.type not in INPUT_TYPES:
+                raise FalsifyError(f"model {self.path}: input '{i.name}' is {i.type}; allowed: "
+                                   f"{', '.join(INPUT_TYPES)}")
+            out[i.name] = INPUT_TYPES[i.type]
+        return out
+
+    def _session_run(self, name: str, inputs: dict[str, np.ndarray]) -> np.ndarray:
+        """One output of the graph as float32, the inputs cast to the graph's own types."""
+        typed = {k: v.astype(self._dtypes.get(k, np.float32), copy=False)
+                 for k, v in inputs.items()}
+        return np.asarray(self.session.run([name], typed)[0]).astype(np.float32, copy=False)
 
     def _check_points(self) -> None:
         """A points graph: one input (1, N, 4), output (1, N, num_classes); FalsifyError on any
@@ -98,7 +121,7 @@ class OnnxSegmenter:
                                "(1, N, 4) points")
         if len(shape) != 3 or not isinstance(shape[2], int):   # dynamic: run eight points
             zero = np.zeros((1, 8, 4), np.float32)
-            shape = self.session.run([s.output_name], {s.input_name: zero})[0].shape
+            shape = self._session_run(s.output_name, {s.input_name: zero}).shape
         if len(shape) != 3 or shape[2] != s.num_classes:
             raise FalsifyError(f"{where}: output '{s.output_name}' has shape {tuple(shape)}, "
                                f"expected (1, N, {s.num_classes}) scores per point")
@@ -124,7 +147,7 @@ class OnnxSegmenter:
         shape = outputs[s.output_name]
         if not all(isinstance(d, int) for d in shape[1:]):  # dynamic: run one zero frame
             zero = np.zeros((1, s.height, s.width, 6), np.float32)
-            shape = self.session.run([s.output_name], feeds(s, zero))[0].shape
+            shape = self._session_run(s.output_name, feeds(s, zero)).shape
         self._check_dims(where, f"output '{s.output_name}'", shape, s.num_classes,
                          what="classes")
 
@@ -145,7 +168,7 @@ class OnnxSegmenter:
     def _run(self, a: np.ndarray) -> np.ndarray:
         if self.points:
             return self._run_points(a)
-        outs = [self.session.run([self.spec.output_name], feeds(self.spec, a[i:i + self.batch]))[0]
+        outs = [self._session_run(self.spec.output_name, feeds(self.spec, a[i:i + self.batch]))
                 for i in range(0, len(a), self.batch)]
         return np.concatenate(outs)
 
@@ -157,7 +180,7 @@ class OnnxSegmenter:
                 per_scan.append(None)
                 continue
             x = points_of(a[b], valid[b], s)[None]
-            per_scan.append(self.session.run([s.output_name], {s.input_name: x})[0][0])
+            per_scan.append(self._session_run(s.output_name, {s.input_name: x})[0])
         return scatter(per_scan, valid, s.num_classes)
 
     def predict(self, scans: np.ndarray) -> Prediction:
