@@ -123,10 +123,10 @@ def test_miou_objective_with_the_20_class_network(tmp_path: Path, capsys) -> Non
 @pytest.mark.skipif(not SK20.exists(), reason="models/weights/squeezeseg20.onnx not present")
 def test_predict_scores_a_20_class_network_per_class(tmp_path: Path, capsys,
                                                      kitti_dir: Path) -> None:
-    seq = kitti_dir / "semantickitti-mini" / "sequences" / "08"
+    seq = kitti_dir / "semantickitti-mini" / "sequences" / "05"
     if not seq.is_dir():
         pytest.skip(f"SemanticKITTI mini scans not found at {seq} (see shared/data/README.md)")
-    assert main(["predict", str(seq.parent.parent), "--sequences", "08", "--model",
+    assert main(["predict", str(seq.parent.parent), "--sequences", "05", "--model",
                  "squeezeseg20", "--json", "--out", str(tmp_path / "p")]) == 0
     doc = json.loads(capsys.readouterr().out)
     pooled = doc["pooled"]
