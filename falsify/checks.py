@@ -3,6 +3,7 @@ raises FalsifyError naming the option (or file) and what is allowed."""
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from pathlib import Path
@@ -27,12 +28,24 @@ def check_seed(value: int | None, option: str = "--seed") -> None:
     check_range(value, option, 0, SEED_MAX)
 
 
+def check_path_length(path: str | Path, option: str) -> None:
+    """FalsifyError naming `option` when `path` is too long for the file system (a name over
+    255 bytes, a path over PATH_MAX): `Path.exists` raises on it rather than answer."""
+    try:
+        os.stat(path)
+    except OSError as exc:
+        if exc.errno == errno.ENAMETOOLONG:
+            raise FalsifyError(f"{option} {path}: too long a path ({exc.strerror}); choose a "
+                               "shorter one") from None
+
+
 def check_out_dir(path: str | Path, option: str = "--out") -> Path:
     """An output directory that exists, or can be made, and can be written; leaves nothing.
 
     Writability is tried, not inferred from permission bits (root ignores those, a read-only
     file system does not): a probe file is made in the nearest existing directory and removed."""
     path = Path(path)
+    check_path_length(path, option)
     if path.exists() and not path.is_dir():
         raise FalsifyError(f"{option} {path}: is a file, not a directory")
     parent = path.absolute()
@@ -57,6 +70,7 @@ def check_out_file(path: str | Path, option: str = "--out") -> Path:
     if str(path).endswith(("/", os.sep)):
         raise FalsifyError(f"{option} {path}: names a folder; give a file name")
     path = Path(path)
+    check_path_length(path, option)
     if path.is_dir():
         raise FalsifyError(f"{option} {path}: is a directory")
     check_out_dir(path.parent, option)

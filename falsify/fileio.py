@@ -68,7 +68,9 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 
 def write_text(path: str | Path, text: str) -> None:
-    write_bytes(path, text.encode("utf-8"))
+    """Write `text` as UTF-8; a path of non-UTF-8 bytes in it (argv holds those as surrogates)
+    is written as its own bytes, not a UnicodeEncodeError after the run."""
+    write_bytes(path, text.encode("utf-8", "surrogateescape"))
 
 
 def write_json(path: str | Path, obj) -> None:

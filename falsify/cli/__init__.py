@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import shlex
 import sys
 from types import ModuleType
@@ -124,8 +125,17 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _lenient_output() -> None:
+    """Let stdout and stderr print any path: one of non-UTF-8 bytes (argv holds those as
+    surrogates) is escaped, not a UnicodeEncodeError after the job's work is done."""
+    for stream in (sys.stdout, sys.stderr):
+        if getattr(stream, "errors", None) == "strict" and hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="backslashreplace")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    _lenient_output()
     is_run = argv[:1] in (["grid"], ["search"])
     resumable = is_run or argv[:1] in (["train"], ["retrain"], ["train-pointnet"])
     out = run_folder(argv)
@@ -137,6 +147,12 @@ def main(argv: list[str] | None = None) -> int:
             return int(args.func(args) or 0)
     except FalsifyError as exc:
         print(f"falsify: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:   # a path the file system refuses to look up is bad input, not a bug
+        if exc.errno != errno.ENAMETOOLONG:
+            raise
+        print(f"falsify: error: {exc.filename}: too long a path ({exc.strerror}); choose a "
+              "shorter one", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
         what, code = stop_name(exc)

@@ -22,7 +22,7 @@ from falsify.checks import MAX_SAMPLES, check_out_dir, check_range, check_seed
 from falsify.errors import ConfigError, FalsifyError
 from falsify.executors.driver import Driver, Progress, ProgressListener
 from falsify.executors.evaluator import EvalSettings
-from falsify.fileio import write_bytes, write_json
+from falsify.fileio import read_text, write_bytes, write_json
 from falsify.jobs.fidelity import preset
 from falsify.jobs.retraining_set import plain_value, write_retraining_set
 from falsify.models.runners import Segmenter, backend_for, load_segmenter
@@ -133,7 +133,8 @@ def prepare(req: RunRequest) -> Prepared:
         load_user_car(car.file, car.scale, car.forward, car.up, car.key)
     meta = {
         "command": req.command, "config_path": str(req.config),
-        "config_text": config_path(req.config).read_text(), "config_hash": space.config_hash,
+        "config_text": read_text(config_path(req.config), "config"),
+        "config_hash": space.config_hash,
         "space_name": space.name, "sensor": sensor.name, "model_path": model,
         "model_name": seg.spec.name, "model_hash": seg.model_hash, "backend": backend,
         "seed": seed, "algorithm": req.algorithm, "budget": req.budget,

@@ -111,7 +111,8 @@ def _acquire(path: Path, command: str, made: list[Path]) -> _Held:
         os.close(fd)
     try:
         os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n{command}\n".encode())
+        # surrogateescape: a path of non-UTF-8 bytes (argv decodes them so) is written as given
+        os.write(fd, f"{os.getpid()}\n{command}\n".encode("utf-8", "surrogateescape"))
     except OSError:   # a full disk: the lock holds all the same, its holder goes unnamed
         pass
     return _Held(fd, path, made)
@@ -146,8 +147,9 @@ def holder(path: Path, wait_s: float = 0.5) -> str:
     deadline = time.monotonic() + wait_s
     while True:
         try:
-            pid, _, command = path.read_text().partition("\n")
-        except (OSError, UnicodeDecodeError):
+            text = path.read_bytes().decode("utf-8", "replace")   # any locale, any path
+            pid, _, command = text.partition("\n")
+        except OSError:
             pid, command = "", ""
         if pid.strip().isdigit():
             command = command.strip()

@@ -45,9 +45,8 @@ class Store:
         self.metric_columns = scoring.columns
         self.dim_names = list(space.dims)
         # One connection shared by the driver's threads; the lock serialises every use of it.
-        self.db = sqlite3.connect(self.path, timeout=30.0, check_same_thread=False)
+        self.db = _open_store(self.path)
         self._lock = threading.RLock()
-        self.db.execute("PRAGMA journal_mode=WAL")
         self.db.execute("PRAGMA synchronous=NORMAL")
         dims = ", ".join(f'"{d}" {_sql_type(space, d)}' for d in self.dim_names)
         metrics = ", ".join(f"{m} REAL" for m in self.metric_columns)
@@ -148,6 +147,32 @@ class Store:
                     self.db.executemany("UPDATE samples SET eval_index = ? WHERE sample_key = ?",
                                         changed)
             return len(changed)
+
+
+# SQLite's unix VFS refuses a database whose absolute path (with "-journal" added) passes 512
+# bytes: past about this many, "unable to open database file" means the path is too long.
+SQLITE_PATH_BYTES = 504
+
+
+def _open_store(path: Path) -> sqlite3.Connection:
+    """The store's connection in WAL mode; FalsifyError naming the file when SQLite cannot open
+    it (a path too long for SQLite, a folder it cannot write), not a traceback."""
+    try:
+        db = sqlite3.connect(path, timeout=30.0, check_same_thread=False)
+        try:
+            db.execute("PRAGMA journal_mode=WAL")
+        except BaseException:
+            db.close()
+            raise
+        return db
+    except sqlite3.OperationalError as exc:
+        if disk_full(exc, path.parent):   # the run's own handler says what a full disk keeps
+            raise
+        size = len(os.fsencode(os.path.abspath(path)))
+        why = (f"its path is {size} bytes, longer than SQLite takes (about "
+               f"{SQLITE_PATH_BYTES}): choose a shorter --out" if size > SQLITE_PATH_BYTES
+               else "check that its folder can be written")
+        raise FalsifyError(f"{path}: SQLite cannot open the run's store ({exc}); {why}") from None
 
 
 def _read_only(path: str | Path, query):
