@@ -8,6 +8,7 @@ import io
 import json
 import os
 import tempfile
+import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -26,6 +27,19 @@ def read_bytes(path: str | Path, what: str = "",
         return Path(path).read_bytes()
     except OSError as exc:
         raise error(f"{path}: cannot read{' ' + what if what else ''} ({exc.strerror})") from None
+
+
+def parse_toml(data: bytes, path: str | Path, what: str = "TOML",
+               error: type[FalsifyError] = FalsifyError) -> dict:
+    """A TOML document's table from its bytes, UTF-8 whatever the locale, a leading byte-order
+    mark (as Windows editors write) skipped; `error` naming the file if it is not valid."""
+    try:
+        return tomllib.loads(data.decode("utf-8-sig"))
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: not valid {what} (not UTF-8: {exc.reason} at byte "
+                    f"{exc.start})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{path}: not valid {what} ({exc})") from None
 
 
 def read_text(path: str | Path, what: str = "", error: type[FalsifyError] = FalsifyError) -> str:

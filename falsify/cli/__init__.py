@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import errno
+import os
 import shlex
 import sys
 from types import ModuleType
@@ -148,6 +149,9 @@ def main(argv: list[str] | None = None) -> int:
     except FalsifyError as exc:
         print(f"falsify: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:   # a reader that stopped early (`| head`): end as SIGPIPE would
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())   # nothing left to flush
+        return 128 + 13
     except OSError as exc:   # a path the file system refuses to look up is bad input, not a bug
         if exc.errno != errno.ENAMETOOLONG:
             raise

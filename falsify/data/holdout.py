@@ -13,12 +13,12 @@ from __future__ import annotations
 import hashlib
 import os
 import re
-import tomllib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from falsify.errors import FalsifyError
+from falsify.fileio import parse_toml, read_bytes
 from falsify.world.real_scans import sequence_dirs, sequence_files
 
 MANIFEST_NAME = "splits.toml"
@@ -111,12 +111,9 @@ def load_manifest(path: str | Path) -> Holdout:
     """The held-out scans a split manifest names; FalsifyError naming the file or key at
     fault."""
     path = Path(path)
-    try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))   # TOML is UTF-8, whatever the locale
-    except FileNotFoundError:
-        raise FalsifyError(f"{path}: no such split manifest") from None
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise FalsifyError(f"{path}: not a readable TOML split manifest ({exc})") from None
+    if not path.exists():
+        raise FalsifyError(f"{path}: no such split manifest")
+    raw = parse_toml(read_bytes(path, "split manifest"), path, "TOML split manifest")
     extra = sorted(set(raw) - {"holdout"})
     if extra or not isinstance(raw.get("holdout"), dict):
         raise FalsifyError(f"{path}: {'unknown key ' + repr(extra[0]) if extra else 'no'} "

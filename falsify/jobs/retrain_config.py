@@ -4,11 +4,11 @@ as given on the command line, and the same space over either set only, written b
 from __future__ import annotations
 
 import json
-import tomllib
 from collections.abc import Sequence
 from pathlib import Path
 
 from falsify.errors import ConfigError
+from falsify.fileio import parse_toml, read_bytes
 from falsify.world.space import RealScan
 
 
@@ -65,7 +65,7 @@ def subset_config(config: Path, backgrounds: Sequence[int], suffix: str,
     """The config's text with its background dim replaced by `backgrounds` (paths absolute), its
     streets' world kept; for a space of real scans (`real`, its scans), the scans of those
     backgrounds and its `labels` (whether scans without labels may be among them)."""
-    raw = tomllib.loads(config.read_text(encoding="utf-8"))
+    raw = parse_toml(read_bytes(config, "config"), config)
     raw["name"] = f"{raw.get('name', config.stem)}-{suffix}"
     before = raw["dims"]["background"]
     raw["dims"]["background"] = (

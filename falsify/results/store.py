@@ -423,7 +423,7 @@ def open_run(run: str | Path) -> RunData:
         raise FalsifyError(f"{path / STORE_NAME}: run metadata has no config_text; was the run "
                            "finished by `falsify grid` or `falsify search`?")
     try:
-        raw = tomllib.loads(text)
+        raw = tomllib.loads(text.removeprefix("\ufeff"))   # a config saved with a BOM
     except tomllib.TOMLDecodeError as exc:
         raise FalsifyError(f"{path / STORE_NAME}: stored config is not valid TOML ({exc})") \
             from None

@@ -17,7 +17,6 @@ the image keeps the ray grid's H x W.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
@@ -25,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from falsify.errors import ConfigError
+from falsify.fileio import parse_toml, read_bytes
 from falsify.paths import RETURN_MODELS, SENSOR_PRESETS
 from falsify.rotations import rot_x, rot_y, rot_z
 
@@ -219,12 +219,7 @@ def load_sensor(name_or_path: str | Path, **overrides) -> Sensor:
         if not path.exists():
             raise ConfigError(f"sensor: unknown preset {str(name_or_path)!r}; allowed: "
                               f"{', '.join(preset_names())} or a path to a .toml file")
-    try:
-        raw = tomllib.loads(path.read_text())
-    except OSError as exc:
-        raise ConfigError(f"sensor: cannot read {path} ({exc.strerror})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"sensor: {path} is not valid TOML ({exc})") from None
+    raw = parse_toml(read_bytes(path, "sensor", ConfigError), path, "sensor TOML", ConfigError)
     raw.update(overrides)
     return parse_sensor(raw, source=str(path))
 

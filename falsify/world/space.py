@@ -18,14 +18,13 @@ from __future__ import annotations
 import hashlib
 import itertools
 import math
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from falsify.checks import SEED_MAX
 from falsify.errors import ConfigError
-from falsify.fileio import read_bytes
+from falsify.fileio import parse_toml, read_bytes
 from falsify.paths import config_path
 from falsify.world.space_dims import (
     CONTINUOUS_BASE,
@@ -313,10 +312,7 @@ def load_space(path: str | Path, builtin_cars: tuple[str, ...] | None = None) ->
     names its key and the allowed values."""
     path = config_path(path)
     text = read_bytes(path, "config", ConfigError)
-    try:
-        raw = tomllib.loads(text.decode("utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    raw = parse_toml(text, path, error=ConfigError)
     space = parse_space(raw, source=str(path), base_dir=path.parent,
                         config_hash=hashlib.sha256(text).hexdigest(), builtin_cars=builtin_cars)
     if space.world:   # a changed profile builds other streets: another space

@@ -100,7 +100,7 @@ def test_content_not_path_decides(tmp_path):
     ("[[holdout.scan]]\nsha256 = \"abc\"\nbytes = 3\n", r"holdout\.scan\[0\]\.sha256: expected "
                                                         "64 lowercase hex digits"),
     ("[[holdout.scan]]\nsha256 = \"" + "a" * 64 + "\"\n", r"holdout\.scan\[0\]\.bytes"),
-    ("[holdout\n", "not a readable TOML split manifest"),
+    ("[holdout\n", "not valid TOML split manifest"),
 ])
 def test_a_bad_manifest_exits_2_naming_the_key(tmp_path, capsys, text, message):
     _sequence(tmp_path / "sk", "05", 1)
