@@ -12,7 +12,7 @@ from pathlib import Path
 from falsify.checks import check_seed
 from falsify.errors import FalsifyError
 from falsify.results.explain import Explanation, explain, score_name
-from falsify.results.store import check_complete, open_run
+from falsify.results.store import RunData, check_complete, open_run
 
 MAX_DEPTH = 4
 MAX_RULES = 20
@@ -47,6 +47,12 @@ def explain_run(run: str | Path, threshold: float | None = None, depth: int = 2,
         raise FalsifyError(f"--threshold {threshold}: must be in (0, 1]")
     data = open_run(run)
     check_complete(data, allow_incomplete)
+    return explain_data(data, threshold, depth, rules, clusters, seed)
+
+
+def explain_data(data: RunData, threshold: float | None = None, depth: int = 2,
+                 rules: int = 5, clusters: int = 4, seed: int = 0) -> ExplainResult:
+    """Explain a run already opened (the report's, so its store is not read twice)."""
     t = data.threshold if threshold is None else threshold
     algorithm = str(data.meta.get("algorithm") or "grid")
     return ExplainResult(str(data.path), algorithm,

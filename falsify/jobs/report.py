@@ -8,7 +8,7 @@ from pathlib import Path
 
 from falsify.errors import FalsifyError
 from falsify.fileio import write_text
-from falsify.jobs.explain import explain_run
+from falsify.jobs.explain import explain_data
 from falsify.models.runners import Segmenter, load_segmenter
 from falsify.reports.run import WORST, ReplayedScan, ReportInput, render
 from falsify.results.explain import MIN_SUPPORT, Explanation, score_name
@@ -82,8 +82,8 @@ def replay_worst(data: RunData, worst: int, predict: bool, model: Segmenter | No
 def explain_report(data: RunData) -> Explanation | str:
     """The run's explanation as `falsify explain RUN` computes it (its defaults, seed 0), with
     clusters for non-grid runs only (as its text does); else one line saying why there is none."""
-    try:
-        result = explain_run(data.path, seed=0, allow_incomplete=True)   # the page says so
+    try:   # an incomplete run is explained too: the page says so
+        result = explain_data(data, seed=0)
     except FalsifyError as exc:   # the report is still useful without it
         return f"The failing samples could not be explained ({exc})."
     e = result.explanation

@@ -128,6 +128,8 @@ def miou_map(frame: pd.DataFrame, space: Space, a: str = "x", b: str = "y",
         ai = {v: i for i, v in enumerate(a_vals)}
         bi = {v: j for j, v in enumerate(b_vals)}
         sa, sb = snap(frame[a], space, a), snap(frame[b], space, b)
+        # only the columns read: each group of a wide frame (19 classes) would copy them all
+        frame = frame[list(dict.fromkeys(["status", column]))]
         for (av, bv), grp in frame.groupby([sa, sb], sort=True):
             i, j = ai.get(_match(av, a_vals)), bi.get(_match(bv, b_vals))
             if i is None or j is None:

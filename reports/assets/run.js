@@ -59,9 +59,12 @@
       body.appendChild(tr);
     });
     var m = cell.getAttribute('data-miou');
+    var total = (data.samples.cells || {})[key] || hits.length;   // rows beyond the cap: CSV
+    var count = total > hits.length ? 'the ' + hits.length + ' lowest of ' + total + ' rows'
+      : hits.length + ' rows';
     document.getElementById('cell-title').textContent = 'Samples of cell x = ' +
       cell.getAttribute('data-x') + ', y = ' + cell.getAttribute('data-y') + ' (' +
-      hits.length + ' rows, mIoU ' + (m ? m : 'none') + ')';
+      count + ', mIoU ' + (m ? m : 'none') + ')';
     document.getElementById('cell-hint').hidden = true;
     table.hidden = false;
   }

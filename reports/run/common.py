@@ -65,6 +65,14 @@ def dim_text(row: pd.Series, name: str) -> str:
         fmt_value(v)
 
 
+# Rows a heat-map cell lists when clicked (its lowest): the page embeds at most this many per
+# cell, so its size does not grow with a run's rows beyond the map's cells.
+CELL_ROWS = 25
+
+# Most samples a plot draws one mark each for; over it a plot bins them (a density, a range
+# per bin), so its size does not grow with a run's rows.
+MAX_POINTS = 2000
+
 # Dims the sample tables give a column of their own (besides the model dim).
 TABLE_DIMS = ("x", "y", "yaw", "count", "background")
 

@@ -10,6 +10,7 @@ import numpy as np
 from falsify.reports.charts import Grid, axes_svg, cells_svg, f3, legend_svg, svg_element, viridis
 from falsify.reports.page import esc
 from falsify.reports.run.common import (
+    CELL_ROWS,
     bg_values,
     model_heading,
     objective_name,
@@ -18,7 +19,7 @@ from falsify.reports.run.common import (
     placed_name,
 )
 from falsify.results.metrics import Status, column
-from falsify.results.miou_maps import CellMap, fmt_value
+from falsify.results.miou_maps import CellMap, fmt_value, snap
 from falsify.results.store import RunData
 
 MAX_MULTIPLES = 30
@@ -82,6 +83,12 @@ scored; each cell shows its estimate of the mean the full grid would give, and i
 {float(options.get("confidence", 0.95)):.0%} interval. A cell is decided once its interval
 excludes the threshold.</p>""")
     placed = placed_name(data)
+    most = int(data.frame.groupby([snap(data.frame["x"], data.space, "x"),
+                                   snap(data.frame["y"], data.space, "y")]).size().max()) \
+        if len(data.frame) else 0
+    capped = "" if most <= CELL_ROWS else (
+        f" A cell lists its {CELL_ROWS} lowest samples (of up to {most} here); every sample is "
+        f"in the run's table, {esc(data.path / 'results.csv')}.")
     return f"""
 <section id="map-section">
 <h2>mIoU over position ({placed} 1){objective_title(data)}</h2>
@@ -96,7 +103,7 @@ its value; click it to list its samples.</p>{estimated}
 </div>
 <div id="cell-samples">
 <h3 id="cell-title">Samples of a cell</h3>
-<p id="cell-hint" class="note">Click a cell of the map to list its samples here.</p>
+<p id="cell-hint" class="note">Click a cell of the map to list its samples here.{capped}</p>
 <div class="scroll"><table id="cell-table" hidden><thead><tr><th>eval</th><th>x</th><th>y</th>
 <th>yaw</th><th>{model_heading(data)}</th><th>count</th><th>background</th><th>status</th><th>{what}</th>
 <th>precision</th><th>recall</th><th>reason</th>{"<th>other dims</th>" if other_dims(data) else ""}

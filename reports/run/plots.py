@@ -20,7 +20,7 @@ from falsify.reports.charts import (
     viridis,
 )
 from falsify.reports.page import esc
-from falsify.reports.run.common import objective_name, placed_name
+from falsify.reports.run.common import MAX_POINTS, objective_name, placed_name
 from falsify.results.miou_maps import CellMap
 from falsify.results.store import RunData
 
@@ -55,9 +55,13 @@ def distance_section(data: RunData, threshold: float) -> str:
                f'y="{num(sy(threshold) - 4)}" text-anchor="end">threshold {threshold:.3f}'
                "</text>")
     eval_ix = ok["eval_index"].to_numpy()
-    for di, vi, ei in zip(d, iou, eval_ix, strict=True):
-        out.append(f'<circle class="pt" cx="{num(sx(di))}" cy="{num(sy(vi))}" r="2.2">'
-                   f"<title>eval {int(ei)}: {di:.1f} m, IoU {vi:.3f}</title></circle>")
+    dense = d.size > MAX_POINTS
+    if dense:
+        out += _density(d, iou, dmax, sx, sy, pw, ph)
+    else:
+        for di, vi, ei in zip(d, iou, eval_ix, strict=True):
+            out.append(f'<circle class="pt" cx="{num(sx(di))}" cy="{num(sy(vi))}" r="2.2">'
+                       f"<title>eval {int(ei)}: {di:.1f} m, IoU {vi:.3f}</title></circle>")
     if d.size:
         bins = np.floor(d).astype(int)
         pts = []
@@ -69,10 +73,36 @@ def distance_section(data: RunData, threshold: float) -> str:
     return f"""
 <section id="distance-section">
 <h2>IoU against distance</h2>
-<p class="note">Each dot is one valid sample; the orange line is the mean per metre of
+<p class="note">{f"The {d.size} valid samples, binned: the darker a box, the more samples in it"
+if dense else "Each dot is one valid sample"}; the orange line is the mean per metre of
 distance (hypot(x, y) of {placed}).</p>
 <figure>{svg}</figure>
 </section>"""
+
+
+DENSITY_BINS = (100, 50)   # distance bins, IoU bins of a plot of more than MAX_POINTS samples
+
+
+def _density(d: np.ndarray, iou: np.ndarray, dmax: float, sx: Callable[[float], float],
+             sy: Callable[[float], float], pw: float, ph: float) -> list[str]:
+    """Samples binned by distance and IoU, a box per non-empty bin shaded by its count (log
+    scale): as many marks as bins at most, however many samples."""
+    nd, ni = DENSITY_BINS
+    keep = np.isfinite(d) & np.isfinite(iou)
+    counts, _, _ = np.histogram2d(d[keep], np.clip(iou[keep], 0.0, 1.0), bins=(nd, ni),
+                                  range=((0.0, dmax), (0.0, 1.0)))
+    most = math.log1p(float(counts.max())) if counts.size and counts.max() > 0 else 1.0
+    w, h = dmax / nd, 1.0 / ni
+    out = []
+    for a, b in zip(*np.nonzero(counts), strict=True):
+        n = int(counts[a, b])
+        shade = 0.15 + 0.85 * math.log1p(n) / most
+        out.append(f'<rect class="bin" x="{num(sx(a * w))}" y="{num(sy((b + 1) * h))}" '
+                   f'width="{num(pw / nd)}" height="{num(ph / ni)}" fill="#3b6ea5" '
+                   f'fill-opacity="{shade:.2f}"><title>{n} sample{"s" * (n != 1)}: '
+                   f"{a * w:.1f} to {(a + 1) * w:.1f} m, IoU {b * h:.2f} to {(b + 1) * h:.2f}"
+                   "</title></rect>")
+    return out
 
 
 def _iou_frame(left: float, top: float, pw: float, ph: float,
@@ -84,6 +114,45 @@ def _iou_frame(left: float, top: float, pw: float, ph: float,
                    f'y2="{num(sy(v))}"/><text x="{left - 6}" y="{num(sy(v) + 4)}" '
                    f'text-anchor="end">{v:.2f}</text>')
     return out
+
+
+CURVE_BINS = 500   # bins of evaluations a curve of more than MAX_POINTS draws (one per 1-2 px)
+
+
+def _ranges(vals: list[float | None], sx: Callable[[float], float],
+            sy: Callable[[float], float], pw: float) -> list[str]:
+    """Evaluations binned in order, a bar per bin from its lowest IoU to its highest: as many
+    marks as bins, however many evaluations."""
+    n = len(vals)
+    edges = np.unique(np.linspace(0, n, CURVE_BINS + 1).round().astype(int))
+    arr = np.array([np.nan if v is None else v for v in vals], float)
+    out = []
+    for a, b in zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True):
+        part = arr[a:b]
+        part = part[np.isfinite(part)]
+        if not part.size:
+            continue
+        lo, hi = float(part.min()), float(part.max())
+        out.append(f'<rect class="range" x="{num(sx(a))}" y="{num(sy(hi))}" '
+                   f'width="{num(max(sx(b - 1) - sx(a), 0.8))}" '
+                   f'height="{num(max(sy(lo) - sy(hi), 0.8))}">'
+                   f"<title>evals {a} to {b - 1}: IoU {lo:.3f} to {hi:.3f}</title></rect>")
+    return out
+
+
+def _search_note(data: RunData, n: int, points: int) -> str:
+    """What the two search plots show: every evaluation, or (over MAX_POINTS) bins of them
+    and the lowest ones."""
+    placed = placed_name(data)
+    if n <= MAX_POINTS and points <= MAX_POINTS:
+        return ("Left: each evaluation's IoU (dots) and the lowest so far (line). Right: where "
+                f"each evaluation put {placed} 1, in order (grey path), coloured by IoU on the "
+                "map's axes; the ring marks the lowest.")
+    return (f"Left: the range of IoU (bars) over each run of about {max(1, n // CURVE_BINS)} "
+            "evaluations, and the lowest so far (line). Right: where the "
+            f"{min(points, MAX_POINTS)} lowest of the {points} evaluations put {placed} 1, "
+            "coloured by IoU on the map's axes; the ring marks the lowest. Every evaluation is "
+            f"in the run's table, {esc(data.path / 'results.csv')}.")
 
 
 def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
@@ -113,13 +182,22 @@ def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     out.append(f'<line class="thrline" x1="{left}" x2="{left + pw}" y1="{num(sy(threshold))}" '
                f'y2="{num(sy(threshold))}"/>')
     best, steps = math.inf, []
-    for k, v in enumerate(vals):
-        if v is not None:
-            out.append(f'<circle class="pt" cx="{num(sx(k))}" cy="{num(sy(v))}" r="2">'
-                       f"<title>eval {k}: IoU {v:.3f}</title></circle>")
-            best = min(best, v)
-        if best < math.inf:
-            steps.append(f"{num(sx(k))},{num(sy(best))}")
+    if n > MAX_POINTS:
+        out += _ranges(vals, sx, sy, pw)
+        arr = np.array([math.inf if v is None else v for v in vals], float)
+        running = np.minimum.accumulate(arr)
+        best = float(running[-1])
+        ends = np.unique(np.linspace(0, n - 1, CURVE_BINS + 1).round().astype(int))
+        steps = [f"{num(sx(k))},{num(sy(running[k]))}" for k in ends.tolist()
+                 if running[k] < math.inf]
+    else:
+        for k, v in enumerate(vals):
+            if v is not None:
+                out.append(f'<circle class="pt" cx="{num(sx(k))}" cy="{num(sy(v))}" r="2">'
+                           f"<title>eval {k}: IoU {v:.3f}</title></circle>")
+                best = min(best, v)
+            if best < math.inf:
+                steps.append(f"{num(sx(k))},{num(sy(best))}")
     if steps:
         out.append(f'<polyline class="minline" points="{" ".join(steps)}"/>')
     lowest = f3(best) if best < math.inf else "—"
@@ -135,9 +213,16 @@ def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     lo_y, hi_y = grid.top, grid.top + grid.height
     pts = [(min(max(grid.px(x), lo_x), hi_x), min(max(grid.py(y), lo_y), hi_y))
            for x, y in zip(xs, ys, strict=True)]
-    path = " ".join(f"{num(px)},{num(py)}" for px, py in pts)
+    many = len(pts) > MAX_POINTS
+    path = "" if many else " ".join(f"{num(px)},{num(py)}" for px, py in pts)
+    shown = range(len(pts))
+    if many:   # the MAX_POINTS lowest (undefined last), in evaluation order; no path
+        shown = sorted(np.lexsort((np.arange(len(ious)), np.nan_to_num(ious, nan=np.inf)))
+                       [:MAX_POINTS].tolist())
+    evals = frame["eval_index"].to_numpy()
     dots = []
-    for k, ((px, py), ev, v) in enumerate(zip(pts, frame["eval_index"], ious, strict=True)):
+    for k in shown:
+        (px, py), ev, v = pts[k], evals[k], ious[k]
         fill = "#9aa0a6" if np.isnan(v) else viridis(float(v))
         text = (f"eval {int(ev)}: x = {xs[k]:.3f}, y = {ys[k]:.3f}, IoU "
                 f"{'undefined' if np.isnan(v) else f'{v:.3f}'}")
@@ -147,7 +232,7 @@ def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
         k = int(np.nanargmin(ious))
         px, py = pts[k]
         dots.append(f'<circle class="ring" cx="{num(px)}" cy="{num(py)}" r="8"/>')
-    body = (faded + f'<polyline class="path" points="{path}"/>' + "".join(dots)
+    body = (faded + (f'<polyline class="path" points="{path}"/>' if path else "") + "".join(dots)
             + axes_svg(grid))
     path_svg = svg_element(body, grid.left + grid.width + 8, grid.top + grid.height + 60, "map",
                     "searchpath", "where the search went")
@@ -155,8 +240,6 @@ def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
 <section id="search-section">
 <h2>Search</h2>
 <p class="note">{esc(data.meta.get("algorithm", "search"))}, {n} evaluations; lowest {what}
-found {lowest}. Left: each evaluation's IoU (dots) and the lowest so far (line). Right: where
-each evaluation put {placed_name(data)} 1, in order (grey path), coloured by IoU on the map's
-axes; the ring marks the lowest.</p>
+found {lowest}. {_search_note(data, n, len(pts))}</p>
 <div class="row"><figure>{curve_svg}</figure><figure>{path_svg}</figure></div>
 </section>"""

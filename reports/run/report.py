@@ -21,7 +21,13 @@ import falsify
 from falsify.reports.charts import BLIND_STROKE, FONT, VIRIDIS
 from falsify.reports.explain_page import explain_section
 from falsify.reports.page import esc, head
-from falsify.reports.run.common import cell_key, objective_name, other_dims, other_text, score_parts
+from falsify.reports.run.common import (
+    CELL_ROWS,
+    objective_name,
+    other_dims,
+    other_text,
+    score_parts,
+)
 from falsify.reports.run.compare import compare_section
 from falsify.reports.run.maps import class_maps_section, heatmap_section, inserted_section
 from falsify.reports.run.plots import distance_section, search_section
@@ -75,13 +81,14 @@ class ReportInput:
     differences: tuple[str, ...] = ()
 
 
-def samples_json(data: RunData) -> dict:
-    """The rows the click-to-list table needs, keyed to their heat-map cell."""
+def samples_json(data: RunData, per_cell: int = CELL_ROWS) -> dict:
+    """The rows the click-to-list table needs, keyed to their heat-map cell: per cell its
+    `per_cell` lowest (the order the table lists them in: lowest score first, undefined and
+    invalid rows last, ties by evaluation), so a run of 50,000 rows does not embed them all;
+    `cells` holds every cell's full row count (the rest are in the run's results.csv)."""
     from falsify.results.miou_maps import snap
 
     f = data.frame
-    cx = snap(f["x"], data.space, "x")
-    cy = snap(f["y"], data.space, "y")
     others = other_dims(data)
     cols = ["cell", "eval", "x", "y", "yaw", "car_model", "count", "background", "status",
             "iou", "precision", "recall", "reason"] + (["other"] if others else [])
@@ -89,23 +96,37 @@ def samples_json(data: RunData) -> dict:
     prec, rec = score_parts(col)
     src = {"eval": "eval_index", "iou": col, "precision": prec, "recall": rec,
            "car_model": data.space.model_dim}
-    rows = []
-    for k in range(len(f)):
-        r = f.iloc[k]
-        row: list = [cell_key(cx.iloc[k], cy.iloc[k])]
-        for c in cols[1:]:
-            if c == "other":
-                row.append(other_text(r, others))
-                continue
-            name = src.get(c, c)
-            v = r[name] if name in f.columns else None
+    cx = snap(f["x"], data.space, "x").map(fmt_value)
+    cy = snap(f["y"], data.space, "y").map(fmt_value)
+    keys = (cx + "|" + cy).rename("_cell")
+    score = pd.to_numeric(f[col], errors="coerce") if col in f.columns else \
+        pd.Series(np.nan, index=f.index)
+    order = pd.DataFrame({"_cell": keys, "_none": score.isna(), "_score": score,
+                          "_eval": f["eval_index"]}).sort_values(
+        ["_cell", "_none", "_score", "_eval"], kind="stable")
+    kept = order.groupby("_cell", sort=False).head(per_cell).sort_values("_eval",
+                                                                         kind="stable")
+    sub = f.loc[kept.index]
+    values: list[list] = [kept["_cell"].tolist()]
+    for c in cols[1:]:
+        if c == "other":
+            values.append([other_text(r, others) for _, r in sub[list(others)].iterrows()])
+            continue
+        name = src.get(c, c)
+        if name not in f.columns:
+            values.append([None] * len(sub))
+            continue
+        out = []
+        for v in sub[name].tolist():
             if v is not None and not isinstance(v, str) and pd.isna(v):
                 v = None
             elif c in ("count", "background") and v is not None and not isinstance(v, str):
                 v = fmt_value(v)
-            row.append(_clean(v))
-        rows.append(row)
-    return {"columns": cols, "rows": rows}
+            out.append(_clean(v))
+        values.append(out)
+    counts = keys.value_counts()
+    return {"columns": cols, "rows": [list(r) for r in zip(*values, strict=True)],
+            "cells": {k: int(counts[k]) for k in sorted(counts.index)}, "per_cell": per_cell}
 
 
 def _asset(name: str) -> str:

@@ -136,7 +136,7 @@ def test_no_explanation_is_one_line(tmp_path: Path, monkeypatch, case: str) -> N
 
         def broken(*args, **kwargs):
             raise FalsifyError("<i>broken</i>")
-        monkeypatch.setattr("falsify.jobs.report.explain_run", broken)
+        monkeypatch.setattr("falsify.jobs.report.explain_data", broken)
         want = "could not be explained (&lt;i&gt;broken&lt;/i&gt;)"
     sec = section(cheap_page(run))
     assert want in sec and sec.count('<p class="note">') == 1 and "<table" not in sec
