@@ -70,8 +70,9 @@ def _clusters_html(data: RunData, e: Explanation) -> str:
         rows.append(f'<tr><td class="num">{k}</td><td class="num">{c.size}</td>'
                     f'<td class="num">{f3(c.mean_iou)}</td><td>{centre}</td></tr>')
     return ('<div><h3>Clusters of failing samples</h3><p class="note">k-means over the failing '
-            "samples' continuous dims; categorical dims show each cluster's most common value."
-            '</p><table class="small" id="explain-clusters"><thead><tr><th>#</th>'
+            "samples' continuous dims; categorical dims show each cluster's most common value; "
+            "a car's dims show only where most of the cluster's samples hold that car.</p>"
+            '<table class="small" id="explain-clusters"><thead><tr><th>#</th>'
             "<th>samples</th><th>mean IoU</th><th>centre</th></tr></thead>"
             f'<tbody>{"".join(rows)}</tbody></table></div>')
 

@@ -134,6 +134,8 @@ def prepare(req: RunRequest) -> Prepared:
     meta = {
         "command": req.command, "config_path": str(req.config),
         "config_text": read_text(config_path(req.config), "config"),
+        # where the config's relative paths (user meshes) resolve, from any later directory
+        "config_dir": str(config_path(req.config).parent.resolve()),
         "config_hash": space.config_hash,
         "space_name": space.name, "sensor": sensor.name, "model_path": model,
         "model_name": seg.spec.name, "model_hash": seg.model_hash, "backend": backend,

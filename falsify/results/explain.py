@@ -9,6 +9,12 @@ taken one after another, each scored on the failures the earlier ones left uncov
 covering), so a second rule names a different region. Sensitivity is the first-order index
 S_i = Var(E[IoU | dim_i]) / Var(IoU) (Sobol', 1993), exact on a full grid (a main effect of the
 ANOVA decomposition); on scattered samples continuous dims are binned at their quantiles.
+
+A sample whose `count` is below k does not place car k; its car-k dims hold pinned defaults that
+mean nothing (`Space.make`). So car k's dims are judged only on the samples that hold car k
+(`Space.active`, as the samplers do): a condition on them covers only such samples, their
+candidate cuts, sensitivity and cluster means come from those samples alone, and a cluster's
+centre shows them only when more than half of its samples hold car k.
 """
 
 from __future__ import annotations
@@ -127,17 +133,30 @@ def _fmt(value: float | int | str) -> str:
     return f"{float(value):g}"
 
 
+def holds(space: Space, frame: pd.DataFrame, name: str) -> np.ndarray:
+    """Bool per row: whether dim `name` means anything for the row's sample, i.e. the sample
+    holds the car the dim belongs to (`Space.active` on its count; every row without a count
+    column). A car beyond a sample's count was not placed: its dims are pinned defaults."""
+    if "count" not in frame.columns or name not in space.dims:
+        return np.ones(len(frame), bool)
+    counts = frame["count"]
+    held = {c: space.active(name, int(c)) for c in counts.dropna().unique()}
+    return counts.map(held).fillna(False).to_numpy(bool)
+
+
 def explained_dims(space: Space, frame: pd.DataFrame) -> list[str]:
-    """The dims that vary in the table (a dim with one value explains nothing)."""
-    return [d for d in space.dims if d in frame.columns and frame[d].nunique(dropna=True) > 1]
+    """The dims that vary over the samples they mean something for (a dim with one value
+    explains nothing; nor does a car's dim that varies only through its pinned default)."""
+    return [d for d in space.dims if d in frame.columns
+            and frame[d][holds(space, frame, d)].nunique(dropna=True) > 1]
 
 
 def candidates(space: Space, frame: pd.DataFrame, dims: Sequence[str]) -> list[Condition]:
-    """Every condition worth trying on the table's own values of each dim."""
+    """Every condition worth trying on the values each dim takes where it means something."""
     out: list[Condition] = []
     for name in dims:
         dim = space.dims[name]
-        column = frame[name].dropna()
+        column = frame[name][holds(space, frame, name)].dropna()
         if isinstance(dim, Categorical):
             out += [Condition(name, "==", _plain(v)) for v in sorted(column.unique(), key=str)]
             continue
@@ -163,13 +182,15 @@ def _thin(values: np.ndarray) -> np.ndarray:
 def find_rules(frame: pd.DataFrame, space: Space, threshold: float, depth: int = 2,
                max_rules: int = 5, score: str = "car_iou") -> tuple[Rule, ...]:
     """Up to `max_rules` rules, each best by WRAcc on the failures left by the ones before;
-    a failure is a `score` below the threshold."""
+    a failure is a `score` below the threshold. A condition on car k's dim covers only the
+    samples holding car k."""
     fail = frame[score].astype(float).to_numpy() < threshold
     if not fail.any() or fail.all():
         return ()
     iou = frame[score].astype(float).to_numpy()
     conds = candidates(space, frame, explained_dims(space, frame))
-    masks = {c: c.mask(frame[c.dim]) for c in conds}
+    held = {d: holds(space, frame, d) for d in {c.dim for c in conds}}
+    masks = {c: c.mask(frame[c.dim]) & held[c.dim] for c in conds}
     left = fail.copy()
     rules: list[Rule] = []
     for _ in range(max_rules):
@@ -238,64 +259,107 @@ def _beam(conds: Sequence[Condition], masks: dict, left: np.ndarray, fail: np.nd
 def sensitivity(frame: pd.DataFrame, space: Space, dims: Sequence[str],
                 score: str = "car_iou") -> dict[str, float]:
     """First-order index of each dim: the share of the score's variance its value alone
-    explains."""
-    y = frame[score].astype(float)
-    var = float(y.var(ddof=0))
+    explains. Car k's dims are grouped over the samples holding car k only (elsewhere their
+    value is a pinned default, which would pass off `count`'s effect as theirs): their index is
+    the between-group sum of squares among those samples over the run's total, so it stays a
+    share of the run's variance, comparable with the other dims'."""
+    y_all = frame[score].astype(float)
+    var = float(y_all.var(ddof=0))
     out = {}
     for name in dims:
-        col = frame[name]
+        held = holds(space, frame, name)
+        y, col = y_all[held], frame[name][held]
         dim = space.dims[name]
         if isinstance(dim, Continuous) and col.nunique() > SENSITIVITY_BINS * 2:
             col = pd.qcut(col.astype(float), SENSITIVITY_BINS, duplicates="drop")
         means = y.groupby(col, observed=True).transform("mean")
-        out[name] = 0.0 if var == 0 else float(means.var(ddof=0) / var)
+        share = len(y) / len(y_all)   # 1 for a dim every sample holds
+        out[name] = 0.0 if var == 0 or not len(y) else float(means.var(ddof=0) * share / var)
     return dict(sorted(out.items(), key=lambda kv: -kv[1]))
 
 
 def clusters(frame: pd.DataFrame, space: Space, dims: Sequence[str], threshold: float,
              k: int = 4, seed: int = 0, score: str = "car_iou") -> tuple[Cluster, ...]:
     """k-means (k-means++ start, seeded) over the failing samples' continuous dims scaled to
-    their ranges; categorical dims are reported as each cluster's most common value."""
-    fail = frame[frame[score].astype(float) < threshold]
+    their ranges; categorical dims are reported as each cluster's most common value.
+
+    A car's dims count only on the samples holding that car: a sample without car k is placed
+    by its other dims (partial distances), and a centre shows car k's dims, averaged over the
+    cluster's samples that hold car k, only when more than half of its samples do."""
+    fail = frame[frame[score].astype(float) < threshold].reset_index(drop=True)
     cont = [d for d in dims if isinstance(space.dims[d], Continuous)]
     if len(fail) == 0 or not cont:
         return ()
     k = min(k, len(fail))
+    held = {d: holds(space, fail, d) for d in dims}
     lo = np.array([space.dims[d].lo for d in cont])
     span = np.array([max(space.dims[d].hi - space.dims[d].lo, 1e-9) for d in cont])
     pts = (fail[cont].astype(float).to_numpy() - lo) / span
+    pts[~np.column_stack([held[d] for d in cont])] = np.nan
     labels = _kmeans(pts, k, np.random.default_rng(seed))
     out = []
     for j in range(k):
-        part = fail[labels == j]
-        if len(part) == 0:
+        part = labels == j
+        if not part.any():
             continue
-        centre: dict[str, float | int | str] = {
-            d: round(float(part[d].astype(float).mean()), 3) for d in cont}
+        centre: dict[str, float | int | str] = {}
         for d in dims:
-            if d not in cont:
-                centre[d] = _plain(part[d].mode().iloc[0])
-        out.append(Cluster(centre, len(part), float(part[score].astype(float).mean())))
+            here = part & held[d]
+            if 2 * here.sum() <= part.sum():   # most of the cluster lacks this dim's car
+                continue
+            values = fail[d][here]
+            centre[d] = (round(float(values.astype(float).mean()), 3) if d in cont
+                         else _plain(values.mode().iloc[0]))
+        centre = {d: centre[d] for d in [*cont, *(d for d in dims if d not in cont)]
+                  if d in centre}
+        out.append(Cluster(centre, int(part.sum()),
+                           float(fail[score][part].astype(float).mean())))
     return tuple(sorted(out, key=lambda c: (-c.size, c.mean_iou)))
 
 
+def _sq_dist(pts: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Squared distance of each point to centre `c` over the dims both have (NaN: absent),
+    scaled up by the share of dims compared (partial distance); inf where none is shared."""
+    diff = (pts - c) ** 2
+    seen = ~np.isnan(diff)
+    if seen.all():
+        return diff.sum(-1)
+    n = seen.sum(-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = np.where(seen, diff, 0.0).sum(-1) * (pts.shape[-1] / n)
+    return np.where(n > 0, d, np.inf)
+
+
 def _kmeans(pts: np.ndarray, k: int, rng: np.random.Generator, iters: int = 50) -> np.ndarray:
+    """Labels of k-means over `pts`; NaN entries (dims of a car the sample lacks) are left out
+    of distances and means."""
     centres = [pts[rng.integers(len(pts))]]
     for _ in range(1, k):
-        d2 = np.min([((pts - c) ** 2).sum(1) for c in centres], axis=0)
+        d2 = np.min([_sq_dist(pts, c) for c in centres], axis=0)
+        d2 = np.where(np.isfinite(d2), d2, 0.0)
         total = d2.sum()
         centres.append(pts[rng.choice(len(pts), p=d2 / total)] if total > 0 else
                        pts[rng.integers(len(pts))])
     c = np.array(centres)
     labels = np.zeros(len(pts), int)
     for _ in range(iters):
-        labels = ((pts[:, None, :] - c[None]) ** 2).sum(-1).argmin(1)
-        new = np.array([pts[labels == j].mean(0) if (labels == j).any() else c[j]
-                        for j in range(k)])
-        if np.allclose(new, c):
+        labels = np.stack([_sq_dist(pts, cj) for cj in c], -1).argmin(1)
+        new = np.array([_nanmean(pts[labels == j], c[j]) for j in range(k)])
+        if np.allclose(new, c, equal_nan=True):
             break
         c = new
     return labels
+
+
+def _nanmean(members: np.ndarray, old: np.ndarray) -> np.ndarray:
+    """Per-dim mean of a cluster's members over those that have the dim; the old centre where
+    the cluster is empty, NaN where no member has the dim."""
+    if not len(members):
+        return old
+    seen = ~np.isnan(members)
+    n = seen.sum(0)
+    total = np.where(seen, members, 0.0).sum(0)
+    return np.where(n > 0, total / np.maximum(n, 1), np.nan)
 
 
 def explain(frame: pd.DataFrame, space: Space, threshold: float, depth: int = 2,

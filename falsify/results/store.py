@@ -429,7 +429,9 @@ def open_run(run: str | Path) -> RunData:
             from None
     source = str(meta.get("config_path") or "<stored config>")
     real = meta.get("real_backgrounds")
-    space = parse_space(raw, source=source, base_dir=Path(source).parent,
+    base = meta.get("config_dir")   # absolute; runs before it resolve against the cwd
+    space = parse_space(raw, source=source,
+                        base_dir=Path(base) if isinstance(base, str) else Path(source).parent,
                         config_hash=str(meta.get("config_hash") or ""), builtin_cars=None,
                         real_backgrounds=None if real is None else tuple(
                             RealScan(n, Path(b), None if lab is None else Path(lab), k)

@@ -25,6 +25,7 @@
       return v.toFixed(3);
     return String(v);
   }
+  function rowsText(n) { return n + (n === 1 ? ' row' : ' rows'); }   // "1 row", "2 rows"
   function showCell(cell) {
     var key = cell.getAttribute('data-x') + '|' + cell.getAttribute('data-y');
     var sel = document.querySelectorAll('#heatmap .cell.selected');
@@ -60,8 +61,8 @@
     });
     var m = cell.getAttribute('data-miou');
     var total = (data.samples.cells || {})[key] || hits.length;   // rows beyond the cap: CSV
-    var count = total > hits.length ? 'the ' + hits.length + ' lowest of ' + total + ' rows'
-      : hits.length + ' rows';
+    var count = total > hits.length ? 'the ' + hits.length + ' lowest of ' + rowsText(total)
+      : rowsText(hits.length);
     document.getElementById('cell-title').textContent = 'Samples of cell x = ' +
       cell.getAttribute('data-x') + ', y = ' + cell.getAttribute('data-y') + ' (' +
       count + ', mIoU ' + (m ? m : 'none') + ')';
