@@ -221,10 +221,10 @@ class RetrainJob:
         region = None
         if by_rules:
             rules = explain(v.frame, v.space, ctx.threshold, score=v.score_column).rules
-            select = functools.partial(covered, rules)
-            region = sorted(int(i) for i in v.ok["eval_index"][covered(rules, v.ok)])
+            select = functools.partial(covered, rules, r.space)
+            region = sorted(int(i) for i in v.ok["eval_index"][covered(rules, v.space, v.ok)])
         if self.req.selection == "random":
-            select = functools.partial(random_rows, int(covered(rules, r.ok).sum()),
+            select = functools.partial(random_rows, int(covered(rules, r.space, r.ok).sum()),
                                        r.ok["eval_index"], self.req.seed)
         # R's rows at the chosen cells of V (or under V's rules), into OUT/selected/retrain
         n = write_retraining_set(dataclasses.replace(r, path=self.req.out / "selected"), cmap,

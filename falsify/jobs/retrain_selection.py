@@ -9,7 +9,8 @@ from collections.abc import Sequence
 import numpy as np
 import pandas as pd
 
-from falsify.results.explain import Rule
+from falsify.results.explain import Rule, holds
+from falsify.world.space import Space
 
 SELECTIONS = ("blind", "control", "rules", "random")
 
@@ -21,13 +22,15 @@ def transferable(rule: Rule) -> Rule:
         c for c in rule.conditions if c.dim != "background"))
 
 
-def covered(rules: Sequence[Rule], rows: pd.DataFrame) -> np.ndarray:
+def covered(rules: Sequence[Rule], space: Space, rows: pd.DataFrame) -> np.ndarray:
     """Bool per row: covered by at least one rule's transferable conditions (a rule about a
-    street of V alone covers nothing in R)."""
+    street of V alone covers nothing in R), each on rows whose sample holds the condition's
+    car (a one-car row's pinned x_2 meets no rule on x_2, as explain found the rule)."""
     out = np.zeros(len(rows), bool)
     for rule in map(transferable, rules):
         if rule.conditions:
-            out |= np.logical_and.reduce([c.mask(rows[c.dim]) for c in rule.conditions])
+            out |= np.logical_and.reduce([c.mask(rows[c.dim]) & holds(space, rows, c.dim)
+                                          for c in rule.conditions])
     return out
 
 

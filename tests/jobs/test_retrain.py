@@ -334,8 +334,9 @@ def test_rules_select_rs_samples_under_vs_rules_without_their_streets() -> None:
     assert transferable(far).text() == "y >= 16" and transferable(street).text() == ""
     rows = pd.DataFrame({"x": [0.0, 1.0, 2.0, 3.0], "y": [5.0, 16.0, 19.0, 10.0],
                          "background": [7, 7, 8, 8]})
-    assert covered([far, street], rows).tolist() == [False, True, True, False]
-    assert not covered([street], rows).any()
+    space = load_space(CONFIGS / "smoke.toml")
+    assert covered([far, street], space, rows).tolist() == [False, True, True, False]
+    assert not covered([street], space, rows).any()
 
 
 @pytest.mark.slow

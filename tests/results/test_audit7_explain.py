@@ -13,6 +13,7 @@ import tomllib
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from falsify.cli import main
@@ -263,3 +264,16 @@ def test_a_relative_user_mesh_is_found_from_another_directory(tmp_path: Path, mo
     monkeypatch.chdir(later)
     page = render_report(run)
     assert "not regenerated" not in page and "mine" in page
+
+
+def test_retrain_rules_cover_only_rows_holding_the_rules_car() -> None:
+    """`retrain --selection rules` carried a rule on x_2 over to one-car rows whose pinned
+    x_2 happened to meet it."""
+    from falsify.jobs.retrain_selection import covered
+    from falsify.results.explain import Condition, Rule
+
+    space = parse_space(tomllib.loads(TWO_CARS), source="two-cars.toml")
+    rule = Rule((Condition("x_2", "<=", -12.0),), 4, 4, 1.0, 0.4, 0.8, 0.1)
+    rows = pd.DataFrame({"count": [1, 2, 2], "x": [0.0] * 3, "y": [6.0] * 3,
+                         "x_2": [-12.0, -12.0, 12.0], "background": [0, 0, 1]})
+    assert covered([rule], space, rows).tolist() == [False, True, False]
