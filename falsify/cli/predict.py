@@ -38,12 +38,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sensor", default=None,
                    help=f"preset used to project .bin scans and KITTI object frames (default: "
                    f"{DEFAULT_SENSOR}); refused when every scan is a .npy range image")
+    p.add_argument("--score", choices=["pixels", "points"], default="pixels",
+                   help="what is scored: 'pixels' (default), the range image's pixels, each "
+                   "holding its nearest point; 'points', every point of a .bin scan that has a "
+                   "pixel, with that pixel's prediction, against its own label and at its own "
+                   "range (SemanticKITTI's leaderboard protocol; .npy range images refused: "
+                   "they hold no points)")
     p.add_argument("--out", required=True)
     p.add_argument("--json", action="store_true")
 
 
 def run(args) -> int:
-    from falsify.data.scansets import load_sets
+    from falsify.data.scansets import NPY_HAS_NO_POINTS, plan_sets, read_sets
     from falsify.fileio import write_bytes, write_npy
     from falsify.images.png import encode_png
     from falsify.images.scan_pictures import prediction_picture
@@ -54,12 +60,21 @@ def run(args) -> int:
     check_out_dir(args.out)
     backend = backend_for(args.model, check_backend(args.backend, args.model))
     sequences = predict_sequences(args.sequences, args.scans)
-    sets = load_sets(args.scans, load_sensor(args.sensor or DEFAULT_SENSOR),
-                     sequences=sequences)
-    if args.sensor is not None and not any(Path(src).suffix == ".bin"
-                                           for s in sets for src in s.sources):
+    plans = plan_sets(args.scans, sequences)
+    projects = any(p.projects for p in plans)
+    if args.sensor is not None and not projects:
         raise UsageError(f"--sensor {args.sensor}: projects .bin scans and KITTI object frames "
                          "only; every scan named is a .npy range image, already projected")
+    if args.score == "points":
+        npy = next((f for p in plans for f in p.files if f.suffix == ".npy"), None)
+        if npy is not None:
+            raise UsageError(f"--score points: {npy}: {NPY_HAS_NO_POINTS}")
+    sensor = load_sensor(args.sensor or DEFAULT_SENSOR)
+    # Open the model before any scan is read: one that does not fit the sensor fails at once.
+    model = load_segmenter(args.model, backend=backend, device=args.device)
+    if projects:
+        model.spec.check_fits(sensor, args.model or "bundled")
+    sets = read_sets(plans, sensor, points=args.score == "points")
     out = Path(args.out)
     targets = output_stems(sets, out)
     for s in sets:
@@ -69,8 +84,7 @@ def run(args) -> int:
         for label in s.orphan_labels:
             print(f"falsify: warning: {label}: labels without a scan (no "
                   f"{Path(label).stem}.bin among the set's scans); not scored", file=sys.stderr)
-    model = load_segmenter(args.model, backend=backend, device=args.device)
-    result = evaluate(model, sets)
+    result = evaluate(model, sets, score=args.score)
     for s, scans, stems in zip(result.sets, sets, targets, strict=True):
         labelled = scans.labelled()
         for k, (stem, cls) in enumerate(zip(stems, s.predictions, strict=True)):
@@ -109,8 +123,11 @@ def _predict_text(result, backend: str, out: Path, labelled: bool) -> str:
     def f(v):
         return "   -  " if v is None else f"{v:6.3f}"
 
+    unit = result.score   # "pixels" or "points": what TP, FP and FN count
+
     def scores(pooled, bands) -> list[str]:
-        lines = ["class        IoU    precision  recall   (TP, FP, FN pooled over scans)"]
+        lines = [f"class        IoU    precision  recall   (TP, FP, FN of {unit}, pooled over "
+                 "scans)"]
         for c in pooled.classes:
             lines.append(f"{c.name:11s} {f(c.iou)}  {f(c.precision)}    {f(c.recall)}"
                          + (f"   ({c.note})" if c.note else ""))
@@ -125,7 +142,11 @@ def _predict_text(result, backend: str, out: Path, labelled: bool) -> str:
 
     n = sum(len(s.sources) for s in result.sets)
     lines = [f"predicted {n} scans with {result.model} ({result.model_hash[:12]}, {backend}) "
-             f"into {out} (.pred.npy classes and .png pictures per scan)"]
+             f"into {out} (.pred.npy classes and .png pictures per scan)",
+             "scored per point (--score points): each point of a .bin with a pixel takes that "
+             "pixel's prediction, SemanticKITTI's protocol" if result.score == "points" else
+             "scored per pixel (--score pixels): each pixel holds its nearest point; "
+             "--score points scores every point"]
     if result.unlabelled:
         lines.append(f"{len(result.unlabelled)} scans without labels (named above): predicted, "
                      "left out of every score")
@@ -140,11 +161,17 @@ def _predict_text(result, backend: str, out: Path, labelled: bool) -> str:
                         else "")
                      + (f", {len(s.orphan_labels)} labels without a scan" if s.orphan_labels
                         else "")
-                     + (f", {s.ignored_pixels} pixels ignored" if s.ignored_pixels else ""))
+                     + (f", {s.ignored_pixels} pixels ignored" if s.ignored_pixels
+                        and s.score == "pixels" else "")
+                     + (f", {s.ignored_points} points ignored" if s.ignored_points else "")
+                     + (f", {s.points_outside_image} points outside the sensor's image (not "
+                        "scored)" if s.score == "points" else ""))
         if s.scored:
             lines += scores(s.pooled, s.bands)
     if result.labelled_sets > 1:
         scored = sum(s.scored for s in result.sets)
-        lines.append(f"\nall {result.labelled_sets} labelled sets pooled: {scored} scans")
+        lines.append(f"\nall {result.labelled_sets} labelled sets pooled: {scored} scans"
+                     + (f", {result.points_outside_image} points outside the sensor's image "
+                        "(not scored)" if result.score == "points" else ""))
         lines += scores(result.pooled, result.bands)
     return "\n".join(lines)

@@ -40,12 +40,16 @@ _IGNORE_ID = 255
 
 @dataclass(frozen=True)
 class ObjectFrame:
-    """A labelled frame: the range image (label channel 0 where ignored) and the ignore mask."""
+    """A labelled frame: the range image (label channel 0 where ignored), the ignore mask, and
+    every point with its class from the boxes (for point-wise scoring)."""
 
     name: str
     scan: Scan
     ignore: np.ndarray        # (H, W) bool
     boxes: tuple[KittiObject, ...]
+    xyz: np.ndarray | None = None          # (N, 3) float32 every point of the frame
+    point_class: np.ndarray | None = None  # (N,) uint8 each point's class id (0 where ignored)
+    point_ignore: np.ndarray | None = None  # (N,) bool points that count for no class
 
 
 def label_points(points: np.ndarray, boxes: list[KittiObject], calib: KittiCalib,
@@ -92,6 +96,14 @@ def read_object_frame(root: Path, name: str, sensor: Sensor) -> ObjectFrame:
     scan = image_from_points(sensor, pts[:, :3], cls, np.zeros(len(pts), np.int32),
                              intensity=pts[:, 3], rows=kitti_rows(sensor, pts[:, :3]))
     image = scan.image
-    ignore = image[..., 5] == _IGNORE_ID
-    image[..., 5][ignore] = 0
-    return ObjectFrame(name, Scan(image, scan.instance), ignore, tuple(boxes))
+    image[..., 5], ignore = split_ignored(image[..., 5])
+    point_class, point_ignore = split_ignored(cls)
+    return ObjectFrame(name, Scan(image, scan.instance), ignore, tuple(boxes), pts[:, :3],
+                       point_class, point_ignore)
+
+
+def split_ignored(cls: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Class ids as `label_points` gives them, per point or per pixel -> (the ids, 0 where
+    ignored; the ignore mask): one rule for the range image and point-wise scoring."""
+    ignore = cls == _IGNORE_ID
+    return np.where(ignore, 0, cls).astype(cls.dtype), ignore

@@ -22,9 +22,10 @@ from falsify.classes import CLASSES
 from falsify.data.kitti_frames import read_object_frame
 from falsify.data.kitti_object import frames
 from falsify.data.range_npy import load_scan_npy
-from falsify.data.velodyne import read_kitti
+from falsify.data.velodyne import kitti_rows, read_kitti, read_kitti_points
 from falsify.errors import FalsifyError
 from falsify.sensor.lidar import Sensor
+from falsify.sensor.scan import point_pixels
 from falsify.world.real_scans import (
     available_sequences,
     is_object_dir,
@@ -35,6 +36,36 @@ from falsify.world.real_scans import (
 )
 
 OBJECT_LAYOUT = "velodyne/, label_2/, calib/, image_2/"   # image_2/: the camera's field of view
+NPY_HAS_NO_POINTS = ("a .npy range image holds one point per pixel, not the scan's points, so "
+                     "it cannot be scored per point; give its .bin scan or use --score pixels")
+
+
+@dataclass(frozen=True)
+class ScanPoints:
+    """One scan's points that have a pixel in the sensor's image, for point-wise scoring
+    (SemanticKITTI's protocol): each takes its pixel's prediction and counts with its own label
+    at its own range; `outside` counts the points that have no pixel, never scored."""
+
+    pixel: np.ndarray                # (N,) int64 flat index row * W + col into the range image
+    range: np.ndarray                # (N,) float32 metres
+    label: np.ndarray                # (N,) uint8 four-class id
+    ignore: np.ndarray               # (N,) bool: counts for no class (an ignored box's point)
+    semantic: np.ndarray | None      # (N,) uint16 raw SemanticKITTI id, where a .label was read
+    outside: int                     # points outside the image (field of view or range) or
+    #                                  not finite: no pixel, no prediction
+
+
+def scan_points(sensor: Sensor, xyz: np.ndarray, label: np.ndarray, ignore: np.ndarray,
+                semantic: np.ndarray | None, dropped: int = 0) -> ScanPoints:
+    """The points of one scan at the pixels the range image put them in (the same projection,
+    laser rings included), those without a pixel counted in `outside` with `dropped`."""
+    row, col, inside = point_pixels(sensor, xyz, kitti_rows(sensor, xyz))
+    p = np.asarray(xyz, np.float64)[inside]
+    return ScanPoints(row[inside] * sensor.shape[1] + col[inside],
+                      np.linalg.norm(p, axis=1).astype(np.float32),
+                      np.asarray(label, np.uint8)[inside], np.asarray(ignore, bool)[inside],
+                      None if semantic is None else np.asarray(semantic, np.uint16)[inside],
+                      dropped + int((~inside).sum()))
 
 
 @dataclass(frozen=True)
@@ -49,6 +80,7 @@ class ScanSet:
     semantic: np.ndarray | None = None   # (B, H, W) uint16 raw SemanticKITTI ids, where every
     #                                      scan came from a .bin with a .label
     orphan_labels: tuple[str, ...] = ()  # .label files of the set's folder whose .bin is missing
+    points: tuple[ScanPoints, ...] | None = None   # one per scan, when read for point scoring
 
     def __len__(self) -> int:
         return len(self.images)
@@ -59,18 +91,28 @@ class ScanSet:
         return np.array([s not in missing for s in self.sources], bool)
 
 
-def read_set(name: str, paths: list[Path], sensor: Sensor) -> ScanSet:
+def read_set(name: str, paths: list[Path], sensor: Sensor, points: bool = False) -> ScanSet:
     """One set from .npy range images and KITTI .bin scans; a .bin's labels are read from
-    x.label beside it or ../labels/x.label, and a .bin with neither is listed as unlabelled."""
-    images, sources, unlabelled, semantic = [], [], [], []
+    x.label beside it or ../labels/x.label, and a .bin with neither is listed as unlabelled.
+    With `points`, each .bin's points are kept too (a .npy is refused: it has none)."""
+    images, sources, unlabelled, semantic, kept = [], [], [], [], []
     for p in paths:
         if p.suffix == ".bin":
             label = label_file(p)
             if label is None:
                 unlabelled.append(str(p))
-            scan = read_kitti(p, label, sensor)
+            if points:
+                read = read_kitti_points(p, label)
+                scan = read.project(sensor, kitti_rows(sensor, read.xyz))
+                kept.append(scan_points(sensor, read.xyz, read.cls,
+                                        np.zeros(len(read.cls), bool), read.semantic,
+                                        read.dropped))
+            else:
+                scan = read_kitti(p, label, sensor)
             images.append(scan.image)
             semantic.append(scan.semantic if label is not None else None)
+        elif p.suffix == ".npy" and points:
+            raise FalsifyError(f"{p}: {NPY_HAS_NO_POINTS}")
         elif p.suffix == ".npy":
             images.append(checked_labels(load_scan_npy(p), p))
             semantic.append(None)
@@ -83,7 +125,7 @@ def read_set(name: str, paths: list[Path], sensor: Sensor) -> ScanSet:
     sem = ([m if m is not None else np.zeros(im.shape[:2], np.uint16)
             for m, im in zip(semantic, images, strict=True)] if both else None)
     return _stack(name, images, [np.zeros(im.shape[:2], bool) for im in images], sources,
-                  unlabelled, sem)
+                  unlabelled, sem, tuple(kept) if points else None)
 
 
 def checked_labels(image: np.ndarray, path: Path) -> np.ndarray:
@@ -98,12 +140,19 @@ def checked_labels(image: np.ndarray, path: Path) -> np.ndarray:
     return image
 
 
-def read_object_set(root: Path, paths: list[Path], sensor: Sensor) -> ScanSet:
+def read_object_set(root: Path, paths: list[Path], sensor: Sensor,
+                    points: bool = False) -> ScanSet:
     """The frames `paths` (velodyne/*.bin) of a KITTI object directory, labelled from their
-    boxes."""
-    read = [read_object_frame(root, p.stem, sensor) for p in paths]
-    return _stack(root.name, [f.scan.image for f in read], [f.ignore for f in read],
-                  list(map(str, paths)))
+    boxes (with `points`, each point with its class from the same boxes)."""
+    images, ignore, kept = [], [], []
+    for p in paths:
+        f = read_object_frame(root, p.stem, sensor)
+        images.append(f.scan.image)
+        ignore.append(f.ignore)
+        if points:
+            kept.append(scan_points(sensor, f.xyz, f.point_class, f.point_ignore, None))
+    return _stack(root.name, images, ignore, list(map(str, paths)),
+                  points=tuple(kept) if points else None)
 
 
 def check_named_once(paths: list[Path]) -> None:
@@ -130,12 +179,26 @@ def npy_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.glob("*.npy") if not p.name.endswith(".pred.npy"))
 
 
-def load_sets(paths: list[str], sensor: Sensor,
-              sequences: list[str] | None = None) -> list[ScanSet]:
-    """Named sets from command-line paths, in the order first named: one per object directory,
-    SemanticKITTI sequence (only `sequences`' ids of a root or sequences/ folder, when given) or
-    folder of .npy / .bin scans, and loose files grouped by their folder. FalsifyError names a
-    scan named twice; a whole folder's labels without a scan are listed in its set."""
+@dataclass(frozen=True)
+class SetPlan:
+    """One set to read: its name, its files, and how they are read."""
+
+    name: str
+    files: tuple[Path, ...]
+    object_root: Path | None = None   # a KITTI object directory, labelled from its boxes
+    scan_dir: Path | None = None      # the folder whose whole .bin list the set is (orphans)
+
+    @property
+    def projects(self) -> bool:
+        """Whether a sensor projects any of its scans (a .bin scan or an object frame)."""
+        return any(f.suffix == ".bin" for f in self.files)
+
+
+def plan_sets(paths: list[str], sequences: list[str] | None = None) -> list[SetPlan]:
+    """The sets the command-line paths name, in the order first named, without reading a scan:
+    one per object directory, SemanticKITTI sequence (only `sequences`' ids of a root or
+    sequences/ folder, when given) or folder of .npy / .bin scans, and loose files grouped by
+    their folder. FalsifyError names a scan named twice or a path that holds no scans."""
     groups: dict[Path, list[Path]] = {}
     objects: dict[Path, None] = {}
     scan_dirs: dict[Path, Path] = {}   # a set's folder -> the folder its whole .bin list is in
@@ -175,21 +238,37 @@ def load_sets(paths: list[str], sensor: Sensor,
             groups.setdefault(p.parent, []).append(p)
     check_named_once([f for files in groups.values() for f in files])
     names = [_set_name(g) for g in groups]
-    sets = []
+    plans = []
     for folder, files in groups.items():
         name = _set_name(folder)
         if names.count(name) > 1:
             name = str(folder)
-        if folder in objects:
-            sets.append(read_object_set(folder, files, sensor))
+        plans.append(SetPlan(name, tuple(files), folder if folder in objects else None,
+                             scan_dirs.get(folder)))
+    return plans
+
+
+def read_sets(plans: list[SetPlan], sensor: Sensor, points: bool = False) -> list[ScanSet]:
+    """Read the planned sets (with `points`, each .bin's points too, for point-wise scoring);
+    a whole folder's labels without a scan are listed in its set."""
+    sets = []
+    for plan in plans:
+        if plan.object_root is not None:
+            sets.append(read_object_set(plan.object_root, list(plan.files), sensor, points))
             continue
-        orphans = labels_without_scans(scan_dirs[folder]) if folder in scan_dirs else []
-        sets.append(replace(read_set(name, files, sensor),
+        orphans = labels_without_scans(plan.scan_dir) if plan.scan_dir is not None else []
+        sets.append(replace(read_set(plan.name, list(plan.files), sensor, points),
                             orphan_labels=tuple(map(str, orphans))))
     shapes = {s.images.shape[1:] for s in sets}
     if len(shapes) > 1:
         raise FalsifyError(f"scans have different shapes: {sorted(shapes)}")
     return sets
+
+
+def load_sets(paths: list[str], sensor: Sensor, sequences: list[str] | None = None,
+              points: bool = False) -> list[ScanSet]:
+    """Named sets from command-line paths (`plan_sets`), read (`read_sets`)."""
+    return read_sets(plan_sets(paths, sequences), sensor, points)
 
 
 def _set_name(folder: Path) -> str:
@@ -201,9 +280,11 @@ def _set_name(folder: Path) -> str:
 
 def _stack(name: str, images: list[np.ndarray], ignore: list[np.ndarray],
            sources: list[str], unlabelled: list[str] | None = None,
-           semantic: list[np.ndarray] | None = None) -> ScanSet:
+           semantic: list[np.ndarray] | None = None,
+           points: tuple[ScanPoints, ...] | None = None) -> ScanSet:
     shapes = {im.shape for im in images}
     if len(shapes) > 1:
         raise FalsifyError(f"set {name}: scans have different shapes: {sorted(shapes)}")
     return ScanSet(name, np.stack(images), np.stack(ignore), tuple(sources),
-                   tuple(unlabelled or ()), None if semantic is None else np.stack(semantic))
+                   tuple(unlabelled or ()), None if semantic is None else np.stack(semantic),
+                   points=points)

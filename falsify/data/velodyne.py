@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -141,11 +142,27 @@ def kitti_rows(sensor: Sensor, points: np.ndarray) -> np.ndarray | None:
     return ring
 
 
-def read_kitti(bin_path: str | Path, label_path: str | Path | None,
-               sensor: Sensor) -> Scan:
-    """Read a KITTI .bin (+ SemanticKITTI .label) and project it with `sensor`'s layout (rows
-    by laser ring where the sensor's rows are KITTI's rings: `kitti_rows`; a spherical sensor
-    gives RangeNet++'s projection of the scan, as the SemanticKITTI networks read it)."""
+@dataclass(frozen=True)
+class KittiPoints:
+    """A .bin's finite points and each one's labels as `read_kitti` projects them: the one
+    reading shared by the range image and point-wise scoring."""
+
+    xyz: np.ndarray               # (N, 3) float32, sensor frame
+    remission: np.ndarray         # (N,) float32
+    cls: np.ndarray               # (N,) uint8 four-class id (falsify.semantic.kitti4)
+    instance: np.ndarray          # (N,) int32
+    semantic: np.ndarray | None   # (N,) uint16 raw SemanticKITTI ids, None without a .label
+    dropped: int = 0              # rows of the file with a non-finite value: never projected
+
+    def project(self, sensor: Sensor, rows: np.ndarray | None = None) -> Scan:
+        """The points in `sensor`'s image (`rows`: their laser rings, `kitti_rows`)."""
+        return image_from_points(sensor, self.xyz, self.cls, self.instance,
+                                 intensity=self.remission, rows=rows, semantic=self.semantic)
+
+
+def read_kitti_points(bin_path: str | Path, label_path: str | Path | None) -> KittiPoints:
+    """The finite points of a KITTI .bin with their SemanticKITTI labels (a .label's lower 16
+    bits, its upper 16 the instance); FalsifyError naming a file that does not fit."""
     bin_path = Path(bin_path)
     pts = read_bin(bin_path)
     if len(pts) == 0:
@@ -168,6 +185,14 @@ def read_kitti(bin_path: str | Path, label_path: str | Path | None,
     finite = np.isfinite(pts).all(axis=1)
     if not finite.any():
         raise FalsifyError(f"{bin_path}: no point with finite x, y, z and remission")
-    return image_from_points(sensor, pts[finite, :3], cls[finite], inst[finite],
-                             intensity=pts[finite, 3], rows=kitti_rows(sensor, pts[finite, :3]),
-                             semantic=None if sem is None else sem[finite])
+    return KittiPoints(pts[finite, :3], pts[finite, 3], cls[finite], inst[finite],
+                       None if sem is None else sem[finite], int((~finite).sum()))
+
+
+def read_kitti(bin_path: str | Path, label_path: str | Path | None,
+               sensor: Sensor) -> Scan:
+    """Read a KITTI .bin (+ SemanticKITTI .label) and project it with `sensor`'s layout (rows
+    by laser ring where the sensor's rows are KITTI's rings: `kitti_rows`; a spherical sensor
+    gives RangeNet++'s projection of the scan, as the SemanticKITTI networks read it)."""
+    points = read_kitti_points(bin_path, label_path)
+    return points.project(sensor, kitti_rows(sensor, points.xyz))

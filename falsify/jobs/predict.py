@@ -11,6 +11,11 @@ unsaid.
 A network with SemanticKITTI classes on sets whose scans carry SemanticKITTI labels (`.bin` with
 `.label`) is scored per train class as SemanticKITTI's evaluation scores points: pixels labelled
 unlabeled are left out, and mIoU is the mean over the classes present in the labels.
+
+Two protocols (`score`): "pixels" scores the range image's pixels, each holding its nearest point
+and that point's label; "points" scores every point of a .bin scan that has a pixel with that
+pixel's prediction against its own label, at its own range (RangeNet++'s and SalsaNext's
+evaluation without kNN, the leaderboard's protocol); points without a pixel are counted apart.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from falsify.data.scansets import ScanSet
+from falsify.data.scansets import ScanPoints, ScanSet
 from falsify.models.runners import Segmenter
 from falsify.results.metrics import CLASSES, ClassScore, Scoring, class_scores, confusion, pooled
 from falsify.semantic import TRAIN_CLASSES, train_ids
@@ -28,6 +33,7 @@ from falsify.semantic import TRAIN_CLASSES, train_ids
 # Range bands in metres: [lo, hi).
 BANDS: tuple[tuple[float, float], ...] = ((0.0, 15.0), (15.0, 30.0), (30.0, math.inf))
 CHUNK = 8   # scans per predict call
+SCORES = ("pixels", "points")   # what is scored: the range image's pixels, or the scans' points
 
 
 def band_name(lo: float, hi: float) -> str:
@@ -81,6 +87,9 @@ class SetEvaluation:
     predictions: np.ndarray = field(repr=False)    # (B, H, W) uint8
     unlabelled: tuple[str, ...] = ()               # sources predicted but left out of the scores
     orphan_labels: tuple[str, ...] = ()            # labels of the set whose scan is missing
+    score: str = "pixels"                          # the protocol: SCORES
+    ignored_points: int = 0                        # "points": points counted for no class
+    points_outside_image: int = 0                  # "points": points with no pixel, not scored
 
     @property
     def scored(self) -> int:
@@ -94,6 +103,9 @@ class SetEvaluation:
                 "labels_without_scans": list(self.orphan_labels), "pooled": self.pooled.to_json(),
                 "bands": {b: s.to_json() for b, s in self.bands},
                 "ignored_pixels": self.ignored_pixels,
+                **({"ignored_points": self.ignored_points,
+                    "points_outside_image": self.points_outside_image}
+                   if self.score == "points" else {}),
                 "per_scan": [{"scan": s, "car_iou": v, "labelled": s not in missing}
                              for s, v in zip(self.sources, self.scan_car_iou, strict=True)]}
 
@@ -107,6 +119,12 @@ class Evaluation:
     sets: tuple[SetEvaluation, ...]
     pooled: Scores
     bands: tuple[tuple[str, Scores], ...] = ()
+    score: str = "pixels"   # the protocol: SCORES
+
+    @property
+    def points_outside_image(self) -> int:
+        """Every set's points without a pixel ("points" protocol), never scored."""
+        return sum(s.points_outside_image for s in self.sets)
 
     @property
     def unlabelled(self) -> tuple[str, ...]:
@@ -124,7 +142,9 @@ class Evaluation:
         return sum(1 for s in self.sets if s.scored)
 
     def to_json(self) -> dict:
-        return {"model": self.model, "model_hash": self.model_hash,
+        return {"model": self.model, "model_hash": self.model_hash, "score": self.score,
+                **({"points_outside_image": self.points_outside_image}
+                   if self.score == "points" else {}),
                 "scans": sum(len(s.sources) for s in self.sets),
                 "scored_scans": sum(s.scored for s in self.sets),
                 "unlabelled": list(self.unlabelled),
@@ -155,54 +175,92 @@ def semantic_scoring(model: Segmenter, sets: list[ScanSet]) -> bool:
     return bool(classes) and Scoring.of(list(classes), "miou").semantic
 
 
+def scored_labels(label: np.ndarray, raw: np.ndarray | None, ignore: np.ndarray,
+                  semantic: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The class each pixel or point is scored against and whether it is left out, one rule for
+    both protocols: the SemanticKITTI train id of its raw id with `semantic` (unlabeled left
+    out), else its four-class id; `ignore` (an ignored box's) is always left out."""
+    if semantic:
+        train = train_ids(raw).astype(np.uint8)
+        return train, ignore | (train == 0)
+    return np.asarray(label).astype(np.uint8), ignore
+
+
+def _scan_counts(pred: np.ndarray, label: np.ndarray, rng: np.ndarray, ignore: np.ndarray,
+                 bands: tuple[tuple[float, float], ...], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """One scan's pooled (n, 3) and per-band (n_bands, n, 3) counts, pixels or points alike."""
+    keep = ~ignore
+    return (confusion(pred[keep], label[keep], n),
+            band_counts(pred, label, rng, ignore, bands, n))
+
+
+def _point_arrays(pred: np.ndarray, points: ScanPoints, semantic: bool
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(prediction, label, range, ignore) per point: each takes its pixel's prediction."""
+    label, ignore = scored_labels(points.label, points.semantic, points.ignore, semantic)
+    return pred.reshape(-1)[points.pixel], label, points.range, ignore
+
+
 def evaluate_set(model: Segmenter, scans: ScanSet,
                  bands: tuple[tuple[float, float], ...] = BANDS,
-                 semantic: bool = False) -> SetEvaluation:
+                 semantic: bool = False, score: str = "pixels") -> SetEvaluation:
     """Run `model` on every scan of one set and pool the labelled scans' counts overall and per
-    band (per SemanticKITTI train class with `semantic`, unlabeled pixels left out)."""
+    band (per SemanticKITTI train class with `semantic`, unlabeled left out), over the range
+    image's pixels or, with score="points", over every point that has a pixel."""
+    if score not in SCORES:
+        raise ValueError(f"score {score!r}: expected one of {', '.join(SCORES)}")
+    if score == "points" and scans.points is None:
+        raise ValueError(f"set {scans.name}: read without its points (load_sets(points=True))")
     preds = []
     for i in range(0, len(scans), CHUNK):
         p = model.predict(scans.images[i:i + CHUNK])
         preds.append(p.train_ids if semantic else p.classes)
     pred = np.concatenate(preds).astype(np.uint8)
     rng = scans.images[..., 4]
-    if semantic:
-        label = np.where(rng > 0, train_ids(scans.semantic), 0).astype(np.uint8)
-        ignore = scans.ignore | (label == 0)
-    else:
-        label = np.where(rng > 0, scans.images[..., 5], 0).astype(np.uint8)
-        ignore = scans.ignore
+    label, ignore = scored_labels(np.where(rng > 0, scans.images[..., 5], 0),
+                                  None if scans.semantic is None
+                                  else np.where(rng > 0, scans.semantic, 0),
+                                  scans.ignore, semantic)
     n = len(TRAIN_CLASSES) if semantic else len(CLASSES)
     labelled = scans.labelled()
     totals, per_scan = [], []
     band_sum = np.zeros((len(bands), n, 3), np.int64)
+    ignored_points = outside = 0
     for k in range(len(scans)):
         if not labelled[k]:
             per_scan.append(None)
             continue
-        keep = ~ignore[k]
-        c = confusion(pred[k][keep], label[k][keep], n)
+        if score == "points":
+            pts = scans.points[k]
+            p_k, l_k, r_k, i_k = _point_arrays(pred[k], pts, semantic)
+            ignored_points += int(pts.ignore.sum())
+            outside += pts.outside
+        else:
+            p_k, l_k, r_k, i_k = pred[k], label[k], rng[k], ignore[k]
+        c, b = _scan_counts(p_k, l_k, r_k, i_k, bands, n)
         totals.append(c)
         per_scan.append(Scores.of(c).car().iou)
-        band_sum += band_counts(pred[k], label[k], rng[k], ignore[k], bands, n)
+        band_sum += b
     return SetEvaluation(
         scans.name, scans.sources, Scores.of(pooled(totals)), _band_scores(band_sum, bands),
         tuple(per_scan), int(scans.ignore[labelled].sum()), pred, scans.unlabelled,
-        scans.orphan_labels)
+        scans.orphan_labels, score, ignored_points, outside)
 
 
 def evaluate(model: Segmenter, sets: list[ScanSet],
-             bands: tuple[tuple[float, float], ...] = BANDS) -> Evaluation:
-    """Evaluate `model` on each set (scores pooled per set, per band) and on all together."""
+             bands: tuple[tuple[float, float], ...] = BANDS,
+             score: str = "pixels") -> Evaluation:
+    """Evaluate `model` on each set (scores pooled per set, per band) and on all together, over
+    pixels or points (`score`, SCORES)."""
     semantic = semantic_scoring(model, sets)
-    results = tuple(evaluate_set(model, s, bands, semantic) for s in sets)
+    results = tuple(evaluate_set(model, s, bands, semantic, score) for s in sets)
     total = pooled([r.pooled.counts for r in results])
     n = len(TRAIN_CLASSES) if semantic else len(CLASSES)
     band_sum = np.zeros((len(bands), n, 3), np.int64)
     for r in results:
         band_sum += np.stack([sc.counts for _, sc in r.bands])
     return Evaluation(model.spec.name, model.model_hash, results, Scores.of(total),
-                      _band_scores(band_sum, bands))
+                      _band_scores(band_sum, bands), score)
 
 
 def _band_scores(counts: np.ndarray, bands: tuple[tuple[float, float], ...]

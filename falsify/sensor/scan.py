@@ -53,8 +53,7 @@ def image_from_points(sensor: Sensor, points: np.ndarray, cls: np.ndarray,
     SemanticKITTI ids per point) fills the scan's semantic image."""
     points = np.asarray(points, dtype=np.float64)
     ranges = np.linalg.norm(points, axis=1)
-    row, col, inside = sensor.pixel_of(points, rows)
-    inside &= ranges <= sensor.max_range
+    row, col, inside = point_pixels(sensor, points, rows)
     order = np.argsort(-ranges[inside], kind="stable")  # far first, so near points overwrite
     idx = np.flatnonzero(inside)[order]
     image = np.zeros((*sensor.shape, 6), dtype=np.float32)
@@ -70,6 +69,17 @@ def image_from_points(sensor: Sensor, points: np.ndarray, cls: np.ndarray,
         sem = np.zeros(sensor.shape, dtype=np.uint16)
         sem[r, c] = np.asarray(semantic)[idx]
     return Scan(image, inst, sem)
+
+
+def point_pixels(sensor: Sensor, points: np.ndarray, rows: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(row, col, inside) of each sensor-frame point in the sensor's image: the pixel
+    `image_from_points` may give it, so point-wise scoring reads the prediction there; outside
+    the field of view or past the sensor's range a point has none."""
+    p = np.asarray(points, dtype=np.float64)
+    row, col, inside = sensor.pixel_of(p, rows)
+    inside &= np.linalg.norm(p, axis=1) <= sensor.max_range
+    return row, col, inside
 
 
 def project_scan(sensor: Sensor, scan: Scan) -> Scan:
