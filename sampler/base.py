@@ -10,9 +10,10 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 import nlopt
+import numpy as np
 
 from falsify.errors import ConfigError
-from falsify.world.space import Sample, Space
+from falsify.world.space import Categorical, Sample, Space
 
 Score = float | None
 """A sample's car IoU (lower = worse for the network); None = invalid sample or undefined IoU."""
@@ -208,4 +209,40 @@ def lowest_so_far(scores: Sequence[Score]) -> list[Score]:
         if s is not None and (best is None or s < best):
             best = s
         out.append(best)
+    return out
+
+
+REDRAW_STREAM = 1   # the random stream that replaces repeated draws on a finite space
+
+
+def without_repeats(space: Space, drawn: list[Sample], seed: int) -> list[Sample]:
+    """`drawn` with each repeat of an earlier draw replaced by a scene not drawn yet (a finite
+    space, fewer draws than scenes): a repeat is read back, not scored, so it cost the budget a
+    sample. The first draw of each scene keeps its place; replacements come from their own
+    seeded stream, uniform over the scenes left (from the grid when the draws fill more than
+    half of it, else drawn again until new: under two tries each)."""
+    seen: set[Sample] = set()
+    repeats = []
+    for i, sample in enumerate(drawn):
+        if sample in seen:
+            repeats.append(i)
+        seen.add(sample)
+    if not repeats:
+        return drawn
+    rng = np.random.default_rng([seed, REDRAW_STREAM])
+    if 2 * len(drawn) > space.size():
+        rest = [g for g in space.grid() if g not in seen]
+        fresh = [rest[k] for k in rng.permutation(len(rest))[:len(repeats)]]
+    else:
+        fresh = []
+        while len(fresh) < len(repeats):
+            sample = space.make({name: (dim.values[rng.integers(len(dim.values))]
+                                        if isinstance(dim, Categorical) else dim.lo)
+                                 for name, dim in space.dims.items()})
+            if sample not in seen:
+                seen.add(sample)
+                fresh.append(sample)
+    out = list(drawn)
+    for i, sample in zip(repeats, fresh, strict=True):
+        out[i] = sample
     return out

@@ -14,10 +14,9 @@ from falsify.sampler.base import (
     check_budget,
     covering_grid,
     evaluate_all,
+    without_repeats,
 )
 from falsify.world.space import Categorical, Sample, Space
-
-REDRAW_STREAM = 1   # the random stream that replaces repeated draws on a finite space
 
 
 @dataclass(frozen=True)
@@ -54,35 +53,3 @@ class RandomSampler:
         assert n is not None
         return evaluate_all(self.name, evaluate, self.samples(space, n, seed), self.batch_size)
 
-
-def without_repeats(space: Space, drawn: list[Sample], seed: int) -> list[Sample]:
-    """`drawn` with each repeat of an earlier draw replaced by a scene not drawn yet (a finite
-    space, fewer draws than scenes): a repeat is read back, not scored, so it cost the budget a
-    sample. The first draw of each scene keeps its place; replacements come from their own
-    seeded stream, uniform over the scenes left (from the grid when the draws fill more than
-    half of it, else drawn again until new: under two tries each)."""
-    seen: set[Sample] = set()
-    repeats = []
-    for i, sample in enumerate(drawn):
-        if sample in seen:
-            repeats.append(i)
-        seen.add(sample)
-    if not repeats:
-        return drawn
-    rng = np.random.default_rng([seed, REDRAW_STREAM])
-    if 2 * len(drawn) > space.size():
-        rest = [g for g in space.grid() if g not in seen]
-        fresh = [rest[k] for k in rng.permutation(len(rest))[:len(repeats)]]
-    else:
-        fresh = []
-        while len(fresh) < len(repeats):
-            sample = space.make({name: (dim.values[rng.integers(len(dim.values))]
-                                        if isinstance(dim, Categorical) else dim.lo)
-                                 for name, dim in space.dims.items()})
-            if sample not in seen:
-                seen.add(sample)
-                fresh.append(sample)
-    out = list(drawn)
-    for i, sample in zip(repeats, fresh, strict=True):
-        out[i] = sample
-    return out

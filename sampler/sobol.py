@@ -16,6 +16,7 @@ from falsify.sampler.base import (
     check_budget,
     covering_grid,
     evaluate_all,
+    without_repeats,
 )
 from falsify.world.space import Categorical, Continuous, Sample, Space
 
@@ -24,7 +25,8 @@ from falsify.world.space import Categorical, Continuous, Sample, Space
 class SobolSampler:
     """Coordinates: free continuous dims first, then categorical dims, each in dim order. A space
     with no free coordinate holds one sample, which is evaluated once; more generally a budget
-    that covers a finite space (every dim discrete) scores its grid once, in order."""
+    that covers a finite space (every dim discrete) scores its grid once, in order, and a smaller
+    one scores each scene at most once (a repeat is replaced by a random scene not drawn)."""
 
     batch_size: int = BATCH
     name: str = field(default="sobol", init=False)
@@ -49,7 +51,7 @@ class SobolSampler:
             for j, d in enumerate(cat, start=len(cont)):
                 values[d.name] = d.values[min(int(row[j] * len(d.values)), len(d.values) - 1)]
             out.append(space.make(values))
-        return out
+        return out if cont else without_repeats(space, out, seed)
 
     def run(self, space: Space, evaluate: Evaluate, budget: int | None,
             seed: int) -> SearchResult:
