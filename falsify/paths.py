@@ -21,13 +21,23 @@ RETURN_MODELS = CONFIGS / "returns"  # fitted sensor return models (falsify.jobs
 
 def config_path(path: str | Path) -> Path:
     """The config a user names: the file itself where it exists, else the bundled config of
-    that name, so `configs/ci.toml` (or `ci.toml`) works from any directory."""
+    that name, so `configs/ci.toml`, `ci.toml` or `ci` works from any directory (a folder of
+    that name, say a run's `--out ci`, does not hide it)."""
     path = Path(path)
-    if path.exists() or path.is_absolute():
+    if path.is_file() or path.is_absolute():
         return path
     parts = path.parts[1:] if path.parts[:1] == ("configs",) else path.parts
-    bundled = CONFIGS.joinpath(*parts) if parts else CONFIGS
-    return bundled if bundled.is_file() else path
+    if parts:
+        bundled = CONFIGS.joinpath(*parts)
+        for candidate in (bundled, bundled.with_name(bundled.name + ".toml")):
+            if candidate.is_file():
+                return candidate
+    return path
+
+
+def bundled_configs() -> list[str]:
+    """The names of the bundled space configs (`falsify grid NAME`)."""
+    return sorted(p.stem for p in CONFIGS.glob("*.toml"))
 
 
 # The data sets shipped configs name, by the variable that says where a user keeps each.

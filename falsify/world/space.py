@@ -25,7 +25,7 @@ from typing import Any
 from falsify.checks import SEED_MAX
 from falsify.errors import ConfigError
 from falsify.fileio import parse_toml, read_bytes
-from falsify.paths import config_path
+from falsify.paths import bundled_configs, config_path
 from falsify.world.space_dims import (
     CONTINUOUS_BASE,
     EFFECT_DIMS,
@@ -311,6 +311,9 @@ def load_space(path: str | Path, builtin_cars: tuple[str, ...] | None = None) ->
     """Read and validate a space config (a file, or a bundled config by its name); every problem
     names its key and the allowed values."""
     path = config_path(path)
+    if not path.exists():
+        raise ConfigError(f"{path}: no such config; give a TOML file or a bundled config: "
+                          f"{', '.join(bundled_configs())}")
     text = read_bytes(path, "config", ConfigError)
     raw = parse_toml(text, path, error=ConfigError)
     space = parse_space(raw, source=str(path), base_dir=path.parent,

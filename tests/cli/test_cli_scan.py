@@ -130,7 +130,7 @@ def test_invalid_sample_is_a_clear_error(tmp_path, capsys):
 def test_console_script_exit_code(tmp_path):
     r = subprocess.run([sys.executable, "-m", "falsify", "scan", "nope.toml", "--out",
                         str(tmp_path / "o")], capture_output=True, text=True)
-    assert r.returncode == 2 and "nope.toml: cannot read config" in r.stderr
+    assert r.returncode == 2 and "nope.toml: no such config" in r.stderr
     r = subprocess.run([sys.executable, "-m", "falsify", "scan"], capture_output=True,
                        text=True)
     assert r.returncode == 2

@@ -106,7 +106,8 @@ def test_not_toml_and_missing_file(tmp_path):
     bad.write_text("name = [")
     with pytest.raises(ConfigError, match="bad.toml: not valid TOML"):
         load_space(bad)
-    with pytest.raises(ConfigError, match="cannot read config"):
+    with pytest.raises(ConfigError, match="none.toml: no such config; give a TOML file or a "
+                                          "bundled config: bench, ci, paper"):
         load_space(tmp_path / "none.toml")
 
 
