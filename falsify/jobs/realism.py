@@ -281,9 +281,11 @@ def compare(synthetic: dict[str, list[Path]], real: list[ScanSet],
     labels = labels or {}
     syn_stats = tuple(set_stats(name, paths, features, labels.get(name, "kitti4"))
                       for name, paths in synthetic.items())
+    shown = tuple(set_stats(s.name, s, features) for s in reported)
+    for s in (*real_stats, *syn_stats, *shown):
+        check_comparable(s)
     for s in syn_stats:
         s.floor = frechet_floor(s.all_features, all_real[-1].scans)
-    shown = tuple(set_stats(s.name, s, features) for s in reported)
     dist = {s.name: {r.name: distances(s, r) for r in (*all_real, *shown)} for s in syn_stats}
     for s in syn_stats:
         for r in (*all_real, *shown):
@@ -294,6 +296,18 @@ def compare(synthetic: dict[str, list[Path]], real: list[ScanSet],
                  else None)
     return Realism(features.spec.name, features.model_hash, syn_stats, all_real, dist,
                    resampled, per_real_scan(syn_stats, all_real[-1]), shown)
+
+
+def check_comparable(stats: SetStats) -> None:
+    """FalsifyError naming a set whose scans hold too little to compare: no valid point (scans
+    blanked by dense fog, or empty files), or fewer than two feature cells for its Fréchet
+    distance (it was a ValueError traceback)."""
+    cells = int(stats.all_features.counts.sum())
+    if stats.points == 0 or cells < 2:
+        what = ("no valid point (range > 0)" if stats.points == 0 else
+                f"{cells} feature cell, and its Fréchet distance needs 2")
+        raise FalsifyError(f"set {stats.name}: its {stats.scans} scans hold {what}; nothing to "
+                           "compare (blank scans, or dense fog throughout?)")
 
 
 def _checked(path: Path, features: EncoderFeatures) -> np.ndarray:
