@@ -113,11 +113,12 @@ def distance_table(doc: dict) -> str:
                             else ' <span class="no">✗ not closer</span>')
                 interval = ""
                 if boot and r == pooled:
-                    lo, hi = boot["intervals"][s["name"]][key]
-                    interval = f'<br><span class="sub">{lo:.4f}-{hi:.4f}</span>'
-                    if cand is not None:
-                        interval += (f'<br><span class="sub">closer in '
-                                     f'{boot["closer_share"][s["name"]][key]:.0%} of draws'
+                    span = boot["intervals"][s["name"]][key]
+                    interval = ('<br><span class="sub">no draw defined</span>' if span is None
+                                else f'<br><span class="sub">{span[0]:.4f}-{span[1]:.4f}</span>')
+                    share = boot["closer_share"].get(s["name"], {}).get(key)
+                    if cand is not None and share is not None:
+                        interval += (f'<br><span class="sub">closer in {share:.0%} of draws'
                                      '</span>')
                 cells.append(f'<td class="num" data-stat="{esc(key)}">{value:.4f}{mark}'
                              f'{interval}</td>')
@@ -155,7 +156,11 @@ def distance_table(doc: dict) -> str:
                     f'scans: its {lo:g}-{hi:g} % range over {boot["draws"]} resamples of the '
                     'scans (seeded; real scans drawn within each real set), and for a later '
                     'set the share of those draws in which it is closer than the first, both '
-                    'against the same real draw.</p>')
+                    'against the same real draw.'
+                    + "".join(f" {n} of the draws of {esc(name)} held only blank scans and "
+                              "give no distance." for name, n in
+                              boot.get("undefined_draws", {}).items() if n)
+                    + '</p>')
     return (f'<section id="distances"><h2>Distances (lower is closer)</h2>{verdict}'
             f'<table><thead><tr><th>statistic</th>{head}</tr></thead>'
             f'<tbody>{"".join(rows)}</tbody></table></section>')

@@ -75,13 +75,19 @@ def frechet_floor(feats: ScanFeatures, scans: int, draws: int = FLOOR_DRAWS,
                   seed: int = 0) -> dict | None:
     """The per-position Fréchet distance between `scans` random scans of one set and the rest
     of it, over `draws` seeded draws: what sampling alone gives at a real set's scan count.
-    None when the set has too few scans to leave two behind."""
+    None when the set has too few scans to leave two behind; a draw whose part holds blank
+    scans only (no valid cell) has no distance and is counted in `undefined_draws`."""
     if scans < 1 or len(feats) < scans + 2:
         return None
     rng = np.random.default_rng(seed)
     values = []
     for _ in range(draws):
         p = rng.permutation(len(feats))
-        values.append(cell_frechet(feats, feats, p[:scans], p[scans:]))
+        a, b = p[:scans], p[scans:]
+        if feats.counts[a].sum() >= 2 and feats.counts[b].sum() >= 2:   # else blank scans only
+            values.append(cell_frechet(feats, feats, a, b))
+    if not values:
+        return None
     return {"scans": scans, "draws": draws, "seed": seed,
+            "undefined_draws": draws - len(values),
             "mean": round(float(np.mean(values)), 6), "max": round(float(np.max(values)), 6)}

@@ -4,6 +4,7 @@ scalar where lower is closer, whole or under a seeded bootstrap of their scans."
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -225,24 +226,51 @@ def bootstrap(synthetic: tuple[SetStats, ...], real: SetStats, draws: int,
     rng = np.random.default_rng(seed)
     groups = [np.flatnonzero(real.groups == g) for g in np.unique(real.groups)]
     values = {s.name: {k: [] for k, _, _ in STATISTICS} for s in synthetic}
+    undefined = {s.name: 0 for s in synthetic}
     for _ in range(draws):
         i_real = np.concatenate([rng.choice(g, len(g)) for g in groups])
+        real_ok = _cells(real, i_real) >= 2
         for s in synthetic:
-            d = distances(s, real, rng.integers(0, s.scans, s.scans), i_real)
+            i_syn = rng.integers(0, s.scans, s.scans)
+            if real_ok and _cells(s, i_syn) >= 2:
+                d = distances(s, real, i_syn, i_real)
+            else:   # a draw of blank scans only: no Fréchet distance, no distance at all
+                d = dict.fromkeys(values[s.name], math.nan)
+                undefined[s.name] += 1
             for k in values[s.name]:
                 values[s.name][k].append(d[k])
-    lo, hi = BOOTSTRAP_LEVELS
     out = {"draws": draws, "seed": seed, "levels": list(BOOTSTRAP_LEVELS), "real": real.name,
-           "intervals": {n: {k: [round(float(np.percentile(v, lo)), 6),
-                                 round(float(np.percentile(v, hi)), 6)] for k, v in d.items()}
-                         for n, d in values.items()},
+           "undefined_draws": undefined,
+           "intervals": {n: {k: _interval(v) for k, v in d.items()} for n, d in values.items()},
            "closer_share": {}}
     if synthetic:
         base = values[synthetic[0].name]
         for s in synthetic[1:]:
-            out["closer_share"][s.name] = {
-                k: round(float(np.mean(np.less(values[s.name][k], base[k]))), 6) for k in base}
+            out["closer_share"][s.name] = {k: _share_closer(values[s.name][k], base[k])
+                                           for k in base}
     return out
+
+
+def _cells(stats: SetStats, idx: np.ndarray) -> int:
+    """Valid feature cells in the scans `idx` of a set (with repeats)."""
+    return int(stats.all_features.counts[idx].sum())
+
+
+def _interval(values: list[float]) -> list[float] | None:
+    """The BOOTSTRAP_LEVELS percentiles of the defined draws; None when no draw is defined."""
+    v = np.asarray(values, np.float64)
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return None
+    lo, hi = BOOTSTRAP_LEVELS
+    return [round(float(np.percentile(v, lo)), 6), round(float(np.percentile(v, hi)), 6)]
+
+
+def _share_closer(values: list[float], base: list[float]) -> float | None:
+    """The share of draws, defined for both sets, in which `values` is below `base`."""
+    a, b = np.asarray(values, np.float64), np.asarray(base, np.float64)
+    both = np.isfinite(a) & np.isfinite(b)
+    return round(float(np.mean(a[both] < b[both])), 6) if both.any() else None
 
 
 def clipped_hist(values: np.ndarray, edges: np.ndarray) -> np.ndarray:
