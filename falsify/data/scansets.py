@@ -56,10 +56,14 @@ class ScanPoints:
 
 
 def scan_points(sensor: Sensor, xyz: np.ndarray, label: np.ndarray, ignore: np.ndarray,
-                semantic: np.ndarray | None, dropped: int = 0) -> ScanPoints:
+                semantic: np.ndarray | None, dropped: int = 0,
+                rows: np.ndarray | None = None) -> ScanPoints:
     """The points of one scan at the pixels the range image put them in (the same projection,
-    laser rings included), those without a pixel counted in `outside` with `dropped`."""
-    row, col, inside = point_pixels(sensor, xyz, kitti_rows(sensor, xyz))
+    laser rings included: `rows`, `kitti_rows` when not given), those without a pixel counted
+    in `outside` with `dropped`."""
+    if rows is None:
+        rows = kitti_rows(sensor, xyz)
+    row, col, inside = point_pixels(sensor, xyz, rows)
     p = np.asarray(xyz, np.float64)[inside]
     return ScanPoints(row[inside] * sensor.shape[1] + col[inside],
                       np.linalg.norm(p, axis=1).astype(np.float32),
@@ -103,10 +107,11 @@ def read_set(name: str, paths: list[Path], sensor: Sensor, points: bool = False)
                 unlabelled.append(str(p))
             if points:
                 read = read_kitti_points(p, label)
-                scan = read.project(sensor, kitti_rows(sensor, read.xyz))
+                rows = kitti_rows(sensor, read.xyz)   # once, for the image and the points
+                scan = read.project(sensor, rows)
                 kept.append(scan_points(sensor, read.xyz, read.cls,
                                         np.zeros(len(read.cls), bool), read.semantic,
-                                        read.dropped))
+                                        read.dropped, rows))
             else:
                 scan = read_kitti(p, label, sensor)
             images.append(scan.image)
