@@ -115,10 +115,6 @@ def interp(v: float, values: tuple, size: float) -> float:
     return float(np.interp(v, vals, centres))
 
 
-def tip_attr(text: str) -> str:
-    return f' data-tip="{esc(text)}"'
-
-
 def cells_svg(grid: Grid, values: np.ndarray, fill: Callable[[float], str],
               tip: Callable[[int, int], str], cls: str, outline: np.ndarray | None = None,
               label: Callable[[int, int], str] | None = None,
@@ -137,7 +133,7 @@ def cells_svg(grid: Grid, values: np.ndarray, fill: Callable[[float], str],
             extra = attrs(i, j) if attrs else ""
             parts.append(f'<rect class="{klass}" x="{num(x)}" y="{num(y)}" '
                          f'width="{num(grid.cw)}" height="{num(grid.ch)}" fill="{colour}"'
-                         f'{extra}{tip_attr(text)}><title>{esc(text)}</title></rect>')
+                         f'{extra}><title>{esc(text)}</title></rect>')
             if label is not None and not empty:
                 labels.append(f'<text class="lbl" x="{num(x + grid.cw / 2)}" '
                               f'y="{num(y + grid.ch / 2 + 3.5)}" fill="{ink(fill(float(v)))}">'

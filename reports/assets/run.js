@@ -7,8 +7,23 @@
     if (y + r.height > window.innerHeight) y = Math.max(0, ev.clientY - r.height - pad);
     tip.style.left = x + 'px'; tip.style.top = y + 'px';
   }
+  // A mark's tooltip ships once, as its SVG <title> (read without script too); on first hover
+  // it moves into data-tip, so the styled tip shows it and the browser's own does not.
+  function tipped(node) {
+    for (var el = node; el && el.tagName && el.tagName.toLowerCase() !== 'svg'; el = el.parentNode) {
+      if (el.hasAttribute('data-tip')) return el;
+      for (var c = el.firstElementChild; c; c = c.nextElementSibling) {
+        if (c.tagName.toLowerCase() === 'title') {
+          el.setAttribute('data-tip', c.textContent);
+          el.removeChild(c);
+          return el;
+        }
+      }
+    }
+    return null;
+  }
   document.addEventListener('mouseover', function (ev) {
-    var el = ev.target.closest ? ev.target.closest('[data-tip]') : null;
+    var el = tipped(ev.target);
     if (!el || !el.getAttribute('data-tip')) { tip.style.display = 'none'; return; }
     tip.textContent = el.getAttribute('data-tip');
     tip.style.display = 'block';

@@ -16,7 +16,6 @@ from falsify.reports.charts import (
     diverging,
     num,
     svg_element,
-    tip_attr,
 )
 from falsify.reports.page import esc
 from falsify.reports.run.common import cell_key
@@ -137,7 +136,7 @@ def improvement_svg(table: pd.DataFrame, span: float) -> str:
                 f"{row.miou_after:.3f} ({c:+.3f})")
         out.append(f'<rect class="bar" x="{num(left + k * bw)}" y="{num(y0)}" '
                    f'width="{num(max(bw - 0.4, 0.6))}" height="{num(max(y1 - y0, 0.5))}" '
-                   f'fill="{PUOR[-2] if c >= 0 else PUOR[1]}"{tip_attr(text)}>'
+                   f'fill="{PUOR[-2] if c >= 0 else PUOR[1]}">'
                    f"<title>{esc(text)}</title></rect>")
     out.append(f'<line x1="{left}" x2="{left + pw}" y1="{num(sy(0))}" y2="{num(sy(0))}" '
                'stroke="#333"/>')

@@ -16,7 +16,6 @@ from falsify.reports.charts import (
     f3,
     num,
     svg_element,
-    tip_attr,
     viridis,
 )
 from falsify.reports.page import esc
@@ -227,7 +226,7 @@ def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
         text = (f"eval {int(ev)}: x = {xs[k]:.3f}, y = {ys[k]:.3f}, IoU "
                 f"{'undefined' if np.isnan(v) else f'{v:.3f}'}")
         dots.append(f'<circle class="step" cx="{num(px)}" cy="{num(py)}" r="4.5" '
-                    f'fill="{fill}"{tip_attr(text)}><title>{esc(text)}</title></circle>')
+                    f'fill="{fill}"><title>{esc(text)}</title></circle>')
     if np.isfinite(ious).any():
         k = int(np.nanargmin(ious))
         px, py = pts[k]

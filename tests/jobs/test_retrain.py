@@ -155,7 +155,7 @@ def test_comparison_page_in_chromium(browser, experiment) -> None:
     assert f"final loss {loss:.4f}." in page   # rounded, not float repr
     browser.get((out / "comparison.html").as_uri())
     for ident in ("before-map", "after-map", "diffmap"):
-        assert len(browser.find_elements(By.CSS_SELECTOR, f"#{ident} rect[data-tip]")) == 2
+        assert len(browser.find_elements(By.CSS_SELECTOR, f"#{ident} rect > title")) == 2
     rows = browser.find_elements(By.CSS_SELECTOR, "#selected-cells tbody tr")
     assert len(rows) == len(r.blind_before)
     checks = browser.find_elements(By.CSS_SELECTOR, "#checks tbody tr")
