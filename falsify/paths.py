@@ -56,8 +56,9 @@ _VARIABLE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
 
 
 def expand_data_path(text: str, where: str) -> str:
-    """A data path with each `${NAME}` replaced by that environment variable; FalsifyError
-    naming `where` and saying how to get the data when a variable is unset or empty."""
+    """A data path with each `${NAME}` replaced by that environment variable and a leading `~`
+    by the home folder; FalsifyError naming `where` and saying how to get the data when a
+    variable is unset or empty."""
     def value(match: re.Match) -> str:
         name = match.group(1)
         found = os.environ.get(name, "")
@@ -66,4 +67,4 @@ def expand_data_path(text: str, where: str) -> str:
             raise FalsifyError(f"{where}: ${{{name}}} is not set; it must name {how} "
                                "(or write the path into the config)")
         return found
-    return _VARIABLE.sub(value, text)
+    return os.path.expanduser(_VARIABLE.sub(value, text))

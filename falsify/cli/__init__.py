@@ -134,8 +134,17 @@ def _lenient_output() -> None:
             stream.reconfigure(errors="backslashreplace")
 
 
+def expand_home(arg: str) -> str:
+    """`--opt=~/x` with its `~` expanded, as the shell expands `--opt ~/x` but not this
+    spelling (a folder named `~` was made in the working folder)."""
+    name, eq, value = arg.partition("=")
+    if arg.startswith("--") and eq and value.startswith("~"):
+        return f"{name}={os.path.expanduser(value)}"
+    return arg
+
+
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
+    argv = [expand_home(a) for a in (sys.argv[1:] if argv is None else argv)]
     _lenient_output()
     is_run = argv[:1] in (["grid"], ["search"])
     resumable = is_run or argv[:1] in (["train"], ["retrain"], ["train-pointnet"])

@@ -196,7 +196,7 @@ def read_user_cars(raw: Any, where: str, base_dir: Path, builtin: tuple[str, ...
             if v not in ("+x", "-x", "+y", "-y", "+z", "-z"):
                 raise ConfigError(f"{where}{key}.{axis_key}: {v!r}; allowed: +x, -x, +y, -y, "
                                   "+z, -z")
-        file = Path(spec["file"])
+        file = Path(spec["file"]).expanduser()
         if not file.is_absolute():
             file = base_dir / file
         out[name] = UserCar(name, file, float(scale), spec.get("forward", "+x"),
