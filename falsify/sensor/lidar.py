@@ -42,6 +42,10 @@ MAX_RANGE_M = 10_000.0
 # Spin rates a sweep may take: spinning LiDARs turn at 5-20 Hz; at 1e-300 Hz a moving ego's sweep
 # never ends and every ray is lost.
 MIN_ROTATION_HZ, MAX_ROTATION_HZ = 0.1, 1000.0
+# The grid's size: columns up to 16384 (0.022 deg over 360), rows up to 2048 (real sensors have
+# at most 128 lasers, scanning solid-state ones a few hundred lines), and at most 2^22 rays a
+# scan, so a typo (beams = 100000000) is refused instead of allocating hundreds of GB.
+MAX_COLUMNS, MAX_ROWS, MAX_RAYS = 16384, 2048, 1 << 22
 
 
 @dataclass(frozen=True)
@@ -250,16 +254,21 @@ def parse_sensor(raw: dict, source: str = "<sensor>") -> Sensor:
     elevations = _elevations(raw, where)
 
     fov = raw.get("h_fov_deg")
-    if (not isinstance(fov, list) or len(fov) != 2
-            or not all(isinstance(a, int | float) and math.isfinite(a) for a in fov)):
-        raise ConfigError(f"{where}h_fov_deg: expected [left_deg, right_deg], e.g. [45, -45]")
+    if not isinstance(fov, list) or len(fov) != 2 or not all(_finite(a) for a in fov):
+        raise ConfigError(f"{where}h_fov_deg: expected [left_deg, right_deg], two finite "
+                          "numbers of degrees counter-clockwise from forward (left positive), "
+                          "e.g. [45, -45]")
     left, right = float(fov[0]), float(fov[1])
     if not 0 < left - right <= 360.0:
         raise ConfigError(f"{where}h_fov_deg: left {left:g} minus right {right:g} must be in "
                           "(0, 360] degrees")
     cols = raw.get("columns")
-    if isinstance(cols, bool) or not isinstance(cols, int) or not 1 <= cols <= 16384:
-        raise ConfigError(f"{where}columns: {cols!r} must be an integer in 1..16384")
+    if isinstance(cols, bool) or not isinstance(cols, int) or not 1 <= cols <= MAX_COLUMNS:
+        raise ConfigError(f"{where}columns: {cols!r} must be an integer in 1..{MAX_COLUMNS}")
+    if len(elevations) * cols > MAX_RAYS:
+        raise ConfigError(f"{where}columns: {len(elevations)} rows x {cols} columns = "
+                          f"{len(elevations) * cols:,} rays a scan; allowed: at most "
+                          f"{MAX_RAYS:,} (e.g. 128 x 16384 or 2048 x 2048)")
     max_range = num("max_range", 120.0, lo=0.0, hi=MAX_RANGE_M, lo_open=True)
     min_range = num("min_range", 0.0, lo=0.0)
     if min_range >= max_range:
@@ -293,23 +302,33 @@ def _elevations(raw: dict, where: str) -> list[float]:
                           "vertical = {{ up_deg, down_deg, beams }}")
     if "elevations_deg" in raw:
         el = raw["elevations_deg"]
-        if not isinstance(el, list) or not el or not all(
-                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-                for v in el):
-            raise ConfigError(f"{where}elevations_deg: expected a non-empty list of numbers")
+        if not isinstance(el, list) or not el:
+            raise ConfigError(f"{where}elevations_deg: expected a non-empty list of degrees, "
+                              "one per row, top row first")
+        bad = next((i for i, v in enumerate(el) if not _finite(v)), None)
+        if bad is not None:
+            raise ConfigError(f"{where}elevations_deg: row {bad} is {el[bad]!r}; allowed: "
+                              "finite numbers of degrees")
+        if len(el) > MAX_ROWS:
+            raise ConfigError(f"{where}elevations_deg: {len(el)} rows; allowed: 1..{MAX_ROWS}")
         elevations = [float(v) for v in el]
-        if any(b >= a for a, b in zip(elevations, elevations[1:], strict=False)):
-            raise ConfigError(f"{where}elevations_deg: must decrease strictly from the top row")
+        for i, (a, b) in enumerate(zip(elevations, elevations[1:], strict=False)):
+            if b >= a:
+                raise ConfigError(
+                    f"{where}elevations_deg: row {i + 1} ({b:g}) is not below row {i} ({a:g}); "
+                    "they must decrease strictly from the top row, no repeats (sort a "
+                    "datasheet's laser-id table by elevation, highest first)")
     else:
         v = raw["vertical"]
         if not isinstance(v, dict) or set(v) != {"up_deg", "down_deg", "beams"}:
             raise ConfigError(f"{where}vertical: expected {{ up_deg, down_deg, beams }}")
         up, down, beams = v["up_deg"], v["down_deg"], v["beams"]
-        if isinstance(beams, bool) or not isinstance(beams, int) or beams < 1:
-            raise ConfigError(f"{where}vertical.beams: {beams!r} must be an integer >= 1")
-        numbers = all(isinstance(a, int | float) and math.isfinite(a) for a in (up, down))
-        if not numbers or up <= down:
-            raise ConfigError(f"{where}vertical: up_deg must be a number above down_deg")
+        if isinstance(beams, bool) or not isinstance(beams, int) or not 1 <= beams <= MAX_ROWS:
+            raise ConfigError(f"{where}vertical.beams: {beams!r} must be an integer in "
+                              f"1..{MAX_ROWS}")
+        if not (_finite(up) and _finite(down)) or up <= down:
+            raise ConfigError(f"{where}vertical: up_deg {up!r}, down_deg {down!r}; allowed: "
+                              "finite numbers of degrees, up_deg above down_deg")
         elevations = list(np.linspace(float(up), float(down), beams)) if beams > 1 else [float(up)]
     if elevations[0] >= 90.0 or elevations[-1] <= -90.0:
         raise ConfigError(f"{where}vertical field of view {elevations[-1]:g}..{elevations[0]:g} "
@@ -367,6 +386,11 @@ def _ring_offsets(raw: dict, rows: int, where: str) -> tuple[float, ...]:
                           f"row, metres above the sensor origin), each within "
                           f"±{MAX_RING_OFFSET_M:g}")
     return tuple(float(a) for a in v)
+
+
+def _finite(v: object) -> bool:
+    """A finite int or float, not a bool (TOML's true would pass for 1)."""
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def _flag(raw: dict, key: str, where: str) -> bool:
