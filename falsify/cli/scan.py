@@ -44,11 +44,14 @@ def _check_active(space, sample, pairs: dict[str, str]) -> None:
 
 
 def run(args) -> int:
+    import numpy as np
+
     from falsify.data.real_backgrounds import scanner_for
     from falsify.data.velodyne import kitti_arrays
     from falsify.fileio import write_bytes, write_npy
     from falsify.images.png import encode_png
     from falsify.images.scan_pictures import scan_picture
+    from falsify.results.samples import sample_seed
     from falsify.sensor.lidar import load_sensor
     from falsify.sensor.look import check_looks
     from falsify.sensor.simulator import InvalidSample
@@ -69,8 +72,8 @@ def run(args) -> int:
         from falsify.sensor.look import look_of
         camera = camera_preset(args.camera)
         look_of(sample)  # a value the camera cannot render fails before anything is written
-    try:
-        scan = sim.scan(sample)
+    try:   # with the sample's own seed, so its ray drop and noise are the ones a run scores
+        scan = sim.scan(sample, rng=np.random.default_rng(sample_seed(space, sample)))
     except InvalidSample as exc:
         raise FalsifyError(f"invalid sample: {exc}") from None
     out = Path(args.out)

@@ -307,6 +307,15 @@ class Space:
 
 
 
+def _sensor_files(path: Path) -> list[Path]:
+    """A user's sensor TOML and the fitted return model file it names (a `.json` relative to
+    it), if any: the files whose bytes decide its scans."""
+    raw = parse_toml(read_bytes(path, "sensor", ConfigError), path, "sensor TOML", ConfigError)
+    returns = raw.get("returns")
+    named = isinstance(returns, str) and returns.endswith(".json")
+    return [path, *([path.parent / returns] if named else [])]
+
+
 def load_space(path: str | Path, builtin_cars: tuple[str, ...] | None = None) -> Space:
     """Read and validate a space config (a file, or a bundled config by its name); every problem
     names its key and the allowed values."""
@@ -318,20 +327,24 @@ def load_space(path: str | Path, builtin_cars: tuple[str, ...] | None = None) ->
     raw = parse_toml(text, path, error=ConfigError)
     space = parse_space(raw, source=str(path), base_dir=path.parent,
                         config_hash=hashlib.sha256(text).hexdigest(), builtin_cars=builtin_cars)
-    if space.world:   # a changed profile builds other streets: another space
+    # Files beside the config that change what is scored make another space (--resume and
+    # gate baselines compare the hash); a config naming none keeps its bytes' hash.
+    parts: list[bytes] = []
+    if space.sensor.endswith(".toml"):   # a user's sensor: another file casts other scans
+        parts += [read_bytes(f, "sensor", ConfigError) for f in _sensor_files(Path(space.sensor))]
+    if space.world:   # a changed profile builds other streets
         from falsify.world.profile import profile_file
 
         space.background_source()
-        digest = hashlib.sha256(space.config_hash.encode())
-        digest.update(read_bytes(profile_file(space.world), "world profile", ConfigError))
-        return replace(space, config_hash=digest.hexdigest())
-    if not space.real_backgrounds:
+        parts.append(read_bytes(profile_file(space.world), "world profile", ConfigError))
+    else:   # changed real scans
+        parts += [read_bytes(f, "real background", ConfigError)
+                  for r in space.real_backgrounds for f in (r.bin, r.label) if f is not None]
+    if not parts:
         return space
-    digest = hashlib.sha256(space.config_hash.encode())   # changed scans: another space
-    for r in space.real_backgrounds:
-        for f in (r.bin, r.label):
-            if f is not None:
-                digest.update(read_bytes(f, "real background", ConfigError))
+    digest = hashlib.sha256(space.config_hash.encode())
+    for part in parts:
+        digest.update(part)
     return replace(space, config_hash=digest.hexdigest())
 
 
