@@ -19,7 +19,8 @@ UNIFORM_RAY_DROP = 0.05
 MAX_SCANS = 1_000_000
 
 # index.json's keys and the options (or config) that set them, for a resume that differs
-INDEX_OPTIONS = {"seed": "--seed", "sensor": "the config's sensor", "camera": "--camera",
+INDEX_OPTIONS = {"seed": "--seed", "sensor": "the config's sensor",
+                 "sensor_file": "the content of the config's sensor file", "camera": "--camera",
                  "first_background": "--first-background", "backgrounds": "--backgrounds",
                  "max_cars": "--max-cars", "ray_drop": "--ray-drop",
                  "range_noise": "--range-noise", "traffic": "--traffic", "world": "--world",

@@ -107,6 +107,8 @@ def kitti_object_index(sensor: Sensor, camera: str, frames: int, seed: int = 0,
              "camera": camera, "first_background": opts.first_background,
              "backgrounds": opts.backgrounds, "max_cars": opts.max_cars,
              "ray_drop": sensor.ray_drop, "range_noise": sensor.range_noise}
+    if sensor.file_sha256:   # a user's sensor file, by content
+        index["sensor_file"] = sensor.file_sha256
     if opts.traffic != "scattered":
         index["traffic"] = opts.traffic
     if opts.world is not None:

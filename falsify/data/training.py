@@ -216,6 +216,8 @@ def dataset_index(sensor: Sensor, scans: int, seed: int = 0,
              "first_background": opts.first_background, "backgrounds": opts.backgrounds,
              "max_cars": opts.max_cars, "ray_drop": sensor.ray_drop,
              "range_noise": sensor.range_noise}
+    if sensor.file_sha256:   # sets of a preset sensor keep their index byte for byte
+        index["sensor_file"] = sensor.file_sha256
     if opts.traffic != "scattered":  # scattered sets keep their index byte for byte
         index["traffic"] = opts.traffic
     if opts.world is not None:   # so do sets without a profile

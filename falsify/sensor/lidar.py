@@ -16,8 +16,9 @@ the image keeps the ray grid's H x W.
 
 from __future__ import annotations
 
+import hashlib
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 
@@ -75,6 +76,9 @@ class Sensor:
     projection: str = "rings"
     fov_up_deg: float = 3.0
     fov_down_deg: float = -25.0
+    # sha256 of a user's sensor file and the return model file it names ("" for a preset): a
+    # dataset made with it records this, so one extended after the file changed is refused
+    file_sha256: str = field(default="", compare=False)
 
     @property
     def rows(self) -> int:
@@ -223,9 +227,16 @@ def load_sensor(name_or_path: str | Path, **overrides) -> Sensor:
         if not path.exists():
             raise ConfigError(f"sensor: unknown preset {str(name_or_path)!r}; allowed: "
                               f"{', '.join(preset_names())} or a path to a .toml file")
-    raw = parse_toml(read_bytes(path, "sensor", ConfigError), path, "sensor TOML", ConfigError)
+    text = read_bytes(path, "sensor", ConfigError)
+    raw = parse_toml(text, path, "sensor TOML", ConfigError)
     raw.update(overrides)
-    return parse_sensor(raw, source=str(path))
+    sensor = parse_sensor(raw, source=str(path))
+    if path.resolve().parent == PRESET_DIR.resolve():   # bundled: its bytes ship with the version
+        return sensor
+    digest = hashlib.sha256(text)
+    if sensor.returns.endswith(".json"):
+        digest.update(read_bytes(Path(sensor.returns), "sensor returns", ConfigError))
+    return replace(sensor, file_sha256=digest.hexdigest())
 
 
 def parse_sensor(raw: dict, source: str = "<sensor>") -> Sensor:

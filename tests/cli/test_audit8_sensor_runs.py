@@ -83,3 +83,23 @@ def test_a_missing_sensor_file_is_named(tmp_path: Path, broken: str, capsys) -> 
     assert main(["grid", str(config), "--out", str(tmp_path / "run")]) == 2
     assert "mine.toml" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("fmt", ["npy", "kitti-object"])
+def test_dataset_extension_refuses_a_changed_sensor_file(tmp_path: Path, fmt: str,
+                                                         capsys) -> None:
+    config = _config(tmp_path / "cfg", (SENSORS / "kitti-hdl64e-front.toml").read_text())
+    out = tmp_path / "set"
+    args = ["dataset", str(config), "--scans", "1", "--out", str(out), "--format", fmt]
+    assert main(args) == 0
+    sensor = tmp_path / "cfg" / "mine.toml"
+    sensor.write_text(sensor.read_text().replace("mount_height = 1.73", "mount_height = 1.5"))
+    capsys.readouterr()
+    assert main([*args[:3], "2", *args[4:]]) == 2
+    assert "sensor_file (the content of the config's sensor file)" in capsys.readouterr().err
+
+
+def test_a_preset_sensors_dataset_index_is_unchanged(tmp_path: Path) -> None:
+    assert main(["dataset", str(CONFIGS / "smoke.toml"), "--scans", "1", "--out",
+                 str(tmp_path / "set")]) == 0
+    assert "sensor_file" not in (tmp_path / "set" / "index.json").read_text()
