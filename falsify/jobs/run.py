@@ -138,6 +138,8 @@ def prepare(req: RunRequest) -> Prepared:
         "config_dir": str(config_path(req.config).parent.resolve()),
         "config_hash": space.config_hash,
         "space_name": space.name, "sensor": sensor.name, "model_path": model,
+        # which file (or preset) and grid: two sensor files may share a name
+        "sensor_source": space.sensor, "sensor_shape": list(sensor.shape),
         "model_name": seg.spec.name, "model_hash": seg.model_hash, "backend": backend,
         "seed": seed, "algorithm": req.algorithm, "budget": req.budget,
         "threshold": req.threshold or space.threshold, "workers": req.workers,

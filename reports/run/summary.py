@@ -16,6 +16,17 @@ from falsify.results.miou_maps import CellMap, fmt_value
 from falsify.results.store import RunData
 
 
+def sensor_text(meta: dict, fallback: str) -> str:
+    """The sensor's name, then its grid and the preset or file it came from (runs that
+    recorded them): two sensor files may share a name."""
+    name = esc(meta.get("sensor", fallback))
+    shape, source = meta.get("sensor_shape"), meta.get("sensor_source")
+    if not shape or source is None:
+        return name
+    return (f'{name}<br><span class="note">{int(shape[0])} x {int(shape[1])} · '
+            f"{esc(source)}</span>")
+
+
 def samples_text(data: RunData) -> str:
     """Rows and valid rows; for a run that may not have ended, of how many it planned."""
     done = data.completeness
@@ -84,7 +95,7 @@ def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
          f' · {esc(meta.get("backend", "onnx"))}</span>'),
         ("Config", f"{esc(meta.get('space_name', data.space.name))}<br><span class=\"note\">"
          f"{esc(meta.get('config_path', '—'))}</span>"),
-        ("Sensor", esc(meta.get("sensor", data.space.sensor))),
+        ("Sensor", sensor_text(meta, data.space.sensor)),
         ("Run", esc(search)),
         ("Samples", samples_text(data)),
         ("Invalid samples", invalid_text(data)),

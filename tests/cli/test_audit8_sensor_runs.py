@@ -103,3 +103,16 @@ def test_a_preset_sensors_dataset_index_is_unchanged(tmp_path: Path) -> None:
     assert main(["dataset", str(CONFIGS / "smoke.toml"), "--scans", "1", "--out",
                  str(tmp_path / "set")]) == 0
     assert "sensor_file" not in (tmp_path / "set" / "index.json").read_text()
+
+
+def test_the_report_names_the_sensor_file_and_grid(tmp_path: Path) -> None:
+    config = _config(tmp_path / "cfg", (SENSORS / "kitti-hdl64e-front.toml").read_text().replace(
+        'name = "kitti-hdl64e-front"', 'name = "<mine>"'))
+    out = tmp_path / "run"
+    assert main(["search", str(config), "--out", str(out), "--algorithm", "random",
+                 "--budget", "1"]) == 0
+    page = (out / "report.html").read_text()
+    card = page[page.index("<dt>Sensor</dt>"):]
+    card = card[:card.index("</dd>")]
+    assert "&lt;mine&gt;" in card and "64 x 512" in card
+    assert str((tmp_path / "cfg" / "mine.toml").resolve()) in card
