@@ -46,11 +46,15 @@ class SegmentationPlugin(Protocol):
     ``spec``: a ModelSpec, or a dict as a spec file holds it. Its ``input_kind`` says what
     ``predict`` gets, one entry per scan (falsify batches scans across samples):
 
-    - "points": each scan's valid pixels as points, an (N, 4) float32 array of x, y, z and
-      remission, in row-major pixel order; answer per point, (N,) integer output indices or
-      (N, C) float scores (``output_kind``: logits or probabilities). The answers go back to
-      the points' pixels, so every metric stays per pixel. Scans without a valid point are not
-      sent.
+    - "points": a list of (N, 4) float32 arrays of x, y, z and remission (each column as
+      (value - mean) / std where the spec gives mean and std), one per scan, N differing from
+      scan to scan; answer per point, in the same order: (N,) integer output indices or (N, C)
+      float scores (``output_kind``: logits or probabilities). In grids, searches and `falsify
+      predict --score pixels`, the points are a range image's valid pixels in row-major order
+      and every metric is per pixel; under `falsify predict --score points` on .bin scans they
+      are every point of the scan that has a pixel in the sensor's image (all of them with the
+      360-degree `semantickitti-hdl64e`), in the file's order, each scored with its own answer.
+      Scans without a valid point are not sent.
     - "range": the (H, W, 6) float32 range image (x, y, z, intensity, range, label; the label
       channel is zeroed); answer (H, W) integer output indices or (C, H, W) float scores.
 
@@ -96,6 +100,22 @@ def torch_device(device: str) -> str:
                 "(torch.cuda.is_available() is False); run with --device cpu, or install a "
                 "CUDA build of torch on a machine with an NVIDIA GPU")
     return device
+
+
+def cuda_hint(device: str) -> str:
+    """For an error under --device cuda: why, where torch is loaded and finds no CUDA GPU (a
+    plug-in that asks torch for cuda fails deep inside torch otherwise); else ""."""
+    torch = sys.modules.get("torch")
+    if device != "cuda" or torch is None:
+        return ""
+    try:
+        available = bool(torch.cuda.is_available())
+    except Exception:
+        return ""
+    if available:
+        return ""
+    return (f" (--device cuda: torch {getattr(torch, '__version__', '?')} finds no CUDA GPU; "
+            "run with --device cpu)")
 
 
 def _split(ref: str) -> tuple[str, str]:
@@ -177,7 +197,8 @@ def _call(factory: Callable, ref: str, threads: int | None, device: str) -> Any:
     except FalsifyError:
         raise
     except Exception as e:
-        raise FalsifyError(f"--model {ref}: the factory failed: {type(e).__name__}: {e}") from e
+        raise FalsifyError(f"--model {ref}: the factory failed: {type(e).__name__}: {e}"
+                           f"{cuda_hint(device)}") from e
 
 
 def plugin_spec(spec: Any, ref: str) -> ModelSpec:

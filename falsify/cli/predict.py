@@ -95,7 +95,8 @@ def run(args) -> int:
     labelled = result.labelled_sets > 0
     if not labelled:
         summary = {k: v for k, v in summary.items() if k not in ("pooled", "bands", "sets")}
-    emit(args, summary, _predict_text(result, backend, out, labelled))
+    emit(args, summary, _predict_text(result, backend, out, labelled,
+                                      model.spec.input_kind == "points"))
     return 0
 
 
@@ -117,7 +118,8 @@ def output_stems(sets, out: Path) -> list[list[Path]]:
     return stems
 
 
-def _predict_text(result, backend: str, out: Path, labelled: bool) -> str:
+def _predict_text(result, backend: str, out: Path, labelled: bool,
+                  points_model: bool = False) -> str:
     """Per set: pooled scores per class, then car IoU, precision and recall per range band; the
     same pooled over every set when several are labelled."""
     def f(v):
@@ -143,8 +145,11 @@ def _predict_text(result, backend: str, out: Path, labelled: bool) -> str:
     n = sum(len(s.sources) for s in result.sets)
     lines = [f"predicted {n} scans with {result.model} ({result.model_hash[:12]}, {backend}) "
              f"into {out} (.pred.npy classes and .png pictures per scan)",
-             "scored per point (--score points): each point of a .bin with a pixel takes that "
-             "pixel's prediction, SemanticKITTI's protocol" if result.score == "points" else
+             ("scored per point (--score points): the network is fed each point of a .bin "
+              "that has a pixel and each is scored with its own answer, SemanticKITTI's "
+              "protocol" if points_model else
+              "scored per point (--score points): each point of a .bin with a pixel takes that "
+              "pixel's prediction, SemanticKITTI's protocol") if result.score == "points" else
              "scored per pixel (--score pixels): each pixel holds its nearest point; "
              "--score points scores every point"]
     if result.unlabelled:

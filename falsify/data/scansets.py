@@ -20,7 +20,7 @@ import numpy as np
 
 from falsify.classes import CLASSES
 from falsify.data.kitti_frames import read_object_frame
-from falsify.data.kitti_object import frames
+from falsify.data.kitti_object import frames, read_velodyne
 from falsify.data.range_npy import load_scan_npy
 from falsify.data.velodyne import kitti_rows, read_kitti, read_kitti_points
 from falsify.errors import FalsifyError
@@ -53,23 +53,74 @@ class ScanPoints:
     semantic: np.ndarray | None      # (N,) uint16 raw SemanticKITTI id, where a .label was read
     outside: int                     # points outside the image (field of view or range) or
     #                                  not finite: no pixel, no prediction
+    xyzi: np.ndarray | None = None   # (N, 4) float32 x, y, z, remission: what a points
+    #                                  network is fed (`point_rows`)
+    held: np.ndarray | None = None   # (H * W,) int64 the point each pixel holds (the nearest,
+    #                                  as the range image keeps it), -1 for an empty pixel
 
 
 def scan_points(sensor: Sensor, xyz: np.ndarray, label: np.ndarray, ignore: np.ndarray,
                 semantic: np.ndarray | None, dropped: int = 0,
-                rows: np.ndarray | None = None) -> ScanPoints:
+                rows: np.ndarray | None = None,
+                remission: np.ndarray | None = None) -> ScanPoints:
     """The points of one scan at the pixels the range image put them in (the same projection,
     laser rings included: `rows`, `kitti_rows` when not given), those without a pixel counted
-    in `outside` with `dropped`."""
+    in `outside` with `dropped`; with `remission`, the points themselves and which one each
+    pixel holds (the nearest wins, ties to the later point, as `image_from_points` decides)."""
     if rows is None:
         rows = kitti_rows(sensor, xyz)
     row, col, inside = point_pixels(sensor, xyz, rows)
-    p = np.asarray(xyz, np.float64)[inside]
-    return ScanPoints(row[inside] * sensor.shape[1] + col[inside],
-                      np.linalg.norm(p, axis=1).astype(np.float32),
+    p = np.asarray(xyz, np.float64)
+    pixel = row[inside] * sensor.shape[1] + col[inside]
+    ranges = np.linalg.norm(p[inside], axis=1)
+    xyzi = held = None
+    if remission is not None:
+        xyzi = np.ascontiguousarray(np.column_stack(
+            [np.asarray(xyz, np.float32)[inside], np.asarray(remission, np.float32)[inside]]))
+        order = np.argsort(-ranges, kind="stable")   # far first, so near points overwrite
+        held = np.full(sensor.shape[0] * sensor.shape[1], -1, np.int64)
+        held[pixel[order]] = order
+    return ScanPoints(pixel, ranges.astype(np.float32),
                       np.asarray(label, np.uint8)[inside], np.asarray(ignore, bool)[inside],
                       None if semantic is None else np.asarray(semantic, np.uint16)[inside],
-                      dropped + int((~inside).sum()))
+                      dropped + int((~inside).sum()), xyzi, held)
+
+
+def point_rows(s: ScanSet) -> ScanSet:
+    """`s` with each scan's points that have a pixel laid out as one row of pixels, (B, 1, N,
+    6) x, y, z, remission, range, label in the scan file's order (shorter scans padded with
+    empty pixels), each point at its own pixel: a points network is fed every one of them and
+    each is scored with its own answer (SemanticKITTI's point-wise protocol), not with the
+    answer of the nearer point that won its range-image pixel."""
+    if s.points is None or any(p.xyzi is None for p in s.points):
+        raise ValueError(f"set {s.name}: read without its points (load_sets(points=True))")
+    n = max([len(p.pixel) for p in s.points] + [1])
+    images = np.zeros((len(s), 1, n, 6), np.float32)
+    ignore = np.zeros((len(s), 1, n), bool)
+    semantic = None if s.semantic is None else np.zeros((len(s), 1, n), np.uint16)
+    for k, p in enumerate(s.points):
+        m = len(p.pixel)
+        images[k, 0, :m, :4] = p.xyzi
+        images[k, 0, :m, 4] = p.range
+        images[k, 0, :m, 5] = p.label
+        ignore[k, 0, :m] = p.ignore
+        if semantic is not None and p.semantic is not None:
+            semantic[k, 0, :m] = p.semantic
+    points = tuple(replace(p, pixel=np.arange(len(p.pixel), dtype=np.int64), held=None)
+                   for p in s.points)
+    return replace(s, images=images, ignore=ignore, semantic=semantic, points=points)
+
+
+def pixel_classes(points: ScanPoints, answers: np.ndarray, shape: tuple[int, int]
+                  ) -> np.ndarray:
+    """Per-point classes (N,) back onto the range image (H, W): each pixel takes the class of
+    the point it holds, 0 where it holds none (the picture of a `point_rows` prediction)."""
+    if points.held is None:
+        raise ValueError("points read without remission: no pixel holds a known point")
+    out = np.zeros(shape[0] * shape[1], np.asarray(answers).dtype)
+    m = points.held >= 0
+    out[m] = np.asarray(answers)[points.held[m]]
+    return out.reshape(shape)
 
 
 @dataclass(frozen=True)
@@ -111,7 +162,7 @@ def read_set(name: str, paths: list[Path], sensor: Sensor, points: bool = False)
                 scan = read.project(sensor, rows)
                 kept.append(scan_points(sensor, read.xyz, read.cls,
                                         np.zeros(len(read.cls), bool), read.semantic,
-                                        read.dropped, rows))
+                                        read.dropped, rows, read.remission))
             else:
                 scan = read_kitti(p, label, sensor)
             images.append(scan.image)
@@ -155,7 +206,8 @@ def read_object_set(root: Path, paths: list[Path], sensor: Sensor,
         images.append(f.scan.image)
         ignore.append(f.ignore)
         if points:
-            kept.append(scan_points(sensor, f.xyz, f.point_class, f.point_ignore, None))
+            kept.append(scan_points(sensor, f.xyz, f.point_class, f.point_ignore, None,
+                                    remission=read_velodyne(p)[:, 3]))
     return _stack(root.name, images, ignore, list(map(str, paths)),
                   points=tuple(kept) if points else None)
 

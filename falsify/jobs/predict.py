@@ -15,17 +15,18 @@ unlabeled are left out, and mIoU is the mean over the classes present in the lab
 Two protocols (`score`): "pixels" scores the range image's pixels, each holding its nearest point
 and that point's label; "points" scores every point of a .bin scan that has a pixel with that
 pixel's prediction against its own label, at its own range (RangeNet++'s and SalsaNext's
-evaluation without kNN, the leaderboard's protocol); points without a pixel are counted apart.
+evaluation without kNN, the leaderboard's protocol); a points network is fed every such point
+and each is scored with its own answer. Points without a pixel are counted apart.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from falsify.data.scansets import ScanPoints, ScanSet
+from falsify.data.scansets import ScanPoints, ScanSet, pixel_classes, point_rows
 from falsify.models.runners import Segmenter
 from falsify.results.metrics import CLASSES, ClassScore, Scoring, class_scores, confusion, pooled
 from falsify.semantic import TRAIN_CLASSES, train_ids
@@ -253,7 +254,9 @@ def evaluate(model: Segmenter, sets: list[ScanSet],
     """Evaluate `model` on each set (scores pooled per set, per band) and on all together, over
     pixels or points (`score`, SCORES)."""
     semantic = semantic_scoring(model, sets)
-    results = tuple(evaluate_set(model, s, bands, semantic, score) for s in sets)
+    results = tuple(_points_network_set(model, s, bands, semantic)
+                    if score == "points" and model.spec.input_kind == "points"
+                    else evaluate_set(model, s, bands, semantic, score) for s in sets)
     total = pooled([r.pooled.counts for r in results])
     n = len(TRAIN_CLASSES) if semantic else len(CLASSES)
     band_sum = np.zeros((len(bands), n, 3), np.int64)
@@ -261,6 +264,20 @@ def evaluate(model: Segmenter, sets: list[ScanSet],
         band_sum += np.stack([sc.counts for _, sc in r.bands])
     return Evaluation(model.spec.name, model.model_hash, results, Scores.of(total),
                       _band_scores(band_sum, bands), score)
+
+
+def _points_network_set(model: Segmenter, scans: ScanSet,
+                        bands: tuple[tuple[float, float], ...], semantic: bool) -> SetEvaluation:
+    """A points network scored per point: fed every point of each scan that has a pixel, each
+    scored with its own answer (`point_rows`), not with the answer of the nearer point that
+    won its pixel; its predictions come back per pixel (the class of the point each pixel
+    holds) for the pictures and .pred.npy files."""
+    r = evaluate_set(model, point_rows(scans), bands, semantic, "points")
+    pixels = np.stack([pixel_classes(p, r.predictions[k, 0, :len(p.pixel)],
+                                     scans.images.shape[1:3])
+                       for k, p in enumerate(scans.points)])
+    return replace(r, predictions=pixels,
+                   ignored_pixels=int(scans.ignore[scans.labelled()].sum()))
 
 
 def _band_scores(counts: np.ndarray, bands: tuple[tuple[float, float], ...]

@@ -10,15 +10,16 @@ from typing import Any
 import numpy as np
 
 from falsify.errors import FalsifyError
-from falsify.models.plugin import open_plugin
+from falsify.models.plugin import cuda_hint, open_plugin
 from falsify.models.runners.base import Prediction, check_scans, points_of, scatter, to_prediction
 from falsify.models.spec import ModelSpec
 
 
 class PluginSegmenter:
     """A Python plug-in (`falsify.models.plugin`) as a Segmenter. A points plug-in gets each
-    scan's valid pixels as its points and its per-point answers go back to those pixels, so
-    every metric stays per pixel; integer answers (output indices) read as certain."""
+    scan's valid pixels as its points, in row-major order, and its per-point answers go back to
+    those pixels (`falsify predict --score points` lays a scan's points out as one row of
+    pixels, `point_rows`, so it gets every point); integer answers read as certain."""
 
     def __init__(self, ref: str, threads: int | None = None, device: str = "cpu") -> None:
         self.path = ref
@@ -98,7 +99,7 @@ class PluginSegmenter:
             raise
         except Exception as e:
             raise FalsifyError(f"plug-in {self.path}: predict failed: {type(e).__name__}: {e}"
-                               ) from e
+                               f"{cuda_hint(self.device)}") from e
 
 
 def _numpy(x: Any) -> np.ndarray:

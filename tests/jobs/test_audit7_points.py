@@ -40,7 +40,8 @@ class CarEverywhere:
 
     def __init__(self, semantic: bool = False) -> None:
         classes = {"car": 1, "road": 9} if semantic else {"unknown": 0, "car": 1}
-        self.spec = SimpleNamespace(name="car-everywhere", classes=classes)
+        self.spec = SimpleNamespace(name="car-everywhere", classes=classes,
+                                    input_kind="range")
 
     def predict(self, images: np.ndarray) -> SimpleNamespace:
         car = (images[..., 4] > 0).astype(np.uint8)   # class 1 and train id 1 are both car
