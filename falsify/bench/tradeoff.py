@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
+from falsify.bench.knobs import KNOBS
 from falsify.checks import MAX_SAMPLES, check_out_dir
 from falsify.errors import FalsifyError
 from falsify.models.spec import ModelSpec
@@ -30,10 +31,9 @@ from falsify.results.miou_maps import CellMap, MapError, fill_nearest, map_error
 from falsify.sensor.lidar import Sensor, SensorPose, load_sensor
 from falsify.world.space import Categorical, Continuous, Sample, Space, load_space
 
-if TYPE_CHECKING:   # the CLI imports this module for KNOBS: keep trimesh out of it
+if TYPE_CHECKING:   # kept out of the module's imports: trimesh
     from falsify.executors.evaluator import Evaluator
 
-KNOBS = ("resolution", "lod", "precision", "crf", "step", "budget", "preset")
 RESOLUTIONS = ((32, 256), (64, 512), (64, 1024), (128, 2048))
 LODS = (0, 1, 2)
 PRECISIONS = ("torch fp32", "onnx fp32", "onnx fp16", "onnx int8")

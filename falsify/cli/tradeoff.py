@@ -9,7 +9,7 @@ from falsify.cli.common import emit, int_in
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from falsify.bench.tradeoff import KNOBS
+    from falsify.bench.knobs import KNOBS
     p.add_argument("config")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--knobs", default=",".join(KNOBS),
