@@ -29,7 +29,7 @@ import numpy as np
 
 from falsify.errors import FalsifyError
 from falsify.executors.evaluator import EvalSettings
-from falsify.models.runners import load_segmenter
+from falsify.models.runners import MAX_DEFAULT_THREADS, load_segmenter
 from falsify.models.spec import ModelSpec
 
 MAX_BATCH = 32      # frames a device call takes at most (a GPU's batch)
@@ -74,9 +74,9 @@ def serve(settings: EvalSettings, requests, replies: list, ready, max_batch: int
           wait_s: float) -> None:
     """The inference process: load the network on its device, tell `ready` its spec and hash
     (or the error), then answer requests until a None arrives. On the CPU it takes a thread
-    per worker: it is the only process that runs the network."""
+    per worker, up to MAX_DEFAULT_THREADS: it is the only process that runs the network."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C is the driver's to handle
-    threads = settings.threads if settings.device == "cuda" else max(len(replies), 1)
+    threads = server_threads(settings, len(replies))
     try:
         model = load_segmenter(settings.model, backend=settings.backend, threads=threads,
                                device=settings.device)
@@ -106,6 +106,15 @@ def serve(settings: EvalSettings, requests, replies: list, ready, max_batch: int
             batch.append(nxt)
             frames += len(nxt[2])
         _answer(model, batch, replies, max_batch if pad else None)
+
+
+def server_threads(settings: EvalSettings, workers: int) -> int:
+    """The inference process's threads: the settings' on cuda; on the CPU one per worker, at
+    most MAX_DEFAULT_THREADS, where ONNX Runtime still computes the logits of 1 or 2 threads (a
+    worker's), so the rows do not depend on --workers."""
+    if settings.device == "cuda":
+        return settings.threads
+    return max(1, min(workers, MAX_DEFAULT_THREADS))
 
 
 def _answer(model, batch: list, replies: list, pad_to: int | None) -> None:

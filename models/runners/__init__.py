@@ -27,15 +27,21 @@ from falsify.models.runners.base import (
     scatter,
     to_prediction,
 )
-from falsify.models.runners.onnx import OnnxSegmenter, cpu_session, onnx_session
+from falsify.models.runners.onnx import (
+    MAX_DEFAULT_THREADS,
+    OnnxSegmenter,
+    cpu_session,
+    default_threads,
+    onnx_session,
+)
 from falsify.models.runners.plugin import PluginSegmenter
 from falsify.models.runners.torch import TorchSegmenter
 
 __all__ = [
-    "BACKENDS", "BATCH", "BUNDLED_ONNX", "BUNDLED_PT", "CARDS_DIR", "WEIGHTS_DIR",
-    "OnnxSegmenter", "PluginSegmenter", "Prediction", "Segmenter", "TorchSegmenter",
-    "backend_for", "check_scans", "cpu_session", "feeds", "load_segmenter", "onnx_session",
-    "points_of", "resolve_model", "scatter", "to_prediction",
+    "BACKENDS", "BATCH", "BUNDLED_ONNX", "BUNDLED_PT", "CARDS_DIR", "MAX_DEFAULT_THREADS",
+    "WEIGHTS_DIR", "OnnxSegmenter", "PluginSegmenter", "Prediction", "Segmenter", "TorchSegmenter",
+    "backend_for", "check_scans", "cpu_session", "default_threads", "feeds", "load_segmenter",
+    "onnx_session", "points_of", "resolve_model", "scatter", "to_prediction",
 ]
 
 

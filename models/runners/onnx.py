@@ -3,6 +3,7 @@ sessions it opens."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -27,10 +28,27 @@ from falsify.models.runners.base import (
 INPUT_TYPES = {"tensor(float)": np.float32, "tensor(float16)": np.float16,
                "tensor(double)": np.float64}
 
+# ONNX Runtime chooses how some reductions sum by comparing a tensor's size with its thread
+# count (ReduceSum over a middle axis takes its fast path while the outer size >= max(2,
+# threads)). SqueezeSeg's CRF sums (4, 14, H*W) a frame: 1 to 4 threads give the same logits,
+# 5 or more differ in the last bits (63 of 1.0 M on 8 scans). Sessions not told how many
+# threads take at most this many, so the scores do not depend on the machine's core count.
+MAX_DEFAULT_THREADS = 4
+
+
+def default_threads() -> int:
+    """Intra-op threads of a session not told how many: the cores this process may use, at most
+    MAX_DEFAULT_THREADS (ONNX Runtime's own default, every core, varies the bytes by machine)."""
+    try:
+        usable = len(os.sched_getaffinity(0))
+    except AttributeError:   # not Linux
+        usable = os.cpu_count() or 1
+    return max(1, min(usable, MAX_DEFAULT_THREADS))
+
 
 def cpu_session(model: str | bytes, threads: int | None = None):
     """An ONNX Runtime CPU session for a model file (path) or serialised graph (bytes): `threads`
-    intra-op threads and one inter-op thread (None: ONNX Runtime's default), warnings off.
+    intra-op threads (None: `default_threads()`) and one inter-op thread, warnings off.
 
     Subnormal floats flush to zero (FTZ/DAZ; ONNX Runtime sets it on its threads and on the
     thread that opens the session): 2 % of the CRF's bilateral weights on synthetic test scans
@@ -54,9 +72,8 @@ def onnx_session(model: str | bytes, threads: int | None = None, device: str = "
                 "onnxruntime on a machine with an NVIDIA GPU, or run with --device cpu")
         providers = ["CUDAExecutionProvider", *providers]
     opts = ort.SessionOptions()
-    if threads:
-        opts.intra_op_num_threads = int(threads)
-        opts.inter_op_num_threads = 1
+    opts.intra_op_num_threads = int(threads) if threads else default_threads()
+    opts.inter_op_num_threads = 1
     opts.log_severity_level = 3
     opts.add_session_config_entry("session.set_denormal_as_zero", "1")
     session = ort.InferenceSession(model, opts, providers=providers)
