@@ -119,7 +119,7 @@ def prepare(req: RunRequest) -> Prepared:
                            "use --backend onnx or --fidelity exact")
     model = fid.model(req.model)
     seed = space.seed if req.seed is None else req.seed
-    threads = 2 if req.workers == 1 else 1
+    threads = inference_threads(backend, req.device, req.workers)
     # Open the model once here: a missing, corrupt or mismatched model fails before any sample.
     seg = load_segmenter(model, backend=backend, threads=threads, device=req.device)
     scoring = _scoring_of(req, space, seg)
@@ -235,6 +235,17 @@ def _check_labels_scored(space: Space, scoring: Scoring, model: str) -> None:
                           f"labels; {len(bare)} scan{'s' * (len(bare) != 1)} "
                           f"{'have' if len(bare) != 1 else 'has'} none ({', '.join(bare[:3])}"
                           f"{more}): name labelled scans, or run a four-class model")
+
+
+def inference_threads(backend: str, device: str, workers: int) -> int:
+    """A worker's inference threads. ONNX Runtime computes the same logits on 1 to 4 threads, so
+    one worker takes both of a pair of cores; torch's oneDNN kernels (and a plug-in's) sum in
+    another order on 1 and 2 threads (41 % of logits, up to 7.6e-6: a pixel's class flipped in
+    1 of 128 rows), so on the CPU they take 1 whatever --workers is, and the rows do not depend
+    on it."""
+    if backend in ("torch", "python") and device == "cpu":
+        return 1
+    return 2 if workers == 1 else 1
 
 
 def _check_run_dir(req: RunRequest, meta: dict) -> None:
