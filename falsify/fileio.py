@@ -4,9 +4,11 @@ names the file, as one line for the user."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import json
 import os
+import shutil
 import tempfile
 import tomllib
 from collections.abc import Iterator
@@ -65,6 +67,32 @@ def write_bytes(path: str | Path, data: bytes) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def move_file(src: str | Path, dst: str | Path) -> None:
+    """Move a file to `dst` whole or not at all: a rename, or across file systems (a tmpfs
+    /tmp) a copy beside `dst` renamed over it, then `src` removed; shutil.move's copy writes
+    `dst` itself, so a kill mid-copy left a short file under the final name."""
+    src, dst = Path(src), Path(dst)
+    try:
+        os.replace(src, dst)
+        return
+    except OSError as exc:
+        if exc.errno != errno.EXDEV:
+            raise
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=dst.parent, prefix=f".{dst.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as out, open(src, "rb") as inp:
+            shutil.copyfileobj(inp, out, 1 << 20)
+            out.flush()
+            os.fsync(out.fileno())
+        shutil.copymode(src, tmp)
+        os.replace(tmp, dst)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    src.unlink()
 
 
 @contextlib.contextmanager

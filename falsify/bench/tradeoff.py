@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import shutil
 import tempfile
 import time
 from collections.abc import Sequence
@@ -431,7 +430,7 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
 
     Bad input raises FalsifyError before anything is written, and a failure while measuring
     leaves nothing: variant models are moved to DIR/models/ with the results."""
-    from falsify.fileio import write_bytes, write_json, write_text
+    from falsify.fileio import move_file, write_bytes, write_json, write_text
     from falsify.models.runners import BUNDLED_ONNX
     from falsify.reports.tradeoff_page import render
 
@@ -472,7 +471,7 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
         if variants:
             (out / "models").mkdir(parents=True, exist_ok=True)
         for f in variants:
-            shutil.move(f, out / "models" / f.name)
+            move_file(f, out / "models" / f.name)   # whole, across file systems too
     return summary
 
 

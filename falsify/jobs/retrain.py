@@ -40,6 +40,7 @@ from pathlib import Path
 from falsify.checks import check_out_dir, check_range, check_seed
 from falsify.errors import ConfigError
 from falsify.executors.driver import ProgressListener
+from falsify.fileio import write_text
 from falsify.jobs.retrain_config import parse_ids, subset_config
 from falsify.jobs.retrain_result import (
     Check,
@@ -168,13 +169,14 @@ class RetrainJob:
         state_path = req.out / STAGE_FILE
         if state_path.exists():
             state = json.loads(state_path.read_text(encoding="utf-8"))
-        else:
+        else:   # first, so that a kill from here on leaves a run that --resume continues
             state = {"request": ctx.key, "done": {}}
-            for name, ids in (("validation", req.validation), ("retraining", req.retraining)):
-                (req.out / f"config-{name}.toml").write_text(
-                    subset_config(req.config, ids, name, ctx.space.real_backgrounds),
-                    encoding="utf-8")
             _write_state(state_path, state)
+        for name, ids in (("validation", req.validation), ("retraining", req.retraining)):
+            path = req.out / f"config-{name}.toml"
+            if not path.is_file():   # whole or absent: written atomically
+                write_text(path, subset_config(req.config, ids, name,
+                                               ctx.space.real_backgrounds))
         computed, reused = [], []
         for stage in STAGES:
             if stage in state["done"]:
