@@ -7,7 +7,6 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import errno
 import os
 import shlex
@@ -150,7 +149,8 @@ def main(argv: list[str] | None = None) -> int:
     resumable = is_run or argv[:1] in (["train"], ["retrain"], ["train-pointnet"])
     out = run_folder(argv)
     try:
-        with stop_signals() if resumable else contextlib.nullcontext(), lock_early(out, argv):
+        # every command: a SIGTERM (a cancelled CI job) runs its clean-up and says so, exit 143
+        with stop_signals(), lock_early(out, argv):
             parser = build_parser()
             args = parser.parse_args(argv)
             args.argv = argv   # as typed: a stopped run's message repeats it to continue
