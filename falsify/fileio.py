@@ -99,14 +99,16 @@ def move_file(src: str | Path, dst: str | Path) -> None:
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """A temporary path beside `path`, for a writer that takes a path (torch.save, ONNX export),
     renamed over `path` once the block succeeds and removed if it fails: no half file at `path`.
-    Same stem as `path` (torch.save names its archive by it, so the bytes are a direct write's)."""
+    Same name as `path` (torch.save names its archive by it, so the bytes are a direct write's),
+    in a hidden folder of its own: a user's `NAME.tmp`, or another file's temporary, is safe."""
     path = Path(path)
-    tmp = path.with_suffix(".tmp")
+    folder = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}."))
+    tmp = folder / path.name
     try:
         yield tmp
         tmp.replace(path)
     finally:
-        tmp.unlink(missing_ok=True)
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def write_text(path: str | Path, text: str) -> None:

@@ -187,3 +187,17 @@ step = 1.0
 [dims.background]
 values = [0]
 """
+
+
+def test_atomic_path_leaves_a_users_tmp_file_alone(tmp_path: Path) -> None:
+    """Its temporary was NAME.tmp: a user's m.tmp beside m.pt was overwritten, then deleted."""
+    from falsify.fileio import atomic_path
+
+    mine = tmp_path / "m.tmp"
+    mine.write_bytes(b"mine")
+    with atomic_path(tmp_path / "m.pt") as tmp:
+        assert tmp.name == "m.pt"
+        tmp.write_bytes(b"weights")
+    assert mine.read_bytes() == b"mine"
+    assert (tmp_path / "m.pt").read_bytes() == b"weights"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.pt", "m.tmp"]
