@@ -5,12 +5,14 @@ distinct failing regions `falsify explain` draws from its rows.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 from falsify.bench.machine import machine
 from falsify.checks import MAX_SAMPLES, check_range
+from falsify.errors import FalsifyError
 from falsify.results.metrics import Status
-from falsify.world.space import load_space
+from falsify.world.space import Space, load_space
 
 SEARCH_ALGORITHMS = ("random", "sobol", "cross-entropy", "bo", "GN_DIRECT_L", "GN_CRS2_LM")
 SEEDS = 3             # runs per algorithm: the config's seed and the ones after it
@@ -50,6 +52,7 @@ def bench_search(config: str | Path, out: str | Path, algorithms=SEARCH_ALGORITH
     budget = max(1, int(n_grid * fraction))
     seed_list = [space.seed + k for k in range(seeds)]
     algorithms, skipped = available(algorithms)
+    _check_budget(space, algorithms, budget, fraction)
 
     def run(name: str, algorithm: str, b: int | None, command: str,
             seed: int | None = None) -> tuple[RunSummary, bool]:
@@ -85,6 +88,22 @@ def bench_search(config: str | Path, out: str | Path, algorithms=SEARCH_ALGORITH
                                    "per evaluation",
             "timing": NOT_TIMED, "first_seed": FIRST_SEED,
             "curves_csv": str(out / "search_curves.csv"), "machine": machine()}
+
+
+def _check_budget(space: Space, algorithms: Sequence[str], budget: int, fraction: float) -> None:
+    """FalsifyError before any run where the budget cannot hold an NLopt algorithm's discrete
+    combinations (found only after the grid and the algorithms before it had run)."""
+    from falsify.sampler import NLOPT_ALGORITHMS
+    from falsify.sampler.nlopt import combo_count
+
+    nlopt = [a for a in algorithms if a in NLOPT_ALGORITHMS]
+    needed = combo_count(space) if nlopt else 0
+    if budget < needed:
+        raise FalsifyError(f"--fraction {fraction:g}: a budget of {budget:,} evaluation"
+                           f"{'s' * (budget != 1)} is smaller than the {needed:,} "
+                           f"combinations of discrete dims that {nlopt[0]} needs; allowed: "
+                           f"--fraction of at least {needed / len(space.grid()):.3g} for "
+                           "this config")
 
 
 def _algorithm_row(algo: str, done, fresh: bool, per_seed: list[dict], budget: int,
