@@ -18,16 +18,8 @@ from falsify.errors import FalsifyError
 from falsify.jobs.retrain import RetrainJob, RetrainRequest
 from falsify.models.runners import BUNDLED_ONNX
 from falsify.sensor.lidar import load_sensor
-
-TINY = """name = "tiny"
-sensor = "kitti-hdl64e-front"
-seed = 0
-threshold = 0.99
-dims.car_model.values = ["sedan"]
-dims.x.values = [-3.0, 1.0]
-dims.y.values = [8.0]
-dims.background.values = [0, 5]
-"""
+from tests.bench.test_tradeoff import CONFIG as TRADEOFF_CONFIG
+from tests.jobs.test_retrain import TINY
 
 
 class Killed(BaseException):
@@ -149,7 +141,7 @@ def test_tradeoff_killed_while_moving_its_models_leaves_no_short_model(tmp_path,
     tmp = tmp_path / "tmp"
     tmp.mkdir()
     monkeypatch.setattr("tempfile.tempdir", str(tmp))
-    (tmp_path / "tiny.toml").write_text(TRADEOFF)
+    (tmp_path / "tiny.toml").write_text(TRADEOFF_CONFIG)
     out = tmp_path / "out"
     argv = ["tradeoff", str(tmp_path / "tiny.toml"), "--out", str(out), "--knobs", "crf",
             "--limit", "1"]
@@ -168,25 +160,6 @@ def test_tradeoff_killed_while_moving_its_models_leaves_no_short_model(tmp_path,
     assert models == sorted(f"squeezeseg-crf{k}{s}" for k in range(3) for s in (".json", ".onnx"))
     for f in (out / "models").glob("*.onnx"):
         onnx.load(str(f))
-
-
-TRADEOFF = """name = "tiny"
-sensor = "kitti-hdl64e-front"
-seed = 0
-threshold = 0.65
-[dims.car_model]
-values = ["sedan"]
-[dims.x]
-min = -2.0
-max = -1.0
-step = 1.0
-[dims.y]
-min = 9.0
-max = 10.0
-step = 1.0
-[dims.background]
-values = [0]
-"""
 
 
 def test_atomic_path_leaves_a_users_tmp_file_alone(tmp_path: Path) -> None:
