@@ -7,6 +7,7 @@ beside falsify/. The bundled weights live with the network (falsify.models.runne
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 from pathlib import Path
@@ -68,3 +69,18 @@ def expand_data_path(text: str, where: str) -> str:
                                "(or write the path into the config)")
         return found
     return os.path.expanduser(_VARIABLE.sub(value, text))
+
+
+def sensor_digest(path: str | Path, error: type[FalsifyError] = FalsifyError) -> str:
+    """sha256 of a user's sensor TOML and of the fitted return model it names (a `.json`
+    relative to the TOML), the files whose bytes decide its scans: a run's config hash and a
+    dataset's index hold it, so a changed file is another sensor."""
+    from falsify.fileio import parse_toml, read_bytes
+
+    path = Path(path)
+    text = read_bytes(path, "sensor", error)
+    digest = hashlib.sha256(text)
+    returns = parse_toml(text, path, "sensor TOML", error).get("returns")
+    if isinstance(returns, str) and returns.endswith(".json"):
+        digest.update(read_bytes(path.parent / returns, "sensor returns", error))
+    return digest.hexdigest()

@@ -16,7 +16,6 @@ the image keeps the ray grid's H x W.
 
 from __future__ import annotations
 
-import hashlib
 import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -26,7 +25,7 @@ import numpy as np
 
 from falsify.errors import ConfigError
 from falsify.fileio import parse_toml, read_bytes
-from falsify.paths import RETURN_MODELS, SENSOR_PRESETS
+from falsify.paths import RETURN_MODELS, SENSOR_PRESETS, sensor_digest
 from falsify.rotations import rot_x, rot_y, rot_z
 
 PRESET_DIR = SENSOR_PRESETS
@@ -227,16 +226,12 @@ def load_sensor(name_or_path: str | Path, **overrides) -> Sensor:
         if not path.exists():
             raise ConfigError(f"sensor: unknown preset {str(name_or_path)!r}; allowed: "
                               f"{', '.join(preset_names())} or a path to a .toml file")
-    text = read_bytes(path, "sensor", ConfigError)
-    raw = parse_toml(text, path, "sensor TOML", ConfigError)
+    raw = parse_toml(read_bytes(path, "sensor", ConfigError), path, "sensor TOML", ConfigError)
     raw.update(overrides)
     sensor = parse_sensor(raw, source=str(path))
     if path.resolve().parent == PRESET_DIR.resolve():   # bundled: its bytes ship with the version
         return sensor
-    digest = hashlib.sha256(text)
-    if sensor.returns.endswith(".json"):
-        digest.update(read_bytes(Path(sensor.returns), "sensor returns", ConfigError))
-    return replace(sensor, file_sha256=digest.hexdigest())
+    return replace(sensor, file_sha256=sensor_digest(path, ConfigError))
 
 
 def parse_sensor(raw: dict, source: str = "<sensor>") -> Sensor:

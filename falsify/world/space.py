@@ -25,7 +25,7 @@ from typing import Any
 from falsify.checks import SEED_MAX
 from falsify.errors import ConfigError
 from falsify.fileio import parse_toml, read_bytes
-from falsify.paths import bundled_configs, config_path
+from falsify.paths import bundled_configs, config_path, sensor_digest
 from falsify.world.space_dims import (
     CONTINUOUS_BASE,
     EFFECT_DIMS,
@@ -307,15 +307,6 @@ class Space:
 
 
 
-def _sensor_files(path: Path) -> list[Path]:
-    """A user's sensor TOML and the fitted return model file it names (a `.json` relative to
-    it), if any: the files whose bytes decide its scans."""
-    raw = parse_toml(read_bytes(path, "sensor", ConfigError), path, "sensor TOML", ConfigError)
-    returns = raw.get("returns")
-    named = isinstance(returns, str) and returns.endswith(".json")
-    return [path, *([path.parent / returns] if named else [])]
-
-
 def load_space(path: str | Path, builtin_cars: tuple[str, ...] | None = None) -> Space:
     """Read and validate a space config (a file, or a bundled config by its name); every problem
     names its key and the allowed values."""
@@ -331,7 +322,7 @@ def load_space(path: str | Path, builtin_cars: tuple[str, ...] | None = None) ->
     # gate baselines compare the hash); a config naming none keeps its bytes' hash.
     parts: list[bytes] = []
     if space.sensor.endswith(".toml"):   # a user's sensor: another file casts other scans
-        parts += [read_bytes(f, "sensor", ConfigError) for f in _sensor_files(Path(space.sensor))]
+        parts.append(sensor_digest(space.sensor, ConfigError).encode())
     if space.world:   # a changed profile builds other streets
         from falsify.world.profile import profile_file
 
