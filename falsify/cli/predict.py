@@ -95,8 +95,7 @@ def run(args) -> int:
     labelled = result.labelled_sets > 0
     if not labelled:
         summary = {k: v for k, v in summary.items() if k not in ("pooled", "bands", "sets")}
-    emit(args, summary, _predict_text(result, backend, out, labelled,
-                                      model.spec.input_kind == "points"))
+    emit(args, summary, _predict_text(result, backend, out, labelled))
     return 0
 
 
@@ -118,8 +117,7 @@ def output_stems(sets, out: Path) -> list[list[Path]]:
     return stems
 
 
-def _predict_text(result, backend: str, out: Path, labelled: bool,
-                  points_model: bool = False) -> str:
+def _predict_text(result, backend: str, out: Path, labelled: bool) -> str:
     """Per set: pooled scores per class, then car IoU, precision and recall per range band; the
     same pooled over every set when several are labelled."""
     def f(v):
@@ -145,11 +143,10 @@ def _predict_text(result, backend: str, out: Path, labelled: bool,
     n = sum(len(s.sources) for s in result.sets)
     lines = [f"predicted {n} scans with {result.model} ({result.model_hash[:12]}, {backend}) "
              f"into {out} (.pred.npy classes and .png pictures per scan)",
-             ("scored per point (--score points): the network is fed each point of a .bin "
-              "that has a pixel and each is scored with its own answer, SemanticKITTI's "
-              "protocol" if points_model else
-              "scored per point (--score points): each point of a .bin with a pixel takes that "
-              "pixel's prediction, SemanticKITTI's protocol") if result.score == "points" else
+             "scored per point (--score points): every point of a .bin that has a pixel, "
+             "against its own label (a points network answers each point, a range-image "
+             "network's pixel answers its points), SemanticKITTI's protocol"
+             if result.score == "points" else
              "scored per pixel (--score pixels): each pixel holds its nearest point; "
              "--score points scores every point"]
     if result.unlabelled:
