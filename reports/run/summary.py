@@ -23,8 +23,8 @@ def sensor_text(meta: dict, fallback: str) -> str:
     shape, source = meta.get("sensor_shape"), meta.get("sensor_source")
     if not shape or source is None:
         return name
-    return (f'{name}<br><span class="note">{int(shape[0])} x {int(shape[1])} · '
-            f"{esc(source)}</span>")
+    where = "a bundled preset" if source == meta.get("sensor") else esc(source)
+    return f'{name}<br><span class="note">{int(shape[0])} x {int(shape[1])} · {where}</span>'
 
 
 def samples_text(data: RunData) -> str:
@@ -77,7 +77,7 @@ def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     if isinstance(elapsed, int | float):
         took.append(f"{float(elapsed):.1f} s")
     if meta.get("workers"):
-        took.append(f"{esc(meta['workers'])} workers")
+        took.append(f"{esc(meta['workers'])} worker{'s' * (meta['workers'] != 1)}")
     started = str(meta.get("started") or "—").replace("T", " ")
     timing = (f"{esc(started)}<br><span class=\"note\">"
               f"{' on '.join(took) or 'duration unknown'}</span>")

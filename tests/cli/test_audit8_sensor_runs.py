@@ -116,3 +116,13 @@ def test_the_report_names_the_sensor_file_and_grid(tmp_path: Path) -> None:
     card = card[:card.index("</dd>")]
     assert "&lt;mine&gt;" in card and "64 x 512" in card
     assert str((tmp_path / "cfg" / "mine.toml").resolve()) in card
+
+
+def test_the_report_calls_a_preset_a_preset(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    assert main(["search", str(CONFIGS / "smoke.toml"), "--out", str(out), "--algorithm",
+                 "random", "--budget", "1", "--workers", "1"]) == 0
+    page = (out / "report.html").read_text()
+    card = page[page.index("<dt>Sensor</dt>"):]
+    assert "64 x 512 · a bundled preset" in card[:card.index("</dd>")]
+    assert "on 1 worker<" in page or "on 1 worker " in page
