@@ -5,13 +5,17 @@ not one in a baseline; 1 otherwise. Bad input raises FalsifyError (exit 2) befor
 written; so does a run that is incomplete (stopped before its sampler ended, or being written
 now), whose missing cells would pass unseen, unless it is allowed (`--allow-incomplete`). The
 `--json` output doubles as the baseline file format; `--junit` writes one testcase per cell so
-CI dashboards show which cells fail.
+CI dashboards show which cells fail: those that fail the gate, so a dashboard's verdict is the
+exit code's.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
+import re
+import stat
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -142,6 +146,26 @@ def check_same_cells(baseline: str | Path, theirs: set[tuple[float, float]],
                            "x, y grid")
 
 
+def _baseline_key(cell: dict) -> tuple[float, float]:
+    """A baseline JSON cell's (x, y); ValueError unless both are finite numbers (true, NaN and
+    Infinity, which Python's JSON reads, match no cell and would pass unseen)."""
+    xy = (cell["x"], cell["y"])
+    if not all(_finite(v) for v in xy):
+        raise ValueError(f"not a finite number: {xy}")
+    return _key(*xy)
+
+
+def _finite(value: object) -> bool:
+    """Whether a JSON value is a finite number (not true, NaN, Infinity, nor an int past a
+    float's range)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
 def read_baseline(source: str | Path, threshold: float, allow_incomplete: bool = False,
                   objective: str = "car", cells: set[tuple[float, float]] | None = None
                   ) -> set[tuple[float, float]]:
@@ -164,7 +188,8 @@ def read_baseline(source: str | Path, threshold: float, allow_incomplete: bool =
         raw = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise FalsifyError(f"--baseline {path}: no such file or run directory") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError) as exc:   # ValueError: undecodable text, bad JSON, an int of
+        # more digits than Python converts
         raise FalsifyError(f"--baseline {path}: not a readable gate JSON file ({exc})") from None
     spots = raw.get("blind_spots") if isinstance(raw, dict) else None
     if not isinstance(spots, list):
@@ -172,24 +197,27 @@ def read_baseline(source: str | Path, threshold: float, allow_incomplete: bool =
                            "(the output of `falsify gate --json`)")
     check_objective(source, raw.get("objective"), objective)
     t = raw.get("threshold")
-    if isinstance(t, int | float) and not isinstance(t, bool) and abs(t - threshold) > 1e-9:
+    if t is not None and not _finite(t):
+        raise FalsifyError(f"--baseline {path}: its threshold {json.dumps(t)} is not a number "
+                           "in (0, 1]; write the baseline again with `falsify gate RUN --json`")
+    if t is not None and abs(t - threshold) > 1e-9:
         raise FalsifyError(f"--baseline {path}: its blind spots are below mIoU {t:g}, this "
                            f"gate's below {threshold:g}; gate at the same threshold "
                            f"(--threshold {t:g}) or write the baseline again")
     if isinstance(raw.get("cells"), list):
         try:
-            theirs = {_key(c["x"], c["y"]) for c in raw["cells"]}
+            theirs = {_baseline_key(c) for c in raw["cells"]}
         except (KeyError, TypeError, ValueError):
-            raise FalsifyError(f"--baseline {path}: each of its cells needs numeric x and y") \
-                from None
+            raise FalsifyError(f"--baseline {path}: each of its cells needs finite numeric x "
+                               "and y") from None
         check_same_cells(source, theirs, cells)
     keys = set()
     for i, s in enumerate(spots):
         try:
-            keys.add(_key(s["x"], s["y"]))
+            keys.add(_baseline_key(s))
         except (KeyError, TypeError, ValueError):
-            raise FalsifyError(f"--baseline {path}: blind_spots[{i}] needs numeric x and y") \
-                from None
+            raise FalsifyError(f"--baseline {path}: blind_spots[{i}] needs finite numeric x "
+                               "and y") from None
     return keys
 
 
@@ -238,6 +266,12 @@ def completeness_note(result: GateResult) -> str | None:
     return None
 
 
+def _digits(miou: float, threshold: float) -> int:
+    """Decimals that tell a blind cell's mIoU from the threshold (3, up to 6): 0.6496 under
+    0.65 reads "0.6496 < 0.6500", not "0.650 < 0.650"."""
+    return next((d for d in range(3, 7) if f"{miou:.{d}f}" != f"{threshold:.{d}f}"), 6)
+
+
 def format_text(result: GateResult) -> str:
     """Verdict line, then the failing cells worst first with their margin below the threshold."""
     t = result.threshold
@@ -259,20 +293,38 @@ def format_text(result: GateResult) -> str:
     new = {_key(c.x, c.y) for c in result.new_blind_spots}
     for c in result.blind_spots:
         tag = "  NEW" if _key(c.x, c.y) in new else ""
-        lines.append(f"  {c.name}: mIoU {c.miou:.3f}, {t - c.miou:.3f} below the threshold "
+        d = _digits(c.miou, t)
+        lines.append(f"  {c.name}: mIoU {c.miou:.{d}f}, {t - c.miou:.{d}f} below the threshold "
                      f"({c.samples} samples){tag}")
     return "\n".join(lines)
 
 
+# What XML 1.0 cannot hold, not even as a character reference: C0 controls but tab, LF and CR,
+# lone surrogates (a path's non-UTF-8 bytes, as argv holds them) and U+FFFE, U+FFFF.
+_NOT_XML = re.compile("[^\t\n\r\x20-\ud7ff\ue000-\ufffd\U00010000-\U0010ffff]")
+
+
+def _xml_escape(m: re.Match) -> str:
+    """One character XML 1.0 forbids as the escape Python prints for it."""
+    code = ord(m.group())
+    if 0xDC80 <= code <= 0xDCFF:   # surrogateescape's stand-in for the byte code - 0xDC00
+        return f"\\x{code - 0xDC00:02x}"
+    return f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}"
+
+
+def xml_safe(text: str) -> str:
+    """`text` with each character XML 1.0 forbids written as a Python escape (\\x1b, a path's
+    byte \\xff), as the terminal shows them: JUnit readers reject the file otherwise."""
+    return _NOT_XML.sub(_xml_escape, text)
+
+
 def junit_xml(result: GateResult) -> str:
-    """JUnit XML: suite "falsify.jobs.gate", one testcase per cell; blind spots fail, empty cells
-    are skipped."""
+    """JUnit XML: suite "falsify.jobs.gate", one testcase per cell. The cells that fail the
+    gate fail (every blind spot over the limit, the new ones against a baseline); blind spots it
+    accepts and empty cells are skipped, each saying why; a passing gate has no failure, as
+    JUnit readers (Jenkins, GitLab, test-report actions) judge a build by its failures."""
     t = result.threshold
-    failures = len(result.blind_spots)
-    skipped = sum(c.miou is None for c in result.cells)
-    suite = ET.Element("testsuite", {
-        "name": JUNIT_SUITE, "tests": str(len(result.cells)), "failures": str(failures),
-        "errors": "0", "skipped": str(skipped)})
+    suite = ET.Element("testsuite", {"name": JUNIT_SUITE, "tests": str(len(result.cells))})
     props = ET.SubElement(suite, "properties")
     for name, value in (("run", result.run), ("objective", result.objective),
                         ("threshold", f"{t:.6g}"),
@@ -282,20 +334,99 @@ def junit_xml(result: GateResult) -> str:
                         ("samples", str(result.completeness.samples)),
                         ("planned", "" if (n := result.completeness.planned) is None else str(n)),
                         ("complete", "" if result.complete is None else str(result.complete))):
-        ET.SubElement(props, "property", {"name": name, "value": value})
+        ET.SubElement(props, "property", {"name": name, "value": xml_safe(value)})
     new = {_key(c.x, c.y) for c in result.new_blind_spots}
+    counts = {"failure": 0, "skipped": 0}
     for c in result.cells:
         case = ET.SubElement(suite, "testcase", {"classname": JUNIT_SUITE, "name": c.name})
         if c.miou is None:
             ET.SubElement(case, "skipped", {"message": "no valid sample"})
-        elif c.blind:
-            fail = ET.SubElement(case, "failure", {"message": f"mIoU {c.miou:.3f} < {t:.3f}",
-                                                   "type": "BlindSpot"})
-            note = " (new against the baseline)" if _key(c.x, c.y) in new else ""
-            fail.text = (f"{c.name}: mIoU {c.miou:.3f} over {c.samples} samples is "
-                         f"{t - c.miou:.3f} below the threshold {t:.3f}{note}")
+            counts["skipped"] += 1
+            continue
+        if not c.blind:
+            continue
+        d = _digits(c.miou, t)
+        text = (f"{c.name}: mIoU {c.miou:.{d}f} over {c.samples} samples is "
+                f"{t - c.miou:.{d}f} below the threshold {t:.{d}f}")
+        if result.baseline is not None and _key(c.x, c.y) not in new:
+            tag, attrs = "skipped", {"message": "known blind spot, in the baseline"}
+            text += f"; in the baseline {result.baseline}, so it does not fail the gate"
+        elif result.baseline is None and result.passed:
+            tag, attrs = "skipped", {"message": f"blind spot within --max-blind-spots "
+                                                f"{result.limit}"}
+            n = len(result.blind_spots)
+            text += (f"; {n} blind spot{'s are' if n != 1 else ' is'} within the limit "
+                     f"{result.limit}, so it does not fail the gate")
+        else:
+            tag, attrs = "failure", {"message": f"mIoU {c.miou:.{d}f} < {t:.{d}f}",
+                                     "type": "BlindSpot"}
+            if result.baseline is not None:
+                text += " (new against the baseline)"
+        ET.SubElement(case, tag, attrs).text = xml_safe(text)
+        counts[tag] += 1
+    # the counts readers show are those of the testcases written, placed before them
+    suite.attrib.update({"failures": str(counts["failure"]), "errors": "0",
+                         "skipped": str(counts["skipped"])})
     ET.indent(suite)
     return '<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(suite, "unicode") + "\n"
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except (OSError, ValueError):   # either missing, unreadable, or a NUL in a name
+        return False
+
+
+def _is_stream(path: Path, fd: int) -> bool:
+    """Whether `path` is the regular file open as `fd` (a shell's `> FILE` or `2> FILE`)."""
+    try:
+        mine, theirs = os.fstat(fd), os.stat(path)
+    except (OSError, ValueError):
+        return False
+    return (stat.S_ISREG(mine.st_mode) and (mine.st_dev, mine.st_ino)
+            == (theirs.st_dev, theirs.st_ino))
+
+
+def _store_files(run: str | Path) -> list[Path]:
+    """The files of a run's store (as open_run finds it from a folder or the store itself)."""
+    path = Path(run)
+    folder = path.parent if path.name == STORE_NAME and not path.is_dir() else path
+    return [folder / f"{STORE_NAME}{end}" for end in ("", "-wal", "-shm", "-journal")]
+
+
+def check_outputs(run: str | Path, baseline: str | Path | None, junit: str | Path | None,
+                  streams: tuple[tuple[str, int], ...] = ()) -> None:
+    """FalsifyError before anything is read or written when an output would replace an input:
+    `--junit` onto the run's store, the baseline, a folder or this command's redirected output
+    (`streams`: name and descriptor), or a `--baseline` file that is that output, emptied by the
+    shell's `> FILE` before the gate could read it."""
+    if baseline is not None and not Path(baseline).is_dir():
+        for name, fd in streams:
+            if _is_stream(Path(baseline), fd):
+                raise FalsifyError(
+                    f"--baseline {baseline}: is also where this command's {name} goes, "
+                    "which a shell's `>` empties before the gate reads it; write the new "
+                    "baseline to another file, then move it over the old one")
+    if junit is None:
+        return
+    path = Path(junit)
+    if path.is_dir():
+        raise FalsifyError(f"--junit {path}: is a directory; name a file in it, e.g. "
+                           f"{path / 'junit.xml'}")
+    inputs = [(f, "the run's store") for f in _store_files(run)]
+    if baseline is not None:
+        inputs += ([(f, "the baseline run's store") for f in _store_files(baseline)]
+                   if Path(baseline).is_dir() else [(Path(baseline), "the baseline")])
+    for f, what in inputs:
+        if _same_file(path, f):
+            raise FalsifyError(f"--junit {path}: would replace {what} ({f}), which the gate "
+                               "reads; write the JUnit XML to another file")
+    for name, fd in streams:
+        if _is_stream(path, fd):
+            raise FalsifyError(f"--junit {path}: is also where this command's {name} goes; "
+                               "the JUnit XML would replace what it prints: write them to "
+                               "different files")
 
 
 def write_junit(result: GateResult, path: str | Path) -> None:
