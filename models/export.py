@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import logging
 import warnings
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -17,7 +19,8 @@ from falsify.fileio import atomic_path
 from falsify.models.spec import (
     ModelSpec,
     default_spec,
-    load_spec,
+    file_sha256,
+    load_paired_spec,
     normalise,
     save_spec,
     spec_path_for,
@@ -47,17 +50,23 @@ def export_onnx(model: SqueezeSeg, path: str | Path, H: int = 64, W: int = 512,
     The graph holds `models.inference.for_export`'s equivalent, faster layers. Uses the legacy
     TorchScript exporter (opset 17): same weights give the same bytes.
     """
+    return _export(model, Path(path), H, W, name, classes, extra, weights=False)
+
+
+def _export(model: SqueezeSeg, path: Path, H: int, W: int, name: str | None,
+            classes: str | None, extra: dict[str, Any], weights: bool) -> tuple[Path, ModelSpec]:
+    """`export_onnx`, with `weights` also the state dict as ``<path>.pt``. The spec records
+    each file's sha256 and is written first, the files renamed into place after it: a stop
+    between them leaves a spec its old files do not match, which every runner refuses (an
+    old spec, written last, would pass a new file of an export without hashes)."""
     import torch
 
     from falsify.models.inference import for_export
 
-    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     m = for_export(copy.deepcopy(model).float().to(memory_format=torch.contiguous_format))
     spec = default_spec(name or path.stem, m.channels, H, W, m.crf_iterations, **extra)
     if classes == "semantickitti":
-        from dataclasses import replace
-
         from falsify.semantic import TRAIN_CLASSES
         spec = replace(spec, num_classes=len(TRAIN_CLASSES),
                        classes={c: (i,) for i, c in enumerate(TRAIN_CLASSES) if i})
@@ -68,12 +77,21 @@ def export_onnx(model: SqueezeSeg, path: str | Path, H: int = 64, W: int = 512,
         args += (torch.zeros(1, 3, H, W), torch.ones(1, 1, H, W))
         names += [spec.xyz_input, spec.mask_input]
     dyn = {n: {0: "batch"} for n in [*names, spec.output_name]}
-    with warnings.catch_warnings(), torch.no_grad(), atomic_path(path) as tmp:
-        warnings.simplefilter("ignore")
-        torch.onnx.export(m, args, str(tmp), dynamo=False, opset_version=OPSET,
-                          input_names=names, output_names=[spec.output_name],
-                          dynamic_axes=dyn, do_constant_folding=True)
-    save_spec(spec, spec_path_for(path))
+    pt = path.with_suffix(".pt")
+    # leaving the block renames the .pt, then the .onnx, both after the spec
+    with atomic_path(path) as tmp, (atomic_path(pt) if weights
+                                    else contextlib.nullcontext(None)) as pt_tmp:
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(m, args, str(tmp), dynamo=False, opset_version=OPSET,
+                              input_names=names, output_names=[spec.output_name],
+                              dynamic_axes=dyn, do_constant_folding=True)
+        hashes = {"onnx": file_sha256(tmp)}
+        if pt_tmp is not None:
+            torch.save({k: v.contiguous() for k, v in model.state_dict().items()}, pt_tmp)
+            hashes["pt"] = file_sha256(pt_tmp)
+        spec = replace(spec, sha256=hashes)
+        save_spec(spec, spec_path_for(path))
     return path, spec
 
 
@@ -173,9 +191,9 @@ def quantize_int8(onnx_in: str | Path, onnx_out: str | Path, scans: np.ndarray |
     from onnxruntime.quantization import QuantType, quantize_dynamic
 
     onnx_in, onnx_out = Path(onnx_in), Path(onnx_out)
-    spec = load_spec(spec_path_for(onnx_in))
     if not onnx_in.is_file():
         raise FalsifyError(f"model file {onnx_in} not found")
+    _, spec = load_paired_spec(onnx_in, "onnx")
     exclude = _fp32_nodes(onnx_in)
     root = logging.getLogger()
     level = root.level
@@ -203,11 +221,16 @@ def quantize_int8(onnx_in: str | Path, onnx_out: str | Path, scans: np.ndarray |
             else:
                 raise FalsifyError("quantisation method must be 'static' or 'dynamic', got "
                                    f"{method!r}")
+            _save_spec_of(spec, tmp_out, onnx_out)   # before the model: see `_export`
     finally:
         root.setLevel(level)
-
-    save_spec(spec, spec_path_for(onnx_out))
     return onnx_out
+
+
+def _save_spec_of(spec: ModelSpec, tmp: Path, onnx_out: Path) -> None:
+    """Write the spec of a derived model made at `tmp` (to be renamed to `onnx_out`) beside
+    `onnx_out`, recording that model's sha256 alone (not its source's files)."""
+    save_spec(replace(spec, sha256={"onnx": file_sha256(tmp)}), spec_path_for(onnx_out))
 
 
 def _percentile_ranges(onnx_in: Path, spec: ModelSpec, scans: np.ndarray,
@@ -273,11 +296,14 @@ def convert_fp16(onnx_in: str | Path, onnx_out: str | Path,
     from onnxruntime.transformers.float16 import convert_float_to_float16
 
     onnx_in, onnx_out = Path(onnx_in), Path(onnx_out)
+    _, spec = load_paired_spec(onnx_in, "onnx")
     model = onnx.load(str(onnx_in))
     m16 = convert_float_to_float16(model, keep_io_types=True,
                                    node_block_list=list(keep_fp32) or None)
-    onnx.save(m16, str(onnx_out))
-    save_spec(load_spec(spec_path_for(onnx_in)), spec_path_for(onnx_out))
+    onnx_out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(onnx_out) as tmp:
+        onnx.save(m16, str(tmp))
+        _save_spec_of(spec, tmp, onnx_out)
     return onnx_out
 
 
@@ -288,8 +314,10 @@ def export_weights(weights: str | Path, out: str | Path, crf_iterations: int = 3
     """Export trained SqueezeSeg weights (a state dict or a training checkpoint.pt) to `out`
     (.onnx, its spec .json and a .pt of the weights beside it), each KEY=VALUE of `notes`
     recorded in the spec; with `int8`, also a static int8 copy there, calibrated on
-    `calibration_scans` training-style synthetic scenes (default 64). Returns the files written;
-    FalsifyError before writing anything on bad input."""
+    `calibration_scans` training-style synthetic scenes (default 64), the old one removed
+    first. Returns the files written; FalsifyError before writing anything on bad input. The
+    spec records the .onnx and .pt's sha256 (see `_export`): a stop between files leaves a
+    set that runners refuse, never a new file run beside an old one."""
     out = check_out_file(out)
     if out.suffix != ".onnx":   # the spec and weights go beside it as .json and .pt
         raise FalsifyError(f"--out {out}: must end in .onnx")
@@ -306,16 +334,15 @@ def export_weights(weights: str | Path, out: str | Path, crf_iterations: int = 3
     bad = [n for n in notes if "=" not in n or not n.split("=", 1)[0]]
     if bad:
         raise FalsifyError(f"--note {bad[0]!r}: write KEY=VALUE")
-    import torch
-
     from falsify.models.squeezeseg import SqueezeSeg, load_state, load_weights_into
     state = load_state(weights)
     model = SqueezeSeg(crf_iterations=crf_iterations)
     load_weights_into(model, state, weights)
     extra = dict(n.split("=", 1) for n in notes)
-    path, spec = export_onnx(model, out, H=height, W=width, name=out.stem, **extra)
-    with atomic_path(out.with_suffix(".pt")) as tmp:
-        torch.save({k: v.contiguous() for k, v in model.state_dict().items()}, tmp)
+    if int8:   # an old int8 copy must not outlive this export beside a new fp32 model
+        for f in (int8, spec_path_for(int8)):
+            f.unlink(missing_ok=True)
+    path, spec = _export(model, out, height, width, out.stem, None, extra, weights=True)
     written = {"onnx": str(path), "spec": str(spec_path_for(path)),
                "weights": str(out.with_suffix(".pt"))}
     if int8:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -34,6 +35,9 @@ OUTPUT_KINDS = ("logits", "probabilities")
 INPUT_KINDS = ("range", "points")
 POINT_CHANNELS = ("x", "y", "z", "intensity")
 SPEC_VERSION = 1
+# The files an export writes beside a spec whose sha256 it records: the ONNX graph, the weights.
+HASHED_ROLES = ("onnx", "pt")
+_HEX64 = re.compile(r"[0-9a-f]{64}")
 # Names a spec may map output indices to: our four, then SemanticKITTI's train classes.
 SPEC_CLASSES: tuple[str, ...] = (*CLASSES, *(n for n in TRAIN_CLASSES[1:] if n not in CLASSES))
 # Our names that are SemanticKITTI classes under another name.
@@ -84,6 +88,9 @@ class ModelSpec:
     notes: str = NORMALISATION_NOTE
     extra: Mapping[str, Any] = field(default_factory=dict)
     input_kind: str = "range"
+    # the files exported with this spec, by role (HASHED_ROLES): their sha256, which a runner
+    # checks, so that an export stopped between its files is refused, not run half old
+    sha256: Mapping[str, str] = field(default_factory=dict)
 
     def check_fits(self, sensor: Any, model: str) -> None:
         """FalsifyError unless the sensor's range images have this model's H x W (a points
@@ -127,6 +134,8 @@ class ModelSpec:
         d = asdict(self)
         if self.input_kind == "range":
             del d["input_kind"]
+        if not self.sha256:   # a spec written without its files' hashes keeps its bytes
+            del d["sha256"]
         d["version"] = SPEC_VERSION
         d["classes"] = {k: list(v) if len(v) > 1 else v[0] for k, v in self.classes.items()}
         d["channels"], d["mean"], d["std"] = list(self.channels), list(self.mean), list(self.std)
@@ -237,7 +246,7 @@ def _class_map(raw_classes: dict, path: str | Path, num_classes: int
 SPEC_KEYS = frozenset({
     "name", "version", "input_kind", "channels", "mean", "std", "height", "width", "layout",
     "input_name", "output_name", "output_kind", "num_classes", "classes", "xyz_input",
-    "mask_input", "architecture", "crf_iterations", "notes", "extra"})
+    "mask_input", "architecture", "crf_iterations", "notes", "extra", "sha256"})
 
 
 def spec_from_dict(d: Any, path: str | Path) -> ModelSpec:
@@ -302,6 +311,12 @@ def spec_from_dict(d: Any, path: str | Path) -> ModelSpec:
     crf = _get(d, "crf_iterations", path, int, 0)
     if not 0 <= crf <= 3:
         raise bad("crf_iterations", f"must be 0..3, got {crf}")
+    hashes = _get(d, "sha256", path, dict, {})
+    for role, digest in hashes.items():
+        if role not in HASHED_ROLES:
+            raise bad("sha256", f"has unknown file {role!r}; allowed: {', '.join(HASHED_ROLES)}")
+        if not isinstance(digest, str) or not _HEX64.fullmatch(digest):
+            raise bad("sha256", f"'{role}' must be 64 lowercase hex digits, got {digest!r}")
     return ModelSpec(
         name=_get(d, "name", path, str),
         channels=tuple(channels), mean=stats["mean"], std=stats["std"],
@@ -316,7 +331,46 @@ def spec_from_dict(d: Any, path: str | Path) -> ModelSpec:
         notes=_get(d, "notes", path, str, NORMALISATION_NOTE),
         extra=_get(d, "extra", path, dict, {}),
         input_kind=input_kind,
+        sha256=dict(hashes),
     )
+
+
+def file_sha256(path: str | Path) -> str:
+    """sha256 (hex) of a file's bytes; FalsifyError naming the file if it cannot be read."""
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as fh:
+            while chunk := fh.read(1 << 20):
+                h.update(chunk)
+    except OSError as e:
+        raise FalsifyError(f"cannot read model file {path}: {e.strerror or e}") from e
+    return h.hexdigest()
+
+
+def check_exported_file(spec: ModelSpec, spec_path: str | Path, path: str | Path,
+                        role: str) -> None:
+    """FalsifyError unless `path` is the `role` file ("onnx", "pt") its spec was written with
+    (specs without the hash, older or hand-written ones, are not checked): an export killed
+    between its files leaves a new spec beside an old file, which would load silently."""
+    want = spec.sha256.get(role)
+    if want is None:
+        return
+    got = file_sha256(path)
+    if got != want:
+        raise FalsifyError(f"{path} is not the file its spec {spec_path} was exported with "
+                           f"(sha256 {got[:12]}, the spec says {want[:12]}): an export was "
+                           f"stopped or one file replaced; export again (`falsify export "
+                           f"WEIGHTS --out {Path(path).with_suffix('.onnx')}`)")
+
+
+def load_paired_spec(path: str | Path, role: str, spec_path: str | Path | None = None
+                     ) -> tuple[Path, ModelSpec]:
+    """The spec of model file `path` (beside it unless given) and the spec, checked to be the
+    one `path` was exported with (`check_exported_file`)."""
+    spec_path = spec_path_for(path) if spec_path is None else Path(spec_path)
+    spec = load_spec(spec_path)
+    check_exported_file(spec, spec_path, path, role)
+    return spec_path, spec
 
 
 def model_hash(path: str | Path, spec_path: str | Path | None = None) -> str:

@@ -9,6 +9,7 @@ map: mean and max absolute error per cell and agreement (Jaccard) of the blind-s
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import tempfile
@@ -303,9 +304,9 @@ def knob_precision(ctx: Context) -> list[Variant]:
 
 def knob_crf(ctx: Context) -> list[Variant]:
     """The same weights with 0..3 CRF iterations (0 skips the CRF), exported and run in ORT."""
-    from falsify.models.spec import load_spec, spec_path_for
+    from falsify.models.spec import load_paired_spec
 
-    spec = load_spec(spec_path_for(ctx.reference.model))
+    _, spec = load_paired_spec(ctx.reference.model, "onnx")
     out = []
     for k in CRF_ITERATIONS:
         if k == spec.crf_iterations:
@@ -401,10 +402,12 @@ def export_crf(pt: Path, spec: ModelSpec, k: int, out: Path) -> Path:
     import torch
 
     from falsify.models.export import export_onnx
+    from falsify.models.spec import check_exported_file, spec_path_for
     from falsify.models.squeezeseg import SqueezeSeg
 
     if spec.architecture != "squeezeseg":
         raise Unavailable(f"model architecture {spec.architecture!r} is not squeezeseg")
+    check_exported_file(spec, spec_path_for(pt), pt, "pt")   # the .pt of the spec's export
     net = SqueezeSeg([c for c in spec.channels if c != "mask"], crf_iterations=k,
                      num_classes=spec.num_classes)
     net.load_state_dict(torch.load(str(pt), map_location="cpu", weights_only=True))
@@ -464,15 +467,38 @@ def run_tradeoff(config: str | Path, out: str | Path, knobs: Sequence[str] = KNO
         frame = pd.DataFrame([dataclasses.asdict(r) for r in rows],
                              columns=list(Row.__annotations__))
         page = render(summary)   # before any file: a page that fails leaves no csv without it
-        write_bytes(out / "tradeoff.csv", frame.to_csv(index=False).encode())
-        write_json(out / "tradeoff.json", summary)
-        write_text(out / "tradeoff.html", page)
+        remove_outputs(out)   # a stop from here on leaves part of this run, none of the last
         variants = sorted(Path(scratch).iterdir())
         if variants:
             (out / "models").mkdir(parents=True, exist_ok=True)
         for f in variants:
             move_file(f, out / "models" / f.name)   # whole, across file systems too
+        write_bytes(out / "tradeoff.csv", frame.to_csv(index=False).encode())
+        write_text(out / "tradeoff.html", page)
+        write_json(out / "tradeoff.json", summary)   # last: the run's files are all there
     return summary
+
+
+# What a run writes into DIR/models/: `knob_precision`'s and `export_crf`'s variants, each an
+# .onnx with its .json spec.
+VARIANT_SUFFIXES = ("-fp16", "-int8", *(f"-crf{k}" for k in CRF_ITERATIONS))
+
+
+def remove_outputs(out: Path) -> None:
+    """Remove an earlier run's files from `out`: tradeoff.csv, .json and .html, and its variant
+    models (named as `VARIANT_SUFFIXES` say) from out/models/, which goes if left empty; a run
+    with fewer knobs kept the last one's models beside its results. Other files stay."""
+    for k in ("json", "csv", "html"):   # the summary first: it says the files are one run
+        (out / f"tradeoff.{k}").unlink(missing_ok=True)
+    models = out / "models"
+    if models.is_dir():
+        for f in models.iterdir():
+            p = Path(f.name)
+            if p.suffix in (".onnx", ".json") and p.stem.endswith(VARIANT_SUFFIXES) \
+                    and f.is_file():
+                f.unlink()
+        with contextlib.suppress(OSError):   # not empty: a file of the user's
+            models.rmdir()
 
 
 def _measure(ctx: Context, knobs: Sequence[str], config: str | Path, onnx: Path,

@@ -194,7 +194,7 @@ def _bench_model(args) -> tuple[dict, str]:
     if onnx.suffix != ".onnx":
         raise UsageError(f"--model {onnx}: bench model takes an .onnx model (with its .json "
                          "spec beside it)")
-    open_model(onnx, None)   # a missing model or spec is named before the rates take seconds
+    open_model(onnx, None, "onnx")   # a missing or mismatched model or spec, before the rates
     rates = model_bench_rates(progress)
     # the bundled network's int8 is its shipped copy (calibrating one anew takes minutes)
     shipped = (onnx.resolve() == BUNDLED_ONNX.resolve()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -85,10 +86,11 @@ def run(args) -> int:
             print(f"falsify: warning: {label}: labels without a scan (no "
                   f"{Path(label).stem}.bin among the set's scans); not scored", file=sys.stderr)
     result = evaluate(model, sets, score=args.score)
+    remove_predictions(out, targets)   # a stop while writing leaves none of the last run's
     for s, scans, stems in zip(result.sets, sets, targets, strict=True):
         labelled = scans.labelled()
         for k, (stem, cls) in enumerate(zip(stems, s.predictions, strict=True)):
-            write_npy(stem.with_name(f"{stem.name}.pred.npy"), cls)
+            write_npy(stem.with_name(f"{stem.name}{PRED_SUFFIX}"), cls)
             picture = prediction_picture(scans.images[k], cls, labelled=bool(labelled[k]))
             write_bytes(stem.with_name(f"{stem.name}.png"), encode_png(picture))
     summary = {**result.to_json(), "backend": backend, "out": str(out)}
@@ -97,6 +99,21 @@ def run(args) -> int:
         summary = {k: v for k, v in summary.items() if k not in ("pooled", "bands", "sets")}
     emit(args, summary, _predict_text(result, backend, out, labelled))
     return 0
+
+
+PRED_SUFFIX = ".pred.npy"
+
+
+def remove_predictions(out: Path, targets: list[list[Path]]) -> None:
+    """Remove an earlier run's outputs from `out`: every X.pred.npy under it with the X.png
+    beside it (the picture first, so that no picture outlives the file that marks it ours), and
+    the two files of each scan this run writes. Other files stay."""
+    stems = [stem for stems in targets for stem in stems]
+    for folder, _, names in os.walk(out):   # links to other folders are not followed
+        stems += [Path(folder) / n[:-len(PRED_SUFFIX)] for n in names if n.endswith(PRED_SUFFIX)]
+    for stem in stems:
+        stem.with_name(f"{stem.name}.png").unlink(missing_ok=True)
+        stem.with_name(f"{stem.name}{PRED_SUFFIX}").unlink(missing_ok=True)
 
 
 def output_stems(sets, out: Path) -> list[list[Path]]:

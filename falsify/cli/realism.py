@@ -9,6 +9,8 @@ from pathlib import Path
 from falsify.checks import check_out_dir
 from falsify.cli.common import UsageError, emit, predict_sequences
 
+OUTPUTS = ("realism.json", "realism.html")   # what a run writes into --out
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("synthetic", nargs="+",
@@ -77,8 +79,10 @@ def run(args) -> int:
     doc = result.to_json()
     page = render_realism(doc)
     out = Path(args.out)
-    write_json(out / "realism.json", doc)
+    for name in OUTPUTS:   # a stop between the two must not leave the last run's page
+        (out / name).unlink(missing_ok=True)
     write_text(out / "realism.html", page)
+    write_json(out / "realism.json", doc)
     summary = {**doc, "files": [str(out / "realism.json"), str(out / "realism.html")]}
     emit(args, summary, realism_text(doc, out))
     return 0

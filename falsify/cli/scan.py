@@ -43,6 +43,13 @@ def _check_active(space, sample, pairs: dict[str, str]) -> None:
                              "also set count to hold that car")
 
 
+def output_names() -> tuple[str, ...]:
+    """Every file `falsify scan` writes into --out, with the camera's."""
+    from falsify.sensor.camera import CAMERA_FILES
+    return (*(f"scan.{e}" for e in ("npy", "png", "bin", "label")), *CAMERA_FILES,
+            "overlay.png")
+
+
 def run(args) -> int:
     import numpy as np
 
@@ -87,18 +94,17 @@ def run(args) -> int:
     if camera is not None:
         from falsify.cli.camera import scan_camera_files
         extra, summary["camera"] = scan_camera_files(sim, camera, sample, scan)
-    write_npy(out / "scan.npy", scan.image)
-    write_bytes(out / "scan.png", encode_png(scan_picture(scan.image)))
+    png = encode_png(scan_picture(scan.image))
     points, labels = kitti_arrays(scan)   # SemanticKITTI's own files: x, y, z, remission; labels
+    for name in output_names():   # a stop between files must not leave the last sample's
+        (out / name).unlink(missing_ok=True)
+    write_npy(out / "scan.npy", scan.image)
+    write_bytes(out / "scan.png", png)
     write_bytes(out / "scan.bin", points.tobytes())
     write_bytes(out / "scan.label", labels.tobytes())
     for name, data in extra.items():
         write_bytes(out / name, data)
         summary["files"].append(str(out / name))
-    if camera is None:   # a previous sample's camera files would sit beside this scan
-        from falsify.sensor.camera import CAMERA_FILES
-        for name in (*CAMERA_FILES, "overlay.png"):
-            (out / name).unlink(missing_ok=True)
     camera_text = f"; the camera's {', '.join(extra)}" if extra else ""
     emit(args, summary, f"wrote {out / 'scan.npy'}, .png, .bin and .label{camera_text}: "
          f"{summary['points']} points, {summary['car_points']} on cars, "

@@ -79,13 +79,12 @@ class EncoderFeatures:
 
     def __init__(self, path: str | Path | None = None, threads: int | None = 2) -> None:
         from falsify.models.runners import BUNDLED_ONNX
-        from falsify.models.spec import load_spec, model_hash, spec_path_for
+        from falsify.models.spec import load_paired_spec, model_hash
 
         self.path = Path(path) if path is not None else BUNDLED_ONNX
-        spec_path = spec_path_for(self.path)
         if not self.path.is_file():
             raise FalsifyError(f"model file {self.path} not found")
-        self.spec = load_spec(spec_path)
+        spec_path, self.spec = load_paired_spec(self.path, "onnx")   # the spec's own graph
         self.model_hash = model_hash(self.path, spec_path)
         try:
             import onnx

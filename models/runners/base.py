@@ -20,10 +20,9 @@ from falsify.models.spec import (
     POINT_CHANNELS,
     SCAN_INDEX,
     ModelSpec,
-    load_spec,
+    load_paired_spec,
     model_hash,
     normalise,
-    spec_path_for,
 )
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
@@ -174,14 +173,15 @@ def feeds(spec: ModelSpec, scans: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
-def open_model(path: str | Path, spec_path: str | Path | None
+def open_model(path: str | Path, spec_path: str | Path | None, role: str
                ) -> tuple[Path, Path, ModelSpec, str]:
-    """The model file, its spec (beside it unless given) and their content hash."""
+    """The model file, its spec (beside it unless given) and their content hash; the file is
+    checked to be the `role` file ("onnx", "pt") the spec was exported with, where it says."""
     path = Path(path)
-    spec_path = spec_path_for(path) if spec_path is None else Path(spec_path)
     if not path.is_file():
         raise FalsifyError(f"model file {path} not found")
-    return path, spec_path, load_spec(spec_path), model_hash(path, spec_path)
+    spec_path, spec = load_paired_spec(path, role, spec_path)
+    return path, spec_path, spec, model_hash(path, spec_path)
 
 
 def points_of(scan: np.ndarray, valid: np.ndarray, spec: ModelSpec) -> np.ndarray:

@@ -92,7 +92,8 @@ class OnnxSegmenter:
     def __init__(self, path: str | Path, threads: int | None = None,
                  spec_path: str | Path | None = None, batch: int = BATCH,
                  device: str = "cpu") -> None:
-        self.path, spec_path, self.spec, self.model_hash = open_model(path, spec_path)
+        self.path, spec_path, self.spec, self.model_hash = open_model(path, spec_path,
+                                                                          "onnx")
         self.batch = max(1, int(batch))
         self.points = self.spec.input_kind == "points"
         try:
@@ -101,6 +102,8 @@ class OnnxSegmenter:
             raise
         except Exception as e:  # onnxruntime raises its own exception types
             raise FalsifyError(f"cannot load ONNX model {self.path}: {e}") from e
+        # the intra-op threads the session runs on (a run records them)
+        self.threads = int(self.session.get_session_options().intra_op_num_threads)
         self._dtypes = self._input_dtypes()
         self._check_points() if self.points else self._check()
 

@@ -24,6 +24,7 @@ class PluginSegmenter:
     def __init__(self, ref: str, threads: int | None = None, device: str = "cpu") -> None:
         self.path = ref
         self.device = device
+        self.threads = threads   # what the plug-in is given (None: its library's default)
         self.plugin, self.spec, self.model_hash = open_plugin(ref, threads, device)
 
     def predict(self, scans: np.ndarray) -> Prediction:

@@ -29,7 +29,8 @@ class TorchSegmenter:
     def __init__(self, path: str | Path, threads: int | None = None,
                  spec_path: str | Path | None = None, batch: int = BATCH,
                  device: str = "cpu", precision: str = "fp32") -> None:
-        self.path, spec_path, self.spec, self.model_hash = open_model(path, spec_path)
+        self.path, spec_path, self.spec, self.model_hash = open_model(path, spec_path,
+                                                                          "pt")
         if precision not in ("fp32", "bf16"):
             raise FalsifyError(f"torch precision {precision!r}; allowed: fp32, bf16")
         self.precision = precision
@@ -51,6 +52,7 @@ class TorchSegmenter:
 
         if threads:
             torch.set_num_threads(int(threads))
+        self.threads = torch.get_num_threads()   # torch's, process-wide (a run records them)
         self.torch = torch
         self.model = SqueezeSeg([c for c in self.spec.channels if c != "mask"],
                                 crf_iterations=self.spec.crf_iterations,
