@@ -1,5 +1,6 @@
-"""What the CPU offers in hardware, from /proc/cpuinfo: the flags that decide which precisions
-run at their own rate (int8 dot products, bf16 products) rather than emulated."""
+"""What the CPU is and offers in hardware, from /proc/cpuinfo: its name (a run records what it
+computed on), and the flags that decide which precisions run at their own rate (int8 dot
+products, bf16 products) rather than emulated."""
 
 from __future__ import annotations
 
@@ -30,3 +31,20 @@ def has_bf16_units(flags: set[str] | None = None) -> bool | None:
     if not flags:
         return None
     return bool(flags & set(BF16_UNITS))
+
+
+def cpu_name(cpuinfo: Path = Path("/proc/cpuinfo")) -> str | None:
+    """The CPU's model name with its family and model numbers (which tell generations apart
+    where the name does not); None where there is no /proc/cpuinfo or it names no model."""
+    try:
+        text = cpuinfo.read_text()
+    except OSError:
+        return None
+    fields: dict[str, str] = {}
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    name = fields.get("model name")
+    if name is None:
+        return None
+    return f"{name} (family {fields.get('cpu family', '?')}, model {fields.get('model', '?')})"

@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from falsify.cpu import BF16_UNITS, cpu_flags
+from falsify.cpu import BF16_UNITS, cpu_flags, cpu_name
 from falsify.errors import FalsifyError
 
 # The product the ratio goals use, then a 3x3 convolution's as ONNX Runtime runs it (fire4's
@@ -474,20 +474,3 @@ def machine() -> dict:
     """The CPU by name (figures differ 2x between CPUs), its core count and Python."""
     return {"cpus": os.cpu_count(), "python": platform.python_version(),
             "processor": platform.processor() or platform.machine(), "cpu": cpu_name()}
-
-
-def cpu_name() -> str | None:
-    """The CPU's model name from /proc/cpuinfo (with its family and model numbers, which tell
-    generations apart where the name does not); None where there is no /proc."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return None
-    fields: dict[str, str] = {}
-    for line in text.splitlines():
-        key, _, value = line.partition(":")
-        fields.setdefault(key.strip(), value.strip())
-    name = fields.get("model name")
-    if name is None:
-        return None
-    return f"{name} (family {fields.get('cpu family', '?')}, model {fields.get('model', '?')})"

@@ -21,3 +21,8 @@ class Executor(Protocol):
     def map(self, chunks: Sequence[list[Sample]]) -> Iterator[list[SampleResult]]:
         """Each chunk's results, in the order of the chunks."""
         ...
+
+    def environments(self) -> list[dict]:
+        """The distinct environments (`falsify.executors.environment`) of the processes that
+        score, once entered."""
+        ...

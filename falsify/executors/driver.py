@@ -95,6 +95,11 @@ class Driver:
         if self.executor is not None:
             self.executor.__exit__(*exc)
 
+    def environments(self) -> list[dict]:
+        """The distinct environments of the processes that score (none known: empty)."""
+        tell = getattr(self.executor, "environments", None)
+        return tell() if tell is not None else []
+
     def evaluate(self, samples: Sequence[Sample]) -> list[float | None]:
         """The samplers' callback: scores in order, stored ones read back, the rest computed.
 

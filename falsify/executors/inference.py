@@ -109,10 +109,11 @@ def serve(settings: EvalSettings, requests, replies: list, ready, max_batch: int
 
 
 def server_threads(settings: EvalSettings, workers: int) -> int:
-    """The inference process's threads: the settings' on cuda; on the CPU one per worker, at
-    most MAX_DEFAULT_THREADS, where ONNX Runtime still computes the logits of 1 or 2 threads (a
-    worker's), so the rows do not depend on --workers."""
-    if settings.device == "cuda":
+    """The inference process's threads: the settings' on cuda, and for torch and plug-ins on
+    the CPU (held at a worker's one thread: torch's kernels sum in another order on two); for
+    ONNX Runtime on the CPU one per worker, at most MAX_DEFAULT_THREADS, where it still computes
+    the logits of 1 or 2 threads (a worker's). Either way the rows do not depend on --workers."""
+    if settings.device == "cuda" or settings.backend != "onnx":
         return settings.threads
     return max(1, min(workers, MAX_DEFAULT_THREADS))
 
@@ -167,6 +168,7 @@ class InferenceServer:
                                           max_batch, wait_s))
         self.spec: ModelSpec | None = None
         self.model_hash = ""
+        self.threads = server_threads(settings, workers)   # what the process's network runs on
 
     def start(self) -> None:
         """Start the process and wait until its network is loaded (FalsifyError if it fails)."""

@@ -17,6 +17,7 @@ import time
 from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 
+from falsify.executors.environment import environment
 from falsify.executors.evaluator import EvalSettings, Evaluator
 from falsify.models.runners import Segmenter
 from falsify.results.samples import SampleResult
@@ -43,6 +44,12 @@ class InlineExecutor:
     def model_hash(self) -> str:
         assert self._evaluator is not None
         return self._evaluator.model_hash
+
+    def environments(self) -> list[dict]:
+        """This process's, with the threads its network was opened with."""
+        assert self._evaluator is not None
+        threads = getattr(self._evaluator.model, "threads", self.settings.threads)
+        return [environment(self.settings.backend, self.settings.device, threads)]
 
     def map(self, chunks: Iterable[Sequence[Sample]]) -> Iterator[list[SampleResult]]:
         for chunk in chunks:
@@ -115,6 +122,12 @@ class ProcessExecutor:
                 p.join()
         if manager is not None:
             manager.join(_JOIN_S)
+
+    def environments(self) -> list[dict]:
+        """This process's (the workers are spawned from this interpreter on this machine), with
+        the threads a worker's network, or the shared inference process's, runs on."""
+        threads = self._server.threads if self._server is not None else self.settings.threads
+        return [environment(self.settings.backend, self.settings.device, threads)]
 
     def map(self, chunks: Iterable[Sequence[Sample]]) -> Iterator[list[SampleResult]]:
         assert self._pool is not None

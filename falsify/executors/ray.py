@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from falsify.errors import FalsifyError
+from falsify.executors.environment import environment
 from falsify.executors.evaluator import EvalSettings, Evaluator
 from falsify.models.plugin import absolute_ref, is_plugin
 from falsify.models.runners import resolve_model
@@ -229,6 +230,13 @@ class EvalActor:
         """The model's hash once the Evaluator is built, else why it could not be."""
         return self.failure if self.evaluator is None else self.evaluator.model_hash
 
+    def environment(self) -> dict:
+        """This actor's environment (its node's versions and CPU), ray's version included."""
+        assert self.evaluator is not None
+        settings = self.evaluator.settings
+        threads = getattr(self.evaluator.model, "threads", settings.threads)
+        return environment(settings.backend, settings.device, threads, ray=True)
+
     def score(self, samples: list[Sample]) -> list[SampleResult]:
         if self.evaluator is None:   # the driver stops at ready(); never given a chunk
             raise RuntimeError(f"actor never started: {self.failure}")
@@ -275,6 +283,7 @@ class RayExecutor:
         self._started_ray = False
         self._shipment_ref = None
         self._actor_cls = None
+        self._environments: list[dict] = []   # the actors' distinct environments
 
     def __enter__(self) -> RayExecutor:
         """Join or start Ray and wait until every actor is warm; on any failure the actors are
@@ -307,10 +316,24 @@ class RayExecutor:
                     except ray.exceptions.RayActorError as exc:
                         raise self._died_starting(exc) from None
             self._idle = deque(self.actors)
+            self._note_environments(self.actors)
         except BaseException:
             self.__exit__()
             raise
         return self
+
+    def _note_environments(self, actors: list) -> None:
+        """Keep the distinct environments that `actors` report."""
+        for env in self.ray.get([a.environment.remote() for a in actors]):
+            with self._cond:
+                if env not in self._environments:
+                    self._environments.append(env)
+
+    def environments(self) -> list[dict]:
+        """The distinct environments of the actors that have scored or may score (those started
+        to replace dead ones too), in the order first seen."""
+        with self._cond:
+            return list(self._environments)
 
     def __exit__(self, *exc) -> None:
         with self._cond:
@@ -437,6 +460,7 @@ class RayExecutor:
                 self.replaced += 1
             try:
                 self._check_started(fresh.ready.remote())
+                self._note_environments([fresh])
                 break
             except self.ray.exceptions.RayActorError as exc:
                 if attempt == self.max_attempts:

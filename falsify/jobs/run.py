@@ -12,7 +12,9 @@ from __future__ import annotations
 import dataclasses
 import datetime as dt
 import sqlite3
+import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
@@ -21,6 +23,7 @@ import numpy as np
 from falsify.checks import MAX_SAMPLES, check_out_dir, check_range, check_seed
 from falsify.errors import ConfigError, FalsifyError
 from falsify.executors.driver import Driver, Progress, ProgressListener
+from falsify.executors.environment import session_changes
 from falsify.executors.evaluator import EvalSettings
 from falsify.fileio import read_text, write_bytes, write_json
 from falsify.jobs.fidelity import preset
@@ -302,6 +305,8 @@ class RunSummary:
     report: str | None = None
     retraining_camera: str | None = None   # the camera preset whose images sit beside the scans
     executors: list[str] | None = None     # set when resumed on another executor: all, in order
+    # set when computed under environments that may give other numbers: what changed
+    environment_changes: list[str] | None = None
     objective: str | None = None           # set when not car: the class (or miou) minimised
     mean_objective: float | None = None    # its mean over the valid samples
     estimated: dict | None = None          # level-set: the map is an estimate; how sure
@@ -310,10 +315,11 @@ class RunSummary:
     search: SearchResult | None = field(default=None, repr=False)
 
     def to_json(self) -> dict:
-        """Plain JSON data; `report`, `retraining_camera` and `executors` only when set."""
+        """Plain JSON data; `report`, `retraining_camera`, `executors`, `environment_changes` and
+        the objective's fields only when set."""
         out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "search"}
-        for optional in ("report", "retraining_camera", "executors", "objective",
-                         "mean_objective", "estimated", "unlabelled_backgrounds"):
+        for optional in ("report", "retraining_camera", "executors", "environment_changes",
+                         "objective", "mean_objective", "estimated", "unlabelled_backgrounds"):
             if out[optional] is None:
                 del out[optional]
         return out
@@ -330,12 +336,15 @@ class RunStopped(FalsifyError):
                          "the run with --resume")
 
 
-def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> RunSummary:
+def execute(req: RunRequest, on_progress: ProgressListener | None = None,
+            on_warning: Callable[[str], None] | None = None) -> RunSummary:
     """Run the sampler to the end, then write maps, retraining set, tables and report; the run
-    folder is locked throughout. A full disk raises RunStopped."""
+    folder is locked throughout. A full disk raises RunStopped. `on_warning` is told what the
+    user should know but does not stop the run (a resume under other library versions); by
+    default it goes to stderr."""
     with RunLock(req.out) as lock:
         try:
-            return _execute(req, on_progress, lock.made)
+            return _execute(req, on_progress, lock.made, on_warning)
         except (sqlite3.Error, OSError, DiskFull) as exc:
             if not disk_full(exc, req.out):
                 raise
@@ -346,8 +355,8 @@ def execute(req: RunRequest, on_progress: ProgressListener | None = None) -> Run
             raise RunStopped(req.out, "the disk is full", stored, "free some space") from None
 
 
-def _execute(req: RunRequest, on_progress: ProgressListener | None,
-             made: list[Path]) -> RunSummary:
+def _execute(req: RunRequest, on_progress: ProgressListener | None, made: list[Path],
+             on_warning: Callable[[str], None] | None = None) -> RunSummary:
     """`execute` under the run lock; `made` are the folders made for the run."""
     p = prepare(req)
     fresh = not (req.out / STORE_NAME).exists()
@@ -375,9 +384,15 @@ def _execute(req: RunRequest, on_progress: ProgressListener | None,
         with Driver(p.settings, store, workers=req.workers, progress=progress,
                     model=p.model, executor=req.executor, address=req.address,
                     inference=req.inference) as driver:
-            store.set_meta(sessions=[*sessions_of(old), session(req, now)])
+            envs = driver.environments()
+            this = session(req, now, envs, latest_environments(old))
+            store.set_meta(sessions=[*sessions_of(old), this])
+            if this.get("changed"):
+                (on_warning or warn)(environment_warning(req, this["changed"], bool(old)))
             search = p.sampler.run(p.space, driver.evaluate, req.budget, p.seed)
             progress.tell(final=True)
+            if (now_envs := driver.environments()) != envs:   # Ray actors started since
+                store.set_meta(sessions=[*sessions_of(old), this | {"environments": now_envs}])
         # Rows of concurrent combinations arrive in an order that depends on timing (and a
         # resumed run may hold rows of a killed one): number them in the sampler's order.
         store.renumber(search.samples)
@@ -421,17 +436,47 @@ def remove_run(out: Path, made: list[Path]) -> None:
     remove_empty(made)
 
 
-def session(req: RunRequest, started: str) -> dict:
+def session(req: RunRequest, started: str, environments: list[dict] | None = None,
+            previous: list[dict] | None = None) -> dict:
     """One invocation that computed on a run: when, on which executor and how many workers;
-    the device only when not the CPU (runs on the CPU keep their bytes)."""
-    out = {"started": started, "executor": req.executor, "workers": req.workers}
+    the device only when not the CPU (runs on the CPU keep their bytes); the environments its
+    samples are scored under, and what changed from the `previous` ones (or between its own)
+    that may change the numbers (`changed`, only where something did)."""
+    out: dict = {"started": started, "executor": req.executor, "workers": req.workers}
     if req.address is not None:
         out["address"] = req.address
     if req.device != "cpu":
         out["device"] = req.device
     if req.inference != "auto":
         out["inference"] = req.inference
+    if environments:
+        out["environments"] = environments
+        if changed := session_changes(previous or [], environments):
+            out["changed"] = changed
     return out
+
+
+def latest_environments(meta: dict) -> list[dict]:
+    """The environments of the run's latest session that recorded any (none: empty)."""
+    return next((list(s["environments"]) for s in reversed(sessions_of(meta))
+                 if s.get("environments")), [])
+
+
+def environment_warning(req: RunRequest, changed: list[str], resumed: bool) -> str:
+    """The one warning for a run computed under more than one environment: on --resume, what
+    changed since it was last computed; else what differs between its Ray actors."""
+    what = "; ".join(changed)
+    if resumed:
+        return (f"--resume: {req.out} goes on under another environment than its rows so far "
+                f"were computed under: {what}; rows from before and after may differ in their "
+                "numbers (each environment is kept in the run's sessions)")
+    return (f"{req.out}: its workers run under different environments: {what}; their rows "
+            "may differ in their numbers (each environment is kept in the run's sessions)")
+
+
+def warn(message: str) -> None:
+    """A run's warning on stderr, where no listener takes it."""
+    print(f"falsify: warning: {message}", file=sys.stderr, flush=True)
 
 
 def sessions_of(meta: dict) -> list[dict]:
@@ -496,6 +541,7 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
         lowest=lowest, elapsed_s=meta.get("elapsed_s"), retraining_samples=retrain,
         retraining_camera=camera,
         executors=executors if len(executors := executors_of(meta)) > 1 else None,
+        environment_changes=data.environment_changes or None,
         mean_car_iou=None if not len(ok) or "car_iou" not in ok else round(
             float(ok["car_iou"].astype(float).mean()), 4),
         objective=None if col == "car_iou" else data.objective,

@@ -406,6 +406,34 @@ def read_meta(path: str | Path) -> dict:
     return meta
 
 
+def environments_of(meta: dict) -> list[dict]:
+    """Every distinct environment a run was computed under (falsify's, Python's and the
+    libraries' versions, CPU, backend, device, inference threads: see
+    falsify/executors/environment.py), in the order first used; empty for a run made before
+    sessions recorded them."""
+    found: list[dict] = []
+    for session in _sessions(meta):
+        for env in session.get("environments") or []:
+            if isinstance(env, dict) and env not in found:
+                found.append(env)
+    return found
+
+
+def environment_changes_of(meta: dict) -> list[str]:
+    """What changed between the environments a run was computed under that may change its
+    numbers ("onnxruntime 1.22.0 -> 1.23.0"), as each session recorded it when it began; empty
+    where nothing did (thread counts known to give the same bytes do not count)."""
+    found: list[str] = []
+    for session in _sessions(meta):
+        found += [str(c) for c in session.get("changed") or []]
+    return list(dict.fromkeys(found))
+
+
+def _sessions(meta: dict) -> list[dict]:
+    sessions = meta.get("sessions")
+    return [s for s in sessions if isinstance(s, dict)] if isinstance(sessions, list) else []
+
+
 def export(frame: pd.DataFrame, out: Path, formats: Sequence[str] = ("csv", "parquet")) -> list:
     """Write the table as CSV and Parquet (Parquet only where pyarrow is installed)."""
     from falsify.fileio import write_bytes
@@ -510,6 +538,16 @@ class RunData:
         ok = self.ok
         return ok.assign(_iou=ok[self.score_column].astype(float)).sort_values(
             ["_iou", "eval_index"], kind="stable").head(n)
+
+    @property
+    def environments(self) -> list[dict]:
+        """The distinct environments its rows were computed under (see `environments_of`)."""
+        return environments_of(self.meta)
+
+    @property
+    def environment_changes(self) -> list[str]:
+        """What changed between them that may change its numbers (`environment_changes_of`)."""
+        return environment_changes_of(self.meta)
 
     @property
     def completeness(self) -> Completeness:
