@@ -6,6 +6,9 @@
 - Budget: combinations without a free continuous dim cost one evaluation each (done first, in
   one batch); the rest of the budget is split equally over the other combinations, the remainder
   going one each to the first ones. A budget below the number of combinations is a ConfigError.
+  A point asked again (a simplex re-evaluating a vertex, a restart landing on an old point)
+  costs one evaluation like any ask and is in the curve; the driver answers it from the run's
+  store, so it is neither scored nor stored twice (the run holds fewer rows than its budget).
 - NLopt works in the unit cube over the free continuous dims (lo < hi); fixed dims (lo == hi)
   stay out of the vector. Proposals are clipped into [lo, hi] before a sample is built.
 - A None (or nan, or inf) score becomes `penalty` (default 1.0, the best possible IoU) so the

@@ -41,7 +41,7 @@ from falsify.cli import (
     train_pointnet,
 )
 from falsify.cli.common import Parser
-from falsify.cli.run import interrupted_text, lock_early, run_folder
+from falsify.cli.run import interrupted_text, lock_early, run_folder, with_resume
 from falsify.cli.signals import stop_name, stop_signals
 from falsify.errors import FalsifyError
 
@@ -94,7 +94,8 @@ COMMANDS: tuple[Command, ...] = (
     Command("search", "search a space for low car IoU within a budget", search),
     Command("bench", "measure a fast path beside its naive path", bench),
     Command("report", "write a self-contained HTML report of a run", report),
-    Command("gate", "fail (exit 1) when a run has too many blind spots", gate,
+    Command("gate", "fail (exit 1) when a run has too many blind spots, or new ones against a "
+            "baseline", gate,
             "Count blind spots: (x, y) cells whose mIoU is below the threshold. Exit 0 within "
             "the limit, 1 over it, 2 on bad input."),
     Command("explain", "what a run's failing samples have in common: rules over the dims, each "
@@ -170,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as exc:
         what, code = stop_name(exc)
         bar = "\n" if is_run and sys.stderr.isatty() else ""   # end the progress bar's line
-        again = shlex.join(["falsify", *argv, *([] if "--resume" in argv else ["--resume"])])
+        again = shlex.join(["falsify", *with_resume(argv)])
         print(f"{bar}falsify: {what}" + (f": {interrupted_text(argv, out)}" if out else
                                           f"; continue with: {again}" if resumable else ""),
               file=sys.stderr)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -102,17 +103,15 @@ def summary_text(s) -> str:
 def _stopped_text(argv: list[str], out: Path, stored: int | None, advice: str = "") -> str:
     """What a stopped run keeps (`stored` samples; None: not counted) and the command that goes
     on: the same with --resume where a store is left, else the same again (a fresh run that
-    stored nothing is removed)."""
+    stored nothing is removed); see `continue_command`."""
     from falsify.results.store import STORE_NAME
     then = f"{advice}, then " if advice else ""
     if not (out / STORE_NAME).exists():
-        again = [a for a in argv if a != "--resume"]
         return (f"nothing was stored in {out}; {then}run it again with: "
-                f"{shlex.join(['falsify', *again])}")
+                f"{continue_command(argv, out, resume=False)}")
     kept = "the finished samples are" if stored is None else f"{stored} samples are"
-    again = argv if "--resume" in argv else [*argv, "--resume"]
     return (f"{kept} stored safely in {out}; {then}continue with: "
-            f"{shlex.join(['falsify', *again])}")
+            f"{continue_command(argv, out)}")
 
 
 def interrupted_text(argv: list[str], out: Path) -> str:
@@ -125,14 +124,72 @@ def interrupted_text(argv: list[str], out: Path) -> str:
     return _stopped_text(argv, out, stored)
 
 
+def _options_end(argv: list[str]) -> int:
+    """Where the options of a command line end: at its `--` (after which every word is a
+    positional argument, even one spelt like an option), else at its end."""
+    return argv.index("--") if "--" in argv else len(argv)
+
+
+def _is_resume(word: str) -> bool:
+    """--resume, or an abbreviation argparse reads as it (--res)."""
+    return len(word) >= 3 and "--resume".startswith(word)
+
+
+def with_resume(argv: list[str]) -> list[str]:
+    """The command line with --resume among its options: put before a `--`, where argparse
+    still reads it as an option (after it, `--resume` is a stray positional argument)."""
+    end = _options_end(argv)
+    if any(_is_resume(a) for a in argv[:end]):
+        return list(argv)
+    return [*argv[:end], "--resume", *argv[end:]]
+
+
+def without_resume(argv: list[str]) -> list[str]:
+    """The command line with its --resume options dropped (not a positional after `--`)."""
+    end = _options_end(argv)
+    return [a for a in argv[:end] if not _is_resume(a)] + argv[end:]
+
+
+def _names_local_path(word: str) -> bool:
+    """Whether a word of a command line names an existing file or folder relative to the working
+    folder: itself, or a plug-in's FILE.py before its :FACTORY."""
+    for path in (word, word.rpartition(":")[0]):
+        try:
+            if path and not Path(path).is_absolute() and Path(path).exists():
+                return True
+        except (OSError, ValueError):   # too long a name, say: no file of the run's
+            continue
+    return False
+
+
+def continue_command(argv: list[str], out: Path, resume: bool = True) -> str:
+    """The command that goes on with a stopped grid or search, to paste in a shell anywhere:
+    `argv` with --resume (or without it, `resume` False), after `cd DIR &&` where it names a
+    path relative to the working folder DIR (its --out, config or model): pasted in another
+    folder, those would name other files, or none."""
+    words = ["falsify", *(with_resume(argv) if resume else without_resume(argv))]
+    end = _options_end(argv)
+    values = [w.partition("=")[2] if w.startswith("-") else w for w in argv[1:end]]
+    if not out.is_absolute() or any(_names_local_path(v) for v in values + argv[end + 1:]):
+        try:
+            return f"cd {shlex.quote(os.getcwd())} && {shlex.join(words)}"
+        except OSError:   # the working folder is gone: there is none to go back to
+            pass
+    return shlex.join(words)
+
+
 def run_folder(argv: list[str]) -> Path | None:
     """The run folder of a grid or search command line, read before the parser is built: its
-    --out given as `--out DIR` or `--out=DIR` (None for any other spelling, or command)."""
+    --out (or --ou) given as `--out DIR` or `--out=DIR`, the last one given as argparse takes
+    it, among the options (None for any other spelling, or command)."""
     if argv[:1] not in (["grid"], ["search"]):
         return None
-    out = next((a[len("--out="):] for a in argv if a.startswith("--out=")), None)
-    if "--out" in argv[:-1]:
-        out = argv[argv.index("--out") + 1]
+    options = argv[1:_options_end(argv)]
+    out = None
+    for i, word in enumerate(options):
+        name, eq, value = word.partition("=")
+        if name in ("--out", "--ou"):
+            out = value if eq else (options[i + 1] if i + 1 < len(options) else out)
     return Path(out) if out else None
 
 

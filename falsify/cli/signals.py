@@ -55,13 +55,15 @@ def stop_name(exc: KeyboardInterrupt) -> tuple[str, int]:
 def stopped_training(exc: KeyboardInterrupt, args, checkpoint: Path, done: str) -> int:
     """Say on stderr how a stopped training goes on (with --resume where `checkpoint` holds its
     finished `done`, else run again); return the exit status."""
+    from falsify.cli.run import with_resume, without_resume
+
     what, code = stop_name(exc)
-    argv = ["falsify", *getattr(args, "argv", sys.argv[1:])]
+    argv = list(getattr(args, "argv", sys.argv[1:]))
     if checkpoint.is_file():
-        again = argv if "--resume" in argv else [*argv, "--resume"]
+        again = ["falsify", *with_resume(argv)]
         how = f"its finished {done} are saved in {checkpoint.parent}; continue with"
     else:
-        again = [a for a in argv if a != "--resume"]
+        again = ["falsify", *without_resume(argv)]
         how = f"no checkpoint was saved in {checkpoint.parent}; run it again with"
     print(f"falsify: {what}: {how}: {shlex.join(again)}", file=sys.stderr)
     return code

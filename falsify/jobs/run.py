@@ -139,6 +139,8 @@ def prepare(req: RunRequest) -> Prepared:
         "config_text": read_text(config_path(req.config), "config"),
         # where the config's relative paths (user meshes) resolve, from any later directory
         "config_dir": str(config_path(req.config).parent.resolve()),
+        # where the paths as typed (config, model) resolve: the command that finishes the run
+        "cwd": str(Path.cwd()),
         "config_hash": space.config_hash,
         "space_name": space.name, "sensor": sensor.name, "model_path": model,
         # which file (or preset) and grid: two sensor files may share a name
@@ -260,12 +262,58 @@ def _check_run_dir(req: RunRequest, meta: dict) -> None:
         old = read_meta(req.out)
         for key in RESUME_KEYS + ("score_column",):
             if old.get(key) != meta.get(key):
-                raise FalsifyError(f"--resume: {key} differs from the run in {req.out} "
-                                   f"({old.get(key)!r} there, {meta.get(key)!r} now)")
+                what = (config_difference(req.config, old.get("config_text"),
+                                          meta.get("config_text"))
+                        if key == "config_hash" else None)
+                raise FalsifyError(f"--resume: {key} differs from the run in {req.out}" + (
+                    f" ({old.get(key)!r} there, {meta.get(key)!r} now)" if what is None else
+                    f": {what}; continue with the config it started with, or choose another "
+                    "--out"))
     elif req.resume:
         raise FalsifyError(f"--resume: {req.out} holds no run to resume ({STORE_NAME} missing)")
     elif req.out.exists() and any(f.name != LOCK_NAME for f in req.out.iterdir()):
         raise FalsifyError(f"--out {req.out}: directory exists and is not empty")
+
+
+def config_difference(config: Path, then: str | None, now: str | None) -> str | None:
+    """What differs between the config a run started with (its recorded text) and the one
+    given now: the keys whose values differ, or that only comments or layout do (the hash is
+    of the bytes), or that the files it names do (sensor, meshes, profile, real scans); None
+    where a text is not recorded or not readable."""
+    from falsify.fileio import parse_toml
+
+    if not isinstance(then, str) or not isinstance(now, str):
+        return None
+    if then == now:
+        return (f"{config} is the config it started with, but a file it names (a sensor, a "
+                "mesh, a world profile or a real scan) has changed since")
+    try:
+        before = parse_toml(then.encode(), "the run's config")
+        after = parse_toml(now.encode(), str(config))
+    except FalsifyError:
+        return None
+    if before == after:
+        return (f"{config} differs from the config it started with only in comments or layout "
+                "(the hash is of the file's bytes)")
+    changes = config_changes(before, after)
+    shown = "; ".join(changes[:3]) + (f"; and {len(changes) - 3} more" if len(changes) > 3
+                                      else "")
+    return f"{config} differs from the config it started with ({shown})"
+
+
+def config_changes(then: dict, now: dict, prefix: str = "") -> list[str]:
+    """Each dotted key whose value differs between two parsed configs, as 'KEY: OLD there, NEW
+    now' ('-' where a side lacks it), in key order."""
+    out = []
+    for key in sorted(set(then) | set(now)):
+        a, b = then.get(key), now.get(key)
+        name = f"{prefix}{key}"
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += config_changes(a, b, f"{name}.")
+        elif a != b or (key in then) != (key in now):
+            shown = ["-" if key not in side else repr(side[key]) for side in (then, now)]
+            out.append(f"{name}: {shown[0]} there, {shown[1]} now")
+    return out
 
 
 def check_executor(executor: str, address: str | None) -> None:

@@ -555,12 +555,14 @@ class RunData:
         return completeness(self.meta, len(self.frame), self.space.size())
 
     def resume_command(self) -> str:
-        """The command that finishes this run: its command and config with the options its rows
-        depend on (those --resume checks), and --resume."""
+        """The command that finishes this run, to paste in any folder: its command and config
+        with the options its rows depend on (those --resume checks), and --resume; the run, its
+        config and a model file by absolute paths (as typed, they named files from the folder
+        the run was started in)."""
         m = self.meta
         command = str(m.get("command") or "grid")
-        args = ["falsify", command, str(m.get("config_path") or "CONFIG"), "--out",
-                str(self.path)]
+        args = ["falsify", command, self._typed_path(m.get("config_path"), "config") or "CONFIG",
+                "--out", str(Path(self.path).absolute())]
         if command == "search":
             args += ["--algorithm", str(m.get("algorithm"))]
             if m.get("budget") is not None:
@@ -569,7 +571,7 @@ class RunData:
             if confidence is not None:
                 args += ["--confidence", str(confidence)]
         if m.get("model_path"):
-            args += ["--model", str(m["model_path"])]
+            args += ["--model", self._typed_path(m["model_path"], "model")]
         if m.get("objective"):
             args += ["--objective", str(m["objective"])]
         if m.get("seed") is not None and m["seed"] != self.space.seed:
@@ -579,6 +581,24 @@ class RunData:
         if m.get("fidelity") not in (None, "exact"):
             args += ["--fidelity", str(m["fidelity"])]
         return shlex.join([*args, "--resume"])
+
+    def _typed_path(self, typed: object, kind: str) -> str | None:
+        """A config or model as the run's command named it, absolute where it was a relative
+        path (a bundled name, with no folder and no suffix, stays a name): the config by the
+        folder it was read from, a model (or a plug-in's FILE.py:FACTORY) by the run's first
+        working folder where recorded."""
+        if not typed:
+            return None
+        text = str(typed)
+        path = Path(text)
+        if path.is_absolute() or (len(path.parts) == 1 and not path.suffix
+                                  and ":" not in text):
+            return text
+        if kind == "config" and self.meta.get("config_dir"):
+            return str(Path(self.meta["config_dir"]) / path.name)
+        if self.meta.get("cwd"):
+            return str(Path(self.meta["cwd"]) / path)
+        return text
 
     @property
     def threshold(self) -> float:

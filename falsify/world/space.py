@@ -323,6 +323,9 @@ def load_space(path: str | Path, builtin_cars: tuple[str, ...] | None = None) ->
     parts: list[bytes] = []
     if space.sensor.endswith(".toml"):   # a user's sensor: another file casts other scans
         parts.append(sensor_digest(space.sensor, ConfigError).encode())
+    for name, car in sorted(space.user_cars.items()):   # a changed mesh is another object
+        if car.file.is_file():   # a missing one is named where the meshes are checked
+            parts += [name.encode(), read_bytes(car.file, "mesh", ConfigError)]
     if space.world:   # a changed profile builds other streets
         from falsify.world.profile import profile_file
 

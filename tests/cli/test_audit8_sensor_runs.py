@@ -126,3 +126,34 @@ def test_the_report_calls_a_preset_a_preset(tmp_path: Path) -> None:
     card = page[page.index("<dt>Sensor</dt>"):]
     assert "64 x 512 · a bundled preset" in card[:card.index("</dd>")]
     assert "on 1 worker<" in page or "on 1 worker " in page
+
+
+def _mesh_config(folder: Path, size: float) -> Path:
+    """A config placing the user's own car mesh (a box of `size` metres) on the smoke street."""
+    import trimesh
+
+    folder.mkdir(parents=True, exist_ok=True)
+    trimesh.creation.box(extents=(4.0, 1.8, size)).export(folder / "mine.obj")
+    config = folder / "c.toml"
+    config.write_text('[car_models.mine]\nfile = "mine.obj"\n[dims.car_model]\n'
+                      'values = ["mine"]\n[dims.x]\nvalues = [2.0]\n[dims.y]\nvalues = [8.0]\n'
+                      "[dims.background]\nvalues = [0]\n")
+    return config
+
+
+def test_resume_refuses_a_changed_user_mesh(tmp_path: Path, capsys) -> None:
+    """A user's mesh is part of the run's identity: --resume after the file changed (another
+    car) is refused, as for a sensor file; the same mesh keeps the hash."""
+    config = _mesh_config(tmp_path / "cfg", 1.5)
+    first = load_space(config).config_hash
+    assert first != hashlib.sha256(config.read_bytes()).hexdigest()
+    out = tmp_path / "run"
+    args = ["grid", str(config), "--out", str(out), "--no-report", "--quiet"]
+    assert main(args) == 0
+    _mesh_config(tmp_path / "cfg", 1.5)
+    assert load_space(config).config_hash == first
+    _mesh_config(tmp_path / "cfg", 1.2)
+    assert load_space(config).config_hash != first
+    capsys.readouterr()
+    assert main([*args, "--resume"]) == 2
+    assert "a file it names (a sensor, a mesh" in capsys.readouterr().err
