@@ -58,10 +58,23 @@ def diverging(change: float, span: float) -> str:
     return _ramp(PUOR, 0.5 + change / (2 * span))
 
 
+def luminance(colour: str) -> float:
+    """WCAG 2 relative luminance of a #rrggbb colour (0 black, 1 white)."""
+    c = _hex(colour) / 255.0
+    c = np.where(c <= 0.03928, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    return float(c @ np.array([0.2126, 0.7152, 0.0722]))
+
+
+def contrast(a: str, b: str) -> float:
+    """WCAG 2 contrast ratio of two #rrggbb colours (1 to 21; body text needs 4.5)."""
+    la, lb = sorted((luminance(a), luminance(b)))
+    return (lb + 0.05) / (la + 0.05)
+
+
 def ink(fill: str) -> str:
-    """Black or white text, whichever reads better on `fill`."""
-    r, g, b = _hex(fill)
-    return "#000" if 0.299 * r + 0.587 * g + 0.114 * b > 140 else "#fff"
+    """Black or white text, whichever has the higher WCAG contrast on `fill` (at least 4.58:1
+    on any colour; a weighted-RGB rule put white on viridis' mid greens at 2.5:1)."""
+    return "#000" if contrast(fill, "#000000") >= contrast(fill, "#ffffff") else "#fff"
 
 
 # -- grid geometry --------------------------------------------------------------------------
@@ -141,7 +154,9 @@ def cells_svg(grid: Grid, values: np.ndarray, fill: Callable[[float], str],
             if outline is not None and outline[j, i]:
                 outlines.append(f'<rect class="outline" x="{num(x + 1.5)}" y="{num(y + 1.5)}" '
                                 f'width="{num(grid.cw - 3)}" height="{num(grid.ch - 3)}"/>')
-    return "".join(parts) + "".join(labels) + "".join(outlines)
+    # labels and outlines repeat what each cell's title says: hidden from screen readers
+    marks = "".join(labels) + "".join(outlines)
+    return "".join(parts) + (f'<g aria-hidden="true">{marks}</g>' if marks else "")
 
 
 def axes_svg(grid: Grid, sensor: bool = True) -> str:
@@ -174,11 +189,13 @@ def axes_svg(grid: Grid, sensor: bool = True) -> str:
 
 
 def svg_element(content: str, width: float, height: float, klass: str, ident: str = "",
-         label: str = "") -> str:
+                label: str = "", role: str = "img") -> str:
+    """An inline chart named `label` for screen readers: role "img" (one picture) for a static
+    chart, "group" for one whose marks the keyboard reaches (an img hides its children)."""
     idattr = f' id="{ident}"' if ident else ""
     return (f'<svg{idattr} class="{klass}" xmlns="http://www.w3.org/2000/svg" '
             f'width="{num(width)}" height="{num(height)}" '
-            f'viewBox="0 0 {num(width)} {num(height)}" role="img" '
+            f'viewBox="0 0 {num(width)} {num(height)}" role="{role}" '
             f'aria-label="{esc(label)}">{content}</svg>')
 
 

@@ -41,9 +41,9 @@ def _rules_html(data: RunData, e: Explanation) -> str:
                     f'<td class="num">{r.support}</td><td class="num">{r.failing}</td>'
                     f'<td class="num">{f3(r.precision)}</td>'
                     f'<td class="num">{f3(r.mean_iou)}</td></tr>')
-    return ('<table class="small" id="explain-rules"><thead><tr><th>#</th><th>rule</th>'
-            "<th>support</th><th>failing</th><th>precision</th><th>mean IoU</th></tr></thead>"
-            f'<tbody>{"".join(rows)}</tbody></table>')
+    return ('<div class="scroll"><table class="small" id="explain-rules"><thead><tr><th>#</th>'
+            "<th>rule</th><th>support</th><th>failing</th><th>precision</th><th>mean IoU</th>"
+            f'</tr></thead><tbody>{"".join(rows)}</tbody></table></div>')
 
 
 def _sensitivity_html(e: Explanation) -> str:
@@ -56,9 +56,9 @@ def _sensitivity_html(e: Explanation) -> str:
                     f'<td class="sbar"><span style="width:{width}%"></span></td></tr>')
     return ('<div><h3>Sensitivity</h3><p class="note">Share of the IoU variance each dim '
             "explains alone (first-order index).</p>"
-            '<table class="small" id="explain-sensitivity"><thead><tr><th>dim</th>'
-            "<th>share</th><th></th></tr></thead>"
-            f'<tbody>{"".join(rows)}</tbody></table></div>')
+            '<div class="scroll"><table class="small" id="explain-sensitivity"><thead><tr>'
+            "<th>dim</th><th>share</th><th></th></tr></thead>"
+            f'<tbody>{"".join(rows)}</tbody></table></div></div>')
 
 
 def _clusters_html(data: RunData, e: Explanation) -> str:
@@ -72,9 +72,9 @@ def _clusters_html(data: RunData, e: Explanation) -> str:
     return ('<div><h3>Clusters of failing samples</h3><p class="note">k-means over the failing '
             "samples' continuous dims; categorical dims show each cluster's most common value; "
             "a car's dims show only where most of the cluster's samples hold that car.</p>"
-            '<table class="small" id="explain-clusters"><thead><tr><th>#</th>'
-            "<th>samples</th><th>mean IoU</th><th>centre</th></tr></thead>"
-            f'<tbody>{"".join(rows)}</tbody></table></div>')
+            '<div class="scroll"><table class="small" id="explain-clusters"><thead><tr>'
+            "<th>#</th><th>samples</th><th>mean IoU</th><th>centre</th></tr></thead>"
+            f'<tbody>{"".join(rows)}</tbody></table></div></div>')
 
 
 def explain_section(data: RunData, explanation: Explanation | str) -> str:

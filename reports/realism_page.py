@@ -85,7 +85,8 @@ def line_chart(ident: str, title: str, xs: list[float], lines: list[tuple[str, l
 
 def legend(series: list[tuple[str, dict, str, str]]) -> str:
     items = "".join(
-        f'<li><svg width="28" height="10"><line x1="0" x2="28" y1="5" y2="5" stroke="{c}" '
+        f'<li><svg width="28" height="10" aria-hidden="true"><line x1="0" x2="28" y1="5" '
+        f'y2="5" stroke="{c}" '
         f'stroke-width="2.5"{f" stroke-dasharray={chr(34)}{d}{chr(34)}" if d else ""}/></svg> '
         f'{esc(label)}</li>' for label, _, c, d in series)
     return f'<ul class="legend">{items}</ul>'
@@ -162,8 +163,8 @@ def distance_table(doc: dict) -> str:
                               boot.get("undefined_draws", {}).items() if n)
                     + '</p>')
     return (f'<section id="distances"><h2>Distances (lower is closer)</h2>{verdict}'
-            f'<table><thead><tr><th>statistic</th>{head}</tr></thead>'
-            f'<tbody>{"".join(rows)}</tbody></table></section>')
+            f'<div class="scroll"><table><thead><tr><th>statistic</th>{head}</tr></thead>'
+            f'<tbody>{"".join(rows)}</tbody></table></div></section>')
 
 
 def per_scan_table(doc: dict) -> str:
@@ -200,8 +201,8 @@ def per_scan_table(doc: dict) -> str:
             f'same distances against one real scan at a time (all but the feature distance, '
             f'whose estimator needs many scans). With few real scans a resample of them is one '
             f'of few combinations, so a set farther from one scan is farther on the draws that '
-            f'scan dominates.{more}</p><table><thead><tr><th>real scan</th>{head}</tr></thead>'
-            f'<tbody>{"".join(rows)}</tbody></table></section>')
+            f'scan dominates.{more}</p><div class="scroll"><table><thead><tr><th>real scan</th>'
+            f'{head}</tr></thead><tbody>{"".join(rows)}</tbody></table></div></section>')
 
 
 def sets_table(doc: dict) -> str:
@@ -221,8 +222,9 @@ def sets_table(doc: dict) -> str:
             + "".join(f'<td class="num">{_fmt(s["class_fraction"][c], 4)}</td>' for c in classes)
             + f'<td class="num">{s["feature_samples"]}</td></tr>')
     return (f'<section id="sets"><h2>Sets</h2><p class="note">Valid: fraction of pixels with a '
-            f'return; class columns: fraction of valid points.</p><table><thead><tr>{head}</tr>'
-            f'</thead><tbody>{"".join(rows)}</tbody></table></section>')
+            f'return; class columns: fraction of valid points.</p><div class="scroll"><table>'
+            f'<thead><tr>{head}</tr></thead><tbody>{"".join(rows)}</tbody></table></div>'
+            '</section>')
 
 
 def semantic_table(doc: dict) -> str:
@@ -257,8 +259,8 @@ def semantic_table(doc: dict) -> str:
             f'of labelled points per class ({len(classes)} classes; unlabeled points are left '
             f'out and their share of all valid points is given below). Synthetic sets written '
             f'with <code>--labels semantickitti</code>, real scans with .label files.</p>'
-            f'<table><thead><tr><th>class</th>{head}</tr></thead>'
-            f'<tbody>{"".join(rows)}</tbody></table></section>')
+            f'<div class="scroll"><table><thead><tr><th>class</th>{head}</tr></thead>'
+            f'<tbody>{"".join(rows)}</tbody></table></div></section>')
 
 
 def charts(doc: dict) -> str:
@@ -288,14 +290,18 @@ def charts(doc: dict) -> str:
 
 
 CSS = f"""
-body {{ font-family: {FONT}; margin: 24px; color: #222; background: #fff; }}
+body {{ font-family: {FONT}; margin: 24px; color: #222; background: #fff;
+       overflow-wrap: break-word; }}
+.scroll {{ overflow-x: auto; max-width: 100%; }}
+figure {{ max-width: 100%; }} figure svg {{ max-width: 100%; height: auto; }}
 h1 {{ font-size: 22px; margin: 0 0 4px; }} h2 {{ font-size: 17px; margin: 24px 0 8px; }}
 .meta, .note, .sub {{ color: #555; font-size: 12px; }}
 table {{ border-collapse: collapse; font-size: 13px; }}
 th, td {{ border: 1px solid #ddd; padding: 4px 8px; text-align: left; vertical-align: top; }}
 td.num {{ text-align: right; font-variant-numeric: tabular-nums; }}
 .yes {{ color: #006d2c; font-weight: 600; }} .no {{ color: #b30000; font-weight: 600; }}
-.swatch {{ display: inline-block; width: 10px; height: 10px; margin-right: 6px; }}
+.swatch {{ display: inline-block; width: 10px; height: 10px; margin-right: 6px;
+           print-color-adjust: exact; -webkit-print-color-adjust: exact; }}
 figure {{ display: inline-block; margin: 8px 16px 8px 0; }}
 figcaption {{ font-size: 13px; font-weight: 600; margin-bottom: 4px; }}
 .chart .plot {{ fill: #fafafa; stroke: #bbb; }} .chart .grid {{ stroke: #e6e6e6; }}
@@ -304,6 +310,8 @@ figcaption {{ font-size: 13px; font-weight: 600; margin-bottom: 4px; }}
 .legend {{ list-style: none; padding: 0; font-size: 13px; }}
 .legend li {{ display: inline-block; margin-right: 18px; }}
 .verdict {{ font-size: 14px; }}
+@media print {{ .scroll {{ overflow: visible; }} figure, tr {{ break-inside: avoid; }}
+  h2 {{ break-after: avoid; }} }}
 """
 
 
@@ -323,8 +331,8 @@ def reported_table(doc: dict) -> str:
     return ('<section id="reported"><h2>Evaluation split (reported only)</h2><p class="note">'
             'The same distances to real places that are evaluation data: shown, never pooled '
             'into the reference and never used to compare or choose.</p>'
-            f'<table><thead><tr><th>statistic</th>{head}</tr></thead><tbody>{rows}</tbody>'
-            '</table></section>')
+            f'<div class="scroll"><table><thead><tr><th>statistic</th>{head}</tr></thead>'
+            f'<tbody>{rows}</tbody></table></div></section>')
 
 
 def render_realism(doc: dict) -> str:
@@ -335,10 +343,10 @@ def render_realism(doc: dict) -> str:
             f'({esc(feat["why"])}); frechet_tiles: {int(feat["tiles"][0])}×'
             f'{int(feat["tiles"][1])} tile means per scan')
     return (
-        head("falsify realism: synthetic against real scans", CSP, CSS) + '<body>'
+        head("falsify realism: synthetic against real scans", CSP, CSS) + '<body><main>'
         '<h1>Realism: synthetic against real LiDAR scans</h1>'
         f'<p class="meta">{meta}</p>'
         f'{distance_table(doc)}{reported_table(doc)}{per_scan_table(doc)}{sets_table(doc)}'
         f'{semantic_table(doc)}'
         f'{charts(doc)}'
-        '</body></html>\n')
+        '</main></body></html>\n')

@@ -18,11 +18,12 @@ COLOURS = ("#0072b2", "#e69f00", "#009e73", "#cc79a7", "#d55e00", "#56b4e9", "#0
 MARKERS = ("circle", "square", "diamond", "triangle", "circle", "square", "diamond")
 CSP = "default-src 'none'; style-src 'unsafe-inline'; base-uri 'none'; form-action 'none'"
 CSS = """body{font:14px/1.45 system-ui,-apple-system,"Segoe UI",Roboto,Helvetica,Arial,sans-serif;
-margin:2rem auto;max-width:1000px;padding:0 1rem;color:#222}
+margin:2rem auto;max-width:1000px;padding:0 1rem;color:#222;overflow-wrap:break-word}
+.scroll{overflow-x:auto;max-width:100%}svg{max-width:100%;height:auto}
 table{border-collapse:collapse;margin:1rem 0;font-variant-numeric:tabular-nums}
 th,td{border-bottom:1px solid #ddd;padding:.25rem .6rem;text-align:right}
 th:nth-child(-n+2),td:nth-child(-n+2),th:last-child,td:last-child{text-align:left}
-tr.ref td{font-weight:600;background:#f3f6fa}tr.skip td{color:#888}
+tr.ref td{font-weight:600;background:#f3f6fa}tr.skip td{color:#707070}
 .note{color:#555;max-width:60rem}svg text{font:11px system-ui,sans-serif}"""
 W, H = 760, 440
 LEFT, RIGHT, TOP, BOTTOM = 70, 170, 20, 50
@@ -94,7 +95,7 @@ def plot(rows: Sequence[dict], grid_samples: int) -> str:
     def py(ly: float) -> float:
         return TOP + ph - (ly - y0) / (y1 - y0) * ph
 
-    out = [f'<svg width="{W}" height="{H}" role="img" '
+    out = [f'<svg width="{W}" height="{H}" viewBox="0 0 {W} {H}" role="img" '
            'aria-label="time per sample against mIoU-map error, one series per knob">',
            f'<rect x="{LEFT}" y="{TOP}" width="{pw}" height="{ph}" fill="none" stroke="#999"/>']
     for e in range(math.floor(x0), math.ceil(x1) + 1):
@@ -160,7 +161,8 @@ def table(rows: Sequence[dict]) -> str:
         cells = "".join(f"<td>{esc(fmt(r[key], 1 if key == 'time_per_sample_ms' else 3))}</td>"
                         for key, _ in COLUMNS)
         body.append(f'<tr class="{cls}">{cells}</tr>')
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>"
+    return (f'<div class="scroll"><table><thead><tr>{head}</tr></thead>'
+            f"<tbody>{''.join(body)}</tbody></table></div>")
 
 
 def render(summary: dict) -> str:
@@ -169,7 +171,7 @@ def render(summary: dict) -> str:
     notes = "".join(f"<li>{esc(n)}</li>" for n in summary.get("notes", []))
     machine = summary.get("machine", {})
     return f"""{head(f"falsify tradeoff: {esc(summary['config'])}", CSP, CSS)}
-<body>
+<body><main>
 <h1>Speed against mIoU-map error</h1>
 <p class="note">Config {esc(summary["config"])}, {esc(summary["samples"])} samples
 (limit {esc(fmt(summary.get("limit")))}), model {esc(Path(summary["model"]).name)}
@@ -188,7 +190,7 @@ index compares the blind-spot sets (1 = the same cells, also when both are empty
 {plot(summary["rows"], summary["samples"])}
 {table(summary["rows"])}
 {f"<ul class='note'>{notes}</ul>" if notes else ""}
-</body>
+</main></body>
 </html>
 """
 

@@ -1,10 +1,10 @@
 (function () {
   var data = JSON.parse(document.getElementById('falsify-data').textContent);
   var tip = document.getElementById('tip');
-  function place(ev) {
-    var pad = 14, x = ev.clientX + pad, y = ev.clientY + pad, r = tip.getBoundingClientRect();
-    if (x + r.width > window.innerWidth) x = Math.max(0, ev.clientX - r.width - pad);
-    if (y + r.height > window.innerHeight) y = Math.max(0, ev.clientY - r.height - pad);
+  function place(px, py) {   // beside the point (px, py) of the viewport, kept on screen
+    var pad = 14, x = px + pad, y = py + pad, r = tip.getBoundingClientRect();
+    if (x + r.width > window.innerWidth) x = Math.max(0, px - r.width - pad);
+    if (y + r.height > window.innerHeight) y = Math.max(0, py - r.height - pad);
     tip.style.left = x + 'px'; tip.style.top = y + 'px';
   }
   // A mark's tooltip ships once, as its SVG <title> (read without script too); on first hover
@@ -13,8 +13,9 @@
     for (var el = node; el && el.tagName && el.tagName.toLowerCase() !== 'svg'; el = el.parentNode) {
       if (el.hasAttribute('data-tip')) return el;
       for (var c = el.firstElementChild; c; c = c.nextElementSibling) {
-        if (c.tagName.toLowerCase() === 'title') {
+        if (c.tagName.toLowerCase() === 'title') {   // the text stays its accessible name
           el.setAttribute('data-tip', c.textContent);
+          el.setAttribute('aria-label', c.textContent);
           el.removeChild(c);
           return el;
         }
@@ -22,15 +23,26 @@
     }
     return null;
   }
-  document.addEventListener('mouseover', function (ev) {
-    var el = tipped(ev.target);
-    if (!el || !el.getAttribute('data-tip')) { tip.style.display = 'none'; return; }
+  function show(el) {
+    if (!el || !el.getAttribute('data-tip')) { tip.style.display = 'none'; return false; }
     tip.textContent = el.getAttribute('data-tip');
     tip.style.display = 'block';
-    place(ev);
+    return true;
+  }
+  document.addEventListener('mouseover', function (ev) {
+    if (show(tipped(ev.target))) place(ev.clientX, ev.clientY);
   });
   document.addEventListener('mousemove', function (ev) {
-    if (tip.style.display === 'block') place(ev);
+    if (tip.style.display === 'block') place(ev.clientX, ev.clientY);
+  });
+  // the keyboard's tooltip: on focus, beside the mark; Escape hides it
+  document.addEventListener('focusin', function (ev) {
+    var el = ev.target.closest && ev.target.closest('svg') ? tipped(ev.target) : null;
+    if (show(el)) { var r = el.getBoundingClientRect(); place(r.right, r.top); }
+  });
+  document.addEventListener('focusout', function () { tip.style.display = 'none'; });
+  document.addEventListener('keydown', function (ev) {
+    if (ev.key === 'Escape') tip.style.display = 'none';
   });
   var cols = data.samples.columns, rows = data.samples.rows, at = {};
   cols.forEach(function (c, i) { at[c] = i; });
@@ -85,11 +97,55 @@
     table.hidden = false;
   }
   var map = document.getElementById('heatmap');
+  // The map is one Tab stop: the arrow keys move between its cells (row 0, the nearest, is
+  // drawn at the bottom), Enter or Space lists a cell's samples. A ring marks the focused cell
+  // over its neighbours, in black and white so it shows on every colour.
+  var cells = map.querySelectorAll('.cell'), ncols = cells.length, ns = map.namespaceURI;
+  for (var k = 0; k < cells.length; k++) {
+    cells[k].setAttribute('role', 'button');
+    if (ncols === cells.length && cells[k].getAttribute('data-y') !== cells[0].getAttribute('data-y'))
+      ncols = k;
+  }
+  var ring = document.createElementNS(ns, 'g');
+  ring.setAttribute('id', 'focusring');
+  ring.setAttribute('visibility', 'hidden');
+  ['outer', 'inner'].forEach(function (c) {
+    var r = document.createElementNS(ns, 'rect'); r.setAttribute('class', c); ring.appendChild(r);
+  });
+  map.appendChild(ring);
+  function roving(cell) {
+    for (var k = 0; k < cells.length; k++) cells[k].setAttribute('tabindex', cells[k] === cell ? '0' : '-1');
+  }
+  // focus listeners on the figure: on the <svg> itself they would make Chromium focus it
+  var fig = map.parentNode;
+  fig.addEventListener('focusin', function (ev) {
+    var cell = ev.target.closest('.cell'); if (!cell) return;
+    roving(cell);
+    if (!cell.matches(':focus-visible')) return;   // a click shows its selection box alone
+    var x = +cell.getAttribute('x'), y = +cell.getAttribute('y');
+    var w = +cell.getAttribute('width'), h = +cell.getAttribute('height');
+    for (var r = ring.firstChild; r; r = r.nextSibling) {
+      r.setAttribute('x', x - 1); r.setAttribute('y', y - 1);
+      r.setAttribute('width', w + 2); r.setAttribute('height', h + 2);
+    }
+    ring.setAttribute('visibility', 'visible');
+  });
+  fig.addEventListener('focusout', function () { ring.setAttribute('visibility', 'hidden'); });
   map.addEventListener('click', function (ev) {
-    var cell = ev.target.closest('.cell'); if (cell) showCell(cell);
+    var cell = ev.target.closest('.cell'); if (cell) { roving(cell); showCell(cell); }
   });
   map.addEventListener('keydown', function (ev) {
-    var cell = ev.target.closest('.cell');
-    if (cell && (ev.key === 'Enter' || ev.key === ' ')) { ev.preventDefault(); showCell(cell); }
+    var cell = ev.target.closest('.cell'); if (!cell) return;
+    if (ev.key === 'Enter' || ev.key === ' ') { ev.preventDefault(); showCell(cell); return; }
+    var k = Array.prototype.indexOf.call(cells, cell), col = k % ncols, to = -1;
+    if (ev.key === 'ArrowRight' && col < ncols - 1) to = k + 1;
+    else if (ev.key === 'ArrowLeft' && col > 0) to = k - 1;
+    else if (ev.key === 'ArrowUp') to = k + ncols;     // farther: the row drawn above
+    else if (ev.key === 'ArrowDown') to = k - ncols;
+    else if (ev.key === 'Home') to = k - col;
+    else if (ev.key === 'End') to = k - col + ncols - 1;
+    else return;
+    ev.preventDefault();
+    if (to >= 0 && to < cells.length) cells[to].focus();
   });
 })();

@@ -61,19 +61,22 @@ def heatmap_section(data: RunData, cmap: CellMap, threshold: float) -> str:
         return (f' data-x="{esc(fmt_value(cmap.a_values[i]))}" '
                 f'data-y="{esc(fmt_value(cmap.b_values[j]))}" '
                 f'data-miou="{"" if np.isnan(m) else f3(float(m))}" '
-                f'data-n="{int(cmap.samples[j, i])}" tabindex="0"')
+                f'data-n="{int(cmap.samples[j, i])}" tabindex="{0 if i == j == 0 else -1}"')
 
     show = grid.cw >= 34 and grid.ch >= 14
     body = cells_svg(grid, cmap.miou, viridis, tip, "cell", blind,
                      (lambda i, j: f3(float(cmap.miou[j, i]))) if show else None, attrs)
     selbox = '<rect id="selbox" x="0" y="0" width="0" height="0" visibility="hidden"/>'
+    n_blind = int(blind.sum())
+    scored = int((~np.isnan(cmap.miou)).sum())
+    # one Tab stop (the cell with tabindex 0; run.js moves it with the arrow keys), so the
+    # keyboard reaches the rest of the page without stepping through every cell
     svg = svg_element(body + axes_svg(grid) + selbox, grid.left + grid.width + 8,
-               grid.top + grid.height + 60, "map", "heatmap", "mIoU heat map over x and y")
+                      grid.top + grid.height + 60, "map", "heatmap",
+                      f"mIoU heat map over x and y, {n_blind} of {scored} cells blind", "group")
     multiples = multiples_section(data, threshold)
     what = objective_name(data)
     mean_what = f"Mean {what}"
-    n_blind = int(blind.sum())
-    scored = int((~np.isnan(cmap.miou)).sum())
     estimated = ""
     if cmap.estimated:
         options = data.meta.get("sampler_options") or {}
@@ -94,15 +97,16 @@ excludes the threshold.</p>""")
 <h2>mIoU over position ({placed} 1){objective_title(data)}</h2>
 <p class="note">{mean_what} of the valid samples in each cell (over backgrounds and every
 other dimension), seen from above: the sensor at the bottom, forward (Y) up. {n_blind} of
-{scored} scored cells are blind spots (mIoU &lt; {threshold:.3f}, outlined). Hover a cell for
-its value; click it to list its samples.</p>{estimated}
+{scored} scored cells are blind spots (mIoU &lt; {threshold:.3f}, outlined). Hover or focus a
+cell (Tab, then the arrow keys) for its value; click it or press Enter to list its
+samples.</p>{estimated}
 <div class="row">
 <figure class="main-map">{svg}</figure>
 <figure>{legend_svg(threshold)}</figure>
 {multiples}
 </div>
 <div id="cell-samples">
-<h3 id="cell-title">Samples of a cell</h3>
+<h3 id="cell-title" aria-live="polite">Samples of a cell</h3>
 <p id="cell-hint" class="note">Click a cell of the map to list its samples here.{capped}</p>
 <div class="scroll"><table id="cell-table" hidden><thead><tr><th>eval</th><th>x</th><th>y</th>
 <th>yaw</th><th>{model_heading(data)}</th><th>count</th><th>background</th><th>status</th><th>{what}</th>
@@ -202,9 +206,9 @@ on real scans.""")
 <h2>{ins.capitalize()} and {own} {thing}s</h2>
 <p class="note">{note}</p>
 <div class="multiples">{"".join(figs)}</div>
-<table class="small"><thead><tr><th>{"real scan" if real else "street"}</th><th>valid</th>
-<th>invalid</th><th>mean {esc(objective_name(data))}</th><th>{ins} IoU / recall</th>
-<th>{own} IoU / recall</th></tr></thead><tbody>{"".join(rows)}</tbody></table>
+<div class="scroll"><table class="small"><thead><tr><th>{"real scan" if real else "street"}</th>
+<th>valid</th><th>invalid</th><th>mean {objective_name(data)}</th><th>{ins} IoU / recall</th>
+<th>{own} IoU / recall</th></tr></thead><tbody>{"".join(rows)}</tbody></table></div>
 </section>"""
 
 

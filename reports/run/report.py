@@ -146,6 +146,13 @@ DEFS = ('<svg width="0" height="0" style="position:absolute" aria-hidden="true">
         '<pattern id="hatch" width="6" height="6" patternUnits="userSpaceOnUse" '
         'patternTransform="rotate(45)"><rect width="6" height="6" fill="#eceef1"/>'
         '<line x1="0" y1="0" x2="0" y2="6" stroke="#b4bac3" stroke-width="2"/></pattern>'
+        # a blind cell's outline edged in black and white: it stands out on every fill
+        '<filter id="halo"><feMorphology in="SourceAlpha" operator="dilate" radius="3" '
+        'result="w"/><feFlood flood-color="#fff"/><feComposite in2="w" operator="in" '
+        'result="W"/><feMorphology in="SourceAlpha" operator="dilate" radius="1.5" result="b"/>'
+        '<feFlood flood-color="#000"/><feComposite in2="b" operator="in" result="B"/><feMerge>'
+        '<feMergeNode in="W"/><feMergeNode in="B"/><feMergeNode in="SourceGraphic"/></feMerge>'
+        '</filter>'
         '<linearGradient id="vir" x1="0" y1="1" x2="0" y2="0">'
         + "".join(f'<stop offset="{k / 10:.1f}" stop-color="{c}"/>'
                   for k, c in enumerate(VIRIDIS))
@@ -161,6 +168,13 @@ def incomplete_note(data: RunData) -> str:
     return (f'<p id="incomplete" class="bad"><strong>Incomplete run:</strong> {esc(done.text())}'
             " are stored; the maps, blind spots and samples below cover only those. Finish it "
             f"with <code>{esc(data.resume_command())}</code>.</p>\n")
+
+
+def page_title(name: str, run: Path) -> str:
+    """The browser tab's title: the space's name and the run's folder, so two runs of one config
+    (two models, before and after) read apart; the folder alone where it is the name."""
+    folder = Path(run).name
+    return f"falsify report: {name}" + (f" · {folder}" if folder and folder != name else "")
 
 
 def render(report: ReportInput) -> str:
@@ -189,7 +203,7 @@ def render(report: ReportInput) -> str:
     sections.append(distance_section(data, threshold))
     sections.append(worst_section(data, report.scans, report.note, report.worst))
     payload = script_json({"samples": samples_json(data), "threshold": threshold})
-    return f"""{head(f"falsify report: {esc(name)}", CSP, CSS)}
+    return f"""{head(esc(page_title(str(name), data.path)), CSP, CSS)}
 <body>
 {DEFS}
 <main>

@@ -53,6 +53,28 @@ def invalid_text(data: RunData, most: int = 3) -> str:
     return f'{len(bad)}<br><span class="note">{top}{more}</span>'
 
 
+LIBRARIES = ("falsify", "python", "onnxruntime", "torch", "numpy", "embree", "trimesh", "pandas",
+             "ray")
+
+
+def environment_text(data: RunData) -> str:
+    """What the run's rows were computed under (its latest environment): CPU, backend, device,
+    inference threads, library versions; a run computed under several that may differ in its
+    numbers says what changed."""
+    env = data.environments[-1]
+    threads = env.get("inference_threads")
+    libs = " · ".join(f"{k} {esc(env[k])}" for k in LIBRARIES if env.get(k))
+    text = (f"{esc(env.get('cpu') or 'unknown CPU')}<br><span class=\"note\">"
+            f"{esc(env.get('backend'))} on {esc(env.get('device'))}"
+            + ("" if threads is None else
+               f", {esc(threads)} inference thread{'s' * (threads != 1)}")
+            + f"<br>{libs}</span>")
+    if changes := data.environment_changes:
+        text += (f'<br><span class="bad">its rows mix environments that may differ in their '
+                 f"numbers: {esc('; '.join(changes))}</span>")
+    return text
+
+
 def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     meta, frame = data.meta, data.frame
     status = frame["status"]
@@ -106,5 +128,7 @@ def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
         ("Lowest IoU", lowest),
         ("Time", timing),
     ]
+    if data.environments:
+        items.append(("Computed on", environment_text(data)))
     cards = "".join(f"<div><dt>{k}</dt><dd>{v}</dd></div>" for k, v in items)
     return f'<section id="summary"><dl class="summary">{cards}</dl></section>'
