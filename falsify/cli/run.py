@@ -95,6 +95,10 @@ def summary_text(s) -> str:
     if s.executors:
         lines.append(f"computed on executors {', then '.join(s.executors)} (resumed on another; "
                      "the rows do not depend on the executor)")
+    if s.environment_changes:
+        lines.append(f"computed under more than one environment "
+                     f"({'; '.join(s.environment_changes)}): rows from each may differ in their "
+                     "numbers (each is kept in the run's sessions)")
     if s.report:
         lines.append(f"report: {s.report}")
     return "\n".join(lines)

@@ -127,11 +127,19 @@ def test_resume_under_another_onnxruntime_warns_once_and_keeps_both(tmp_path, ca
     assert json.loads((run / "summary.json").read_text())["environment_changes"] == change
     assert len(read_frame(run)) == 24
     # Resumed again under the same libraries: nothing new changed, nothing to warn about.
-    assert main(["grid", str(SMALL), "--out", str(run), "--resume", "--quiet",
-                 "--no-report"]) == 0
-    assert "warning" not in capsys.readouterr().err
+    assert main(["grid", str(SMALL), "--out", str(run), "--resume", "--no-report"]) == 0
+    captured = capsys.readouterr()
+    assert "warning" not in captured.err
     assert "changed" not in read_meta(run)["sessions"][2]
     assert open_run(run).environment_changes == change   # the run still mixes both
+    assert f"more than one environment ({change[0]})" in captured.out
+    # the report's card says what the rows were computed under, and that they mix two
+    assert main(["report", str(run)]) == 0
+    page = (run / "report.html").read_text()
+    card = page.split("<dt>Computed on</dt>")[1].split("</dd>")[0]
+    assert f"onnxruntime {onnxruntime.__version__}" in card and "onnx on cpu" in card
+    assert f"mix environments that may differ in their numbers: {change[0]}" in card.replace(
+        "&gt;", ">")
 
 
 def test_a_run_from_before_environments_were_recorded_resumes_and_reports(tmp_path, capsys):
