@@ -41,16 +41,17 @@ INT8_OPS = ("Conv", "Relu", "MaxPool", "Concat", "Add", "Pad", "Reshape", "Trans
 
 
 def export_onnx(model: SqueezeSeg, path: str | Path, H: int = 64, W: int = 512,
-                name: str | None = None, classes: str | None = None,
+                name: str | None = None, classes: str | None = None, weights: bool = False,
                 **extra: Any) -> tuple[Path, ModelSpec]:
-    """Export ``model`` (eval mode, batch dynamic) to ``path`` and write ``<path>.json``;
+    """Export ``model`` (eval mode, batch dynamic) to ``path`` and write ``<path>.json`` (with
+    `weights`, also its state dict as ``<path>.pt``, hashed in the spec beside the .onnx);
     ``classes="semantickitti"`` maps its outputs to SemanticKITTI's train classes (output i is
     train id i), else to our four.
 
     The graph holds `models.inference.for_export`'s equivalent, faster layers. Uses the legacy
     TorchScript exporter (opset 17): same weights give the same bytes.
     """
-    return _export(model, Path(path), H, W, name, classes, extra, weights=False)
+    return _export(model, Path(path), H, W, name, classes, extra, weights=weights)
 
 
 def _export(model: SqueezeSeg, path: Path, H: int, W: int, name: str | None,

@@ -619,14 +619,14 @@ def _finish(cfg: TrainConfig, model, out: Path, shape, run: _Progress, torch) ->
 
     last = run.last
     final = model.to("cpu", memory_format=torch.contiguous_format).eval()
-    state = {k: v.contiguous() for k, v in final.state_dict().items()}
-    _save_atomic(state, out / "squeezeseg.pt")
     summary = {"stopped": run.stopped, "epoch": run.epoch, "step": run.step, **{
         k: last.get(k) for k in ("loss", "val_car_iou")}}
-    if cfg.export:
+    if cfg.export:   # the .pt beside the .onnx, both hashed in their one spec
         export_onnx(final, out / "squeezeseg.onnx", H=shape[0], W=shape[1], name="squeezeseg",
                     classes=None if cfg.classes == "kitti4" else "semantickitti",
-                    trained_epochs=run.epoch, seed=cfg.seed, data=Path(cfg.data).name,
-                    val_car_iou=last.get("val_car_iou"))
-        # the .pt gets the same spec as the .onnx (same stem): load_segmenter(out/'x.pt', 'torch')
+                    weights=True, trained_epochs=run.epoch, seed=cfg.seed,
+                    data=Path(cfg.data).name, val_car_iou=last.get("val_car_iou"))
+    else:
+        _save_atomic({k: v.contiguous() for k, v in final.state_dict().items()},
+                     out / "squeezeseg.pt")
     return summary

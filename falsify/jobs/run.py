@@ -548,7 +548,11 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
            lod: int = 2, model: Segmenter | None = None,
            search: SearchResult | None = None,
            camera: str | None = None) -> RunSummary:
-    """Maps, blind spots, retraining set, CSV/Parquet, report and the summary of a run."""
+    """Maps, blind spots, retraining set, CSV/Parquet, report and the summary of a run. The
+    last outputs' summary and report go first and the summary is written last, so a kill in
+    between (a --resume at another --threshold) leaves no summary beside other maps."""
+    for name in ("summary.json", "report.html"):
+        (run / name).unlink(missing_ok=True)
     data = RunData(run, read_meta(run), read_frame(run), space)
     meta, frame = data.meta, data.frame
     thr = threshold if threshold is not None else float(meta.get("threshold", space.threshold))
@@ -598,10 +602,11 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
         unlabelled_backgrounds=[r.name for r in space.real_backgrounds if r.kind == "none"]
         or None,
         search=search)
-    write_json(run / "summary.json", summary.to_json())
+    stored = summary.to_json()   # summary.json holds all but the report's path
     if report:
         from falsify.jobs.report import write_report
         summary = dataclasses.replace(summary, report=str(write_report(run, model=model)))
+    write_json(run / "summary.json", stored)
     return summary
 
 

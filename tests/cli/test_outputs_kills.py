@@ -280,3 +280,22 @@ def test_tradeoff_keeps_no_file_of_the_last_run(tmp_path) -> None:
     assert sorted(visible(out)) == ["models/notes.txt", "tradeoff.csv", "tradeoff.html",
                                     "tradeoff.json"]
     assert json.loads((out / "tradeoff.json").read_text())["knobs"] == ["lod"]
+
+
+# -- grid: a resume at another threshold killed while finishing leaves no stale summary -------
+@pytest.mark.skipif(not (WEIGHTS_DIR / "squeezeseg.onnx").exists(), reason="no bundled model")
+def test_a_grid_finishing_again_leaves_no_summary_of_the_last_threshold(tmp_path: Path) -> None:
+    """`grid --resume --threshold T` redraws a finished run's outputs at T; killed before its
+    maps, it left the last summary.json and report.html (another threshold's blind spots)
+    beside what it wrote; they go first now, and the summary comes last."""
+    run = tmp_path / "run"
+    argv = ["grid", "configs/smoke.toml", "--out", str(run), "--quiet"]
+    falsify(argv)
+    assert json.loads((run / "summary.json").read_text())["threshold"] == 0.65
+    killed([*argv, "--resume", "--threshold", "0.99"], ["miou_x_y.csv"], 1)
+    assert not (run / "summary.json").exists() and not (run / "report.html").exists()
+    killed([*argv, "--resume", "--threshold", "0.99"], ["summary.json"], 1)
+    assert (run / "report.html").exists() and not (run / "summary.json").exists()
+    falsify([*argv, "--resume", "--threshold", "0.99"])
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["threshold"] == 0.99 and "report" not in summary

@@ -40,6 +40,11 @@ def test_train_writes_outputs_and_resume_is_exact(data, val, tmp_path):
     assert all(np.isfinite(r["loss"]) and 0 <= r["val_car_iou"] <= 1 for r in log)
     spec = json.loads((full / "squeezeseg.json").read_text())
     assert (spec["height"], spec["width"], spec["crf_iterations"]) == (64, 64, 1)
+    # the .pt is written with the .onnx and hashed in their spec: torch never runs a .pt of
+    # another training beside them (it was saved first and left out of the spec)
+    from falsify.models.spec import file_sha256
+    assert spec["sha256"] == {"onnx": file_sha256(full / "squeezeseg.onnx"),
+                              "pt": file_sha256(full / "squeezeseg.pt")}
 
     # interrupted after 3 of the 4 steps (mid epoch 2), then resumed
     part = tmp_path / "part"
