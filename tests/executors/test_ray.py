@@ -41,15 +41,6 @@ CI = ROOT / "tests" / "data" / "small-grid.toml"  # 24 samples on 2 streets
 
 
 @pytest.fixture(scope="module")
-def ray():
-    ray = pytest.importorskip("ray", reason='ray is not installed (pip install "falsify[ray]")')
-    ray.init(num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1",
-             log_to_driver=False, logging_level="ERROR")
-    yield ray
-    ray.shutdown()
-
-
-@pytest.fixture(scope="module")
 def process_run(tmp_path_factory) -> Path:
     """The small grid on two local worker processes: the reference run."""
     out = tmp_path_factory.mktemp("process") / "run"

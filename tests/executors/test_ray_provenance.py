@@ -23,15 +23,6 @@ ROOT = Path(__file__).resolve().parents[2]
 SMALL = ROOT / "tests" / "data" / "small-grid.toml"   # 24 samples on 2 streets
 
 
-@pytest.fixture(scope="module")
-def ray():
-    ray = pytest.importorskip("ray", reason='ray is not installed (pip install "falsify[ray]")')
-    ray.init(num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1",
-             log_to_driver=False, logging_level="ERROR")
-    yield ray
-    ray.shutdown()
-
-
 def test_a_run_resumed_on_ray_records_the_actors_environment(ray, tmp_path, capsys):
     """A process run cut after 16 rows, resumed on one Ray actor: the new session holds the
     actor's environment with ray's version; ray computes no number and the actor's one session

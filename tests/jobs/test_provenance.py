@@ -36,6 +36,7 @@ from falsify.results.store import (
 )
 from falsify.world.space import load_space
 from tests.cli.test_pipeline import kill_after_rows
+from tests.executors.test_audit8_determinism import ONE_VAN
 
 ROOT = Path(__file__).resolve().parents[2]
 SMALL = ROOT / "tests" / "data" / "small-grid.toml"   # 24 samples on 2 streets
@@ -222,21 +223,6 @@ def test_shared_inference_runs_torch_on_the_cpu_on_one_thread():
         assert server_threads(settings, 2) == server_threads(settings, 8) == 1
     onnx = EvalSettings(space=space, threads=inference_threads("onnx", "cpu", 2))
     assert server_threads(onnx, 2) == 2   # ONNX Runtime: 1 to 4 threads give the same logits
-
-
-ONE_VAN = """name = "one"
-sensor = "kitti-hdl64e-front"
-[dims.car_model]
-values = ["van"]
-[dims.x]
-values = [-6.0]
-[dims.y]
-values = [6.0]
-[dims.yaw]
-values = [45.0]
-[dims.background]
-values = [0]
-"""
 
 
 def test_torch_rows_of_shared_inference_equal_a_workers_and_record_torch(tmp_path):
