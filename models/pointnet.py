@@ -134,9 +134,12 @@ def factory(weights: str | PathLike | None = None, device: str = "cpu",
 def reference(device: str = "cpu", threads: int | None = None) -> PointNetPlugin:
     """The shipped PointNet trained on the world's scans (models/weights/pointnet20.pt; its
     card: models/cards/pointnet20.md): ``--model falsify.models.pointnet:reference``."""
-    from falsify.models.runners import WEIGHTS_DIR
+    from falsify.models.runners import WEIGHTS_DIR, not_installed
 
-    return factory(WEIGHTS_DIR / "pointnet20.pt", device=device, threads=threads)
+    weights = WEIGHTS_DIR / "pointnet20.pt"
+    if not weights.is_file():   # a wheel leaves it out
+        raise FalsifyError(not_installed("pointnet20", "--model falsify.models.pointnet:reference"))
+    return factory(weights, device=device, threads=threads)
 
 
 def export_onnx(model: PointNetSeg, path: str | PathLike, name: str | None = None

@@ -41,12 +41,28 @@ __all__ = [
     "BACKENDS", "BATCH", "BUNDLED_ONNX", "BUNDLED_PT", "CARDS_DIR", "MAX_DEFAULT_THREADS",
     "WEIGHTS_DIR", "OnnxSegmenter", "PluginSegmenter", "Prediction", "Segmenter", "TorchSegmenter",
     "backend_for", "check_scans", "cpu_session", "default_threads", "feeds", "load_segmenter",
-    "onnx_session", "points_of", "resolve_model", "scatter", "to_prediction",
+    "not_installed", "onnx_session", "points_of", "resolve_model", "scatter", "to_prediction",
 ]
 
 
-# Bundled networks that run as plug-ins (a card, no ONNX file), by the name their card gives.
+# Bundled networks that run as plug-ins (a card, no ONNX file), by the name their card gives;
+# each loads its weights from WEIGHTS_DIR/NAME.pt.
 PLUGIN_NAMES = {"pointnet20": "falsify.models.pointnet:reference"}
+
+
+def not_installed(name: str, flag: str | None = None) -> str:
+    """The error for a bundled network whose weights this installation lacks (a wheel ships the
+    default and its int8 variants only): its card, and where the source repository keeps it."""
+    flag = flag or f"--model {name}"
+    head = (f"{flag}: not installed (the package ships the default network, squeezeseg, and "
+            f"its int8 variants); its card {CARDS_DIR / f'{name}.md'} says how to make it, or ")
+    if name in PLUGIN_NAMES:
+        module = PLUGIN_NAMES[name].split(":")[0]
+        return head + (f"take {name}.pt from the source repository's models/weights/ and load it "
+                       f"with {module}.factory(weights=PATH) in a plug-in file "
+                       "(--model FILE.py:FACTORY)")
+    return head + (f"take {name}.onnx and {name}.json from the source repository's "
+                   f"models/weights/ and pass --model PATH/{name}.onnx")
 
 
 def resolve_model(path: str | Path | None, backend: str = "onnx") -> Path:
@@ -56,15 +72,11 @@ def resolve_model(path: str | Path | None, backend: str = "onnx") -> Path:
     if path is not None and not Path(path).suffix and not Path(path).exists():
         if (WEIGHTS_DIR / f"{path}.onnx").is_file():
             path = WEIGHTS_DIR / f"{path}.onnx"
-        elif str(path) in PLUGIN_NAMES:
+        elif str(path) in PLUGIN_NAMES and (WEIGHTS_DIR / f"{path}.pt").is_file():
             raise FalsifyError(f"--model {path}: a plug-in; run it as --model "
                                f"{PLUGIN_NAMES[str(path)]}")
         elif (CARDS_DIR / f"{path}.md").is_file():   # a network the wheel leaves out
-            raise FalsifyError(
-                f"--model {path}: not installed (the package ships the default network, "
-                f"squeezeseg, and its int8 variants); its card {CARDS_DIR / f'{path}.md'} says "
-                f"how to make it, or take {path}.onnx and {path}.json from the source "
-                f"repository's models/weights/ and pass --model PATH/{path}.onnx")
+            raise FalsifyError(not_installed(str(path)))
         else:
             names = sorted(({f.stem for f in WEIGHTS_DIR.glob("*.onnx")}
                             | {f.stem for f in CARDS_DIR.glob("*.md")}) - set(PLUGIN_NAMES))
