@@ -17,8 +17,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threshold", type=float, metavar="T",
                    help="mIoU threshold in (0, 1] (default: the run's, else 0.65)")
     p.add_argument("--junit", metavar="FILE",
-                   help="also write JUnit XML, one testcase per cell: those that fail the gate "
-                   "fail, accepted blind spots and empty cells are skipped")
+                   help="also write JUnit XML, one testcase per cell, named for the run: those "
+                   "that fail the gate fail, accepted blind spots and empty cells are skipped")
     p.add_argument("--allow-incomplete", action="store_true",
                    help="gate a run stopped before its end, or still being written, on the "
                    "samples it holds (default: refuse it, exit 2)")

@@ -22,14 +22,28 @@ from pathlib import Path
 
 from falsify.errors import FalsifyError
 from falsify.results.metrics import TO_KITTI4
-from falsify.results.miou_maps import CellMap, fmt_value
+from falsify.results.miou_maps import CellMap
 from falsify.results.store import STORE_NAME, Completeness, check_complete, open_run
 
-JUNIT_SUITE = "falsify.jobs.gate"
+JUNIT_SUITE = "falsify gate"          # the JUnit suite's name: "falsify gate: <run>"
+JUNIT_CLASS = "falsify.gate"          # its testcases' classname: "falsify.gate.<run>"
 
 
-def cell_name(x: float, y: float) -> str:
-    return f"cell x={fmt_value(x)} y={fmt_value(y)}"
+def cell_name(x: str, y: str) -> str:
+    """A cell's name from its coordinates' texts (`axis_texts`)."""
+    return f"cell x={x} y={y}"
+
+
+def axis_texts(values) -> dict[float, str]:
+    """Each distinct value of an axis as its shortest text at 6 significant digits, or as many
+    more as tell it from the axis's other values (100.0001 and 100.0002 are both "100" at 6):
+    two cells never share a name, a text line or a JUnit testcase."""
+    vals = sorted({float(v) for v in values})
+    for digits in range(6, 18):   # 17 significant digits tell any two doubles apart
+        texts = [f"{v:.{digits}g}" for v in vals]
+        if len(set(texts)) == len(vals):
+            break
+    return dict(zip(vals, texts, strict=True))
 
 
 def _key(x, y) -> tuple[float, float]:
@@ -45,10 +59,8 @@ class GateCell:
     miou: float | None
     samples: int
     blind: bool
+    name: str   # "cell x=.. y=..", unique among the map's cells
 
-    @property
-    def name(self) -> str:
-        return cell_name(self.x, self.y)
 
     def to_json(self, threshold: float) -> dict:
         d = {"x": self.x, "y": self.y,
@@ -107,10 +119,12 @@ def check_threshold(value: float | None, where: str = "--threshold") -> None:
 
 def gate_cells(cmap: CellMap, threshold: float) -> list[GateCell]:
     """Every cell of the map, rows of y then x ascending, flagged blind below the threshold."""
+    xs, ys = axis_texts(cmap.a_values), axis_texts(cmap.b_values)
     out = []
     for c in cmap.cells():
         blind = c.miou is not None and c.miou < threshold
-        out.append(GateCell(float(c.a), float(c.b), c.miou, c.samples, blind))
+        x, y = float(c.a), float(c.b)
+        out.append(GateCell(x, y, c.miou, c.samples, blind, cell_name(xs[x], ys[y])))
     return out
 
 
@@ -131,9 +145,8 @@ def check_objective(baseline: str | Path, theirs: object, ours: str) -> None:
 
 def _grid_text(keys: set[tuple[float, float]]) -> str:
     """A set of (x, y) cells as their x and y values, for messages."""
-    xs, ys = sorted({k[0] for k in keys}), sorted({k[1] for k in keys})
-    return (f"x [{', '.join(fmt_value(v) for v in xs)}] × "
-            f"y [{', '.join(fmt_value(v) for v in ys)}]")
+    xs, ys = axis_texts(k[0] for k in keys), axis_texts(k[1] for k in keys)
+    return f"x [{', '.join(xs.values())}] × y [{', '.join(ys.values())}]"
 
 
 def check_same_cells(baseline: str | Path, theirs: set[tuple[float, float]],
@@ -318,13 +331,44 @@ def xml_safe(text: str) -> str:
     return _NOT_XML.sub(_xml_escape, text)
 
 
+_NOT_CLASS = re.compile(r"[^\w-]")   # what a JUnit classname's run part writes as _
+
+
+def run_label(run: str | Path) -> str:
+    """What names a run in JUnit XML: its path relative to the working directory when it lies
+    under it (runs/a/grid and runs/b/grid stay apart), else its folder's name; the store file
+    names its folder. The same command in the same place always gives the same label."""
+    path = Path(os.path.abspath(run))
+    if path.name == STORE_NAME and not path.is_dir():
+        path = path.parent
+    try:
+        here: Path | None = Path(os.getcwd())
+    except OSError:   # the working directory was removed
+        here = None
+    if here is not None and path != here and path.is_relative_to(here):
+        return path.relative_to(here).as_posix()
+    return path.name or path.as_posix()
+
+
+def junit_names(run: str | Path) -> tuple[str, str]:
+    """The suite name ("falsify gate: runs/a") and testcase classname ("falsify.gate.runs_a")
+    of a run, XML-safe: dashboards (GitLab, Jenkins) merge testcases by classname and name, so
+    several runs gated in one CI job must not share them. The classname keeps letters, digits,
+    _ and -: a dot would split it into Jenkins packages."""
+    label = run_label(run)
+    return (xml_safe(f"{JUNIT_SUITE}: {label}"),
+            f"{JUNIT_CLASS}.{_NOT_CLASS.sub('_', label)}")
+
+
 def junit_xml(result: GateResult) -> str:
-    """JUnit XML: suite "falsify.jobs.gate", one testcase per cell. The cells that fail the
-    gate fail (every blind spot over the limit, the new ones against a baseline); blind spots it
-    accepts and empty cells are skipped, each saying why; a passing gate has no failure, as
-    JUnit readers (Jenkins, GitLab, test-report actions) judge a build by its failures."""
+    """JUnit XML: a suite named for the run (`junit_names`), one testcase per cell. The cells
+    that fail the gate fail (every blind spot over the limit, the new ones against a baseline);
+    blind spots it accepts and empty cells are skipped, each saying why; a passing gate has no
+    failure, as JUnit readers (Jenkins, GitLab, test-report actions) judge a build by its
+    failures."""
     t = result.threshold
-    suite = ET.Element("testsuite", {"name": JUNIT_SUITE, "tests": str(len(result.cells))})
+    suite_name, classname = junit_names(result.run)
+    suite = ET.Element("testsuite", {"name": suite_name, "tests": str(len(result.cells))})
     props = ET.SubElement(suite, "properties")
     for name, value in (("run", result.run), ("objective", result.objective),
                         ("threshold", f"{t:.6g}"),
@@ -338,7 +382,7 @@ def junit_xml(result: GateResult) -> str:
     new = {_key(c.x, c.y) for c in result.new_blind_spots}
     counts = {"failure": 0, "skipped": 0}
     for c in result.cells:
-        case = ET.SubElement(suite, "testcase", {"classname": JUNIT_SUITE, "name": c.name})
+        case = ET.SubElement(suite, "testcase", {"classname": classname, "name": c.name})
         if c.miou is None:
             ET.SubElement(case, "skipped", {"message": "no valid sample"})
             counts["skipped"] += 1

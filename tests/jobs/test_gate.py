@@ -91,7 +91,8 @@ def test_junit(run: Path, tmp_path: Path, capsys) -> None:
     junit = tmp_path / "ci" / "gate.xml"
     assert gate([str(run), "--junit", str(junit)], capsys)[0] == 1
     suite = ET.parse(junit).getroot()
-    assert suite.tag == "testsuite" and suite.get("name") == "falsify.jobs.gate"
+    assert suite.tag == "testsuite" and suite.get("name") == "falsify gate: run"
+    assert {c.get("classname") for c in suite.findall("testcase")} == {"falsify.gate.run"}
     cases = suite.findall("testcase")
     assert sorted(c.get("name") for c in cases) == sorted(
         ["cell x=-2 y=8", "cell x=2 y=8", "cell x=-2 y=14", "cell x=2 y=14"])
