@@ -4,7 +4,7 @@ the IoU variance, and clusters of failing samples, as `falsify explain RUN` comp
 from __future__ import annotations
 
 from falsify.reports.charts import f3
-from falsify.reports.page import esc
+from falsify.reports.page import esc, scroll_open
 from falsify.results.explain import Condition, Explanation, score_name
 from falsify.results.store import RunData
 
@@ -41,7 +41,8 @@ def _rules_html(data: RunData, e: Explanation) -> str:
                     f'<td class="num">{r.support}</td><td class="num">{r.failing}</td>'
                     f'<td class="num">{f3(r.precision)}</td>'
                     f'<td class="num">{f3(r.mean_iou)}</td></tr>')
-    return ('<div class="scroll"><table class="small" id="explain-rules"><thead><tr><th>#</th>'
+    return (f'{scroll_open("Rules where samples fail")}'
+            '<table class="small" id="explain-rules"><thead><tr><th>#</th>'
             "<th>rule</th><th>support</th><th>failing</th><th>precision</th><th>mean IoU</th>"
             f'</tr></thead><tbody>{"".join(rows)}</tbody></table></div>')
 
@@ -56,8 +57,9 @@ def _sensitivity_html(e: Explanation) -> str:
                     f'<td class="sbar"><span style="width:{width}%"></span></td></tr>')
     return ('<div><h3>Sensitivity</h3><p class="note">Share of the IoU variance each dim '
             "explains alone (first-order index).</p>"
-            '<div class="scroll"><table class="small" id="explain-sensitivity"><thead><tr>'
-            "<th>dim</th><th>share</th><th></th></tr></thead>"
+            f'{scroll_open("Sensitivity")}<table class="small" id="explain-sensitivity">'
+            '<thead><tr><th>dim</th><th>share</th><th><span class="vh">share, as a bar</span>'
+            "</th></tr></thead>"
             f'<tbody>{"".join(rows)}</tbody></table></div></div>')
 
 
@@ -72,7 +74,8 @@ def _clusters_html(data: RunData, e: Explanation) -> str:
     return ('<div><h3>Clusters of failing samples</h3><p class="note">k-means over the failing '
             "samples' continuous dims; categorical dims show each cluster's most common value; "
             "a car's dims show only where most of the cluster's samples hold that car.</p>"
-            '<div class="scroll"><table class="small" id="explain-clusters"><thead><tr>'
+            f'{scroll_open("Clusters of failing samples")}'
+            '<table class="small" id="explain-clusters"><thead><tr>'
             "<th>#</th><th>samples</th><th>mean IoU</th><th>centre</th></tr></thead>"
             f'<tbody>{"".join(rows)}</tbody></table></div></div>')
 

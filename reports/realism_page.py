@@ -11,7 +11,7 @@ number formats.
 from __future__ import annotations
 
 from falsify.reports.charts import FONT
-from falsify.reports.page import esc, head
+from falsify.reports.page import esc, head, scroll_open
 
 # Nothing but inline styles and data: images; this page has no script at all.
 CSP = ("default-src 'none'; img-src data:; style-src 'unsafe-inline'; base-uri 'none'; "
@@ -163,8 +163,8 @@ def distance_table(doc: dict) -> str:
                               boot.get("undefined_draws", {}).items() if n)
                     + '</p>')
     return (f'<section id="distances"><h2>Distances (lower is closer)</h2>{verdict}'
-            f'<div class="scroll"><table><thead><tr><th>statistic</th>{head}</tr></thead>'
-            f'<tbody>{"".join(rows)}</tbody></table></div></section>')
+            f'{scroll_open("Distances")}<table><thead><tr><th>statistic</th>{head}</tr>'
+            f'</thead><tbody>{"".join(rows)}</tbody></table></div></section>')
 
 
 def per_scan_table(doc: dict) -> str:
@@ -201,7 +201,8 @@ def per_scan_table(doc: dict) -> str:
             f'same distances against one real scan at a time (all but the feature distance, '
             f'whose estimator needs many scans). With few real scans a resample of them is one '
             f'of few combinations, so a set farther from one scan is farther on the draws that '
-            f'scan dominates.{more}</p><div class="scroll"><table><thead><tr><th>real scan</th>'
+            f'scan dominates.{more}</p>{scroll_open("Distances against each real scan")}'
+            f'<table><thead><tr><th>real scan</th>'
             f'{head}</tr></thead><tbody>{"".join(rows)}</tbody></table></div></section>')
 
 
@@ -222,7 +223,7 @@ def sets_table(doc: dict) -> str:
             + "".join(f'<td class="num">{_fmt(s["class_fraction"][c], 4)}</td>' for c in classes)
             + f'<td class="num">{s["feature_samples"]}</td></tr>')
     return (f'<section id="sets"><h2>Sets</h2><p class="note">Valid: fraction of pixels with a '
-            f'return; class columns: fraction of valid points.</p><div class="scroll"><table>'
+            f'return; class columns: fraction of valid points.</p>{scroll_open("Sets")}<table>'
             f'<thead><tr>{head}</tr></thead><tbody>{"".join(rows)}</tbody></table></div>'
             '</section>')
 
@@ -259,7 +260,8 @@ def semantic_table(doc: dict) -> str:
             f'of labelled points per class ({len(classes)} classes; unlabeled points are left '
             f'out and their share of all valid points is given below). Synthetic sets written '
             f'with <code>--labels semantickitti</code>, real scans with .label files.</p>'
-            f'<div class="scroll"><table><thead><tr><th>class</th>{head}</tr></thead>'
+            f'{scroll_open("SemanticKITTI classes")}<table><thead><tr><th>class</th>{head}'
+            f'</tr></thead>'
             f'<tbody>{"".join(rows)}</tbody></table></div></section>')
 
 
@@ -331,8 +333,8 @@ def reported_table(doc: dict) -> str:
     return ('<section id="reported"><h2>Evaluation split (reported only)</h2><p class="note">'
             'The same distances to real places that are evaluation data: shown, never pooled '
             'into the reference and never used to compare or choose.</p>'
-            f'<div class="scroll"><table><thead><tr><th>statistic</th>{head}</tr></thead>'
-            f'<tbody>{rows}</tbody></table></div></section>')
+            f'{scroll_open("Evaluation split distances")}<table><thead><tr>'
+            f'<th>statistic</th>{head}</tr></thead><tbody>{rows}</tbody></table></div></section>')
 
 
 def render_realism(doc: dict) -> str:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from falsify.reports.charts import Grid, axes_svg, cells_svg, f3, legend_svg, svg_element, viridis
-from falsify.reports.page import esc
+from falsify.reports.page import esc, scroll_open
 from falsify.results.miou_maps import CellMap, fmt_value
 from falsify.results.store import RunData
 
@@ -82,9 +82,10 @@ added to the training set ({esc(summary.get("retraining_scans", 0))} scans). Mea
 V: {f3(summary.get("mean_before"))} before, {f3(summary.get("mean_after"))} after. {training}</p>
 <div class="row">{maps}</div>
 <h3>Selected cells</h3>
-<div class="scroll">{selected}</div>
+{scroll_open("Selected cells")}{selected}</div>
 <h3>Regression checks (car IoU pooled over each set)</h3>
-<div class="scroll"><table id="checks"><thead><tr><th>set</th><th>scans</th><th>before</th>
+{scroll_open("Regression checks")}
+<table id="checks"><thead><tr><th>set</th><th>scans</th><th>before</th>
 <th>after</th><th>change</th><th>drop at most 0.01</th><th>note</th></tr></thead>
 <tbody>{''.join(checks)}</tbody></table></div>
 <h3>Criteria</h3>

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from falsify.fileio import write_text
-from falsify.reports.page import esc, head
+from falsify.reports.page import esc, head, scroll_open
 
 # Okabe-Ito: distinguishable with the common colour-vision deficiencies.
 COLOURS = ("#0072b2", "#e69f00", "#009e73", "#cc79a7", "#d55e00", "#56b4e9", "#000000")
@@ -161,7 +161,7 @@ def table(rows: Sequence[dict]) -> str:
         cells = "".join(f"<td>{esc(fmt(r[key], 1 if key == 'time_per_sample_ms' else 3))}</td>"
                         for key, _ in COLUMNS)
         body.append(f'<tr class="{cls}">{cells}</tr>')
-    return (f'<div class="scroll"><table><thead><tr>{head}</tr></thead>'
+    return (f'{scroll_open("Speed and map error per setting")}<table><thead><tr>{head}</tr></thead>'
             f"<tbody>{''.join(body)}</tbody></table></div>")
 
 

@@ -95,6 +95,7 @@
       count + ', mIoU ' + (m ? m : 'none') + ')';
     document.getElementById('cell-hint').hidden = true;
     table.hidden = false;
+    table.parentElement.hidden = false;   // its scroll box, a Tab stop once filled
   }
   var map = document.getElementById('heatmap');
   // The map is one Tab stop: the arrow keys move between its cells (row 0, the nearest, is

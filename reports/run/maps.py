@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from falsify.reports.charts import Grid, axes_svg, cells_svg, f3, legend_svg, svg_element, viridis
-from falsify.reports.page import esc
+from falsify.reports.page import esc, scroll_open
 from falsify.reports.run.common import (
     CELL_ROWS,
     bg_values,
@@ -108,7 +108,8 @@ samples.</p>{estimated}
 <div id="cell-samples">
 <h3 id="cell-title" aria-live="polite">Samples of a cell</h3>
 <p id="cell-hint" class="note">Click a cell of the map to list its samples here.{capped}</p>
-<div class="scroll"><table id="cell-table" hidden><thead><tr><th>eval</th><th>x</th><th>y</th>
+{scroll_open("Samples of the selected cell", hidden=True)}
+<table id="cell-table" hidden><thead><tr><th>eval</th><th>x</th><th>y</th>
 <th>yaw</th><th>{model_heading(data)}</th><th>count</th><th>background</th><th>status</th><th>{what}</th>
 <th>precision</th><th>recall</th><th>reason</th>{"<th>other dims</th>" if other_dims(data) else ""}
 </tr></thead><tbody></tbody></table></div>
@@ -192,6 +193,8 @@ def inserted_section(data: RunData, threshold: float) -> str:
             f'<td class="num">{mean(data.score_column)}</td>'
             f'<td class="num">{mean("inserted_iou")} / {mean("inserted_recall")}</td>'
             f'<td class="num">{mean("real_iou")} / {mean("real_recall")}</td></tr>')
+    box = scroll_open(f"{ins.capitalize()} and {own} {thing}s per "
+                      f"{'real scan' if real else 'street'}")
     thing = esc(thing)
     note = (f"""Each sample is a real scan with the {thing} inserted. The inserted {thing} is
 scored with the scan's real {thing}s left out, and the real {thing}s with the inserted one left
@@ -206,7 +209,8 @@ on real scans.""")
 <h2>{ins.capitalize()} and {own} {thing}s</h2>
 <p class="note">{note}</p>
 <div class="multiples">{"".join(figs)}</div>
-<div class="scroll"><table class="small"><thead><tr><th>{"real scan" if real else "street"}</th>
+{box}
+<table class="small"><thead><tr><th>{"real scan" if real else "street"}</th>
 <th>valid</th><th>invalid</th><th>mean {objective_name(data)}</th><th>{ins} IoU / recall</th>
 <th>{own} IoU / recall</th></tr></thead><tbody>{"".join(rows)}</tbody></table></div>
 </section>"""

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from falsify.reports.charts import f3
-from falsify.reports.page import esc
+from falsify.reports.page import esc, scroll_open
 from falsify.reports.run.common import (
     bg_text,
     dim_text,
@@ -149,7 +149,8 @@ def worst_section(data: RunData, scans: Mapping[int, ReplayedScan], note: str,
 (rows = beams, columns = azimuth) over a bird's-eye view (sensor at the bottom, forward up).
 {legend}</p>
 {note_html}{empty}
-<div class="scroll"><table class="worst">{head}{"".join(body)}</table></div>
+{scroll_open(f"The {len(rows)} worst samples")}
+<table class="worst">{head}{"".join(body)}</table></div>
 </section>"""
 
 

@@ -59,6 +59,13 @@ def _key(browser, key: str) -> None:
     ActionChains(browser).send_keys(key).perform()
 
 
+def _shift_tab(browser) -> None:
+    """Shift+Tab held together (send_keys presses and releases Shift before the Tab)."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.keys import Keys
+    ActionChains(browser).key_down(Keys.SHIFT).send_keys(Keys.TAB).key_up(Keys.SHIFT).perform()
+
+
 def _active(browser):
     return browser.switch_to.active_element
 
@@ -77,7 +84,7 @@ def test_the_heat_map_is_one_tab_stop_walked_with_the_arrow_keys(browser, pages)
     assert (first.get_attribute("data-x"), first.get_attribute("data-y")) == ("-4", "8")
     _key(browser, Keys.TAB)
     assert "cell" not in (_active(browser).get_attribute("class") or "")
-    _key(browser, Keys.SHIFT + Keys.TAB)
+    _shift_tab(browser)
     assert _active(browser) == first
 
     # the arrow keys move along the row and to the row drawn above (farther)
@@ -93,7 +100,7 @@ def test_the_heat_map_is_one_tab_stop_walked_with_the_arrow_keys(browser, pages)
     assert cell.get_attribute("data-x") == "4"
     # Tab away and back returns to the cell last focused
     _key(browser, Keys.TAB)
-    _key(browser, Keys.SHIFT + Keys.TAB)
+    _shift_tab(browser)
     assert _active(browser) == cell
 
     # the tooltip shows on focus, beside the cell, and Escape hides it
