@@ -148,7 +148,8 @@ def test_calib_on_real_kitti_frames(kitti_object, tmp_path, capsys):
     assert pooled["points_in_boxes"] > 1000 and pooled["fraction"] >= 0.95, pooled
     assert summary["by_type"]["Car"]["fraction"] >= 0.95
     assert all(o["type"] != "DontCare" for o in summary["objects"])
-    assert sorted(p.name for p in out.iterdir()) == ["000000.png", "000001.png", "000002.png"]
+    assert sorted(p.name for p in out.iterdir()) == ["000000.png", "000001.png", "000002.png",
+                                                     "calib-overlays.json"]
 
 
 def test_calib_check_can_fail(kitti_object, tmp_path):
