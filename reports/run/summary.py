@@ -106,7 +106,7 @@ def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     model = f"{esc(meta.get('model_name', '—'))} <code>{esc(str(meta.get('model_hash') or '')[:12])}</code>"  # noqa: E501
     model_path = meta.get("model_path")
     search = str(meta.get("command", "")) or "—"
-    if meta.get("algorithm"):
+    if meta.get("algorithm") and meta["algorithm"] != meta.get("command"):   # not "grid · grid"
         search += f" · {meta['algorithm']}"
     if meta.get("budget") is not None:
         search += f" · budget {meta['budget']}"
