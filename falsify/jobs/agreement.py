@@ -523,6 +523,11 @@ def run_agreement(world_run: str | Path, real_run: str | Path, threshold: float 
     check_complete(world, allow_incomplete, "world run ")
     check_complete(real, allow_incomplete, "real run ")
     check_sides(world, real)
+    for which, d in (("world", world), ("real", real)):
+        if not len(ok_rows(d)):   # dashes everywhere, or MISSED under a --max-* limit
+            statuses = ", ".join(sorted(set(d.frame["status"].astype(str)))) or "absent"
+            raise FalsifyError(f"{which} run {d.path}: no valid sample to compare (every row is "
+                               f"{statuses})")
     wcol, rcol = placed_columns(world)["iou"], placed_columns(real)["iou"]
     wmap = miou_map(ok_rows(world), world.space, "x", "y", wcol)
     rmap = miou_map(ok_rows(real), real.space, "x", "y", rcol)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from falsify.checks import check_seed
 from falsify.errors import FalsifyError
-from falsify.results.explain import Explanation, explain, score_name
+from falsify.results.explain import MIN_SUPPORT, Explanation, explain, score_name
 from falsify.results.store import RunData, check_complete, open_run
 
 MAX_DEPTH = 4
@@ -71,6 +71,9 @@ def format_text(result: ExplainResult) -> str:
         for r in e.rules:
             lines.append(f"  {r.text()}: {r.failing} of {r.support} samples below "
                          f"{e.threshold:g}, mean {r.mean_iou:.3f}")
+    elif e.samples < MIN_SUPPORT:   # no rule could be found: say so, not that none fits
+        lines.append(f"too few valid samples to explain ({e.samples}; a rule needs at least "
+                     f"{MIN_SUPPORT})")
     elif e.failing:
         lines.append("no rule covers the failing samples better than the run as a whole")
     if e.sensitivity:
