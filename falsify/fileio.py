@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
 import io
 import json
 import os
@@ -50,6 +51,15 @@ def read_text(path: str | Path, what: str = "", error: type[FalsifyError] = Fals
         return read_bytes(path, what, error).decode("utf-8")
     except UnicodeDecodeError:
         raise error(f"{path}: not UTF-8 text{' (' + what + ')' if what else ''}") from None
+
+
+def file_sha256(path: str | Path) -> str:
+    """The SHA-256 (hex) of a file's bytes, read a megabyte at a time (OSError if unreadable)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def write_bytes(path: str | Path, data: bytes) -> None:

@@ -15,11 +15,10 @@ import numpy as np
 
 from falsify.checks import check_out_file, check_range
 from falsify.errors import FalsifyError
-from falsify.fileio import atomic_path
+from falsify.fileio import atomic_path, file_sha256
 from falsify.models.spec import (
     ModelSpec,
     default_spec,
-    file_sha256,
     load_paired_spec,
     normalise,
     save_spec,

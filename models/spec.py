@@ -21,7 +21,7 @@ import numpy as np
 
 from falsify.classes import CLASSES
 from falsify.errors import FalsifyError
-from falsify.fileio import write_text
+from falsify.fileio import file_sha256, write_text
 from falsify.semantic import KITTI4_OF_RAW, LEARNING_MAP, TRAIN_CLASSES, TRAIN_ID
 
 ALL_CHANNELS = ("x", "y", "z", "intensity", "range")
@@ -335,18 +335,6 @@ def spec_from_dict(d: Any, path: str | Path) -> ModelSpec:
     )
 
 
-def file_sha256(path: str | Path) -> str:
-    """sha256 (hex) of a file's bytes; FalsifyError naming the file if it cannot be read."""
-    h = hashlib.sha256()
-    try:
-        with open(path, "rb") as fh:
-            while chunk := fh.read(1 << 20):
-                h.update(chunk)
-    except OSError as e:
-        raise FalsifyError(f"cannot read model file {path}: {e.strerror or e}") from e
-    return h.hexdigest()
-
-
 def check_exported_file(spec: ModelSpec, spec_path: str | Path, path: str | Path,
                         role: str) -> None:
     """FalsifyError unless `path` is the `role` file ("onnx", "pt") its spec was written with
@@ -355,7 +343,10 @@ def check_exported_file(spec: ModelSpec, spec_path: str | Path, path: str | Path
     want = spec.sha256.get(role)
     if want is None:
         return
-    got = file_sha256(path)
+    try:
+        got = file_sha256(path)
+    except OSError as e:
+        raise FalsifyError(f"cannot read model file {path}: {e.strerror or e}") from e
     if got != want:
         raise FalsifyError(f"{path} is not the file its spec {spec_path} was exported with "
                            f"(sha256 {got[:12]}, the spec says {want[:12]}): an export was "

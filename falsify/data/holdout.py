@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from falsify.errors import FalsifyError
-from falsify.fileio import parse_toml, read_bytes
+from falsify.fileio import file_sha256, parse_toml, read_bytes
 from falsify.world.real_scans import sequence_dirs, sequence_files
 
 MANIFEST_NAME = "splits.toml"
@@ -46,15 +46,6 @@ class HeldOutFile:
     path: Path
     size: int
     source: str
-
-
-def file_sha256(path: Path) -> str:
-    """The SHA-256 of a file's bytes."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 class Holdout:

@@ -22,7 +22,6 @@ from pathlib import Path
 import numpy as np
 
 from falsify.classes import CAR
-from falsify.data.holdout import file_sha256
 from falsify.data.kitti_object import (
     KittiObject,
     check_labels_have_scans,
@@ -38,6 +37,7 @@ from falsify.data.real_backgrounds import (
 )
 from falsify.data.scansets import check_named_once
 from falsify.errors import FalsifyError
+from falsify.fileio import file_sha256
 from falsify.models.runners import Segmenter
 from falsify.results.metrics import confusion
 from falsify.sensor.calibration import KittiCalib

@@ -28,7 +28,6 @@ import numpy as np
 
 from falsify.classes import CAR, PEDESTRIAN
 from falsify.classes import CLASSES as FOUR_CLASSES
-from falsify.data.holdout import file_sha256
 from falsify.data.real_backgrounds import (
     INSERTED_INSTANCE,
     PointIndex,
@@ -39,6 +38,7 @@ from falsify.data.real_backgrounds import (
 from falsify.data.real_backgrounds.ground import ground_points
 from falsify.data.velodyne import read_bin
 from falsify.errors import FalsifyError
+from falsify.fileio import file_sha256
 from falsify.jobs.faithfulness import Arms, Pooled, Spread, _rounded, pool, score_arm
 from falsify.models.runners import Segmenter
 from falsify.rotations import rot_z

@@ -164,7 +164,7 @@ def test_a_spec_without_hashes_still_loads_and_a_bad_hash_key_is_named(tmp_path)
 def _hashed_copy(tmp_path: Path, onnx_hash: str | None = None) -> Path:
     """The bundled network and its spec copied, the spec recording `onnx_hash` (default: the
     copy's own) and its .pt's."""
-    from falsify.models.spec import file_sha256
+    from falsify.fileio import file_sha256
 
     m = tmp_path / "m.onnx"
     tmp_path.mkdir(parents=True)
@@ -179,9 +179,10 @@ def _hashed_copy(tmp_path: Path, onnx_hash: str | None = None) -> Path:
 def test_every_reader_of_a_model_and_its_spec_checks_the_pair(tmp_path) -> None:
     """The runners, realism's encoder and the fp16 / int8 converters refuse an .onnx that is
     not the one its spec was exported with; a converted model's spec records its own hash."""
+    from falsify.fileio import file_sha256
     from falsify.jobs.realism import EncoderFeatures
     from falsify.models.export import convert_fp16
-    from falsify.models.spec import file_sha256, load_spec
+    from falsify.models.spec import load_spec
 
     pytest.importorskip("onnx")
     good = _hashed_copy(tmp_path / "good")

@@ -42,7 +42,7 @@ def test_train_writes_outputs_and_resume_is_exact(data, val, tmp_path):
     assert (spec["height"], spec["width"], spec["crf_iterations"]) == (64, 64, 1)
     # the .pt is written with the .onnx and hashed in their spec: torch never runs a .pt of
     # another training beside them (it was saved first and left out of the spec)
-    from falsify.models.spec import file_sha256
+    from falsify.fileio import file_sha256
     assert spec["sha256"] == {"onnx": file_sha256(full / "squeezeseg.onnx"),
                               "pt": file_sha256(full / "squeezeseg.pt")}
 
