@@ -61,7 +61,6 @@ class GateCell:
     blind: bool
     name: str   # "cell x=.. y=..", unique among the map's cells
 
-
     def to_json(self, threshold: float) -> dict:
         d = {"x": self.x, "y": self.y,
              "miou": None if self.miou is None else round(self.miou, 6),
