@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import platform
+import shutil
 import sqlite3
 import subprocess
 import sys
@@ -47,14 +48,20 @@ def _environments(run: Path) -> list[list[dict]]:
     return [s.get("environments") for s in read_meta(run)["sessions"]]
 
 
-def _killed_run(tmp_path: Path) -> Path:
+@pytest.fixture(scope="module")
+def killed(tmp_path_factory) -> Path:
     """The small grid killed with -9 after 8 of its 24 rows, as a user's run would be."""
-    run = tmp_path / "run"
+    run = tmp_path_factory.mktemp("killed") / "run"
     cmd = [sys.executable, "-m", "falsify", "grid", str(SMALL), "--out", str(run), "--quiet",
            "--no-report"]
     n = kill_after_rows(cmd, run / STORE_NAME, 8)
     assert 8 <= n < 24, "the run must be killed in the middle"
     return run
+
+
+def _killed_run(killed: Path, tmp_path: Path) -> Path:
+    """A copy of the killed run of its own, for a test to resume and edit."""
+    return Path(shutil.copytree(killed, tmp_path / "run"))
 
 
 def _edit_sessions(run: Path, edit) -> None:
@@ -100,11 +107,12 @@ def test_an_onnx_run_neither_imports_nor_records_torch(tmp_path):
     assert "torch" not in env and env["inference_threads"] == 1   # two workers: 1 thread each
 
 
-def test_resume_under_another_onnxruntime_warns_once_and_keeps_both(tmp_path, capsys):
+def test_resume_under_another_onnxruntime_warns_once_and_keeps_both(killed, tmp_path,
+                                                                     capsys):
     """Killed, then 'upgraded': the stored session says onnxruntime 1.22.0. --resume (on two
     workers, so one thread each against two before) goes on, warns once naming the version
     change and not the threads, and the run keeps both environments; the summary says so."""
-    run = _killed_run(tmp_path)
+    run = _killed_run(killed, tmp_path)
 
     def older(sessions):
         sessions[0]["environments"][0]["onnxruntime"] = "1.22.0"
@@ -143,11 +151,12 @@ def test_resume_under_another_onnxruntime_warns_once_and_keeps_both(tmp_path, ca
         "&gt;", ">")
 
 
-def test_a_run_from_before_environments_were_recorded_resumes_and_reports(tmp_path, capsys):
+def test_a_run_from_before_environments_were_recorded_resumes_and_reports(killed, tmp_path,
+                                                                           capsys):
     """A run written by a falsify that kept no sessions (nor environments): it resumes without
     a warning (nothing is known to have changed), records this session's environment, and its
     report is written."""
-    run = _killed_run(tmp_path)
+    run = _killed_run(killed, tmp_path)
     with sqlite3.connect(run / STORE_NAME) as db:
         db.execute("DELETE FROM run WHERE key = 'sessions'")
     assert environments_of(read_meta(run)) == []
