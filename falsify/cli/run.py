@@ -57,6 +57,10 @@ def run_options(p: argparse.ArgumentParser) -> None:
                    help=f"refuse a grid or budget larger than this (default {MAX_SAMPLES:,})")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     camera_option(p, "also store the camera images of the retraining set beside its scans")
+    p.add_argument("--retrain-format", choices=["npy", "semantickitti"], default="npy",
+                   help="the retraining set's layout: npy, SqueezeSeg's range images; "
+                   "semantickitti, sequences/00/velodyne/*.bin and labels/*.label (raw ids), "
+                   "what RangeNet++'s or SalsaNext's loaders read")
     p.add_argument("--json", action="store_true")
 
 
@@ -77,6 +81,7 @@ def summary_text(s) -> str:
         f"lowest {what}: " + ("- (no valid sample)" if low is None else f"{low[key]} at {where}"),
         f"mean {what}: {'-' if mean is None else mean}",
         (f"retraining set: {s.retraining_samples} scans in {Path(s.run) / 'retrain'}"
+         + (" (SemanticKITTI layout)" if s.retraining_format == "semantickitti" else "")
          if s.retraining_samples else
          "retraining set: none (no valid sample in a blind-spot cell), so no retrain/ folder"),
     ]
@@ -216,7 +221,8 @@ def run_job(args, command: str, algorithm: str) -> int:
         backend=backend, device=args.device, objective=args.objective,
         workers=args.workers, resume=args.resume,
         threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
-        camera=args.camera, max_samples=args.max_samples, executor=args.executor,
+        camera=args.camera, retrain_format=args.retrain_format,
+        max_samples=args.max_samples, executor=args.executor,
         address=args.address, confidence=getattr(args, "confidence", None),
         inference=args.inference)
     try:

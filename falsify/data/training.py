@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from falsify.classes import CAR, CLASSES, UNKNOWN
-from falsify.data.velodyne import kitti_arrays
+from falsify.data.velodyne import SEMANTICKITTI_SEQUENCE, kitti_arrays, semantickitti_paths
 from falsify.errors import ConfigError
 from falsify.fileio import write_bytes, write_json, write_npy, write_text
 from falsify.semantic import RAW_NAMES, split_label, train_ids
@@ -44,7 +44,6 @@ CALIBRATION_SCANS = 64   # int8 calibration (models/export.py says what more sca
 TRAFFIC_KINDS = ("scattered", "drive")  # drive: lane-following traffic (falsify.data.traffic)
 LABEL_SETS = ("kitti4", "semantickitti")   # what an npy scan's label channel holds
 DATASET_FORMATS = ("npy", "semantickitti")  # what write_dataset writes
-SEMANTICKITTI_SEQUENCE = "00"
 # KITTI's velodyne-to-camera axes (camera x right, y down, z forward; no offset): calib.txt's Tr,
 # through which SemanticKITTI's tools turn poses.txt into velodyne poses.
 VELO_TO_CAM = np.array([[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [1.0, 0.0, 0.0, 0.0],
@@ -230,14 +229,6 @@ def dataset_index(sensor: Sensor, scans: int, seed: int = 0,
         index["format"] = fmt
         index["sequence"] = SEMANTICKITTI_SEQUENCE
     return index
-
-
-def semantickitti_paths(out: Path, index: int) -> tuple[Path, Path]:
-    """Scan `index`'s .bin and .label in SemanticKITTI's layout under `out`:
-    sequences/00/velodyne/NNNNNN.bin (float32 x, y, z, remission) and
-    sequences/00/labels/NNNNNN.label (uint32 instance << 16 | raw semantic id)."""
-    seq = out / "sequences" / SEMANTICKITTI_SEQUENCE
-    return seq / "velodyne" / f"{index:06d}.bin", seq / "labels" / f"{index:06d}.label"
 
 
 def world_from_sensor(sensor: Sensor, pose: SensorPose) -> np.ndarray:

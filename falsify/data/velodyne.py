@@ -19,6 +19,9 @@ from falsify.sensor.scan import Scan, image_from_points
 # Our classes as SemanticKITTI ids when writing .label files of scans without semantic ids
 # (unknown -> 0 "unlabeled"). Reading maps raw ids back with falsify.semantic.kitti4.
 TO_SEMANTICKITTI = np.array([0, 10, 30, 31], dtype=np.uint32)
+# The sequence our SemanticKITTI-layout sets are written as (dataset --format semantickitti,
+# a run's retraining set with --retrain-format semantickitti).
+SEMANTICKITTI_SEQUENCE = "00"
 
 
 def kitti_arrays(scan: Scan) -> tuple[np.ndarray, np.ndarray]:
@@ -56,6 +59,14 @@ def label_instances(instance: np.ndarray) -> np.ndarray:
     out = np.clip(inst, 0, None)
     out[big] = free[np.searchsorted(wide, inst[big])]
     return out.astype(np.uint32)
+
+
+def semantickitti_paths(out: Path, index: int) -> tuple[Path, Path]:
+    """Scan `index`'s .bin and .label in SemanticKITTI's layout under `out`:
+    sequences/00/velodyne/NNNNNN.bin (float32 x, y, z, remission) and
+    sequences/00/labels/NNNNNN.label (uint32 instance << 16 | raw semantic id)."""
+    seq = out / "sequences" / SEMANTICKITTI_SEQUENCE
+    return seq / "velodyne" / f"{index:06d}.bin", seq / "labels" / f"{index:06d}.label"
 
 
 def write_kitti(scan: Scan, bin_path: str | Path, label_path: str | Path) -> None:

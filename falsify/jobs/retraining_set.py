@@ -1,5 +1,6 @@
 """The retraining set of a run: the scans of its valid samples in the blind-spot cells (or in
-cells or rows chosen otherwise), re-cast by replay in SqueezeSeg's layout, with index.csv."""
+cells or rows chosen otherwise), re-cast by replay, with index.csv: as SqueezeSeg's range
+images, or as SemanticKITTI's .bin and .label files, what a user's own trainer reads."""
 
 from __future__ import annotations
 
@@ -9,19 +10,36 @@ from collections.abc import Callable, Collection
 import numpy as np
 import pandas as pd
 
+from falsify.data.velodyne import SEMANTICKITTI_SEQUENCE, semantickitti_paths, write_kitti
+from falsify.errors import ConfigError
 from falsify.fileio import write_bytes, write_npy
 from falsify.results.miou_maps import CellMap, snap
 from falsify.results.replay import Replay
 from falsify.results.store import RunData
 
+# How a retraining set is written: "npy", SqueezeSeg's 64 x 512 x 6 range images named for the
+# sample (NNNNNN.npy, our four classes in the label channel); "semantickitti", each scan's
+# points as sequences/00/velodyne/NNNNNN.bin and its raw SemanticKITTI ids and instances as
+# labels/NNNNNN.label (RangeNet++'s, SalsaNext's and most point networks' loaders read these).
+RETRAIN_FORMATS = ("npy", "semantickitti")
+
+
+def check_retrain_format(fmt: str) -> None:
+    if fmt not in RETRAIN_FORMATS:
+        raise ConfigError(f"--retrain-format: {fmt!r} is not one of {list(RETRAIN_FORMATS)}")
+
 
 def write_retraining_set(data: RunData, cmap: CellMap, threshold: float, lod: int = 2,
                          camera: str | None = None,
                          cells: Collection[tuple] | None = None,
-                         select: Callable[[pd.DataFrame], np.ndarray] | None = None) -> int:
+                         select: Callable[[pd.DataFrame], np.ndarray] | None = None,
+                         fmt: str = "npy") -> int:
     """Scans of every valid sample in a blind-spot cell (or in `cells`, (a, b) pairs, when
-    given: a control set; or the rows `select` marks among the valid ones), in SqueezeSeg's
-    layout, plus index.csv; with a camera preset, each scan's camera files beside it."""
+    given: a control set; or the rows `select` marks among the valid ones), in the layout
+    `fmt` names (RETRAIN_FORMATS), plus index.csv (each scan's file, sample and score); with a
+    camera preset, each scan's camera files beside it (semantickitti: its RGB image as the
+    sequence's image_2/NNNNNN.png, the other camera files in camera/)."""
+    check_retrain_format(fmt)
     space, frame = data.space, data.frame
     out = data.path / "retrain"
     if out.exists():
@@ -43,13 +61,26 @@ def write_retraining_set(data: RunData, cmap: CellMap, threshold: float, lod: in
         from falsify.sensor.render import CameraRenderer
         renderer = CameraRenderer(replay.sim, camera_preset(camera))
     rows = []
+    sequence = out / "sequences" / SEMANTICKITTI_SEQUENCE
     for _, row in chosen.iterrows():
         sample, scan = replay.scan(row)
-        name = f"{int(row['eval_index']):06d}.npy"
-        write_npy(out / name, scan.image)
+        stem = f"{int(row['eval_index']):06d}"
+        if fmt == "npy":
+            name = f"{stem}.npy"
+            write_npy(out / name, scan.image)
+        else:
+            bin_path, label_path = semantickitti_paths(out, int(row["eval_index"]))
+            write_kitti(scan, bin_path, label_path)
+            name = bin_path.relative_to(out).as_posix()
         if renderer is not None:
-            for fname, blob in camera_files(renderer.render_sample(sample), name[:-3]).items():
-                write_bytes(out / fname, blob)
+            files = camera_files(renderer.render_sample(sample), f"{stem}.")
+            for fname, blob in files.items():
+                if fmt == "npy":
+                    write_bytes(out / fname, blob)
+                elif fname == f"{stem}.image.png":
+                    write_bytes(sequence / "image_2" / f"{stem}.png", blob)
+                else:
+                    write_bytes(sequence / "camera" / fname, blob)
         rows.append({"file": name, "eval_index": int(row["eval_index"]),
                      **{d: plain_value(row[d]) for d in space.dims},
                      data.score_column: float(row[data.score_column])})

@@ -27,7 +27,11 @@ from falsify.executors.environment import session_changes
 from falsify.executors.evaluator import EvalSettings
 from falsify.fileio import read_text, write_bytes, write_json
 from falsify.jobs.fidelity import preset
-from falsify.jobs.retraining_set import plain_value, write_retraining_set
+from falsify.jobs.retraining_set import (
+    check_retrain_format,
+    plain_value,
+    write_retraining_set,
+)
 from falsify.models.runners import Segmenter, backend_for, load_segmenter
 from falsify.paths import config_path
 from falsify.results.metrics import Scoring, Status, column
@@ -84,6 +88,7 @@ class RunRequest:
     fidelity: str = "exact"
     report: bool = True
     camera: str | None = None    # camera preset: render the retraining set's images too
+    retrain_format: str = "npy"  # the retraining set's layout (retraining_set.RETRAIN_FORMATS)
     max_samples: int = MAX_SAMPLES   # a grid or budget larger than this is refused up front
     confidence: float | None = None  # level-set: the confidence a cell is decided at
     inference: str = "auto"      # "worker", "shared" (one process runs the network), "auto"
@@ -113,6 +118,7 @@ def prepare(req: RunRequest) -> Prepared:
         raise FalsifyError("--camera renders our streets; a space of real backgrounds has no "
                            "scene to render (drop --camera)")
     check_looks(space)   # stored in the results whether or not a camera renders them
+    check_retrain_format(req.retrain_format)
     if req.camera is not None:
         from falsify.sensor.camera import camera_preset
         camera_preset(req.camera)
@@ -352,6 +358,7 @@ class RunSummary:
     mean_car_iou: float | None
     report: str | None = None
     retraining_camera: str | None = None   # the camera preset whose images sit beside the scans
+    retraining_format: str | None = None   # set when not npy: the retraining set's layout
     executors: list[str] | None = None     # set when resumed on another executor: all, in order
     # set when computed under environments that may give other numbers: what changed
     environment_changes: list[str] | None = None
@@ -363,10 +370,11 @@ class RunSummary:
     search: SearchResult | None = field(default=None, repr=False)
 
     def to_json(self) -> dict:
-        """Plain JSON data; `report`, `retraining_camera`, `executors`, `environment_changes` and
-        the objective's fields only when set."""
+        """Plain JSON data; `report`, `retraining_camera`, `retraining_format`, `executors`,
+        `environment_changes` and the objective's fields only when set."""
         out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "search"}
-        for optional in ("report", "retraining_camera", "executors", "environment_changes",
+        for optional in ("report", "retraining_camera", "retraining_format", "executors",
+                         "environment_changes",
                          "objective", "mean_objective", "estimated", "unlabelled_backgrounds"):
             if out[optional] is None:
                 del out[optional]
@@ -459,7 +467,7 @@ def _execute(req: RunRequest, on_progress: ProgressListener | None, made: list[P
         store.close()
     return finish(req.out, p.space, threshold=req.threshold, report=req.report,
                   lod=p.settings.lod, model=p.model, search=search,
-                  camera=req.camera)
+                  camera=req.camera, retrain_format=req.retrain_format)
 
 
 def planned_samples(req: RunRequest, space: Space) -> int:
@@ -547,7 +555,7 @@ def executors_of(meta: dict) -> list[str]:
 def finish(run: Path, space: Space, threshold: float | None = None, report: bool = True,
            lod: int = 2, model: Segmenter | None = None,
            search: SearchResult | None = None,
-           camera: str | None = None) -> RunSummary:
+           camera: str | None = None, retrain_format: str = "npy") -> RunSummary:
     """Maps, blind spots, retraining set, CSV/Parquet, report and the summary of a run. The
     last outputs' summary and report go first and the summary is written last, so a kill in
     between (a --resume at another --threshold) leaves no summary beside other maps."""
@@ -569,7 +577,7 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
         write_bytes(maps_dir / f"iou_{column(name)}_x_y.csv",
                     miou_map(frame, space, "x", "y", c).to_frame().to_csv(index=False).encode())
     export(frame, run / "results")
-    retrain = write_retraining_set(data, cmap, thr, lod, camera)
+    retrain = write_retraining_set(data, cmap, thr, lod, camera, fmt=retrain_format)
     ok = data.ok
     lowest = None
     if len(ok):
@@ -592,6 +600,7 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
         estimated=estimated_of(meta, cmap, thr),
         lowest=lowest, elapsed_s=meta.get("elapsed_s"), retraining_samples=retrain,
         retraining_camera=camera,
+        retraining_format=None if retrain_format == "npy" else retrain_format,
         executors=executors if len(executors := executors_of(meta)) > 1 else None,
         environment_changes=data.environment_changes or None,
         mean_car_iou=None if not len(ok) or "car_iou" not in ok else round(
