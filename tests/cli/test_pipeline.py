@@ -66,10 +66,10 @@ def test_grid_smoke_end_to_end(tmp_path, capsys):
     cells = pd.read_csv(run / "maps" / "miou_x_y.csv")
     assert len(cells) == 4
     assert summary["blind_spots"] == int((cells["miou"] < 0.65).sum())
-    if summary["blind_spots"]:
-        index = pd.read_csv(run / "retrain" / "index.csv")
-        assert len(index) == summary["retraining_samples"]
-        assert all((run / "retrain" / f).exists() for f in index["file"])
+    # the bundled network has no blind spot here (mean 0.91), so no retraining set: the set's
+    # files are checked where cells are blind (tests/jobs/test_retrain_format.py)
+    assert summary["blind_spots"] == summary["retraining_samples"] == 0
+    assert not (run / "retrain").exists()
 
 
 def kill_after_rows(cmd: list[str], db: Path, rows: int) -> int:

@@ -120,12 +120,24 @@ def test_search_page(runs) -> None:
     assert 'class="minline"' in page
 
 
+def test_a_real_runs_worst_samples_show_label_and_prediction(tmp_path: Path) -> None:
+    """A grid on the bundled network: each worst sample's preview holds the label's pictures and
+    the network's prediction of the regenerated scan beside them."""
+    run = tmp_path / "run"
+    assert main(["grid", str(SMOKE), "--out", str(run), "--quiet"]) == 0
+    page = (run / "report.html").read_text(encoding="utf-8")
+    assert "Model not loaded" not in page
+    assert page.count('alt="range image, label"') == 8       # every sample of the smoke grid
+    assert page.count('alt="range image, prediction"') == 8
+    assert page.count('alt="bird\'s-eye view, prediction"') == 8
+
+
 def test_predict_falls_back_to_labels(runs) -> None:
+    """The run names a model that is not there: the page says so and shows the labels."""
     page = render_report(runs["evil"], predict=True)
-    if "Model not loaded" in page:
-        assert 'alt="range image, prediction"' not in page
-    else:
-        assert 'alt="range image, prediction"' in page
+    assert "Model not loaded" in page
+    assert 'alt="range image, prediction"' not in page
+    assert 'alt="range image, label"' in page
 
 
 def test_cli(runs, tmp_path: Path, capsys) -> None:

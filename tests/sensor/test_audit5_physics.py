@@ -222,7 +222,9 @@ def test_bad_return_model_params_name_the_key(tmp_path, capsys, key, value, allo
 
 
 def test_shipped_return_models_pass_the_checks():
-    for path in sorted(RETURN_MODELS.glob("*.json")):
+    paths = sorted(RETURN_MODELS.glob("*.json"))
+    assert paths, f"no return model in {RETURN_MODELS}"   # an empty loop passes nothing
+    for path in paths:
         load_return_model(path.stem)
 
 

@@ -265,7 +265,9 @@ def test_grid_camera_stores_retraining_images(tmp_path, capsys):
     summary = json.loads(capsys.readouterr().out)
     assert summary["retraining_samples"] == len(read_frame(run)) == 2
     assert summary["retraining_camera"] == "kitti-centre"
-    for scan in sorted((run / "retrain").glob("??????.npy")):
+    scans = sorted((run / "retrain").glob("??????.npy"))
+    assert len(scans) == 2
+    for scan in scans:
         stem = scan.name[:-3]
         for suffix in ("image.png", "class.png", "class.npy", "instance.npy", "depth.npy"):
             assert (run / "retrain" / f"{stem}{suffix}").exists()
