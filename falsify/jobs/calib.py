@@ -107,6 +107,22 @@ def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
+def check_overlay_targets(out: Path, ids: list[str], listed: dict[str, str]) -> None:
+    """Refuse, before any frame is read, an overlay name in `out` held by a file calib did not
+    write there (not listed, or changed since): a user's picture, or the object directory's own
+    images when --out is its image_2/."""
+    for fid in ids:
+        path = out / f"{fid}.png"
+        if not (path.exists() or path.is_symlink()):
+            continue
+        ours = (path.name in listed and path.is_file() and not path.is_symlink()
+                and _sha256(path.read_bytes()) == listed[path.name])
+        if not ours:
+            raise FalsifyError(f"--out {out}: {path.name} is there and is not an overlay "
+                               f"`falsify calib` wrote (not in {OVERLAY_LIST}, or changed "
+                               "since); it would be overwritten: move it or give another --out")
+
+
 def remove_stale_overlays(out: Path, listed: dict[str, str], keep: set[str]) -> dict[str, str]:
     """Remove the listed overlays not in `keep`, each only while it is the plain file, of the
     bytes, that calib wrote there (a file since replaced or edited is the user's); return
@@ -149,9 +165,10 @@ def check_kitti_dir(directory: str | Path, out: str | Path | None) -> CalibRepor
     """Project every frame's points with its calib; write one overlay PNG per frame to `out`,
     with their list (OVERLAY_LIST), removing the overlays an earlier run listed there."""
     directory = Path(directory)
-    if out is not None:
-        read_overlay_list(Path(out))   # a bad list is refused before any frame is read
+    listed = {} if out is None else read_overlay_list(Path(out))   # refused before any read
     ids = frames(directory)
+    if out is not None:
+        check_overlay_targets(Path(out), ids, listed)
     objects: list[ObjectCheck] = []
     pictures: list[tuple[Path, bytes]] = []
     for fid in ids:

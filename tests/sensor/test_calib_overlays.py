@@ -76,3 +76,39 @@ def test_a_broken_overlay_list_is_refused_before_anything_is_written(
     lines = err.strip().splitlines()
     assert len(lines) == 1 and f"--out {out / OVERLAY_LIST}:" in lines[0]
     assert sorted(p.name for p in out.iterdir()) == ["000009.png", OVERLAY_LIST]
+
+
+# -- a file calib did not write is never overwritten (an exported object directory: no data) ---
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory) -> Path:
+    """Two frames of our own scenes as a KITTI object directory."""
+    d = tmp_path_factory.mktemp("exported") / "object"
+    smoke = Path(__file__).resolve().parents[2] / "configs" / "smoke.toml"
+    assert main(["dataset", str(smoke), "--out", str(d), "--scans", "2",
+                 "--format", "kitti-object"]) == 0
+    return d
+
+
+def test_out_on_the_directorys_own_images_is_refused_and_they_stay(exported: Path, tmp_path,
+                                                                   capsys) -> None:
+    """Before: `--out DIR/image_2` replaced the frames' camera images with overlays, exit 0."""
+    images = {p.name: p.read_bytes() for p in (exported / "image_2").iterdir()}
+    code, err = calib(exported, exported / "image_2", capsys)
+    assert code == 2 and "000000.png is there and is not an overlay" in err
+    assert {p.name: p.read_bytes() for p in (exported / "image_2").iterdir()} == images
+
+
+def test_a_users_file_named_as_an_overlay_is_refused_and_its_own_rerun_is_not(
+        exported: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "overlays"
+    assert calib(exported, out, capsys)[0] == 0
+    assert calib(exported, out, capsys)[0] == 0          # its own overlays: rewritten
+    (out / "000001.png").write_bytes(b"edited by hand")  # now the user's
+    code, err = calib(exported, out, capsys)
+    assert code == 2 and "000001.png is there and is not an overlay" in err
+    assert (out / "000001.png").read_bytes() == b"edited by hand"
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    (fresh / "000000.png").write_bytes(b"mine")          # never listed
+    assert calib(exported, fresh, capsys)[0] == 2
+    assert sorted(p.name for p in fresh.iterdir()) == ["000000.png"]
