@@ -78,6 +78,7 @@ def run(args) -> int:
     sets = read_sets(plans, sensor, points=args.score == "points")
     out = Path(args.out)
     targets = output_stems(sets, out)
+    check_prediction_targets(out, targets)
     for s in sets:
         for source in s.unlabelled:
             print(f"falsify: warning: no labels for {source} (looked for {Path(source).stem}"
@@ -102,6 +103,19 @@ def run(args) -> int:
 
 
 PRED_SUFFIX = ".pred.npy"
+
+
+def check_prediction_targets(out: Path, targets: list[list[Path]]) -> None:
+    """Refuse, before the network runs, a picture this run would write over that no earlier
+    prediction wrote (no X.pred.npy beside X.png): a user's image, or a KITTI object
+    directory's own image_2/ given as --out."""
+    for stem in (stem for stems in targets for stem in stems):
+        picture = stem.with_name(f"{stem.name}.png")
+        if (picture.exists() or picture.is_symlink()) and \
+                not stem.with_name(f"{stem.name}{PRED_SUFFIX}").is_file():
+            raise UsageError(f"--out {out}: {picture} is there and no prediction wrote it (no "
+                             f"{stem.name}{PRED_SUFFIX} beside it); it would be overwritten: "
+                             "move it or give another --out")
 
 
 def remove_predictions(out: Path, targets: list[list[Path]]) -> None:

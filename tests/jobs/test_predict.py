@@ -90,3 +90,23 @@ def test_predict_with_a_missing_model(tmp_path, capsys):
     assert main(["predict", *paths, "--model", str(tmp_path / "m.onnx"), "--out",
                  str(tmp_path / "o")]) == 2
     assert "m.onnx" in capsys.readouterr().err
+
+
+def test_a_picture_no_prediction_wrote_is_refused_and_kept(tmp_path, capsys):
+    """Before: `--out` onto a folder holding a user's syn0.png (or a KITTI object directory's
+    own image_2/) replaced it with a prediction picture, exit 0. A picture an earlier
+    prediction wrote (its .pred.npy beside it) is still rewritten."""
+    paths = synthetic_scans(tmp_path, n=2)
+    out = tmp_path / "pred"
+    out.mkdir()
+    (out / "syn1.png").write_bytes(b"mine")
+    assert main(["predict", *paths, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"{out / 'syn1.png'} is there and no prediction wrote it" in err
+    assert sorted(p.name for p in out.iterdir()) == ["syn1.png"]
+    assert (out / "syn1.png").read_bytes() == b"mine"
+    (out / "syn1.png").unlink()
+    assert main(["predict", *paths, "--out", str(out)]) == 0
+    assert main(["predict", *paths, "--out", str(out)]) == 0    # its own pictures: rewritten
+    assert sorted(p.name for p in out.iterdir()) == [
+        "syn0.png", "syn0.pred.npy", "syn1.png", "syn1.pred.npy"]
