@@ -137,6 +137,18 @@ def test_a_real_background_keeps_its_raw_ids_and_the_inserted_car_its_own_instan
         assert not inst[~car].any()
 
 
+def test_grid_and_search_offer_every_layout_the_writer_knows():
+    from falsify.cli import build_parser
+    from falsify.jobs.retraining_set import RETRAIN_FORMATS
+
+    for command, extra in (("grid", []), ("search", ["--algorithm", "random"])):
+        base = [command, "c.toml", "--out", "o", *extra]
+        assert build_parser().parse_args(base).retrain_format == "npy"
+        for fmt in RETRAIN_FORMATS:
+            args = build_parser().parse_args([*base, "--retrain-format", fmt])
+            assert args.retrain_format == fmt
+
+
 @pytest.mark.parametrize("fmt", ["kitti", "NPY", ""])
 def test_another_layout_is_refused_naming_the_allowed(tmp_path, fmt, capsys):
     out = tmp_path / "run"
