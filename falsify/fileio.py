@@ -131,7 +131,12 @@ def write_json(path: str | Path, obj) -> None:
     write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
 
-def write_npy(path: str | Path, array: np.ndarray) -> None:
+def npy_bytes(array: np.ndarray) -> bytes:
+    """`array` as the bytes of a .npy file (no pickles)."""
     buf = io.BytesIO()
     np.save(buf, array, allow_pickle=False)
-    write_bytes(path, buf.getvalue())
+    return buf.getvalue()
+
+
+def write_npy(path: str | Path, array: np.ndarray) -> None:
+    write_bytes(path, npy_bytes(array))

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from falsify.checks import check_out_dir
 from falsify.cli.common import UsageError, camera_option, emit
 from falsify.errors import FalsifyError
+from falsify.owned_files import FileList
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -43,11 +43,16 @@ def _check_active(space, sample, pairs: dict[str, str]) -> None:
                              "also set count to hold that car")
 
 
-def output_names() -> tuple[str, ...]:
-    """Every file `falsify scan` writes into --out, with the camera's."""
+SCAN_FILES = ("scan.npy", "scan.png", "scan.bin", "scan.label")
+# The files a `scan --out` wrote into its folder (name -> SHA-256): the next scan into it
+# replaces or removes those, and refuses to overwrite a file of the same name it did not write.
+WRITTEN = FileList("scan-files.json", "files", "falsify scan")
+
+
+def _names(camera: bool) -> tuple[str, ...]:
+    """The files this scan writes into --out."""
     from falsify.sensor.camera import CAMERA_FILES
-    return (*(f"scan.{e}" for e in ("npy", "png", "bin", "label")), *CAMERA_FILES,
-            "overlay.png")
+    return (*SCAN_FILES, *CAMERA_FILES, "overlay.png") if camera else SCAN_FILES
 
 
 def run(args) -> int:
@@ -55,7 +60,7 @@ def run(args) -> int:
 
     from falsify.data.real_backgrounds import scanner_for
     from falsify.data.velodyne import kitti_arrays
-    from falsify.fileio import write_bytes, write_npy
+    from falsify.fileio import npy_bytes
     from falsify.images.png import encode_png
     from falsify.images.scan_pictures import scan_picture
     from falsify.results.samples import sample_seed
@@ -64,7 +69,8 @@ def run(args) -> int:
     from falsify.sensor.simulator import InvalidSample
     from falsify.world.space import load_space
 
-    check_out_dir(args.out)
+    out = check_out_dir(args.out)
+    listed = WRITTEN.read(out)   # a broken list is refused before anything is cast
     space = load_space(args.config)
     check_looks(space)
     pairs = _set_pairs(args.set or [])
@@ -79,16 +85,16 @@ def run(args) -> int:
         from falsify.sensor.look import look_of
         camera = camera_preset(args.camera)
         look_of(sample)  # a value the camera cannot render fails before anything is written
+    WRITTEN.check_targets(out, _names(camera is not None), listed)
     try:   # with the sample's own seed, so its ray drop and noise are the ones a run scores
         scan = sim.scan(sample, rng=np.random.default_rng(sample_seed(space, sample)))
     except InvalidSample as exc:
         raise FalsifyError(f"invalid sample: {exc}") from None
-    out = Path(args.out)
     summary = {
         "sample": sample.as_dict(), "sensor": sensor.name, "shape": list(scan.image.shape),
         "points": int(scan.valid.sum()), "car_points": scan.count(1),
         "placed_points": int((scan.valid & sim.placed_pixels(scan)).sum()),
-        "files": [str(out / f"scan.{e}") for e in ("npy", "png", "bin", "label")],
+        "files": [str(out / name) for name in SCAN_FILES],
     }
     extra: dict[str, bytes] = {}
     if camera is not None:
@@ -96,15 +102,10 @@ def run(args) -> int:
         extra, summary["camera"] = scan_camera_files(sim, camera, sample, scan)
     png = encode_png(scan_picture(scan.image))
     points, labels = kitti_arrays(scan)   # SemanticKITTI's own files: x, y, z, remission; labels
-    for name in output_names():   # a stop between files must not leave the last sample's
-        (out / name).unlink(missing_ok=True)
-    write_npy(out / "scan.npy", scan.image)
-    write_bytes(out / "scan.png", png)
-    write_bytes(out / "scan.bin", points.tobytes())
-    write_bytes(out / "scan.label", labels.tobytes())
-    for name, data in extra.items():
-        write_bytes(out / name, data)
-        summary["files"].append(str(out / name))
+    files = dict(zip(SCAN_FILES, (npy_bytes(scan.image), png, points.tobytes(),
+                                  labels.tobytes()), strict=True))
+    WRITTEN.replace(out, {**files, **extra}, listed)   # no file of the last sample stays
+    summary["files"] += [str(out / name) for name in extra]
     camera_text = f"; the camera's {', '.join(extra)}" if extra else ""
     emit(args, summary, f"wrote {out / 'scan.npy'}, .png, .bin and .label{camera_text}: "
          f"{summary['points']} points, {summary['car_points']} on cars, "

@@ -8,8 +8,6 @@ pixels of the camera's class image.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,7 +16,6 @@ import numpy as np
 
 from falsify.data.kitti_object import frames, in_rect, read_calib, read_labels, read_velodyne
 from falsify.errors import FalsifyError
-from falsify.fileio import write_bytes, write_json
 from falsify.images.overlay import (
     BOX_RGB,
     DONTCARE_RGB,
@@ -29,6 +26,7 @@ from falsify.images.overlay import (
     draw_points,
 )
 from falsify.images.png import encode_png, png_size, read_png
+from falsify.owned_files import FileList
 from falsify.sensor.calibration import KITTI_PIXEL_SHIFT
 
 
@@ -80,95 +78,17 @@ class CalibReport:
 
 # The overlays a `calib --out` wrote into its folder (name → SHA-256), so that the next run into
 # it removes those of frames it does not hold, and nothing else.
-OVERLAY_LIST = "calib-overlays.json"
-
-
-def read_overlay_list(out: Path) -> dict[str, str]:
-    """The overlays an earlier run wrote into `out` ({} when none did); FalsifyError when its
-    list is not one `falsify calib` wrote."""
-    path = out / OVERLAY_LIST
-    if not path.exists():
-        return {}
-    try:
-        raw = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:   # ValueError: undecodable text or bad JSON
-        raise FalsifyError(f"--out {path}: not a readable overlay list ({exc}); move it away "
-                           "(the overlays it lists are then kept) or give another --out") from None
-    files = raw.get("overlays") if isinstance(raw, dict) else None
-    if not isinstance(files, dict) or not all(
-            isinstance(k, str) and isinstance(v, str) for k, v in files.items()):
-        raise FalsifyError(f"--out {path}: expected {{\"overlays\": {{file name: sha256}}}} as "
-                           "`falsify calib --out` writes it; move it away (the overlays it "
-                           "lists are then kept) or give another --out")
-    return files
-
-
-def _sha256(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
-
-
-def check_overlay_targets(out: Path, ids: list[str], listed: dict[str, str]) -> None:
-    """Refuse, before any frame is read, an overlay name in `out` held by a file calib did not
-    write there (not listed, or changed since): a user's picture, or the object directory's own
-    images when --out is its image_2/."""
-    for fid in ids:
-        path = out / f"{fid}.png"
-        if not (path.exists() or path.is_symlink()):
-            continue
-        ours = (path.name in listed and path.is_file() and not path.is_symlink()
-                and _sha256(path.read_bytes()) == listed[path.name])
-        if not ours:
-            raise FalsifyError(f"--out {out}: {path.name} is there and is not an overlay "
-                               f"`falsify calib` wrote (not in {OVERLAY_LIST}, or changed "
-                               "since); it would be overwritten: move it or give another --out")
-
-
-def remove_stale_overlays(out: Path, listed: dict[str, str], keep: set[str]) -> dict[str, str]:
-    """Remove the listed overlays not in `keep`, each only while it is the plain file, of the
-    bytes, that calib wrote there (a file since replaced or edited is the user's); return
-    those that could not be removed, to be listed again."""
-    left = {}
-    for name, digest in listed.items():
-        path = out / name
-        if name in keep or Path(name).name != name or not name.endswith(".png"):
-            continue
-        try:
-            if path.is_symlink() or not path.is_file():
-                continue
-            if _sha256(path.read_bytes()) == digest:
-                path.unlink()
-        except OSError:
-            left[name] = digest
-    return left
-
-
-def write_overlays(out: Path, directory: Path, pictures: list[tuple[Path, bytes]]) -> None:
-    """Write this run's overlays and their list, and remove an earlier run's overlays of other
-    frames: they would read as this run's. Until the new list is written, the folder's list
-    names every overlay written so far, so an interrupted run leaves none unlisted."""
-    old = read_overlay_list(out)
-    new = {p.name: _sha256(data) for p, data in pictures}
-    if old:
-        write_json(out / OVERLAY_LIST, _listing(directory, {**old, **new}))
-    left = remove_stale_overlays(out, old, set(new))
-    for path, data in pictures:
-        write_bytes(path, data)
-    write_json(out / OVERLAY_LIST, _listing(directory, {**left, **new}))
-
-
-def _listing(directory: Path, files: dict[str, str]) -> dict:
-    """The overlay list's JSON: the object directory drawn, and each overlay's SHA-256."""
-    return {"directory": str(directory), "overlays": dict(sorted(files.items()))}
+OVERLAYS = FileList("calib-overlays.json", "overlays", "falsify calib")
 
 
 def check_kitti_dir(directory: str | Path, out: str | Path | None) -> CalibReport:
     """Project every frame's points with its calib; write one overlay PNG per frame to `out`,
-    with their list (OVERLAY_LIST), removing the overlays an earlier run listed there."""
+    with their list (OVERLAYS), removing the overlays an earlier run listed there."""
     directory = Path(directory)
-    listed = {} if out is None else read_overlay_list(Path(out))   # refused before any read
+    listed = {} if out is None else OVERLAYS.read(Path(out))   # refused before any read
     ids = frames(directory)
     if out is not None:
-        check_overlay_targets(Path(out), ids, listed)
+        OVERLAYS.check_targets(Path(out), [f"{fid}.png" for fid in ids], listed)
     objects: list[ObjectCheck] = []
     pictures: list[tuple[Path, bytes]] = []
     for fid in ids:
@@ -209,7 +129,8 @@ def check_kitti_dir(directory: str | Path, out: str | Path | None) -> CalibRepor
                 draw_points(rgb, col[sel], row[sel], colour, size=2)
             pictures.append((Path(out) / f"{fid}.png", encode_png(rgb)))
     if out is not None:   # written only once every frame has been read
-        write_overlays(Path(out), directory, pictures)
+        OVERLAYS.replace(Path(out), {p.name: data for p, data in pictures}, listed,
+                         {"directory": str(directory)})
     return CalibReport(str(directory), ids, objects, [str(p) for p, _ in pictures])
 
 

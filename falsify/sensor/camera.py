@@ -119,14 +119,9 @@ CAMERA_FILES = ("image.png", "class.png", "class.npy", "instance.npy", "depth.np
 
 def camera_files(image: CameraImage, prefix: str = "") -> dict[str, bytes]:
     """The files that hold one camera frame: RGB and class PNGs, class, instance and depth."""
-    import io
-
+    from falsify.fileio import npy_bytes
     from falsify.images.png import encode_png
 
-    def npy(a: np.ndarray) -> bytes:
-        buf = io.BytesIO()
-        np.save(buf, a, allow_pickle=False)
-        return buf.getvalue()
-    data = (encode_png(image.rgb), encode_png(class_picture(image)), npy(image.cls),
-            npy(image.instance), npy(image.depth))
+    data = (encode_png(image.rgb), encode_png(class_picture(image)), npy_bytes(image.cls),
+            npy_bytes(image.instance), npy_bytes(image.depth))
     return {prefix + name: d for name, d in zip(CAMERA_FILES, data, strict=True)}

@@ -50,6 +50,45 @@ def test_scan_is_deterministic(tmp_path):
     assert (tmp_path / "a" / "scan.png").read_bytes() == (tmp_path / "b" / "scan.png").read_bytes()
 
 
+def test_scan_replaces_only_the_files_it_wrote(tmp_path, capsys):
+    """Before: `scan --out DIR` deleted DIR's image.png, depth.npy and scan.* whoever wrote
+    them. Now a file of those names that no scan wrote there is refused, before any cast, and
+    stays; the scan's own files (listed in scan-files.json with their SHA-256) are replaced."""
+    smoke = str(CONFIGS / "smoke.toml")
+    out = tmp_path / "pictures"
+    out.mkdir()
+    (out / "image.png").write_bytes(b"a user's photo")
+    (out / "notes.txt").write_bytes(b"mine")
+    assert main(["scan", smoke, "--out", str(out)]) == 0      # no --camera: image.png is not ours
+    assert (out / "image.png").read_bytes() == b"a user's photo"
+    assert main(["scan", smoke, "--out", str(out), "--camera"]) == 2
+    err = capsys.readouterr().err
+    assert "image.png is there and is not a file `falsify scan` wrote" in err
+    assert (out / "image.png").read_bytes() == b"a user's photo"
+    listed = json.loads((out / "scan-files.json").read_text())["files"]
+    assert sorted(listed) == ["scan.bin", "scan.label", "scan.npy", "scan.png"]
+    # its own files, rewritten for another sample; a file the user has since edited is refused
+    assert main(["scan", smoke, "--out", str(out), "--set", "x=2"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == [
+        "image.png", "notes.txt", "scan-files.json", "scan.bin", "scan.label", "scan.npy",
+        "scan.png"]
+    (out / "scan.bin").write_bytes(b"edited by hand")
+    assert main(["scan", smoke, "--out", str(out)]) == 2
+    assert "scan.bin is there and is not a file `falsify scan` wrote" in capsys.readouterr().err
+    assert (out / "scan.bin").read_bytes() == b"edited by hand"
+
+
+@pytest.mark.parametrize("text", ["{not json", '{"files": ["scan.npy"]}'])
+def test_scan_refuses_a_broken_file_list_and_writes_nothing(tmp_path, capsys, text):
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "scan-files.json").write_text(text)
+    assert main(["scan", str(CONFIGS / "smoke.toml"), "--out", str(out)]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and f"--out {out / 'scan-files.json'}:" in lines[0]
+    assert [p.name for p in out.iterdir()] == ["scan-files.json"]
+
+
 TWO_CARS = """
 [dims.x_2]
 min = -6.0

@@ -233,10 +233,13 @@ def test_scan_stopped_between_its_files_keeps_none_of_the_last_sample(tmp_path, 
     falsify(["scan", config, "--out", str(out), "--set", "x=2", "--set", "y=8"])
     before = visible(out)
     names = ["scan.npy", "scan.png", "scan.bin", "scan.label"]
-    assert sorted(before) == sorted(names)
+    assert sorted(before) == sorted([*names, "scan-files.json"])
     killed(["scan", config, "--out", str(out), "--set", "x=-2", "--set", "y=10"], names, nth)
     after = visible(out)
-    assert none_of(before, after) == [] and len(after) == nth - 1
+    assert none_of(before, after) == [] and len(after) == nth   # with the list of this run's
+    # the stopped scan's own files are listed, so the rerun replaces them and is not refused
+    falsify(["scan", config, "--out", str(out), "--set", "x=-2", "--set", "y=10"])
+    assert sorted(visible(out)) == sorted([*names, "scan-files.json"])
 
 
 # -- predict: X.pred.npy and X.png per scan ------------------------------------------------------

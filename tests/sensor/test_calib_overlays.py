@@ -94,7 +94,7 @@ def test_out_on_the_directorys_own_images_is_refused_and_they_stay(exported: Pat
     """Before: `--out DIR/image_2` replaced the frames' camera images with overlays, exit 0."""
     images = {p.name: p.read_bytes() for p in (exported / "image_2").iterdir()}
     code, err = calib(exported, exported / "image_2", capsys)
-    assert code == 2 and "000000.png is there and is not an overlay" in err
+    assert code == 2 and "000000.png is there and is not a file `falsify calib` wrote" in err
     assert {p.name: p.read_bytes() for p in (exported / "image_2").iterdir()} == images
 
 
@@ -105,10 +105,32 @@ def test_a_users_file_named_as_an_overlay_is_refused_and_its_own_rerun_is_not(
     assert calib(exported, out, capsys)[0] == 0          # its own overlays: rewritten
     (out / "000001.png").write_bytes(b"edited by hand")  # now the user's
     code, err = calib(exported, out, capsys)
-    assert code == 2 and "000001.png is there and is not an overlay" in err
+    assert code == 2 and "000001.png is there and is not a file `falsify calib` wrote" in err
     assert (out / "000001.png").read_bytes() == b"edited by hand"
     fresh = tmp_path / "fresh"
     fresh.mkdir()
     (fresh / "000000.png").write_bytes(b"mine")          # never listed
     assert calib(exported, fresh, capsys)[0] == 2
     assert sorted(p.name for p in fresh.iterdir()) == ["000000.png"]
+
+
+def test_a_run_stopped_before_its_first_overlay_is_rerun_not_refused(exported: Path,
+                                                                     tmp_path: Path) -> None:
+    """Before: the list naming the new overlays' bytes was written while the last run's
+    overlays still stood, so a run stopped there was refused on its rerun (its own file 'changed
+    since'). Now the last run's overlays go first; the rerun writes the new ones."""
+    from tests.cli.test_outputs_kills import falsify, killed
+    swapped = tmp_path / "swapped"        # the same frame names, each with the other's files
+    for sub, ext in KINDS:
+        (swapped / sub).mkdir(parents=True)
+        for mine, theirs in (("000000", "000001"), ("000001", "000000")):
+            (swapped / sub / f"{mine}.{ext}").symlink_to(exported / sub / f"{theirs}.{ext}")
+    out = tmp_path / "overlays"
+    falsify(["calib", str(exported), "--out", str(out)])
+    first = {p.name: p.read_bytes() for p in out.glob("*.png")}
+    killed(["calib", str(swapped), "--out", str(out)], ["000000.png", "000001.png"], 1)
+    assert not any(p.read_bytes() == first.get(p.name) for p in out.glob("*.png"))
+    falsify(["calib", str(swapped), "--out", str(out)])
+    again = {p.name: p.read_bytes() for p in out.glob("*.png")}
+    assert sorted(again) == ["000000.png", "000001.png"]
+    assert again["000000.png"] != first["000000.png"]

@@ -140,7 +140,7 @@ def test_scan_camera_files_and_image_dims_leave_scan_identical(tmp_path, look_co
         assert summary["camera"]["fraction"] >= 0.98
         outs.append(out)
     names = {"scan.npy", "scan.png", "scan.bin", "scan.label", "image.png", "class.png",
-             "class.npy", "instance.npy", "depth.npy", "overlay.png"}
+             "class.npy", "instance.npy", "depth.npy", "overlay.png", "scan-files.json"}
     assert {p.name for p in outs[0].iterdir()} == names
     for name in ("scan.npy", "scan.png", "scan.bin", "scan.label", "class.npy", "instance.npy",
                  "depth.npy"):
@@ -151,7 +151,8 @@ def test_scan_camera_files_and_image_dims_leave_scan_identical(tmp_path, look_co
     # Without --camera, nothing of the camera is written.
     plain = tmp_path / "plain"
     assert main(["scan", str(look_config), "--out", str(plain), "--set", "x=2"]) == 0
-    assert {p.name for p in plain.iterdir()} == {"scan.npy", "scan.png", "scan.bin", "scan.label"}
+    assert {p.name for p in plain.iterdir()} == {"scan.npy", "scan.png", "scan.bin", "scan.label",
+                                                 "scan-files.json"}
     assert (plain / "scan.npy").read_bytes() == (outs[0] / "scan.npy").read_bytes()
     # The text names the camera's files; a scan without --camera into a folder that held one
     # leaves no earlier camera file beside it.
@@ -159,7 +160,7 @@ def test_scan_camera_files_and_image_dims_leave_scan_identical(tmp_path, look_co
     assert "the camera's image.png, class.png" in capsys.readouterr().out
     assert main(["scan", str(look_config), "--out", str(outs[1]), "--set", "x=2"]) == 0
     assert {p.name for p in outs[1].iterdir()} == {"scan.npy", "scan.png", "scan.bin",
-                                                   "scan.label"}
+                                                   "scan.label", "scan-files.json"}
 
 
 @pytest.mark.parametrize(("args", "message"), [
