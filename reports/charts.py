@@ -6,11 +6,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from falsify.reports.page import esc
-from falsify.results.miou_maps import fmt_value
+from falsify.results.miou_maps import axis_texts
 
 # viridis at 0, 0.1, ..., 1 (matplotlib): perceptually uniform and colour-blind safe.
 VIRIDIS = ["#440154", "#482475", "#414487", "#355f8d", "#2a788e", "#21918c", "#22a884",
@@ -107,6 +108,17 @@ class Grid:
     def py(self, y: float) -> float:
         return self.top + self.height - interp(y, self.ys, self.ch)
 
+    @cached_property
+    def _texts(self) -> tuple[dict, dict]:
+        return axis_texts(self.xs), axis_texts(self.ys)
+
+    def x_text(self, i: int) -> str:
+        """Column i's value as its label (`axis_texts`: no two columns read alike)."""
+        return self._texts[0][self.xs[i]]
+
+    def y_text(self, j: int) -> str:
+        return self._texts[1][self.ys[j]]
+
     @staticmethod
     def sized(xs: tuple, ys: tuple, width: float, height: float, left: float = 0.0,
               top: float = 0.0, lo: float = 4.0, hi: float = 110.0) -> Grid:
@@ -165,16 +177,16 @@ def axes_svg(grid: Grid, sensor: bool = True) -> str:
     every_x = max(1, math.ceil(26 / grid.cw))
     every_y = max(1, math.ceil(14 / grid.ch))
     base = grid.top + grid.height
-    for i, xv in enumerate(grid.xs):
+    for i in range(len(grid.xs)):
         if i % every_x == 0:
             cx = grid.left + (i + 0.5) * grid.cw
             out.append(f'<text x="{num(cx)}" y="{num(base + 14)}" text-anchor="middle">'
-                       f'{esc(fmt_value(xv))}</text>')
-    for j, yv in enumerate(grid.ys):
+                       f'{esc(grid.x_text(i))}</text>')
+    for j in range(len(grid.ys)):
         if j % every_y == 0:
             _, cy = grid.cell(0, j)
             out.append(f'<text x="{num(grid.left - 6)}" y="{num(cy + grid.ch / 2 + 4)}" '
-                       f'text-anchor="end">{esc(fmt_value(yv))}</text>')
+                       f'text-anchor="end">{esc(grid.y_text(j))}</text>')
     out.append(f'<text x="{num(grid.left + grid.width / 2)}" y="{num(base + 30)}" '
                'text-anchor="middle" class="axis">X (m), right positive</text>')
     ymid = grid.top + grid.height / 2

@@ -7,7 +7,7 @@ import numpy as np
 
 from falsify.reports.charts import Grid, axes_svg, cells_svg, f3, legend_svg, svg_element, viridis
 from falsify.reports.page import esc, scroll_open
-from falsify.results.miou_maps import CellMap, fmt_value
+from falsify.results.miou_maps import CellMap, axis_texts
 from falsify.results.store import RunData
 
 
@@ -18,8 +18,7 @@ def _map_svg(cmap: CellMap, threshold: float, ident: str, title: str) -> str:
     def tip(i: int, j: int) -> str:
         m = cmap.miou[j, i]
         value = "not scored" if np.isnan(m) else f"mIoU {float(m):.3f}"
-        return (f"{title}: x = {fmt_value(cmap.a_values[i])} m, "
-                f"y = {fmt_value(cmap.b_values[j])} m\n{value}")
+        return f"{title}: x = {grid.x_text(i)} m, y = {grid.y_text(j)} m\n{value}"
 
     show = grid.cw >= 30 and grid.ch >= 14
     body = cells_svg(grid, cmap.miou, viridis, tip, "rcell", blind,
@@ -44,11 +43,13 @@ def retrain_section(before: RunData, after: RunData, after_map: CellMap, thresho
             f'{_map_svg(after_map, threshold, "after-map", "after")}</figure>'
             f"<figure>{legend_svg(threshold)}</figure>")
     rows = []
-    for c in summary.get("blind_before", []):
+    cells = summary.get("blind_before", [])
+    xs, ys = axis_texts(c["x"] for c in cells), axis_texts(c["y"] for c in cells)
+    for c in cells:
         after_v = c.get("miou_after")
         fixed = after_v is not None and after_v >= threshold
         delta = "" if after_v is None else f"{after_v - c['miou_before']:+.3f}"
-        rows.append(f"<tr><td>{esc(fmt_value(c['x']))}</td><td>{esc(fmt_value(c['y']))}</td>"
+        rows.append(f"<tr><td>{esc(xs[c['x']])}</td><td>{esc(ys[c['y']])}</td>"
                     f"<td>{f3(c['miou_before'])}</td><td>{f3(after_v)}</td>"
                     f"<td>{delta}</td>"
                     f"<td>{'yes' if fixed else 'no'}</td></tr>")

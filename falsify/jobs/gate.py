@@ -22,7 +22,7 @@ from pathlib import Path
 
 from falsify.errors import FalsifyError
 from falsify.results.metrics import TO_KITTI4
-from falsify.results.miou_maps import CellMap
+from falsify.results.miou_maps import CellMap, axis_texts
 from falsify.results.store import STORE_NAME, Completeness, check_complete, open_run
 
 JUNIT_SUITE = "falsify gate"          # the JUnit suite's name: "falsify gate: <run>"
@@ -32,18 +32,6 @@ JUNIT_CLASS = "falsify.gate"          # its testcases' classname: "falsify.gate.
 def cell_name(x: str, y: str) -> str:
     """A cell's name from its coordinates' texts (`axis_texts`)."""
     return f"cell x={x} y={y}"
-
-
-def axis_texts(values) -> dict[float, str]:
-    """Each distinct value of an axis as its shortest text at 6 significant digits, or as many
-    more as tell it from the axis's other values (100.0001 and 100.0002 are both "100" at 6):
-    two cells never share a name, a text line or a JUnit testcase."""
-    vals = sorted({float(v) for v in values})
-    for digits in range(6, 18):   # 17 significant digits tell any two doubles apart
-        texts = [f"{v:.{digits}g}" for v in vals]
-        if len(set(texts)) == len(vals):
-            break
-    return dict(zip(vals, texts, strict=True))
 
 
 def _key(x, y) -> tuple[float, float]:

@@ -26,6 +26,21 @@ def fmt_value(v: float | int | str) -> str:
     return f"{float(v):g}"
 
 
+def axis_texts(values) -> dict:
+    """Each distinct value of an axis as its shortest text at 6 significant digits, or with as
+    many more as tell it from the axis's other values (100.0001 and 100.0002 are both "100" at
+    6): two cells never share a label, a key or a gate's name. Categories stay as they are."""
+    vals = list(dict.fromkeys(values))
+    if any(isinstance(v, str) for v in vals):
+        return {v: fmt_value(v) for v in vals}
+    floats = sorted({float(v) for v in vals})
+    for digits in range(6, 18):   # 17 significant digits tell any two doubles apart
+        texts = [f"{v:.{digits}g}" for v in floats]
+        if len(set(texts)) == len(floats):
+            break
+    return dict(zip(floats, texts, strict=True))
+
+
 @dataclass(frozen=True)
 class Cell:
     """One map cell: its coordinates, mIoU, and how many samples stand behind it."""

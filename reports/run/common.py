@@ -1,5 +1,5 @@
 """What the run report's sections share: the objective's name, the model column's heading,
-cell keys, and a sample row's values as text."""
+and a sample row's values as text."""
 
 from __future__ import annotations
 
@@ -10,11 +10,6 @@ import pandas as pd
 from falsify.reports.page import esc
 from falsify.results.miou_maps import fmt_value
 from falsify.results.store import RunData
-
-
-def cell_key(x: float, y: float) -> str:
-    """A map cell's key, "x|y", as the click-to-list data and the comparison match cells."""
-    return f"{fmt_value(x)}|{fmt_value(y)}"
 
 
 def bg_values(data: RunData) -> tuple:

@@ -18,8 +18,7 @@ from falsify.reports.charts import (
     svg_element,
 )
 from falsify.reports.page import esc
-from falsify.reports.run.common import cell_key
-from falsify.results.miou_maps import CellMap, fmt_value
+from falsify.results.miou_maps import CellMap, axis_texts
 from falsify.results.miou_maps import compare as compare_maps
 from falsify.results.store import RunData
 
@@ -31,13 +30,13 @@ def compare_section(before: RunData, after: RunData, after_map: CellMap,
     (ascending, as the paper draws it, when `ascending`); `differences`, what else differs
     between the runs' spaces, stands above them as a warning."""
     bmap = before.cell_map()
-    bidx = {cell_key(x, y): (i, j) for j, y in enumerate(bmap.b_values)
+    bidx = {(float(x), float(y)): (i, j) for j, y in enumerate(bmap.b_values)
             for i, x in enumerate(bmap.a_values)}
     diff = np.full(after_map.miou.shape, np.nan)
     prev = np.full(after_map.miou.shape, np.nan)
     for j, y in enumerate(after_map.b_values):
         for i, x in enumerate(after_map.a_values):
-            hit = bidx.get(cell_key(x, y))
+            hit = bidx.get((float(x), float(y)))
             if hit is not None:
                 prev[j, i] = bmap.miou[hit[1], hit[0]]
                 diff[j, i] = after_map.miou[j, i] - prev[j, i]
@@ -46,8 +45,7 @@ def compare_section(before: RunData, after: RunData, after_map: CellMap,
     grid = Grid.sized(after_map.a_values, after_map.b_values, 480, 430, left=52, top=8)
 
     def tip(i: int, j: int) -> str:
-        where = (f"x = {fmt_value(after_map.a_values[i])} m, "
-                 f"y = {fmt_value(after_map.b_values[j])} m")
+        where = f"x = {grid.x_text(i)} m, y = {grid.y_text(j)} m"
         if np.isnan(diff[j, i]):
             return f"{where}\nnot scored in both runs"
         return (f"{where}\nmIoU {prev[j, i]:.3f} → {after_map.miou[j, i]:.3f} "
@@ -65,8 +63,8 @@ def compare_section(before: RunData, after: RunData, after_map: CellMap,
         table = table.iloc[::-1].reset_index(drop=True)
     changes = table["change"].to_numpy(dtype=float)
     plot = improvement_svg(table, span)
-    before_blind = {cell_key(x, y) for x, y in _blind_keys(bmap, threshold)}
-    after_blind = {cell_key(x, y) for x, y in _blind_keys(after_map, threshold)}
+    before_blind = {(float(x), float(y)) for x, y in _blind_keys(bmap, threshold)}
+    after_blind = {(float(x), float(y)) for x, y in _blind_keys(after_map, threshold)}
     fixed, new = len(before_blind - after_blind), len(after_blind - before_blind)
     mean = f"{float(changes.mean()):+.3f}" if changes.size else "—"
     meta = before.meta
@@ -129,10 +127,11 @@ def improvement_svg(table: pd.DataFrame, span: float) -> str:
                    f'y2="{num(sy(v))}"/><text x="{left - 6}" y="{num(sy(v) + 4)}" '
                    f'text-anchor="end">{v:+.2f}</text>')
     bw = pw / max(1, n)
+    xs, ys = axis_texts(table["x"]), axis_texts(table["y"])
     for k, row in enumerate(table.itertuples(index=False)):
         c = float(row.change)
         y0, y1 = sorted((sy(0.0), sy(c)))
-        text = (f"x = {fmt_value(row.x)}, y = {fmt_value(row.y)}: {row.miou_before:.3f} → "
+        text = (f"x = {xs[row.x]}, y = {ys[row.y]}: {row.miou_before:.3f} → "
                 f"{row.miou_after:.3f} ({c:+.3f})")
         out.append(f'<rect class="bar" x="{num(left + k * bw)}" y="{num(y0)}" '
                    f'width="{num(max(bw - 0.4, 0.6))}" height="{num(max(y1 - y0, 0.5))}" '

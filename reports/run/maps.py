@@ -19,15 +19,15 @@ from falsify.reports.run.common import (
     placed_name,
 )
 from falsify.results.metrics import Status, column
-from falsify.results.miou_maps import CellMap, fmt_value, snap
+from falsify.results.miou_maps import CellMap, snap
 from falsify.results.store import RunData
 
 MAX_MULTIPLES = 30
 
 
-def _cell_tip(x: float, y: float, miou: float | None, n: int, undefined: int, invalid: int,
+def _cell_tip(x: str, y: str, miou: float | None, n: int, undefined: int, invalid: int,
               threshold: float) -> str:
-    where = f"x = {fmt_value(x)} m, y = {fmt_value(y)} m"
+    where = f"x = {x} m, y = {y} m"
     extra = []
     if undefined:
         extra.append(f"{undefined} undefined")
@@ -48,7 +48,7 @@ def heatmap_section(data: RunData, cmap: CellMap, threshold: float) -> str:
 
     def tip(i: int, j: int) -> str:
         m = cmap.miou[j, i]
-        text = _cell_tip(cmap.a_values[i], cmap.b_values[j], None if np.isnan(m) else float(m),
+        text = _cell_tip(grid.x_text(i), grid.y_text(j), None if np.isnan(m) else float(m),
                          int(cmap.samples[j, i]), int(cmap.undefined[j, i]),
                          int(cmap.invalid[j, i]), threshold)
         if cmap.lower is not None and cmap.upper is not None and np.isfinite(m):
@@ -58,8 +58,7 @@ def heatmap_section(data: RunData, cmap: CellMap, threshold: float) -> str:
 
     def attrs(i: int, j: int) -> str:
         m = cmap.miou[j, i]
-        return (f' data-x="{esc(fmt_value(cmap.a_values[i]))}" '
-                f'data-y="{esc(fmt_value(cmap.b_values[j]))}" '
+        return (f' data-x="{esc(grid.x_text(i))}" data-y="{esc(grid.y_text(j))}" '
                 f'data-miou="{"" if np.isnan(m) else f3(float(m))}" '
                 f'data-n="{int(cmap.samples[j, i])}" tabindex="{0 if i == j == 0 else -1}"')
 
@@ -127,7 +126,7 @@ def _small_map(cmap: CellMap, threshold: float, tip_prefix: str, title: str
     def tip(i: int, j: int) -> str:
         m = cmap.miou[j, i]
         return f"{tip_prefix}\n" + _cell_tip(
-            cmap.a_values[i], cmap.b_values[j], None if np.isnan(m) else float(m),
+            grid.x_text(i), grid.y_text(j), None if np.isnan(m) else float(m),
             int(cmap.samples[j, i]), int(cmap.undefined[j, i]), int(cmap.invalid[j, i]),
             threshold)
 

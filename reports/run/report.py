@@ -34,7 +34,7 @@ from falsify.reports.run.plots import distance_section, search_section
 from falsify.reports.run.summary import summary_section
 from falsify.reports.run.worst import ReplayedScan, worst_section
 from falsify.results.explain import Explanation
-from falsify.results.miou_maps import fmt_value
+from falsify.results.miou_maps import axis_texts, fmt_value
 from falsify.results.store import RunData
 
 WORST = 12
@@ -86,7 +86,7 @@ def samples_json(data: RunData, per_cell: int = CELL_ROWS) -> dict:
     `per_cell` lowest (the order the table lists them in: lowest score first, undefined and
     invalid rows last, ties by evaluation), so a run of 50,000 rows does not embed them all;
     `cells` holds every cell's full row count (the rest are in the run's results.csv)."""
-    from falsify.results.miou_maps import snap
+    from falsify.results.miou_maps import axis_values, snap
 
     f = data.frame
     others = other_dims(data)
@@ -96,8 +96,9 @@ def samples_json(data: RunData, per_cell: int = CELL_ROWS) -> dict:
     prec, rec = score_parts(col)
     src = {"eval": "eval_index", "iou": col, "precision": prec, "recall": rec,
            "car_model": data.space.model_dim}
-    cx = snap(f["x"], data.space, "x").map(fmt_value)
-    cy = snap(f["y"], data.space, "y").map(fmt_value)
+    # the map's own cell texts (`axis_texts`), so each row lands in the cell its key names
+    cx = snap(f["x"], data.space, "x").map(axis_texts(axis_values(data.space, "x")))
+    cy = snap(f["y"], data.space, "y").map(axis_texts(axis_values(data.space, "y")))
     keys = (cx + "|" + cy).rename("_cell")
     score = pd.to_numeric(f[col], errors="coerce") if col in f.columns else \
         pd.Series(np.nan, index=f.index)

@@ -12,7 +12,7 @@ from falsify.reports.charts import f3
 from falsify.reports.page import esc
 from falsify.reports.run.common import bg_text, dim_text
 from falsify.results.metrics import Status
-from falsify.results.miou_maps import CellMap, fmt_value
+from falsify.results.miou_maps import CellMap, axis_texts
 from falsify.results.store import RunData
 
 
@@ -93,7 +93,8 @@ def summary_section(data: RunData, cmap: CellMap, threshold: float) -> str:
     worst_cell = "—"
     if scored_cells:
         w = scored_cells[0]
-        worst_cell = f"{w.miou:.3f} at x = {fmt_value(w.a)}, y = {fmt_value(w.b)}"
+        worst_cell = (f"{w.miou:.3f} at x = {axis_texts(cmap.a_values)[w.a]}, "
+                      f"y = {axis_texts(cmap.b_values)[w.b]}")
     elapsed = meta.get("elapsed_s")
     took = []
     if isinstance(elapsed, int | float):

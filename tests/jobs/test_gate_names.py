@@ -97,7 +97,7 @@ def test_cells_a_fifth_decimal_apart_have_their_own_names(tmp_path: Path, capsys
 
 def test_axis_texts_are_shortest_unless_digits_are_needed() -> None:
     """Float round-off stays hidden (0.1 + 0.2 reads 0.3); doubles one ulp apart still differ."""
-    from falsify.jobs.gate import axis_texts
+    from falsify.results.miou_maps import axis_texts
 
     assert list(axis_texts([2.5, -2.0, 0.1 + 0.2, 2.5]).values()) == ["-2", "0.3", "2.5"]
     texts = axis_texts([1.0, 1.0 + 2.0 ** -52])

@@ -335,3 +335,34 @@ def test_in_chromium_the_cell_table_lists_other_dims(browser, tmp_path: Path) ->
     assert {r[heads.index("precision")] for r in rows} == {"\u2014"}, rows
     assert sorted(r[-1] for r in rows) == ["colour #00ff00, fog 0", "colour #00ff00, fog 50",
                                            "colour red, fog 0", "colour red, fog 50"]
+
+
+def test_cells_a_hundred_thousandth_apart_keep_their_own_labels_and_samples(tmp_path) -> None:
+    """Before: x = 20, 20.00001 and 20.00002 all read "20" (6 significant digits), so the three
+    columns shared one label and one click-to-list key (each listed all three columns' rows).
+    Now each reads as its own value, as the gate names cells (`axis_texts`)."""
+    text = SMOKE.read_text().replace("min = -2.0\nmax = 2.0\nstep = 4.0",
+                                      "min = 20.0\nmax = 20.00002\nstep = 0.00001")
+    by_x = {20.0: 0.3, 20.00001: 0.6, 20.00002: 0.9}
+
+    def iou(s) -> float:
+        return by_x[min(by_x, key=lambda x: abs(x - float(s["x"])))]
+
+    run = write_run(tmp_path / "run", text, iou=iou)
+    before = write_run(tmp_path / "before", text, iou=lambda s: 0.5)
+    page = render_report(run, compare=before, predict=False)
+    xs = re.findall(r'<rect class="cell[^>]* data-x="([^"]*)" data-y="8"', page)
+    assert xs == ["20", "20.00001", "20.00002"]
+    blob = re.search(r'<script type="application/json" id="falsify-data">(.*?)</script>', page,
+                     re.S).group(1)
+    samples = json.loads(blob)["samples"]
+    assert samples["cells"] == {f"{x}|{y}": 2 for x in xs for y in ("8", "14")}
+    cols = samples["columns"]
+    for row in samples["rows"]:
+        x = float(row[cols.index("cell")].split("|")[0])
+        assert row[cols.index("iou")] == pytest.approx(by_x[x], abs=0.002)   # from pixel counts
+    # the difference map matches each cell with its own column of the run before
+    tips = re.findall(r'<rect class="dcell[^>]*><title>([^<]*)</title>', page)
+    assert sorted(t.split("\n")[0] for t in tips) == sorted(
+        f"x = {x} m, y = {y} m" for x in xs for y in ("8", "14"))
+    assert all("0.500 → " in t for t in tips)
