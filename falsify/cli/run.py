@@ -51,7 +51,10 @@ def run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threshold", type=float, default=None,
                    help="mIoU below which a cell is a blind spot (default: config, 0.65)")
     p.add_argument("--fidelity", default="exact",
-                   choices=["fastest", "fast", "balanced", "exact"])
+                   choices=["fastest", "fast", "balanced", "exact"],
+                   help="speed against accuracy, by the variant of the bundled network run: "
+                   "exact (fp32, 3 CRF iterations; the default), balanced (int8, 3), fast "
+                   "(int8, 1), fastest (int8, no CRF); not with --model or --backend torch")
     p.add_argument("--no-report", action="store_true")
     p.add_argument("--max-samples", type=int, default=MAX_SAMPLES,
                    help=f"refuse a grid or budget larger than this (default {MAX_SAMPLES:,})")

@@ -2,9 +2,10 @@
 
 Each preset is a setting of knobs `falsify tradeoff` measured on configs/tradeoff.toml (the
 README records the figures). The network dominates the time per sample, so the presets that
-save time change the bundled model's precision and CRF iterations; your own `--model` is used
-as given. The car mesh level of detail stays full in every preset: coarser meshes saved under
-1 % of a sample's time and added map error (measured with `--knobs preset`).
+save time change the bundled model's precision and CRF iterations; a preset with a `--model` of
+one's own is refused (it would run that model as given under the preset's name). The car mesh
+level of detail stays full in every preset: coarser meshes saved under 1 % of a sample's time
+and added map error (measured with `--knobs preset`).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from falsify.errors import FalsifyError
-from falsify.models.runners import WEIGHTS_DIR
+from falsify.models.runners import WEIGHTS_DIR, resolve_model
 
 
 @dataclass(frozen=True)
@@ -28,6 +29,15 @@ class Fidelity:
         if user_model is not None or self.bundled_model == "squeezeseg.onnx":
             return user_model
         return str(WEIGHTS_DIR / self.bundled_model)
+
+    def is_variant(self, user_model: str) -> bool:
+        """Whether `user_model` (a path or a bundled name) is this preset's own variant, as a
+        stopped run's resume command names it beside the preset."""
+        try:
+            given = resolve_model(user_model)
+        except FalsifyError:
+            return False
+        return given.resolve() == (WEIGHTS_DIR / self.bundled_model).resolve()
 
 
 PRESETS = {

@@ -122,6 +122,12 @@ def prepare(req: RunRequest) -> Prepared:
     if req.camera is not None:
         from falsify.sensor.camera import camera_preset
         camera_preset(req.camera)
+    if req.model is not None and req.fidelity != "exact" and not fid.is_variant(req.model):
+        # a preset picks a variant of the bundled network; a user's model would run as given
+        # while the run recorded the preset (its own variant, as resume commands name it, is fine)
+        raise FalsifyError(f"--fidelity {req.fidelity} runs a variant of the bundled network "
+                           f"({fid.bundled_model}); --model {req.model} is run as given: "
+                           "leave out --model, or --fidelity (exact)")
     backend = backend_for(req.model, req.backend)
     if backend == "torch" and req.fidelity != "exact":
         raise FalsifyError(f"--fidelity {req.fidelity} runs an ONNX variant of the network; "
