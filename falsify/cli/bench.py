@@ -18,8 +18,8 @@ from falsify.paths import CONFIGS
 # emulated at 1.5-3 s a frame on a 2-core EPYC.
 MODEL_BENCH_FRAMES = 8
 # Each benchmark's space without --config: default runs finish within 2 minutes on a 2-core
-# machine (docs/benchmarks.md, "Default runs"); give --config configs/paper.toml for the
-# paper's whole space. `bench model` measures held-out frames, not a space.
+# machine (research/benchmarks-history.md, "Default runs"); give --config configs/paper.toml
+# for the paper's whole space. `bench model` measures held-out frames, not a space.
 BENCH_CONFIGS = {"scan": "bench.toml", "pipeline": "bench.toml", "nodes": "bench.toml",
                  "memory": "ci.toml", "search": "yaw.toml", "camera": "paper.toml",
                  "map": "weather.toml", "effects": "weather.toml"}
@@ -59,7 +59,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None,
                    help="the space (default: each benchmark's own: configs/bench.toml for scan, "
                    "pipeline and nodes, configs/ci.toml for memory, configs/yaw.toml for "
-                   "search, configs/weather.toml for map, configs/paper.toml for camera)")
+                   "search, configs/weather.toml for map and effects, configs/paper.toml for "
+                   "camera)")
     p.add_argument("--samples", type=int, default=None,
                    help="how many samples (default: each benchmark's own)")
     p.add_argument("--naive-samples", type=int, default=None,
@@ -89,7 +90,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "(default: the export's 64; the bundled network's shipped int8 copy is "
                    "measured unless this is given)")
     p.add_argument("--threads", type=int_in(1, 64), default=2, metavar="N",
-                   help="bench model: inference threads (a grid worker uses 1)")
+                   help="bench model: inference threads (default 2; a grid worker uses 1)")
     p.add_argument("--out", default=None, help="bench search, map: where their runs go")
     p.add_argument("--budgets", default=None, metavar="F,F,...",
                    help="bench map: budgets as shares of the grid's evaluations (default "

@@ -11,10 +11,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", help="run directory (holding results.sqlite)")
     p.add_argument("--threshold", type=float, metavar="T",
                    help="per-sample car IoU below which a sample fails (default: the run's)")
-    p.add_argument("--depth", type=int, default=2, help="conditions per rule, at most (1-4)")
-    p.add_argument("--rules", type=int, default=5, help="rules to find, at most")
-    p.add_argument("--clusters", type=int, default=4, help="clusters of failing samples")
-    p.add_argument("--seed", type=int, default=0, help="seed of the clustering")
+    # the limits are falsify.jobs.explain's MAX_*, written out: importing it here would load
+    # pandas for every command's parser
+    p.add_argument("--depth", type=int, default=2,
+                   help="conditions per rule, at most: 1 to 4 (default 2)")
+    p.add_argument("--rules", type=int, default=5,
+                   help="rules to find, at most: 1 to 20 (default 5)")
+    p.add_argument("--clusters", type=int, default=4,
+                   help="clusters of failing samples: 1 to 20 (default 4)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the clustering (default 0)")
     p.add_argument("--allow-incomplete", action="store_true",
                    help=ALLOW_INCOMPLETE_HELP)
     p.add_argument("--json", action="store_true")

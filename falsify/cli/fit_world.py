@@ -16,7 +16,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sequences", default=None, metavar="SS,SS",
                    help="only these sequences of a SemanticKITTI root")
     p.add_argument("--out", required=True, help="the profile's JSON file")
-    p.add_argument("--name", default="semantickitti-fit", help="the profile's name")
+    p.add_argument("--name", default="semantickitti-fit",
+                   help="the profile's name (default semantickitti-fit, the shipped profile's: "
+                   "name your own)")
     p.add_argument("--config", default=str(DEFAULT_CONFIG),
                    help="a space config whose sensor renders the world's own scenes")
     from falsify.jobs.fit_world import BASE_SCANS

@@ -325,7 +325,7 @@ def instance_row(scanner: RealScanner, k: int, view: View, segmenter: Segmenter,
     span = MAX_SPAN_M[view.cls]
     if extent[0] > span[0] or extent[1] > span[1]:
         skipped.append((view.source, view.cls, view.instance,
-                        f"its points span {extent[0]:.1f} x {extent[1]:.1f} m, more than one "
+                        f"its points span {extent[0]:.2f} x {extent[1]:.2f} m, more than one "
                         f"{view.cls} ({span[0]} x {span[1]})"))
         return None
     car = scanner.settle(removed, PlacedCar(model, x, y, heading, FIRST_CAR_INSTANCE))
