@@ -13,7 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
-from falsify.data.kitti_object import Box3D, format_calib, object_label, oriented_box
+from falsify.data.kitti_object import (
+    CLASS_TYPE,
+    Box3D,
+    format_calib,
+    object_label,
+    oriented_box,
+)
 from falsify.data.training import TrafficOptions, scene_for, training_simulator
 from falsify.errors import ConfigError
 from falsify.fileio import write_bytes, write_json, write_text
@@ -65,6 +71,8 @@ def boxes_in_view(sim: Simulator, bg_id: int, placed: list[PlacedCar], pose: Sen
         visible = (int(cols.min()), int(rows.min()), int(cols.max()), int(rows.max()))
         if iid in by_id:
             car = by_id[iid]
+            if car.cls not in CLASS_TYPE:   # a van, truck or bus: unlabelled, as on the streets
+                continue
             _, corners = sim.car_caster(car.model)
             lo, hi = corners.min(axis=0), corners.max(axis=0)
             centre_w = car.rotation() @ np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2,

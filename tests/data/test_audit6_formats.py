@@ -186,6 +186,21 @@ def test_kitti_object_labels_follow_the_devkit(kitti_object: Path) -> None:
     assert n > 5
 
 
+def test_kitti_object_frames_with_a_van_truck_or_bus_in_view_are_written(tmp_path: Path) -> None:
+    """Before: a frame whose camera saw a placed delivery van, box truck or bus (class 0)
+    stopped the export with a KeyError traceback, exit 1, on smoke's third frame. Such vehicles
+    stay unlabelled, as the streets' own are; every frame is written."""
+    out = tmp_path / "ko"
+    assert main(["dataset", str(SMOKE), "--scans", "3", "--out", str(out),
+                 "--format", "kitti-object"]) == 0
+    for sub, ext in (("velodyne", "bin"), ("label_2", "txt"), ("calib", "txt"),
+                     ("image_2", "png")):
+        assert sorted(p.name for p in (out / sub).iterdir()) == [
+            f"00000{k}.{ext}" for k in range(3)]
+    types = {o.type for k in range(3) for o in read_labels(out / "label_2" / f"00000{k}.txt")}
+    assert types <= {"Car", "Pedestrian", "Cyclist"} and "Car" in types
+
+
 # -- split manifests ---------------------------------------------------------------------------
 @pytest.mark.parametrize("name", ["a\U0001F600.bin", "del\x7f.bin", 'q"uote\\.bin'])
 def test_holdout_manifest_reads_back_any_file_name(tmp_path: Path, capsys, name: str) -> None:
