@@ -163,8 +163,10 @@ def render(results: list[dict]) -> str:
         for doc in sorted(by_cpu[cpu], key=lambda d: (order.index(d["benchmark"]),
                                                        str(d.get("config")))):
             r = ROWS[doc["benchmark"]](doc)
+            # the typed command (every option that shaped the figure); older results rebuild it
+            command = doc.get("measured_by") or r.command
             parts.append(f"| {r.benchmark} | {r.figure} | {r.ratio} | {r.network} | "
-                         f"`{r.command}` |")
+                         f"`{command}` |")
     parts.append(END)
     return "\n".join(parts)
 

@@ -121,8 +121,18 @@ def run(args) -> int:
     if args.config is None:
         args.config = str(CONFIGS / BENCH_CONFIGS.get(args.what, DEFAULT_CONFIG.name))
     result, text = _benchmark(args)(args)
+    if getattr(args, "argv", None) is not None:   # as typed, for `bench table` to print
+        result["measured_by"] = measured_by(args.argv)
     emit(args, result, text)
     return 0
+
+
+def measured_by(argv: list[str]) -> str:
+    """The command line that measured a result, with --json (the saved results are its)."""
+    import shlex
+
+    words = ["falsify", *argv]
+    return shlex.join(words if "--json" in argv else [*words, "--json"])
 
 
 def _check_options(args) -> None:

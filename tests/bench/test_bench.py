@@ -11,6 +11,7 @@ import os
 
 import pytest
 
+from falsify.bench.tables import render
 from falsify.cli import build_parser, main
 from falsify.cli.bench import pipeline_figures_text
 from falsify.cli.common import given_options
@@ -81,6 +82,11 @@ def test_bench_memory_runs_a_whole_grid(capsys):
     r = _json(capsys, ["bench", "memory", "--config", str(CONFIGS / "smoke.toml"),
                        "--workers", "2", "--json"])
     assert r["samples"] == 8 and r["command"].endswith("--workers 2")
+    # the command as typed, which `bench table` prints for it (it rebuilt one from a few keys,
+    # dropping options such as --naive-samples, --workers, --executor and --model)
+    assert r["measured_by"] == (f"falsify bench memory --config {CONFIGS / 'smoke.toml'} "
+                                "--workers 2 --json")
+    assert f"`{r['measured_by']}`" in render([r])
     if r["memory"] is not None:
         assert r["memory"]["peak_rss_mb"] > 0 and r["memory"]["max_processes"] >= 3
 

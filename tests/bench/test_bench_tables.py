@@ -121,3 +121,11 @@ def test_the_benchmarks_page_holds_the_tables_of_the_committed_results():
 
 def test_process_counts_read_as_english():
     assert (processes(1), processes(2)) == ("1 process", "2 processes")
+
+
+def test_a_result_that_records_its_command_line_is_printed_with_it():
+    """A result saved with its typed command (`measured_by`) shows that one: the rebuilt one
+    drops what it does not know (here --naive-samples); older results keep the rebuilt one."""
+    typed = "falsify bench scan --samples 40 --naive-samples 8 --json"
+    text = render([{**scan(EPYC, 600.0), "measured_by": typed}])
+    assert f"`{typed}`" in text and "--config configs/bench.toml" not in text
