@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from falsify.checks import check_out_dir, check_range, check_seed
+from falsify.data.range_npy import npy_files
 from falsify.errors import FalsifyError
 from falsify.models.spec import ALL_CHANNELS, DEFAULT_CHANNELS, normalise
 
@@ -81,7 +82,7 @@ def list_scans(folder: str | Path, what: str = "--data") -> list[Path]:
     p = Path(folder)
     if not p.is_dir():
         raise FalsifyError(f"{what} {p}: not a directory")
-    files = sorted(p.glob("*.npy"))
+    files = npy_files(p)   # a retraining set's camera arrays lie beside its scans
     if not files:
         raise FalsifyError(f"{what} {p}: no *.npy scans found")
     return files

@@ -185,7 +185,8 @@ def _bench_model(args) -> tuple[dict, str]:
 
     from falsify.bench.machine import machine
     from falsify.bench.model import add_shares, model_bench_rates
-    from falsify.data.scansets import npy_files, read_set
+    from falsify.data.range_npy import npy_files
+    from falsify.data.scansets import read_set
     from falsify.data.training import calibration_scans, held_out_scans
     from falsify.models.flops import count_flops
     from falsify.models.runners import BUNDLED_ONNX, WEIGHTS_DIR

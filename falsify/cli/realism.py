@@ -42,7 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from falsify.data.scansets import load_sets, npy_files
+    from falsify.data.range_npy import npy_files
+    from falsify.data.scansets import load_sets
     from falsify.fileio import write_json, write_text
     from falsify.jobs.realism import EncoderFeatures, compare
     from falsify.reports.realism_page import render_realism

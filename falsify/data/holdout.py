@@ -17,6 +17,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from falsify.data.range_npy import npy_files
 from falsify.errors import FalsifyError
 from falsify.fileio import file_sha256, parse_toml, read_bytes
 from falsify.world.real_scans import sequence_dirs, sequence_files
@@ -249,7 +250,7 @@ def scans_under(paths: Sequence[str | Path], sequences: list[str] | None = None
     for p in map(Path, paths):
         if not p.exists():
             raise FalsifyError(f"{p}: no such file or folder")
-        npys = [p] if p.suffix == ".npy" else sorted(p.glob("*.npy")) if p.is_dir() else []
+        npys = [p] if p.suffix == ".npy" else npy_files(p) if p.is_dir() else []
         files = npys or [f for _, f, _, _ in real_scans([str(p)], sequences
                                                          if sequence_dirs(p) else None)]
         base = Path(os.path.abspath(p)).parent

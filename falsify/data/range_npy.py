@@ -12,6 +12,16 @@ from falsify.sensor.scan import CHANNELS
 NPY_MAGIC = b"\x93NUMPY"   # the first bytes of every .npy file (NumPy's format.py, NEP 1)
 
 
+def npy_files(folder: Path) -> list[Path]:
+    """The .npy range images of a folder (a `falsify dataset` directory, a run's retraining
+    set), sorted: without `predict`'s X.pred.npy and a retraining set's camera arrays
+    (X.class.npy, X.instance.npy, X.depth.npy), which lie beside them."""
+    from falsify.sensor.camera import CAMERA_FILES
+
+    beside = (".pred.npy", *(f".{name}" for name in CAMERA_FILES if name.endswith(".npy")))
+    return sorted(p for p in Path(folder).glob("*.npy") if not p.name.endswith(beside))
+
+
 def load_scan_npy(path: str | Path) -> np.ndarray:
     """Load an H×W×6 range image (ours or SqueezeSeg's KITTI files), checking shape and values."""
     path = Path(path)

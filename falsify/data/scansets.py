@@ -21,7 +21,7 @@ import numpy as np
 from falsify.classes import CLASSES
 from falsify.data.kitti_frames import read_object_frame
 from falsify.data.kitti_object import frames, read_velodyne
-from falsify.data.range_npy import load_scan_npy
+from falsify.data.range_npy import load_scan_npy, npy_files
 from falsify.data.velodyne import kitti_rows, read_kitti, read_kitti_points
 from falsify.errors import FalsifyError
 from falsify.sensor.lidar import Sensor
@@ -229,11 +229,6 @@ def labels_without_scans(folder: Path) -> list[Path]:
     dirs = [folder, *([folder.parent / "labels"] if folder.name == "velodyne" else [])]
     return sorted(lab for d in dirs for lab in d.glob("*.label")
                   if not (folder / f"{lab.stem}.bin").is_file())
-
-
-def npy_files(folder: Path) -> list[Path]:
-    """The .npy range images of a folder (a `falsify dataset` directory), sorted."""
-    return sorted(p for p in folder.glob("*.npy") if not p.name.endswith(".pred.npy"))
 
 
 @dataclass(frozen=True)

@@ -38,6 +38,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from falsify.checks import check_out_dir, check_range, check_seed
+from falsify.data.range_npy import npy_files
 from falsify.errors import ConfigError
 from falsify.executors.driver import ProgressListener
 from falsify.fileio import write_text
@@ -252,7 +253,7 @@ class RetrainJob:
         files = ctx.train_files[:req.train_scans] if req.train_scans else ctx.train_files
         for f in files:
             (data / f"t-{f.name}").symlink_to(f.resolve())
-        selected = sorted((req.out / "selected" / "retrain").glob("*.npy"))
+        selected = npy_files(req.out / "selected" / "retrain")
         for k in range(req.oversample):
             for f in selected:
                 (data / f"s{k:03d}-{f.name}").symlink_to(f.resolve())
@@ -322,7 +323,7 @@ class RetrainJob:
 
     def _held_out(self, ctx: RetrainContext):
         """Drive-style held-out scans with the training set's sensor effects (written once)."""
-        from falsify.data.scansets import npy_files, read_set
+        from falsify.data.scansets import read_set
         from falsify.data.training import TrafficOptions, write_dataset
         from falsify.sensor.lidar import load_sensor
 

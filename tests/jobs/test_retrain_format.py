@@ -160,3 +160,23 @@ def test_another_layout_is_refused_naming_the_allowed(tmp_path, fmt, capsys):
         main(["grid", str(SMOKE), "--out", str(out), "--retrain-format", fmt])
     assert exc.value.code == 2 and "--retrain-format" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_retraining_set_with_its_camera_files_is_what_train_reads(tmp_path, capsys):
+    """Before: `falsify train --data RUN/retrain` after `grid --camera` stopped on the camera's
+    000000.class.npy ("has shape (375, 1242), expected (H, W, 6)"); readers of a folder of range
+    images now take its scans, the files index.csv names, and leave the camera arrays."""
+    pytest.importorskip("torch")
+    from falsify.data.range_npy import npy_files
+
+    out = tmp_path / "run"
+    execute(RunRequest(config=SMOKE, out=out, command="grid", threshold=0.95, report=False,
+                       camera="kitti-centre"))
+    retrain = out / "retrain"
+    listed = sorted(pd.read_csv(retrain / "index.csv")["file"])
+    assert len(listed) == 8 and (retrain / "000000.class.npy").is_file()
+    assert [p.name for p in npy_files(retrain)] == listed
+    assert main(["train", "--data", str(retrain), "--out", str(tmp_path / "net"), "--epochs",
+                 "1", "--batch", "8", "--no-export", "--json"]) == 0
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])   # one line an epoch
+    assert last["stopped"] == "done" and last["epoch"] == 1
