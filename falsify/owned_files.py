@@ -11,11 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from falsify.errors import FalsifyError
-from falsify.fileio import write_bytes, write_json
-
-
-def sha256(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
+from falsify.fileio import file_sha256, write_bytes, write_json
 
 
 @dataclass(frozen=True)
@@ -76,7 +72,7 @@ class FileList:
                     path.unlink()
             except OSError:   # kept, and listed again, so a later run still knows it is ours
                 left[name] = digest
-        new = {name: sha256(data) for name, data in files.items()}
+        new = {name: hashlib.sha256(data).hexdigest() for name, data in files.items()}
         write_json(out / self.name, {**(header or {}),
                                      self.key: dict(sorted({**left, **new}.items()))})
         for name, data in files.items():
@@ -86,4 +82,4 @@ class FileList:
 def _is_as_written(path: Path, digest: str | None) -> bool:
     """A plain file (no link) whose bytes are the listed ones."""
     return (digest is not None and path.is_file() and not path.is_symlink()
-            and sha256(path.read_bytes()) == digest)
+            and file_sha256(path) == digest)
