@@ -71,6 +71,11 @@ class CellMap:
     upper: np.ndarray | None = None
 
     @property
+    def filled(self) -> np.ndarray:
+        """The cells a sample landed in (valid, undefined or invalid) or with an estimate."""
+        return ((self.samples + self.undefined + self.invalid) > 0) | np.isfinite(self.miou)
+
+    @property
     def estimated(self) -> bool:
         """Whether miou is an estimate of the full grid's map, with an interval per cell."""
         return self.lower is not None
@@ -140,22 +145,24 @@ def miou_map(frame: pd.DataFrame, space: Space, a: str = "x", b: str = "y",
     undefined = np.zeros(shape, np.int64)
     invalid = np.zeros(shape, np.int64)
     if len(frame):
-        ai = {v: i for i, v in enumerate(a_vals)}
-        bi = {v: j for j, v in enumerate(b_vals)}
-        sa, sb = snap(frame[a], space, a), snap(frame[b], space, b)
-        # only the columns read: each group of a wide frame (19 classes) would copy them all
-        frame = frame[list(dict.fromkeys(["status", column]))]
-        for (av, bv), grp in frame.groupby([sa, sb], sort=True):
-            i, j = ai.get(_match(av, a_vals)), bi.get(_match(bv, b_vals))
-            if i is None or j is None:
-                continue
-            scored = grp[grp["status"] != Status.INVALID]
-            values = scored[column].astype(float).dropna()
-            samples[j, i] = len(values)
-            undefined[j, i] = len(scored) - len(values)
-            invalid[j, i] = len(grp) - len(scored)
-            if len(values):
-                miou[j, i] = cell_mean(values.to_numpy())
+        ia = _axis_index(snap(frame[a], space, a), a_vals)
+        ib = _axis_index(snap(frame[b], space, b), b_vals)
+        placed = (ia >= 0) & (ib >= 0)
+        cell = (ib * len(a_vals) + ia)[placed]
+        bad = (frame["status"] == Status.INVALID).to_numpy()[placed]
+        values = frame[column].astype(float).to_numpy()[placed]
+        defined = ~bad & ~np.isnan(values)
+        size = shape[0] * shape[1]
+        invalid.flat[:] = np.bincount(cell[bad], minlength=size)
+        samples.flat[:] = np.bincount(cell[defined], minlength=size)
+        undefined.flat[:] = np.bincount(cell[~bad], minlength=size) - samples.flat
+        # each cell's mean over its values in row order, as a per-cell np.mean: the same bytes
+        order = np.argsort(cell[defined], kind="stable")
+        cells, values = cell[defined][order], values[defined][order]
+        starts = np.flatnonzero(np.r_[True, cells[1:] != cells[:-1]]) if len(cells) else []
+        for k, start in enumerate(starts):
+            end = starts[k + 1] if k + 1 < len(starts) else len(cells)
+            miou.flat[cells[start]] = cell_mean(values[start:end])
     return CellMap(a, b, a_vals, b_vals, miou, samples, undefined, invalid)
 
 
@@ -163,6 +170,23 @@ def cell_mean(values: np.ndarray) -> float:
     """The mean of a cell's IoUs rounded to 1e-12: float round-off must not put a cell whose
     exact mean is the threshold (IoUs 0.6 and 0.7 at 0.65) below it, a blind spot 0.000 below."""
     return round(float(np.mean(values)), 12)
+
+
+def _axis_index(keys: pd.Series, values: tuple) -> np.ndarray:
+    """Each row's index into the axis `values` (as `_match` finds it), -1 where none matches
+    or the key is missing; matched once per distinct key, not once per row."""
+    codes, uniques = pd.factorize(keys, use_na_sentinel=True)
+    numeric = not any(isinstance(v, str) for v in values)
+    axis = np.asarray(values, dtype=np.float64) if numeric else None
+    table = np.full(len(uniques) + 1, -1, np.int64)   # the last entry: a missing key's code
+    for k, u in enumerate(uniques):
+        if numeric and not isinstance(u, str):
+            hits = np.flatnonzero(np.abs(axis - float(u)) < 1e-6)
+            table[k] = hits[0] if len(hits) else -1
+        else:
+            v = _match(u, values)
+            table[k] = -1 if v is None else values.index(v)
+    return table[codes]
 
 
 def _match(value, values: tuple):
