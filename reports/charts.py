@@ -143,11 +143,25 @@ def interp(v: float, values: tuple, size: float) -> float:
 def cells_svg(grid: Grid, values: np.ndarray, fill: Callable[[float], str],
               tip: Callable[[int, int], str], cls: str, outline: np.ndarray | None = None,
               label: Callable[[int, int], str] | None = None,
-              attrs: Callable[[int, int], str] | None = None) -> str:
-    """One rect per cell (hatched where NaN), optional in-cell labels and outlines on top."""
+              attrs: Callable[[int, int], str] | None = None,
+              present: np.ndarray | None = None,
+              absent: str = "no sample in this cell") -> str:
+    """One rect per cell (hatched where NaN), optional in-cell labels and outlines on top.
+    Where `present` is given, only its cells get a rect, over one hatched rect for the rest
+    (its tip `absent`):
+    a search over a fine grid leaves most cells without a sample, and a rect each made pages
+    of 100 MB that a browser took most of a minute to open."""
     parts, labels, outlines = [], [], []
+    inset = min(1.5, min(grid.cw, grid.ch) / 4)   # an outline inside its cell, however small
+    if present is not None and not present.all():
+        parts.append(f'<rect class="absent {cls}-absent" x="{num(grid.left)}" '
+                     f'y="{num(grid.top)}" width="{num(grid.width)}" '
+                     f'height="{num(grid.height)}" fill="url(#hatch)">'
+                     f'<title>{esc(absent)}</title></rect>')
     for j in range(len(grid.ys)):
         for i in range(len(grid.xs)):
+            if present is not None and not present[j, i]:
+                continue
             x, y = grid.cell(i, j)
             v = values[j, i]
             empty = bool(np.isnan(v))
@@ -164,8 +178,9 @@ def cells_svg(grid: Grid, values: np.ndarray, fill: Callable[[float], str],
                               f'y="{num(y + grid.ch / 2 + 3.5)}" fill="{ink(fill(float(v)))}">'
                               f'{esc(label(i, j))}</text>')
             if outline is not None and outline[j, i]:
-                outlines.append(f'<rect class="outline" x="{num(x + 1.5)}" y="{num(y + 1.5)}" '
-                                f'width="{num(grid.cw - 3)}" height="{num(grid.ch - 3)}"/>')
+                outlines.append(f'<rect class="outline" x="{num(x + inset)}" '
+                                f'y="{num(y + inset)}" width="{num(grid.cw - 2 * inset)}" '
+                                f'height="{num(grid.ch - 2 * inset)}"/>')
     # labels and outlines repeat what each cell's title says: hidden from screen readers
     marks = "".join(labels) + "".join(outlines)
     return "".join(parts) + (f'<g aria-hidden="true">{marks}</g>' if marks else "")
@@ -174,7 +189,9 @@ def cells_svg(grid: Grid, values: np.ndarray, fill: Callable[[float], str],
 def axes_svg(grid: Grid, sensor: bool = True) -> str:
     """Tick labels under the columns and left of the rows, axis titles, and the sensor."""
     out = []
-    every_x = max(1, math.ceil(26 / grid.cw))
+    # 11 px digits are about 6.2 px wide: a label every `every_x` columns leaves 6 px between
+    longest = max((len(grid.x_text(i)) for i in range(len(grid.xs))), default=1)
+    every_x = max(1, math.ceil(max(26.0, 6.2 * longest + 6) / grid.cw))
     every_y = max(1, math.ceil(14 / grid.ch))
     base = grid.top + grid.height
     for i in range(len(grid.xs)):

@@ -101,11 +101,29 @@
   // The map is one Tab stop: the arrow keys move between its cells (row 0, the nearest, is
   // drawn at the bottom), Enter or Space lists a cell's samples. A ring marks the focused cell
   // over its neighbours, in black and white so it shows on every colour.
-  var cells = map.querySelectorAll('.cell'), ncols = cells.length, ns = map.namespaceURI;
+  // Only cells that hold a sample are drawn (a search leaves most of a fine grid empty), so
+  // each knows its column and row (0: the top row drawn) from where it is drawn.
+  var cells = map.querySelectorAll('.cell'), ns = map.namespaceURI, byPlace = {};
+  var x0 = Infinity, y0 = Infinity, cw = 1, ch = 1;
   for (var k = 0; k < cells.length; k++) {
     cells[k].setAttribute('role', 'button');
-    if (ncols === cells.length && cells[k].getAttribute('data-y') !== cells[0].getAttribute('data-y'))
-      ncols = k;
+    x0 = Math.min(x0, +cells[k].getAttribute('x')); y0 = Math.min(y0, +cells[k].getAttribute('y'));
+    cw = +cells[k].getAttribute('width'); ch = +cells[k].getAttribute('height');
+  }
+  var ncols = 0, nrows = 0;
+  function colRow(cell) {
+    return [Math.round((+cell.getAttribute('x') - x0) / cw),
+            Math.round((+cell.getAttribute('y') - y0) / ch)];
+  }
+  for (k = 0; k < cells.length; k++) {
+    var p = colRow(cells[k]);
+    byPlace[p[0] + ',' + p[1]] = cells[k];
+    ncols = Math.max(ncols, p[0] + 1); nrows = Math.max(nrows, p[1] + 1);
+  }
+  function next(c, r, dc, dr) {   // the next drawn cell from (c, r) in a direction, or null
+    for (c += dc, r += dr; c >= 0 && r >= 0 && c < ncols && r < nrows; c += dc, r += dr)
+      if (byPlace[c + ',' + r]) return byPlace[c + ',' + r];
+    return null;
   }
   var ring = document.createElementNS(ns, 'g');
   ring.setAttribute('id', 'focusring');
@@ -138,15 +156,15 @@
   map.addEventListener('keydown', function (ev) {
     var cell = ev.target.closest('.cell'); if (!cell) return;
     if (ev.key === 'Enter' || ev.key === ' ') { ev.preventDefault(); showCell(cell); return; }
-    var k = Array.prototype.indexOf.call(cells, cell), col = k % ncols, to = -1;
-    if (ev.key === 'ArrowRight' && col < ncols - 1) to = k + 1;
-    else if (ev.key === 'ArrowLeft' && col > 0) to = k - 1;
-    else if (ev.key === 'ArrowUp') to = k + ncols;     // farther: the row drawn above
-    else if (ev.key === 'ArrowDown') to = k - ncols;
-    else if (ev.key === 'Home') to = k - col;
-    else if (ev.key === 'End') to = k - col + ncols - 1;
+    var p = colRow(cell), c = p[0], r = p[1], to;
+    if (ev.key === 'ArrowRight') to = next(c, r, 1, 0);
+    else if (ev.key === 'ArrowLeft') to = next(c, r, -1, 0);
+    else if (ev.key === 'ArrowUp') to = next(c, r, 0, -1);     // farther: the row drawn above
+    else if (ev.key === 'ArrowDown') to = next(c, r, 0, 1);
+    else if (ev.key === 'Home') to = next(-1, r, 1, 0);
+    else if (ev.key === 'End') to = next(ncols, r, -1, 0);
     else return;
     ev.preventDefault();
-    if (to >= 0 && to < cells.length) cells[to].focus();
+    if (to) to.focus();
   });
 })();

@@ -53,7 +53,8 @@ def compare_section(before: RunData, after: RunData, after_map: CellMap,
 
     show = grid.cw >= 34 and grid.ch >= 14
     body = cells_svg(grid, diff, lambda v: diverging(v, span), tip, "dcell",
-                     label=(lambda i, j: f"{diff[j, i]:+.3f}") if show else None)
+                     label=(lambda i, j: f"{diff[j, i]:+.3f}") if show else None,
+                     present=np.isfinite(diff), absent="not scored in both runs")
     diff_svg = svg_element(body + axes_svg(grid), grid.left + grid.width + 8,
                     grid.top + grid.height + 60, "map", "diffmap", "mIoU difference map")
     legend = diverging_legend(span)

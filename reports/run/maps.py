@@ -56,15 +56,19 @@ def heatmap_section(data: RunData, cmap: CellMap, threshold: float) -> str:
                      f"{cmap.upper[j, i]:.3f}")
         return text
 
+    rows_at = np.argwhere(cmap.filled)   # (j, i), nearest row first: the first Tab stop
+    first = (int(rows_at[0][1]), int(rows_at[0][0])) if len(rows_at) else (0, 0)
+
     def attrs(i: int, j: int) -> str:
         m = cmap.miou[j, i]
         return (f' data-x="{esc(grid.x_text(i))}" data-y="{esc(grid.y_text(j))}" '
                 f'data-miou="{"" if np.isnan(m) else f3(float(m))}" '
-                f'data-n="{int(cmap.samples[j, i])}" tabindex="{0 if i == j == 0 else -1}"')
+                f'data-n="{int(cmap.samples[j, i])}" tabindex="{0 if (i, j) == first else -1}"')
 
     show = grid.cw >= 34 and grid.ch >= 14
     body = cells_svg(grid, cmap.miou, viridis, tip, "cell", blind,
-                     (lambda i, j: f3(float(cmap.miou[j, i]))) if show else None, attrs)
+                     (lambda i, j: f3(float(cmap.miou[j, i]))) if show else None, attrs,
+                     present=cmap.filled)
     selbox = '<rect id="selbox" x="0" y="0" width="0" height="0" visibility="hidden"/>'
     n_blind = int(blind.sum())
     scored = int((~np.isnan(cmap.miou)).sum())
@@ -130,7 +134,7 @@ def _small_map(cmap: CellMap, threshold: float, tip_prefix: str, title: str
             int(cmap.samples[j, i]), int(cmap.undefined[j, i]), int(cmap.invalid[j, i]),
             threshold)
 
-    body = cells_svg(grid, cmap.miou, viridis, tip, "mcell", blind)
+    body = cells_svg(grid, cmap.miou, viridis, tip, "mcell", blind, present=cmap.filled)
     valid = cmap.miou[~np.isnan(cmap.miou)]
     mean = f3(float(valid.mean())) if valid.size else "—"
     return (svg_element(body, grid.width, grid.height, "small", "", title), mean,

@@ -204,7 +204,8 @@ def search_section(data: RunData, cmap: CellMap, threshold: float) -> str:
 
     # where the search went: the heat map faded, the evaluations in order on top
     grid = Grid.sized(cmap.a_values, cmap.b_values, 480, 430, left=52, top=8)
-    faded = cells_svg(grid, cmap.miou, viridis, lambda i, j: "", "pcell")
+    faded = cells_svg(grid, cmap.miou, viridis, lambda i, j: "", "pcell",
+                      present=cmap.filled)
     frame = data.frame.sort_values("eval_index", kind="stable")
     xs, ys = frame["x"].astype(float).to_numpy(), frame["y"].astype(float).to_numpy()
     ious = frame[data.score_column].astype(float).to_numpy()
