@@ -127,9 +127,18 @@ def _effects(doc: dict) -> Row:
                "rate", NO_NETWORK, f"falsify bench effects --config {doc['config']} --json")
 
 
+def _cells(doc: dict) -> Row:
+    n = len(doc["maps"])
+    return Row("cell maps", f"{n} map{'s' * (n != 1)}, {doc['cells']:,} cells of "
+               f"{doc['samples']:,} rows in {doc['s_arrays']} s",
+               f"{doc['speedup']}x one pandas group per cell ({doc['s_per_group']} s), "
+               f"{'the same bytes' if doc['identical'] else 'NOT the same bytes'}", NO_NETWORK,
+               f"falsify bench cells --config {doc['config']} --samples {doc['samples']} --json")
+
+
 ROWS: dict[str, Callable[[dict], Row]] = {
     "scan": _scan, "scan effects": _effects, "pipeline": _pipeline, "memory": _memory,
-    "nodes": _nodes, "model": _model, "camera": _camera}
+    "nodes": _nodes, "model": _model, "camera": _camera, "cells": _cells}
 
 
 def load(paths: Iterable[Path]) -> list[dict]:

@@ -22,7 +22,7 @@ MODEL_BENCH_FRAMES = 8
 # for the paper's whole space. `bench model` measures held-out frames, not a space.
 BENCH_CONFIGS = {"scan": "bench.toml", "pipeline": "bench.toml", "nodes": "bench.toml",
                  "memory": "ci.toml", "search": "yaw.toml", "camera": "paper.toml",
-                 "map": "weather.toml", "effects": "weather.toml"}
+                 "map": "weather.toml", "effects": "weather.toml", "cells": "paper.toml"}
 # The options each benchmark reads (every one takes --json); one given to a benchmark that does
 # not read it is refused, not silently ignored.
 BENCH_OPTIONS = {
@@ -38,19 +38,21 @@ BENCH_OPTIONS = {
             "--confidence", "--timed", "--seeds"),
     "camera": ("--config", "--samples", "--naive-samples", "--camera-preset"),
     "effects": ("--config", "--samples"),
+    "cells": ("--config", "--samples"),
     "table": ("--write",),
 }
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("what", choices=["scan", "model", "pipeline", "search", "map", "camera",
-                                     "memory", "nodes", "effects", "table"],
+                                     "memory", "nodes", "effects", "cells", "table"],
                    help="memory: peak memory of a whole `falsify grid --config ... --workers N` "
                    "run, all processes together; nodes: Ray on local clusters of 1..--nodes "
                    "one-CPU nodes; map: the level-set sampler's map against the full grid's "
                    "at each --budgets; effects: a scan with its weather and sensor effects "
-                   "against the same scan clear; table: saved --json results (RESULTS) as "
-                   "one markdown table per CPU")
+                   "against the same scan clear; cells: a run's cell maps of --samples drawn "
+                   "rows (default 50,000) against one pandas group per cell; table: saved "
+                   "--json results (RESULTS) as one markdown table per CPU")
     p.add_argument("results", nargs="*", metavar="RESULTS",
                    help="bench table: the JSON files `falsify bench WHAT --json` wrote")
     p.add_argument("--write", default=None, metavar="DOC",
@@ -60,7 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the space (default: each benchmark's own: configs/bench.toml for scan, "
                    "pipeline and nodes, configs/ci.toml for memory, configs/yaw.toml for "
                    "search, configs/weather.toml for map and effects, configs/paper.toml for "
-                   "camera)")
+                   "camera and cells)")
     p.add_argument("--samples", type=int, default=None,
                    help="how many samples (default: each benchmark's own)")
     p.add_argument("--naive-samples", type=int, default=None,
@@ -376,6 +378,18 @@ def _bench_effects(args) -> tuple[dict, str]:
     return result, text
 
 
+def _bench_cells(args) -> tuple[dict, str]:
+    from falsify.bench.cells import bench_cells
+
+    result = bench_cells(args.config, **given_options(args, "samples")).to_json()
+    n = len(result['maps'])
+    text = (f"cells: {n} map{'s' * (n != 1)}, {result['cells']:,} cells of "
+            f"{result['samples']:,} rows: {result['s_arrays']} s in arrays, "
+            f"{result['s_per_group']} s one pandas group per cell ({result['speedup']}x); "
+            f"the same bytes: {'yes' if result['identical'] else 'NO'}")
+    return result, text
+
+
 def _table(args) -> int:
     """`bench table`: the saved results as tables, printed or spliced into --write."""
     from falsify.bench.tables import load, render, splice
@@ -398,7 +412,8 @@ def _table(args) -> int:
 
 BENCHMARKS = {"model": _bench_model, "pipeline": _bench_pipeline, "memory": _bench_memory,
               "nodes": _bench_nodes, "search": _bench_search, "map": _bench_map,
-              "scan": _bench_scan, "camera": _bench_camera, "effects": _bench_effects}
+              "scan": _bench_scan, "camera": _bench_camera, "effects": _bench_effects,
+              "cells": _bench_cells}
 
 
 def pipeline_figures_text(r: dict) -> str:

@@ -1,6 +1,6 @@
 """The cell map of a large run is computed per cell in arrays, not per pandas group: it must give
-the bytes the per-group computation gave (the oracle below), on grid and searched rows, numeric
-and categorical axes, missing and invalid values, and rows that fall outside the axes."""
+the bytes the per-group computation gives (`bench cells`' naive path), on grid and searched
+rows, numeric and categorical axes, missing and invalid values, and rows off the axes."""
 
 from __future__ import annotations
 
@@ -8,34 +8,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from falsify.results.metrics import Status
-from falsify.results.miou_maps import _match, axis_values, cell_mean, miou_map, snap
+from falsify.bench.cells import per_group_map
+from falsify.results.miou_maps import miou_map
 from falsify.world.space import load_space
 from tests.runfixture import SMOKE
-
-
-def per_group_map(frame: pd.DataFrame, space, a: str, b: str, column: str):
-    """The map as one pandas group per cell computes it: the reference, slow on large runs."""
-    a_vals, b_vals = axis_values(space, a), axis_values(space, b)
-    shape = (len(b_vals), len(a_vals))
-    miou = np.full(shape, np.nan)
-    counts = [np.zeros(shape, np.int64) for _ in range(3)]
-    ai = {v: i for i, v in enumerate(a_vals)}
-    bi = {v: j for j, v in enumerate(b_vals)}
-    sa, sb = snap(frame[a], space, a), snap(frame[b], space, b)
-    for (av, bv), grp in frame.groupby([sa, sb], sort=True):
-        i, j = ai.get(_match(av, a_vals)), bi.get(_match(bv, b_vals))
-        if i is None or j is None:
-            continue
-        scored = grp[grp["status"] != Status.INVALID]
-        values = scored[column].astype(float).dropna()
-        counts[0][j, i] = len(values)
-        counts[1][j, i] = len(scored) - len(values)
-        counts[2][j, i] = len(grp) - len(scored)
-        if len(values):
-            miou[j, i] = cell_mean(values.to_numpy())
-    return miou, *counts
-
 
 SPACE = """name = "s"
 sensor = "kitti-hdl64e-front"
@@ -76,10 +52,9 @@ def test_a_large_runs_map_is_the_per_group_maps_bytes(tmp_path, seed, a, b) -> N
     })
     got = miou_map(frame, space, a, b, "car_iou")
     want = per_group_map(frame, space, a, b, "car_iou")
-    assert got.miou.tobytes() == want[0].tobytes()
-    for have, expected in zip((got.samples, got.undefined, got.invalid), want[1:],
-                              strict=True):
-        assert np.array_equal(have, expected)
+    assert got.miou.tobytes() == want.miou.tobytes()
+    for name in ("samples", "undefined", "invalid"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
     assert np.isfinite(got.miou).sum() > 0.5 * got.miou.size
 
 
@@ -93,5 +68,5 @@ def test_the_smoke_maps_edge_rows_match_too() -> None:
                           "car_iou": [None, 0.5, None]})
     got = miou_map(frame, space)
     want = per_group_map(frame, space, "x", "y", "car_iou")
-    assert got.miou.tobytes() == want[0].tobytes()
+    assert got.miou.tobytes() == want.miou.tobytes()
     assert (got.invalid[0, 0], got.samples[1, 1], got.undefined[1, 1]) == (1, 1, 1)
