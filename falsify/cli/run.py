@@ -55,7 +55,12 @@ def run_options(p: argparse.ArgumentParser) -> None:
                    help="speed against accuracy, by the variant of the bundled network run: "
                    "exact (fp32, 3 CRF iterations; the default), balanced (int8, 3), fast "
                    "(int8, 1), fastest (int8, no CRF); not with --model or --backend torch")
-    p.add_argument("--no-report", action="store_true")
+    p.add_argument("--no-report", action="store_true",
+                   help="write no report.html (the maps, tables and summary.json still)")
+    p.add_argument("--no-retrain", action="store_true",
+                   help="write no retraining set (the scans of the blind cells' samples, "
+                   "0.75 MB each: 661 scans for the paper grid with 46 blind cells), as a CI "
+                   "gate needs none; a retrain/ folder of an earlier finish is removed")
     p.add_argument("--max-samples", type=int, default=MAX_SAMPLES,
                    help=f"refuse a grid or budget larger than this (default {MAX_SAMPLES:,})")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -86,6 +91,7 @@ def summary_text(s) -> str:
         (f"retraining set: {s.retraining_samples} scans in {Path(s.run) / 'retrain'}"
          + (" (SemanticKITTI layout)" if s.retraining_format == "semantickitti" else "")
          if s.retraining_samples else
+         "retraining set: not written (--no-retrain)" if s.retraining_skipped else
          "retraining set: none (no valid sample in a blind-spot cell), so no retrain/ folder"),
     ]
     if s.estimated:
@@ -224,6 +230,7 @@ def run_job(args, command: str, algorithm: str) -> int:
         backend=backend, device=args.device, objective=args.objective,
         workers=args.workers, resume=args.resume,
         threshold=args.threshold, fidelity=args.fidelity, report=not args.no_report,
+        retrain=not args.no_retrain,
         camera=args.camera, retrain_format=args.retrain_format,
         max_samples=args.max_samples, executor=args.executor,
         address=args.address, confidence=getattr(args, "confidence", None),

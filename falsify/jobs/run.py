@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+import shutil
 import sqlite3
 import sys
 import time
@@ -87,6 +88,7 @@ class RunRequest:
     threshold: float | None = None
     fidelity: str = "exact"
     report: bool = True
+    retrain: bool = True         # write the retraining set (False: none, its folder removed)
     camera: str | None = None    # camera preset: render the retraining set's images too
     retrain_format: str = "npy"  # the retraining set's layout (retraining_set.RETRAIN_FORMATS)
     max_samples: int = MAX_SAMPLES   # a grid or budget larger than this is refused up front
@@ -119,6 +121,10 @@ def prepare(req: RunRequest) -> Prepared:
                            "scene to render (drop --camera)")
     check_looks(space)   # stored in the results whether or not a camera renders them
     check_retrain_format(req.retrain_format)
+    if not req.retrain and (req.camera is not None or req.retrain_format != "npy"):
+        given = "--camera" if req.camera is not None else "--retrain-format"
+        raise FalsifyError(f"{given} shapes the retraining set, which --no-retrain leaves "
+                           f"unwritten: drop one of them")
     if req.camera is not None:
         from falsify.sensor.camera import camera_preset
         camera_preset(req.camera)
@@ -365,6 +371,7 @@ class RunSummary:
     report: str | None = None
     retraining_camera: str | None = None   # the camera preset whose images sit beside the scans
     retraining_format: str | None = None   # set when not npy: the retraining set's layout
+    retraining_skipped: bool | None = None  # set (True) when --no-retrain left it unwritten
     executors: list[str] | None = None     # set when resumed on another executor: all, in order
     # set when computed under environments that may give other numbers: what changed
     environment_changes: list[str] | None = None
@@ -376,10 +383,12 @@ class RunSummary:
     search: SearchResult | None = field(default=None, repr=False)
 
     def to_json(self) -> dict:
-        """Plain JSON data; `report`, `retraining_camera`, `retraining_format`, `executors`,
-        `environment_changes` and the objective's fields only when set."""
+        """Plain JSON data; `report`, `retraining_camera`, `retraining_format`,
+        `retraining_skipped`, `executors`, `environment_changes` and the objective's fields
+        only when set."""
         out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "search"}
-        for optional in ("report", "retraining_camera", "retraining_format", "executors",
+        for optional in ("report", "retraining_camera", "retraining_format",
+                         "retraining_skipped", "executors",
                          "environment_changes",
                          "objective", "mean_objective", "estimated", "unlabelled_backgrounds"):
             if out[optional] is None:
@@ -473,7 +482,7 @@ def _execute(req: RunRequest, on_progress: ProgressListener | None, made: list[P
         store.close()
     return finish(req.out, p.space, threshold=req.threshold, report=req.report,
                   lod=p.settings.lod, model=p.model, search=search,
-                  camera=req.camera, retrain_format=req.retrain_format)
+                  camera=req.camera, retrain_format=req.retrain_format, retrain=req.retrain)
 
 
 def planned_samples(req: RunRequest, space: Space) -> int:
@@ -561,8 +570,10 @@ def executors_of(meta: dict) -> list[str]:
 def finish(run: Path, space: Space, threshold: float | None = None, report: bool = True,
            lod: int = 2, model: Segmenter | None = None,
            search: SearchResult | None = None,
-           camera: str | None = None, retrain_format: str = "npy") -> RunSummary:
-    """Maps, blind spots, retraining set, CSV/Parquet, report and the summary of a run. The
+           camera: str | None = None, retrain_format: str = "npy",
+           retrain: bool = True) -> RunSummary:
+    """Maps, blind spots, retraining set (unless not `retrain`: any earlier one removed, as it
+    was of other maps), CSV/Parquet, report and the summary of a run. The
     last outputs' summary and report go first and the summary is written last, so a kill in
     between (a --resume at another --threshold) leaves no summary beside other maps."""
     for name in ("summary.json", "report.html"):
@@ -583,7 +594,11 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
         write_bytes(maps_dir / f"iou_{column(name)}_x_y.csv",
                     miou_map(frame, space, "x", "y", c).to_frame().to_csv(index=False).encode())
     export(frame, run / "results")
-    retrain = write_retraining_set(data, cmap, thr, lod, camera, fmt=retrain_format)
+    if retrain:
+        scans = write_retraining_set(data, cmap, thr, lod, camera, fmt=retrain_format)
+    else:
+        shutil.rmtree(run / "retrain", ignore_errors=True)
+        scans = 0
     ok = data.ok
     lowest = None
     if len(ok):
@@ -604,7 +619,8 @@ def finish(run: Path, space: Space, threshold: float | None = None, report: bool
                                                          "upper": round(c.upper, 4)})
                           for c in blind],
         estimated=estimated_of(meta, cmap, thr),
-        lowest=lowest, elapsed_s=meta.get("elapsed_s"), retraining_samples=retrain,
+        lowest=lowest, elapsed_s=meta.get("elapsed_s"), retraining_samples=scans,
+        retraining_skipped=None if retrain else True,
         retraining_camera=camera,
         retraining_format=None if retrain_format == "npy" else retrain_format,
         executors=executors if len(executors := executors_of(meta)) > 1 else None,
