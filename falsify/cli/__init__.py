@@ -122,6 +122,9 @@ def build_parser() -> argparse.ArgumentParser:
     for command in COMMANDS:
         c = sub.add_parser(command.name, help=command.help, description=command.description)
         command.module.add_arguments(c)
+        for action in c._actions:   # one wording for every command's --json
+            if "--json" in action.option_strings and action.help is None:
+                action.help = "print the summary as JSON on stdout, for scripts and CI"
         c.set_defaults(func=command.module.run)
     return p
 

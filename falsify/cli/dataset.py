@@ -32,14 +32,18 @@ INDEX_DEFAULTS = {"format": "npy", "labels": "kitti4", "traffic": "scattered"}
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", help="a space config: its sensor is used, not its dims")
-    p.add_argument("--scans", type=int, required=True)
+    p.add_argument("--scans", type=int, required=True, help="how many scans to write")
     p.add_argument("--out", required=True,
                    help="a new or empty folder; or one this command wrote, to resume or extend "
                    "it with the same options (--scans at least the set's)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--first-background", type=int, default=1000)
-    p.add_argument("--backgrounds", type=int, default=1000)
-    p.add_argument("--max-cars", type=int, default=12)
+    p.add_argument("--seed", type=int, default=0, help="fixes every scene (default 0)")
+    p.add_argument("--first-background", type=int, default=1000,
+                   help="the first street id drawn from (default 1000: the configs' "
+                   "spaces use lower ids, so training and test streets differ)")
+    p.add_argument("--backgrounds", type=int, default=1000,
+                   help="distinct streets to draw from (default 1000)")
+    p.add_argument("--max-cars", type=int, default=12,
+                   help="the most cars placed in a scene (default 12)")
     p.add_argument("--ray-drop", type=float, default=None,
                    help="extra probability that a return is dropped, on top of the sensor's "
                    f"return model (default: 0 with a fitted return model, else {UNIFORM_RAY_DROP})")

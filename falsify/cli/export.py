@@ -11,9 +11,11 @@ from falsify.cli.common import int_in
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("weights", help="a state dict (.pt) or a training checkpoint.pt")
     p.add_argument("--out", required=True, help="the .onnx to write (spec .json beside it)")
-    p.add_argument("--crf-iterations", type=int, default=3, choices=range(4))
-    p.add_argument("--height", type=int, default=64)
-    p.add_argument("--width", type=int, default=512)
+    p.add_argument("--crf-iterations", type=int, default=3, choices=range(4),
+                   help="the CRF's mean-field iterations in the graph (0: none; default 3)")
+    p.add_argument("--height", type=int, default=64, help="range image rows (default 64)")
+    p.add_argument("--width", type=int, default=512,
+                   help="range image columns (default 512)")
     p.add_argument("--note", action="append", default=[], metavar="KEY=VALUE",
                    help="extra facts recorded in the spec (repeatable)")
     p.add_argument("--int8", default=None, metavar="PATH",

@@ -45,7 +45,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "pixel, with that pixel's prediction, against its own label and at its own "
                    "range (SemanticKITTI's leaderboard protocol; .npy range images refused: "
                    "they hold no points)")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True,
+                   help="folder for each scan's prediction (X.pred.npy) and its picture (X.png), "
+                   "named for the scan")
     p.add_argument("--json", action="store_true")
 
 

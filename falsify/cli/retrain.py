@@ -18,26 +18,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--validation-backgrounds", required=True, metavar="IDS", help="V, e.g. 0-6")
     p.add_argument("--retraining-backgrounds", required=True, metavar="IDS",
                    help="R, e.g. 7-14")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="the experiment's folder (its stages' runs)")
     p.add_argument("--resume", action="store_true", help="continue at the unfinished stage")
-    p.add_argument("--threshold", type=float, default=None)
-    p.add_argument("--epochs", type=int, default=1)
-    p.add_argument("--time-limit-min", type=float, default=None)
-    p.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp32"])
-    p.add_argument("--batch", type=int, default=8)
-    p.add_argument("--lr", type=float, default=3e-4)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threshold", type=float, default=None,
+                   help="mIoU below which a cell is blind (default: the config's)")
+    p.add_argument("--epochs", type=int, default=1, help="fine-tuning epochs (default 1)")
+    p.add_argument("--time-limit-min", type=float, default=None,
+                   help="stop fine-tuning after this many minutes (default: no limit)")
+    p.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp32"],
+                   help="auto: bf16 where the CPU (or GPU) computes it natively, else fp32")
+    p.add_argument("--batch", type=int, default=8, help="scans a step (default 8)")
+    p.add_argument("--lr", type=float, default=3e-4, help="learning rate (default 3e-4)")
+    p.add_argument("--seed", type=int, default=0, help="fine-tuning's seed (default 0)")
     p.add_argument("--oversample", type=int, default=20,
                    help="times each selected scan appears in the fine-tuning set")
     p.add_argument("--train-scans", type=int, default=None,
                    help="use only the first N training scans")
-    p.add_argument("--held-out-scans", type=int, default=200)
+    p.add_argument("--held-out-scans", type=int, default=200,
+                   help="synthetic drive-style scans of held-out streets to check on before "
+                   "and after (0: none; default 200)")
     p.add_argument("--kitti", default=None, metavar="DIR",
                    help="a folder of real KITTI sets to check on before and after (squeezeseg/"
                    " .npy scans, semantickitti/ .bin scans, the held-out scans of "
                    "semantickitti-mini/); the checks are skipped without it")
     holdout_option(p)
-    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--workers", type=int, default=2,
+                   help="worker processes of the grids on V (default 2)")
     p.add_argument("--selection", default="blind",
                    choices=["blind", "control", "rules", "random"],
                    help="blind: R's scans at V's blind cells (the paper); control: at as many "

@@ -12,7 +12,9 @@ from falsify.owned_files import FileList
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True,
+                   help="folder for scan.npy (the range image), scan.png (its picture) and "
+                   "scan.bin/.label (its points, KITTI's layout); with --camera, the images")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="fix a dimension (repeatable); other dims take their first value")
     camera_option(p, "also render the camera: image.png, class.png/.npy, instance.npy, "

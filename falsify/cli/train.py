@@ -18,21 +18,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--data", required=True, help="folder of *.npy scans (H, W, 6)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--epochs", type=int, default=30)
-    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--epochs", type=int, default=30, help="epochs over --data (default 30)")
+    p.add_argument("--batch", type=int, default=8, help="scans a step (default 8)")
     p.add_argument("--resume", action="store_true",
                    help="continue from OUT/checkpoint.pt, with the run's options (--data, "
                    "--batch, --lr, --seed, --channels, --classes, ...); --epochs may grow")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--time-limit-min", type=float, default=None)
+    p.add_argument("--seed", type=int, default=0,
+                   help="fixes the initial weights and the scans' order (default 0)")
+    p.add_argument("--time-limit-min", type=float, default=None,
+                   help="stop after this many minutes, the finished epochs kept (--resume "
+                   "goes on); default: no limit")
     p.add_argument("--val-data", default=None, help="folder of *.npy scans for car IoU")
-    p.add_argument("--lr", type=float, default=1e-3)
-    p.add_argument("--lr-decay", type=float, default=0.95)
-    p.add_argument("--crf-iterations", type=int, default=3, choices=range(4))
+    p.add_argument("--lr", type=float, default=1e-3, help="learning rate (default 1e-3)")
+    p.add_argument("--lr-decay", type=float, default=0.95,
+                   help="the rate is lr * lr_decay ** epoch (default 0.95)")
+    p.add_argument("--crf-iterations", type=int, default=3, choices=range(4),
+                   help="the CRF's mean-field iterations in the network (0: no CRF; default 3)")
     p.add_argument("--channels", default=",".join(DEFAULT_CHANNELS),
                    help=f"comma list from {','.join(ALL_CHANNELS)}")
-    p.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp32"])
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp32"],
+                   help="auto: bf16 where the CPU (or GPU) computes it natively, else fp32")
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
     p.add_argument("--max-steps", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--no-export", action="store_true", help="skip the ONNX export at the end")
     p.add_argument("--loss-on", default="backbone", choices=["backbone", "crf"],
@@ -42,7 +48,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="train only the CRF compatibility matrices, the backbone frozen")
     p.add_argument("--classes", default="kitti4", choices=CLASS_SETS,
                    help="what channel 5 holds: our four classes or SemanticKITTI's train ids")
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
+                   help="where to train (cuda: a CUDA build of torch and a GPU)")
     p.add_argument("--holdout", action="append", default=[], metavar="SPLITS_TOML",
                    help="a split manifest whose held-out scans --data and --val-data may not "
                    "hold (also $FALSIFY_HOLDOUT and a splits.toml beside the data)")
