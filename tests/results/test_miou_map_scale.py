@@ -30,14 +30,14 @@ values = [0, 3, 7]
 """
 
 
-@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("seed", range(2))
 @pytest.mark.parametrize(("a", "b"), [("x", "y"), ("car_model", "y"), ("x", "background")])
 def test_a_large_runs_map_is_the_per_group_maps_bytes(tmp_path, seed, a, b) -> None:
     cfg = tmp_path / "s.toml"
     cfg.write_text(SPACE)
     space = load_space(cfg)
     rng = np.random.default_rng(seed)
-    n = 20_000
+    n = 8_000
     iou = rng.random(n)
     iou[rng.random(n) < 0.1] = np.nan                           # undefined
     status = np.where(np.isnan(iou), "undefined", "ok").astype(object)
