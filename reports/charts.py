@@ -54,6 +54,18 @@ def viridis(value: float) -> str:
     return _ramp(VIRIDIS, value)
 
 
+def viridis_rgb(values: np.ndarray, missing: str = "#e9ebef") -> np.ndarray:
+    """`viridis` of every value at once as uint8 RGB (the same colours), `missing` for NaN."""
+    stops = np.array([_hex(c) for c in VIRIDIS])
+    t = np.clip(np.nan_to_num(values, nan=0.0), 0.0, 1.0)
+    pos = t * (len(stops) - 1)
+    i = np.minimum(pos.astype(np.int64), len(stops) - 2)
+    rgb = stops[i] + (stops[i + 1] - stops[i]) * (pos - i)[..., None]
+    rgb = np.round(rgb)
+    rgb[np.isnan(values)] = _hex(missing)
+    return rgb.astype(np.uint8)
+
+
 def diverging(change: float, span: float) -> str:
     """Diverging colour of a change in [-span, span]."""
     return _ramp(PUOR, 0.5 + change / (2 * span))

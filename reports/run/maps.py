@@ -3,11 +3,22 @@ multiples, the inserted and real objects' maps (real backgrounds) and the per-cl
 
 from __future__ import annotations
 
+import base64
 import math
 
 import numpy as np
 
-from falsify.reports.charts import Grid, axes_svg, cells_svg, f3, legend_svg, svg_element, viridis
+from falsify.images.png import encode_png
+from falsify.reports.charts import (
+    Grid,
+    axes_svg,
+    cells_svg,
+    f3,
+    legend_svg,
+    svg_element,
+    viridis,
+    viridis_rgb,
+)
 from falsify.reports.page import esc, scroll_open
 from falsify.reports.run.common import (
     CELL_ROWS,
@@ -23,6 +34,9 @@ from falsify.results.miou_maps import CellMap, snap
 from falsify.results.store import RunData
 
 MAX_MULTIPLES = 30
+# A small map of more cells than this is one picture, a pixel a cell: its cells are too small
+# to point at, and a rect each made a page of 40 MB for two maps of 56,000 cells.
+SMALL_MAP_RECTS = 2_500
 
 
 def _cell_tip(x: str, y: str, miou: float | None, n: int, undefined: int, invalid: int,
@@ -134,7 +148,16 @@ def _small_map(cmap: CellMap, threshold: float, tip_prefix: str, title: str
             int(cmap.samples[j, i]), int(cmap.undefined[j, i]), int(cmap.invalid[j, i]),
             threshold)
 
-    body = cells_svg(grid, cmap.miou, viridis, tip, "mcell", blind, present=cmap.filled)
+    if cmap.miou.size > SMALL_MAP_RECTS:
+        grid = Grid(cmap.a_values, cmap.b_values, 84 / len(cmap.a_values),
+                    96 / len(cmap.b_values))
+        png = encode_png(viridis_rgb(cmap.miou[::-1]))   # row 0, the nearest, at the bottom
+        body = (f'<image class="mpic" width="84" height="96" preserveAspectRatio="none" '
+                f'href="data:image/png;base64,{base64.b64encode(png).decode("ascii")}">'
+                f"<title>{esc(tip_prefix)}: {cmap.miou.size:,} cells, a pixel each; point at "
+                "the main map for a cell's value</title></image>")
+    else:
+        body = cells_svg(grid, cmap.miou, viridis, tip, "mcell", blind, present=cmap.filled)
     valid = cmap.miou[~np.isnan(cmap.miou)]
     mean = f3(float(valid.mean())) if valid.size else "—"
     return (svg_element(body, grid.width, grid.height, "small", "", title), mean,

@@ -9,6 +9,7 @@ import re
 from itertools import pairwise
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from falsify.jobs.report import render_report, write_report
@@ -125,3 +126,38 @@ def test_the_arrow_keys_skip_empty_cells(browser, run) -> None:
     xs = [b for b in boxes if re.fullmatch(r"-?\d+(\.\d+)?", b[2])]
     assert len(xs) >= 10
     assert all(a[1] + 2 <= b[0] for a, b in pairwise(xs)), xs[:5]
+
+
+DENSE = FINE.replace("step = 0.1", "step = 0.8").replace("step = 0.25", "step = 0.7")
+
+
+def test_a_dense_grids_small_maps_are_one_picture_a_pixel_a_cell(tmp_path, browser) -> None:
+    """51 x 51 cells on two streets: each per-background map is a PNG of 51 x 51 pixels in
+    the main map's colours (nearest row at the bottom), not 2,601 rects."""
+    import base64
+
+    from falsify.images.png import decode_png
+    from falsify.reports.charts import viridis_rgb
+    from falsify.reports.run.maps import SMALL_MAP_RECTS
+
+    (tmp_path / "dense.toml").write_text(DENSE)
+    run = write_run(tmp_path / "run", tmp_path / "dense.toml")
+    data = open_run(run)
+    page = render_report(run, predict=False)
+    pictures = re.findall(r'<image class="mpic"[^>]*href="data:image/png;base64,([^"]+)"',
+                          page)
+    assert len(pictures) == 2 and 'class="mcell' not in page
+    for bg, b64 in zip((0, 1), pictures, strict=True):
+        cmap = data.cell_map(data.frame[data.frame["background"] == bg])
+        assert cmap.miou.size == 51 * 51 > SMALL_MAP_RECTS
+        rgb = decode_png(base64.b64decode(b64))
+        assert rgb.shape == (51, 51, 3)
+        assert np.array_equal(rgb, viridis_rgb(cmap.miou[::-1]))
+    assert len(re.findall(r'<rect class="cell', page)) == 51 * 51   # the main map: all cells
+    path = write_report(run, predict=False)
+    browser.get(path.as_uri())
+    assert_offline(browser)
+    size = browser.execute_script(
+        "var r = document.querySelector('.mpic').getBoundingClientRect();"
+        "return [r.width, r.height];")
+    assert size == [84, 96]
