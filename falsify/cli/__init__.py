@@ -117,7 +117,11 @@ COMMANDS: tuple[Command, ...] = (
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from falsify import __version__
+
     p = Parser(prog="falsify", description=__doc__)
+    p.add_argument("--version", action="version", version=f"falsify {__version__}",
+                   help="print falsify's version and exit")
     sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
     for command in COMMANDS:
         c = sub.add_parser(command.name, help=command.help, description=command.description)

@@ -27,3 +27,12 @@ def test_help_shows_the_defaults_a_user_must_know(capsys) -> None:
             assert exc.code == 0
         text = " ".join(capsys.readouterr().out.split())
         assert says in text, (argv, says)
+
+
+def test_version_is_printed(capsys) -> None:
+    import falsify
+    try:
+        main(["--version"])
+    except SystemExit as exc:
+        assert exc.code == 0
+    assert capsys.readouterr().out == f"falsify {falsify.__version__}\n"
