@@ -51,9 +51,10 @@ def cpu_session(model: str | bytes, threads: int | None = None):
     intra-op threads (None: `default_threads()`) and one inter-op thread, warnings off.
 
     Subnormal floats flush to zero (FTZ/DAZ; ONNX Runtime sets it on its threads and on the
-    thread that opens the session): 2 % of the CRF's bilateral weights on synthetic test scans
-    are subnormal, which Intel cores handle by microcode assists; AMD's at full speed (the
-    2-core EPYC: same time either way) and the outputs were bit for bit the same on 24 scans."""
+    thread that opens the process's first session): 2 % of the CRF's bilateral weights on
+    synthetic test scans are subnormal, which Intel cores handle by microcode assists; AMD's
+    at full speed (the 2-core EPYC: same time either way) and the outputs were bit for bit the
+    same on 24 scans."""
     return onnx_session(model, threads)
 
 

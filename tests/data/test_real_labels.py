@@ -185,7 +185,8 @@ def test_the_unlabelled_scans_line_names_the_runs_class(objective, named):
     s = SimpleNamespace(
         lowest=None, objective=objective, mean_car_iou=None, mean_objective=None, samples=2,
         computed_this_time=2, invalid=0, undefined=0, elapsed_s=1.0, blind_spots=0, cells=1,
-        threshold=0.65, retraining_samples=0, run="r", estimated=None, executors=None,
+        threshold=0.65, retraining_samples=0, retraining_skipped=None, run="r", estimated=None,
+        executors=None,
         environment_changes=None,
         report=None, unlabelled_backgrounds=["seq/scan"])
     assert (f"a {named} predicted on one of their real {named}s counts against the inserted "
