@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 from pathlib import Path
@@ -52,11 +53,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from falsify.data.scansets import NPY_HAS_NO_POINTS, plan_sets, read_sets
+    from falsify.data.scansets import NPY_HAS_NO_POINTS, plan_name, plan_sets
     from falsify.fileio import write_bytes, write_npy
     from falsify.images.png import encode_png
     from falsify.images.scan_pictures import prediction_picture
-    from falsify.jobs.predict import evaluate
+    from falsify.jobs.predict import evaluate_plans
     from falsify.models.runners import backend_for, load_segmenter
     from falsify.sensor.lidar import load_sensor
 
@@ -77,25 +78,40 @@ def run(args) -> int:
     model = load_segmenter(args.model, backend=backend, device=args.device)
     if projects:
         model.spec.check_fits(sensor, args.model or "bundled")
-    sets = read_sets(plans, sensor, points=args.score == "points")
     out = Path(args.out)
-    targets = output_stems(sets, out)
+    targets = output_stems([(plan_name(p), tuple(map(str, p.files))) for p in plans], out)
     check_prediction_targets(out, targets)
-    for s in sets:
+    made = sorted({d for stems in targets for stem in stems
+                   for d in (stem.parent, *stem.parent.parents) if not d.exists()},
+                  key=lambda d: len(d.parts), reverse=True)   # the folders writing makes
+    written = [0] * len(plans)
+
+    def write(k: int, scans, r) -> None:
+        """A part's predictions and pictures, as it is evaluated: the scans are not kept."""
+        labelled = scans.labelled()
+        stems = targets[k][written[k]:written[k] + len(scans)]
+        for j, (stem, cls) in enumerate(zip(stems, r.predictions, strict=True)):
+            write_npy(stem.with_name(f"{stem.name}{PRED_SUFFIX}"), cls)
+            picture = prediction_picture(scans.images[j], cls, labelled=bool(labelled[j]))
+            write_bytes(stem.with_name(f"{stem.name}.png"), encode_png(picture))
+        written[k] += len(scans)
+
+    remove_predictions(out, targets)   # a stop while writing leaves none of the last run's
+    try:
+        result = evaluate_plans(model, plans, sensor, score=args.score, on_part=write)
+    except BaseException:   # a bad scan, a stop: none of this run's files stay half written
+        remove_predictions(out, targets)
+        for d in made:
+            with contextlib.suppress(OSError):
+                d.rmdir()
+        raise
+    for s in result.sets:   # once every scan is read: a bad one is the only line it prints
         for source in s.unlabelled:
             print(f"falsify: warning: no labels for {source} (looked for {Path(source).stem}"
                   ".label beside it and in ../labels/)", file=sys.stderr)
         for label in s.orphan_labels:
             print(f"falsify: warning: {label}: labels without a scan (no "
                   f"{Path(label).stem}.bin among the set's scans); not scored", file=sys.stderr)
-    result = evaluate(model, sets, score=args.score)
-    remove_predictions(out, targets)   # a stop while writing leaves none of the last run's
-    for s, scans, stems in zip(result.sets, sets, targets, strict=True):
-        labelled = scans.labelled()
-        for k, (stem, cls) in enumerate(zip(stems, s.predictions, strict=True)):
-            write_npy(stem.with_name(f"{stem.name}{PRED_SUFFIX}"), cls)
-            picture = prediction_picture(scans.images[k], cls, labelled=bool(labelled[k]))
-            write_bytes(stem.with_name(f"{stem.name}.png"), encode_png(picture))
     summary = {**result.to_json(), "backend": backend, "out": str(out)}
     labelled = result.labelled_sets > 0
     if not labelled:
@@ -132,17 +148,18 @@ def remove_predictions(out: Path, targets: list[list[Path]]) -> None:
         stem.with_name(f"{stem.name}{PRED_SUFFIX}").unlink(missing_ok=True)
 
 
-def output_stems(sets, out: Path) -> list[list[Path]]:
-    """Per set, per scan: the path its .pred.npy and .png are named from (under --out, in a
-    folder per set when there are several); FalsifyError naming both scans where two would
-    write the same files (x.npy beside x.bin, or sets of the same name)."""
+def output_stems(sets: list[tuple[str, tuple[str, ...]]], out: Path) -> list[list[Path]]:
+    """Per set (its name and its scans' sources), per scan: the path its .pred.npy and .png are
+    named from (under --out, in a folder per set when there are several); FalsifyError naming
+    both scans where two would write the same files (x.npy beside x.bin, or sets of the same
+    name)."""
     taken: dict[Path, str] = {}
     stems = []
-    for s in sets:
-        parts = [q for q in Path(s.name).parts if q not in (Path(s.name).anchor, ".", "..")]
+    for name, sources in sets:
+        parts = [q for q in Path(name).parts if q not in (Path(name).anchor, ".", "..")]
         folder = out.joinpath(*parts) if len(sets) > 1 else out
-        stems.append([folder / Path(src).stem for src in s.sources])
-        for stem, src in zip(stems[-1], s.sources, strict=True):
+        stems.append([folder / Path(src).stem for src in sources])
+        for stem, src in zip(stems[-1], sources, strict=True):
             first = taken.setdefault(stem, src)
             if first != src:
                 raise UsageError(f"{first} and {src}: both would be predicted into "

@@ -317,6 +317,41 @@ def read_sets(plans: list[SetPlan], sensor: Sensor, points: bool = False) -> lis
     return sets
 
 
+def read_part(plan: SetPlan, files: list[Path], sensor: Sensor, points: bool = False
+              ) -> ScanSet:
+    """Some of a planned set's scans, read as `read_sets` reads the whole set (its labels
+    without a scan are the plan's, `plan_orphans`)."""
+    if plan.object_root is not None:
+        return read_object_set(plan.object_root, files, sensor, points)
+    return read_set(plan.name, files, sensor, points)
+
+
+def plan_name(plan: SetPlan) -> str:
+    """The name `read_sets` gives a planned set."""
+    return plan.object_root.name if plan.object_root is not None else plan.name
+
+
+def plan_unlabelled(plan: SetPlan) -> tuple[str, ...]:
+    """The planned set's .bin scans that no label file goes with, as reading lists them."""
+    if plan.object_root is not None:
+        return ()
+    return tuple(str(p) for p in plan.files if p.suffix == ".bin" and label_file(p) is None)
+
+
+def plan_orphans(plan: SetPlan) -> tuple[str, ...]:
+    """The labels of the planned set's folder whose .bin is missing (`labels_without_scans`)."""
+    if plan.object_root is not None or plan.scan_dir is None:
+        return ()
+    return tuple(map(str, labels_without_scans(plan.scan_dir)))
+
+
+def plan_semantic(plan: SetPlan) -> bool:
+    """Whether the whole set, read, carries SemanticKITTI labels (`ScanSet.semantic`): every
+    scan a .bin, and at least one with its .label."""
+    return (plan.object_root is None and all(p.suffix == ".bin" for p in plan.files)
+            and len(plan_unlabelled(plan)) < len(plan.files))
+
+
 def load_sets(paths: list[str], sensor: Sensor, sequences: list[str] | None = None,
               points: bool = False) -> list[ScanSet]:
     """Named sets from command-line paths (`plan_sets`), read (`read_sets`)."""
