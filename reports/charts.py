@@ -159,10 +159,8 @@ def cells_svg(grid: Grid, values: np.ndarray, fill: Callable[[float], str],
               present: np.ndarray | None = None,
               absent: str = "no sample in this cell") -> str:
     """One rect per cell (hatched where NaN), optional in-cell labels and outlines on top.
-    Where `present` is given, only its cells get a rect, over one hatched rect for the rest
-    (its tip `absent`):
-    a search over a fine grid leaves most cells without a sample, and a rect each made pages
-    of 100 MB that a browser took most of a minute to open."""
+    Where `present` is given, only its cells get a rect, over one hatched rect (its tip
+    `absent`) for the rest: a search over a fine grid leaves most cells without a sample."""
     parts, labels, outlines = [], [], []
     inset = min(1.5, min(grid.cw, grid.ch) / 4)   # an outline inside its cell, however small
     if present is not None and not present.all():

@@ -182,8 +182,11 @@ def band_counts(pred: np.ndarray, label: np.ndarray, rng: np.ndarray, ignore: np
 def semantic_scoring(model: Segmenter, sets: list[ScanSet]) -> bool:
     """Score per SemanticKITTI class: the model predicts SemanticKITTI's classes and every set's
     scans carry SemanticKITTI labels (else the four-class view is scored)."""
-    if not sets or any(s.semantic is None for s in sets):
-        return False
+    return bool(sets) and all(s.semantic is not None for s in sets) and predicts_semantic(model)
+
+
+def predicts_semantic(model: Segmenter) -> bool:
+    """Whether the model's classes are SemanticKITTI's (scored per train class)."""
     classes = getattr(model.spec, "classes", None)
     return bool(classes) and Scoring.of(list(classes), "miou").semantic
 
@@ -266,16 +269,34 @@ def evaluate(model: Segmenter, sets: list[ScanSet],
     """Evaluate `model` on each set (scores pooled per set, per band) and on all together, over
     pixels or points (`score`, SCORES)."""
     semantic = semantic_scoring(model, sets)
-    results = tuple(_points_network_set(model, s, bands, semantic)
-                    if score == "points" and model.spec.input_kind == "points"
-                    else evaluate_set(model, s, bands, semantic, score) for s in sets)
-    total = pooled([r.pooled.counts for r in results])
+    results = tuple(_scored_set(model, s, bands, semantic, score) for s in sets)
+    return _evaluation(model, results, bands, semantic, score)
+
+
+def _scored_set(model: Segmenter, scans: ScanSet, bands: tuple[tuple[float, float], ...],
+                semantic: bool, score: str) -> SetEvaluation:
+    """One set's evaluation: a points network fed its points when scored per point."""
+    if score == "points" and model.spec.input_kind == "points":
+        return _points_network_set(model, scans, bands, semantic)
+    return evaluate_set(model, scans, bands, semantic, score)
+
+
+def _evaluation(model: Segmenter, results: tuple[SetEvaluation, ...],
+                bands: tuple[tuple[float, float], ...], semantic: bool,
+                score: str) -> Evaluation:
+    """The sets' evaluations with every set's counts pooled, overall and per band."""
+    return Evaluation(model.spec.name, model.model_hash, results,
+                      Scores.of(pooled([r.pooled.counts for r in results])),
+                      _band_scores(_band_sum(results, bands, semantic), bands), score)
+
+
+def _band_sum(results, bands: tuple[tuple[float, float], ...], semantic: bool) -> np.ndarray:
+    """The per-band counts of `results` (set or part evaluations) summed."""
     n = len(TRAIN_CLASSES) if semantic else len(CLASSES)
-    band_sum = np.zeros((len(bands), n, 3), np.int64)
+    total = np.zeros((len(bands), n, 3), np.int64)
     for r in results:
-        band_sum += np.stack([sc.counts for _, sc in r.bands])
-    return Evaluation(model.spec.name, model.model_hash, results, Scores.of(total),
-                      _band_scores(band_sum, bands), score)
+        total += np.stack([sc.counts for _, sc in r.bands])
+    return total
 
 
 # Scans read, predicted and handed on at a time by `evaluate_plans`: a SemanticKITTI sequence of
@@ -294,10 +315,8 @@ def evaluate_plans(model: Segmenter, plans: list[SetPlan], sensor: Sensor,
     `evaluate` gives on the whole sets, whose protocol (per SemanticKITTI class or not) is
     decided from the plans."""
     part = part or PART
-    classes = getattr(model.spec, "classes", None)
-    semantic = (bool(plans) and all(plan_semantic(p) for p in plans) and bool(classes)
-                and Scoring.of(list(classes), "miou").semantic)
-    n = len(TRAIN_CLASSES) if semantic else len(CLASSES)
+    semantic = (bool(plans) and all(plan_semantic(p) for p in plans)
+                and predicts_semantic(model))
     shape = None
     results = []
     for k, plan in enumerate(plans):
@@ -311,31 +330,22 @@ def evaluate_plans(model: Segmenter, plans: list[SetPlan], sensor: Sensor,
                                    f"{sorted({shape, scans.images.shape[1:]})}")
             if semantic and scans.semantic is None:   # a part of unlabelled scans only
                 scans = replace(scans, semantic=np.zeros(scans.images.shape[:3], np.uint16))
-            r = (_points_network_set(model, scans, bands, semantic)
-                 if score == "points" and model.spec.input_kind == "points"
-                 else evaluate_set(model, scans, bands, semantic, score))
+            r = _scored_set(model, scans, bands, semantic, score)
             if on_part is not None:
                 on_part(k, scans, r)
             parts.append(replace(r, predictions=np.zeros((0,), np.uint8)))
-        results.append(_merged(parts, plan_orphans(plan), bands, n))
-    total = pooled([r.pooled.counts for r in results])
-    band_sum = np.zeros((len(bands), n, 3), np.int64)
-    for r in results:
-        band_sum += np.stack([sc.counts for _, sc in r.bands])
-    return Evaluation(model.spec.name, model.model_hash, tuple(results), Scores.of(total),
-                      _band_scores(band_sum, bands), score)
+        results.append(_merged(parts, plan_orphans(plan), bands, semantic))
+    return _evaluation(model, tuple(results), bands, semantic, score)
 
 
 def _merged(parts: list[SetEvaluation], orphans: tuple[str, ...],
-            bands: tuple[tuple[float, float], ...], n: int) -> SetEvaluation:
+            bands: tuple[tuple[float, float], ...], semantic: bool) -> SetEvaluation:
     """One set's evaluation from its parts': counts summed, per-scan lists joined in order."""
-    band_sum = np.zeros((len(bands), n, 3), np.int64)
-    for p in parts:
-        band_sum += np.stack([sc.counts for _, sc in p.bands])
     return SetEvaluation(
         parts[0].name, tuple(s for p in parts for s in p.sources),
         Scores.of(pooled([p.pooled.counts for p in parts if p.scored])),
-        _band_scores(band_sum, bands), tuple(v for p in parts for v in p.scan_car_iou),
+        _band_scores(_band_sum(parts, bands, semantic), bands),
+        tuple(v for p in parts for v in p.scan_car_iou),
         sum(p.ignored_pixels for p in parts), np.zeros((0,), np.uint8),
         tuple(u for p in parts for u in p.unlabelled), orphans, parts[0].score,
         sum(p.ignored_points for p in parts), sum(p.points_outside_image for p in parts))
