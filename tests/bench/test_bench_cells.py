@@ -45,7 +45,9 @@ def test_drawn_rows_cover_the_space_with_undefined_and_invalid_rows() -> None:
     assert np.array_equal(scored, (rows["status"] == Status.OK.value).to_numpy())
 
 
-def test_bench_cells_refuses_options_it_does_not_read(capsys) -> None:
+def test_bench_cells_refuses_options_it_does_not_read_and_bad_values(capsys) -> None:
     assert main(["bench", "cells", "--workers", "4"]) == 2
     assert "--workers: bench cells does not take it; it takes --config, --samples" in \
         capsys.readouterr().err
+    assert main(["bench", "cells", "--samples", "0"]) == 2
+    assert "--samples: 0 must be between 1 and 1000000" in capsys.readouterr().err
