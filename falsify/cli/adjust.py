@@ -8,6 +8,7 @@ import json
 from dataclasses import asdict
 from pathlib import Path
 
+from falsify.cli.common import require_torch
 from falsify.errors import FalsifyError
 
 
@@ -23,6 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    require_torch("falsify adjust")
     from falsify.models.adjust import adjust_weights
 
     out = Path(args.out)

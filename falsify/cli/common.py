@@ -37,6 +37,20 @@ class UsageError(FalsifyError):
     """A bad command-line argument."""
 
 
+TORCH_INSTALL = ('pip install "falsify[torch]" (torch 2.13.0; install its CPU or CUDA build '
+                 "first, as the README's set-up says)")
+
+
+def require_torch(what: str) -> None:
+    """FalsifyError (exit 2) before any work where `what` needs torch and torch does not
+    import: scoring, reports and the gate run without it, so a plain install lacks it."""
+    try:
+        import torch  # noqa: F401
+    except ImportError as exc:
+        raise FalsifyError(f"{what} needs torch, which does not import here ({exc}): "
+                           f"{TORCH_INSTALL}") from None
+
+
 class Parser(argparse.ArgumentParser):
     """argparse that reports errors as one line and exit code 2 (its own convention too)."""
 
@@ -95,6 +109,8 @@ def check_backend(backend: str | None, model: str | None) -> str:
     if backend not in (None, "python") and is_plugin(model):
         raise UsageError(f"--backend {backend}: the plug-in model {model} runs on python; "
                          "leave --backend out (or give python)")
+    if backend == "torch":
+        require_torch("--backend torch")
     return backend or "onnx"
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from falsify.cli.common import int_in
+from falsify.cli.common import int_in, require_torch
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -30,6 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     """Export; print the files written as JSON."""
+    require_torch("falsify export")
     from falsify.models.export import export_weights
 
     written = export_weights(args.weights, args.out, crf_iterations=args.crf_iterations,

@@ -9,6 +9,7 @@ import json
 import sys
 from pathlib import Path
 
+from falsify.cli.common import require_torch
 from falsify.cli.signals import stop_signals, stopped_training
 
 
@@ -62,6 +63,7 @@ def run(args) -> int:
     """Train (or resume) with the options given; print each epoch's JSON line and the run's
     summary as JSON (with --json the epochs' lines go to stderr, so stdout is one document). A
     signal stops it with every finished step saved and prints the command that continues it."""
+    require_torch("falsify train")
     from falsify.models.train import CHECKPOINT, TrainConfig, train
 
     cfg = TrainConfig(

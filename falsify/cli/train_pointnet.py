@@ -8,7 +8,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from falsify.cli.common import emit, holdout_option
+from falsify.cli.common import emit, holdout_option, require_torch
 from falsify.cli.signals import stop_signals, stopped_training
 
 
@@ -46,6 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     """Train (or resume); print each epoch's line and the run's summary (JSON with --json). A
     signal stops it with its finished epochs saved and prints the command that continues it."""
+    require_torch("falsify train-pointnet")
     from falsify.models.train_pointnet import CHECKPOINT, PointNetTrainConfig, train
 
     cfg = PointNetTrainConfig(

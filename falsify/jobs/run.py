@@ -192,10 +192,10 @@ def _check_request(req: RunRequest, space: Space) -> None:
         raise FalsifyError(f"--budget: {req.budget:,} is more than --max-samples "
                            f"{req.max_samples:,}; raise --max-samples to run it")
     check_out_dir(req.out)
-    check_executor(req.executor, req.address)
-    if req.inference == "shared" and req.executor == "ray":
+    if req.inference == "shared" and req.executor == "ray":   # wrong with or without ray
         raise FalsifyError("--inference shared runs one inference process beside local "
                            "workers; with --executor ray each actor runs the network")
+    check_executor(req.executor, req.address)
     if req.algorithm == "grid" and req.budget is None:
         space.check_size(req.max_samples)
     elif req.algorithm == LEVEL_SET and req.budget is None and space.size() > req.max_samples:

@@ -363,6 +363,7 @@ def test_real_semantickitti_scans_keep_their_bytes_out_of_the_cars_reach(tmp_pat
 
 
 def test_retrain_runs_on_real_backgrounds_and_refuses_evaluation_scans(tmp_path):
+    pytest.importorskip("torch")   # its fine-tuning trains
     from falsify.data.training import TrafficOptions, write_dataset
     from falsify.jobs.retrain import RetrainJob, RetrainRequest
     from falsify.models.runners import BUNDLED_ONNX
