@@ -75,3 +75,17 @@ def check_out_file(path: str | Path, option: str = "--out") -> Path:
         raise FalsifyError(f"{option} {path}: is a directory")
     check_out_dir(path.parent, option)
     return path
+
+
+TORCH_INSTALL = ('pip install "falsify[torch]" (torch 2.13.0; install its CPU or CUDA build '
+                 "first, as the README's set-up says)")
+
+
+def require_torch(what: str) -> None:
+    """FalsifyError (exit 2) before any work where `what` needs torch and torch does not
+    import: scoring, reports and the gate run without it, so a plain install lacks it."""
+    try:
+        import torch  # noqa: F401
+    except ImportError as exc:
+        raise FalsifyError(f"{what} needs torch, which does not import here ({exc}): "
+                           f"{TORCH_INSTALL}") from None

@@ -8,7 +8,7 @@ import json
 from dataclasses import asdict
 from pathlib import Path
 
-from falsify.cli.common import require_torch
+from falsify.checks import require_torch
 from falsify.errors import FalsifyError
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from falsify.checks import require_torch
 from falsify.errors import FalsifyError
 from falsify.paths import CONFIGS
 
@@ -35,20 +36,6 @@ DEVICE_HELP = ("where the network runs: cpu, or cuda (torch and plug-ins: a CUDA
 
 class UsageError(FalsifyError):
     """A bad command-line argument."""
-
-
-TORCH_INSTALL = ('pip install "falsify[torch]" (torch 2.13.0; install its CPU or CUDA build '
-                 "first, as the README's set-up says)")
-
-
-def require_torch(what: str) -> None:
-    """FalsifyError (exit 2) before any work where `what` needs torch and torch does not
-    import: scoring, reports and the gate run without it, so a plain install lacks it."""
-    try:
-        import torch  # noqa: F401
-    except ImportError as exc:
-        raise FalsifyError(f"{what} needs torch, which does not import here ({exc}): "
-                           f"{TORCH_INSTALL}") from None
 
 
 class Parser(argparse.ArgumentParser):

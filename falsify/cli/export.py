@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from falsify.cli.common import int_in, require_torch
+from falsify.checks import require_torch
+from falsify.cli.common import int_in
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from falsify.cli.common import emit, holdout_option, require_torch
+from falsify.cli.common import emit, holdout_option
 from falsify.cli.progress import ProgressBar
 from falsify.paths import config_path
 
@@ -54,7 +54,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    require_torch("falsify retrain (its fine-tuning)")
     from falsify.jobs.retrain import RetrainJob, RetrainRequest, parse_ids, result_text
     from falsify.models.runners import resolve_model
 

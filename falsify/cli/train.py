@@ -9,7 +9,7 @@ import json
 import sys
 from pathlib import Path
 
-from falsify.cli.common import require_torch
+from falsify.checks import require_torch
 from falsify.cli.signals import stop_signals, stopped_training
 
 

@@ -8,7 +8,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from falsify.cli.common import emit, holdout_option, require_torch
+from falsify.checks import require_torch
+from falsify.cli.common import emit, holdout_option
 from falsify.cli.signals import stop_signals, stopped_training
 
 

@@ -37,7 +37,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from falsify.checks import check_out_dir, check_range, check_seed
+from falsify.checks import check_out_dir, check_range, check_seed, require_torch
 from falsify.data.range_npy import npy_files
 from falsify.errors import ConfigError
 from falsify.executors.driver import ProgressListener
@@ -165,6 +165,7 @@ class RetrainJob:
 
     def run(self) -> RetrainResult:
         ctx = self.prepare()
+        require_torch("falsify retrain (its fine-tuning)")   # before the first stage's grid
         req = self.req
         req.out.mkdir(parents=True, exist_ok=True)
         state_path = req.out / STAGE_FILE

@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from falsify.models.runners import WEIGHTS_DIR
@@ -36,12 +37,13 @@ def _without_torch(argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
     (["adjust", PT, "--val", "scans", "--out", "out/adjusted.pt"], "falsify adjust"),
     (["export", PT, "--out", "out/net.onnx"], "falsify export"),
     (["retrain", SMOKE, "--out", "out", "--model", "squeezeseg", "--train-data", "scans",
-      "--validation-backgrounds", "1", "--retraining-backgrounds", "2"], "falsify retrain"),
+      "--validation-backgrounds", "0", "--retraining-backgrounds", "1"], "falsify retrain"),
     (["grid", SMOKE, "--out", "out", "--backend", "torch", "--quiet"], "--backend torch"),
     (["predict", "scans", "--backend", "torch", "--out", "out"], "--backend torch"),
 ])
 def test_a_command_that_needs_torch_says_so_and_writes_nothing(tmp_path, argv, what):
-    (tmp_path / "scans").mkdir()
+    (tmp_path / "scans").mkdir()   # one blank scan: retrain checks its inputs first
+    np.save(tmp_path / "scans" / "000000.npy", np.zeros((64, 512, 6), np.float32))
     r = _without_torch(argv, tmp_path)
     assert r.returncode == 2, r.stderr
     [line] = r.stderr.strip().splitlines()   # one line, no traceback
