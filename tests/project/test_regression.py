@@ -43,7 +43,9 @@ def fingerprint(run: Path) -> dict:
         frame = pd.read_sql_query("SELECT * FROM samples ORDER BY eval_index", db)
         meta = {k: json.loads(v) for k, v in db.execute("SELECT key, value FROM run")}
     rows = frame.drop(columns=TIMING).to_csv(index=False)
-    csv = pd.read_csv(run / "results.csv").drop(columns=TIMING).to_csv(index=False)
+    # read as text, the file's own digits (pandas before 3 parsed floats one bit off)
+    csv = pd.read_csv(run / "results.csv", dtype=str, keep_default_na=False).drop(
+        columns=TIMING).to_csv(index=False)
     summary = json.loads((run / "summary.json").read_text())
     for key in ("elapsed_s", "run"):
         summary.pop(key)
