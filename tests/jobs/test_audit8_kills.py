@@ -134,6 +134,7 @@ def test_tradeoff_killed_while_moving_its_models_leaves_no_short_model(tmp_path,
     """`falsify tradeoff --knobs crf` with /tmp on another file system (tmpfs), killed while it
     moves the variant models into OUT/models/ (before: shutil.move copied into the final name,
     leaving a short .onnx there); then run again, every model loads."""
+    pytest.importorskip("torch")   # the CRF knob's models are exported
     import onnx
 
     from falsify.cli import main

@@ -64,6 +64,7 @@ def request(inputs: dict, out: Path, **kw) -> RetrainRequest:
 @pytest.fixture(scope="module")
 def experiment(inputs) -> dict:
     """Run the experiment, killed when the 'after' grid starts, then resumed."""
+    pytest.importorskip("torch")   # it fine-tunes
     out = inputs["root"] / "exp"
 
     def kill_at_after(stage: str) -> None:
@@ -341,6 +342,7 @@ def test_rules_select_rs_samples_under_vs_rules_without_their_streets() -> None:
 
 @pytest.mark.slow
 def test_selection_rules_and_its_random_control_run_the_experiment(inputs, tmp_path) -> None:
+    pytest.importorskip("torch")   # it fine-tunes
     results = {sel: RetrainJob(request(inputs, tmp_path / sel, selection=sel,
                                        held_out_scans=0)).run() for sel in ("rules", "random")}
     for sel, result in results.items():
