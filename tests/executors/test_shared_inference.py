@@ -5,6 +5,7 @@ error, and no process outlives the run. The GPU path's tests skip without CUDA."
 from __future__ import annotations
 
 import multiprocessing as mp
+import sys
 import textwrap
 from pathlib import Path
 
@@ -64,7 +65,11 @@ def test_a_network_that_fails_in_the_inference_process_is_named(tmp_path):
     assert not [p for p in mp.active_children() if p.name == "falsify-inference"]
 
 
-def test_shared_inference_is_refused_on_ray(tmp_path, capsys):
+@pytest.mark.parametrize("ray_hidden", [False, True])
+def test_shared_inference_is_refused_on_ray(tmp_path, capsys, monkeypatch, ray_hidden):
+    """The two options conflict whether or not ray is installed, and that is what is said."""
+    if ray_hidden:
+        monkeypatch.setitem(sys.modules, "ray", None)   # `import ray` fails, as without it
     code = main(["grid", str(SMALL), "--out", str(tmp_path / "r"), "--workers", "2",
                  "--executor", "ray", "--inference", "shared", "--quiet"])
     assert code == 2 and "--inference shared" in capsys.readouterr().err
