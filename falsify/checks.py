@@ -1,5 +1,5 @@
-"""Checks of command arguments and paths, run before anything is created: a bad value or path
-raises FalsifyError naming the option (or file) and what is allowed."""
+"""Checks of command arguments, paths and the libraries a command needs, run before anything is
+created: a bad value or path raises FalsifyError naming the option (or file) and what is allowed."""
 
 from __future__ import annotations
 

@@ -29,6 +29,13 @@ if MINI.is_dir():   # what configs/paper-real.toml reads
 # Modules that start a Ray instance: a bare `ray.init()` joins the newest cluster started on the
 # machine (Ray's docs), so under pytest-xdist they run in one worker, one after the other.
 RAY_MODULES = ("tests/executors/test_ray.py", "tests/executors/test_ray_cluster.py")
+# A child script's first lines: torch cannot be imported, as on a machine without it.
+NO_TORCH = ("import importlib.abc, sys\n"
+            "class NoTorch(importlib.abc.MetaPathFinder):\n"
+            "    def find_spec(self, name, path=None, target=None):\n"
+            "        if name.split('.')[0] == 'torch':\n"
+            "            raise ImportError(\"No module named 'torch'\")\n"
+            "sys.meta_path.insert(0, NoTorch())\n")
 
 
 @pytest.hookimpl(tryfirst=True)

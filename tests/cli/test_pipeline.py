@@ -19,7 +19,7 @@ from falsify.executors.evaluator import EvalSettings, Evaluator
 from falsify.jobs.run import RunRequest, execute
 from falsify.results.store import TIMING_COLUMNS, read_frame, read_meta
 from falsify.world.space import load_space
-from tests.conftest import CONFIGS, ROOT
+from tests.conftest import CONFIGS, NO_TORCH, ROOT
 
 BUNDLED = ROOT / "models" / "weights" / "squeezeseg.onnx"
 pytestmark = pytest.mark.skipif(not BUNDLED.exists(), reason="bundled model not trained yet")
@@ -231,13 +231,7 @@ def test_two_workers_give_the_same_rows_as_one(tmp_path):
 def test_grid_report_and_gate_run_without_torch(tmp_path):
     """CI users should not pay for torch: scoring, reporting and gating never import it."""
     run = tmp_path / "run"
-    code = ("import importlib.abc, sys\n"
-            "class NoTorch(importlib.abc.MetaPathFinder):\n"
-            "    def find_spec(self, name, path=None, target=None):\n"
-            "        if name.split('.')[0] == 'torch':\n"
-            "            raise ImportError('torch is not installed here')\n"
-            "sys.meta_path.insert(0, NoTorch())\n"
-            "from falsify.cli import main\n"
+    code = (NO_TORCH + "from falsify.cli import main\n"
             f"assert main(['grid', {str(CONFIGS / 'smoke.toml')!r}, '--out', {str(run)!r},"
             " '--quiet']) == 0\n"
             f"code = main(['gate', {str(run)!r}, '--max-blind-spots', '4'])\n"

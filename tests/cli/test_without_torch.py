@@ -12,22 +12,16 @@ import pytest
 
 from falsify.models.runners import WEIGHTS_DIR
 from falsify.paths import CONFIGS
+from tests.conftest import NO_TORCH
 
 SMOKE = str(CONFIGS / "smoke.toml")
 PT = str(WEIGHTS_DIR / "squeezeseg.pt")
-# torch made unimportable in the child, as on a machine where it is not installed
-NO_TORCH = ("import importlib.abc, sys\n"
-            "class NoTorch(importlib.abc.MetaPathFinder):\n"
-            "    def find_spec(self, name, path=None, target=None):\n"
-            "        if name.split('.')[0] == 'torch':\n"
-            "            raise ImportError(\"No module named 'torch'\")\n"
-            "sys.meta_path.insert(0, NoTorch())\n"
-            "from falsify.cli import main\n"
-            "sys.exit(main(sys.argv[1:]))\n")
+NO_TORCH_MAIN = (NO_TORCH + "from falsify.cli import main\n"
+                 "sys.exit(main(sys.argv[1:]))\n")
 
 
 def _without_torch(argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", NO_TORCH, *argv], capture_output=True,
+    return subprocess.run([sys.executable, "-c", NO_TORCH_MAIN, *argv], capture_output=True,
                           text=True, cwd=cwd, timeout=120)
 
 
