@@ -187,13 +187,13 @@ def per_scan_table(doc: dict) -> str:
         cells = []
         for n in names:
             for k in stats:
-                v = scan["distances"][n][k]
+                v, b = scan["distances"][n][k], scan["distances"][base][k]
                 mark = ""
-                if n != base:
-                    closer = v < scan["distances"][base][k]
-                    mark = (' <span class="yes">✓</span>' if closer
+                if n != base and v is not None and b is not None:   # None: a scan unlabelled
+                    mark = (' <span class="yes">✓</span>' if v < b
                             else ' <span class="no">✗</span>')
-                cells.append(f'<td class="num" data-scan-stat="{esc(k)}">{v:.4f}{mark}</td>')
+                cells.append(f'<td class="num" data-scan-stat="{esc(k)}">{_fmt(v, 4)}{mark}'
+                             '</td>')
         real_set = per["real_sets"][scan["real_set"]]
         rows.append(f'<tr><th scope="row">{esc(scan["source"])}<br><span class="sub">'
                     f'{esc(real_set)}</span></th>{"".join(cells)}</tr>')
@@ -210,7 +210,8 @@ def sets_table(doc: dict) -> str:
     classes = list(doc["synthetic"][0]["class_fraction"]) if doc["synthetic"] else []
     head = ("<th>set</th><th>scans</th><th>points</th><th>valid</th><th>mean range (m)</th>"
             "<th>mean z (m)</th><th>mean intensity</th>"
-            + "".join(f"<th>{esc(c)}</th>" for c in classes) + "<th>feature samples (cells)</th>")
+            + "".join(f"<th>{esc(c)}</th>" for c in classes)
+            + "<th>feature samples (cells)</th><th>unlabelled scans</th>")
     rows = []
     for label, s, colour, _ in _series(doc):
         rows.append(
@@ -221,9 +222,19 @@ def sets_table(doc: dict) -> str:
             f'<td class="num">{_fmt(s["mean_height"], 2)}</td>'
             f'<td class="num">{_fmt(s["mean_intensity"])}</td>'
             + "".join(f'<td class="num">{_fmt(s["class_fraction"][c], 4)}</td>' for c in classes)
-            + f'<td class="num">{s["feature_samples"]}</td></tr>')
+            + f'<td class="num">{s["feature_samples"]}</td>'
+            f'<td class="num">{len(s.get("unlabelled", []))}</td></tr>')
+    real = doc["real"][:-1] if len(doc["real"]) > 1 else doc["real"]   # not the pooled set
+    missing = [(s["name"], name) for s in [*real, *doc.get("reported", [])]
+               for name in s.get("unlabelled", [])]
+    named = ("" if not missing else " Scans without labels: " + ", ".join(
+        f"{esc(name)} ({esc(set_name)})" for set_name, name in missing[:PER_SCAN_ROWS])
+        + (f" and {len(missing) - PER_SCAN_ROWS} more (the JSON lists all)"
+           if len(missing) > PER_SCAN_ROWS else "") + ".")
     return (f'<section id="sets"><h2>Sets</h2><p class="note">Valid: fraction of pixels with a '
-            f'return; class columns: fraction of valid points.</p>{scroll_open("Sets")}<table>'
+            f'return; class columns: fraction of valid points of the labelled scans; unlabelled: '
+            f'scans whose labels were not found, counted in all but the class columns.{named}'
+            f'</p>{scroll_open("Sets")}<table>'
             f'<thead><tr>{head}</tr></thead><tbody>{"".join(rows)}</tbody></table></div>'
             '</section>')
 

@@ -33,12 +33,12 @@ same scan counts.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from falsify.data.scansets import ScanSet
+from falsify.data.scansets import ScanSet, SetPlan, plan_name, plan_semantic, read_part
 from falsify.errors import FalsifyError
 from falsify.results.feature_moments import (
     FLOOR_DRAWS,
@@ -61,6 +61,7 @@ from falsify.results.scan_statistics import (
     semantic_distance,
 )
 from falsify.semantic import kitti4_of_train, train_ids
+from falsify.sensor.lidar import Sensor
 
 FEATURE_TENSOR = "/fire9/Concat_output_0"
 TILE_ROWS, TILE_COLS = 4, 4   # tile means a scan: the `frechet_tiles` reference estimator
@@ -176,7 +177,10 @@ class Realism:
             closer = {k: self.distances[s.name][ref][k] < self.distances[base][ref][k]
                       for k, _, _ in STATISTICS}
             # on how many of the real scans, each alone, it is closer than the first
-            per_scan = {k: sum(d["distances"][s.name][k] < d["distances"][base][k]
+            # (a scan without labels has no class distance, and is not counted on it)
+            per_scan = {k: sum(d["distances"][s.name][k] is not None
+                               and d["distances"][base][k] is not None
+                               and d["distances"][s.name][k] < d["distances"][base][k]
                                for d in self.per_scan) for k in PER_SCAN_STATISTICS}
             out["candidates"][s.name] = {"closer": closer,
                                          "closer_on_every_statistic": all(closer.values()),
@@ -224,27 +228,55 @@ class Realism:
         }
 
 
-def set_stats(name: str, images_or_set, features: EncoderFeatures,
-              labels: str = "kitti4") -> SetStats:
-    """Statistics of a ScanSet or of a list of .npy paths (read CHUNK at a time). A ScanSet
-    with SemanticKITTI ids, or .npy scans whose label channel holds train ids (`labels`
+def set_stats(name: str, source: ScanSet | SetPlan | list[Path], features: EncoderFeatures,
+              labels: str = "kitti4", sensor: Sensor | None = None,
+              scan_moments: bool = True) -> SetStats:
+    """Statistics of a ScanSet, a planned set (read CHUNK scans at a time with `sensor`, so a
+    sequence of thousands fits in memory) or a list of .npy paths (also CHUNK at a time). A real
+    set with SemanticKITTI ids, or .npy scans whose label channel holds train ids (`labels`
     "semantickitti", as `falsify dataset --labels semantickitti` writes), also gets the
-    per-class table; such .npy labels are turned into our four classes for everything else."""
-    stats = SetStats(name)
-    if isinstance(images_or_set, ScanSet):
-        n, sources = len(images_or_set), [Path(src).name for src in images_or_set.sources]
-        sem = images_or_set.semantic
-        chunks = ((images_or_set.images[i:i + CHUNK],
-                   None if sem is None else train_ids(sem[i:i + CHUNK]))
-                  for i in range(0, n, CHUNK))
+    per-class table; such .npy labels are turned into our four classes for everything else. A
+    real scan without labels counts no class (`SetStats.unlabelled`). Without `scan_moments`
+    the feature moments are folded as they come (a set compared whole, never resampled)."""
+    stats = SetStats(name, scan_moments=scan_moments)
+    if isinstance(source, ScanSet):
+        parts = (source_part(source, i, i + CHUNK) for i in range(0, len(source), CHUNK))
+    elif isinstance(source, SetPlan):
+        if sensor is None:
+            raise ValueError("a planned set is read with a sensor")
+        semantic = plan_semantic(source)
+        parts = (_real_part(read_part(source, list(source.files[i:i + CHUNK]), sensor),
+                            semantic) for i in range(0, len(source.files), CHUNK))
     else:
-        paths = list(images_or_set)
-        n, sources = len(paths), [p.name for p in paths]
-        chunks = (_split_labels(np.stack([_checked(p, features) for p in paths[i:i + CHUNK]]),
-                                labels) for i in range(0, n, CHUNK))
-    for i, (images, semantic) in zip(range(0, n, CHUNK), chunks, strict=True):
-        stats.add(images, features(images), sources[i:i + len(images)], semantic)
+        paths = list(source)
+        parts = ((*_split_labels(np.stack([_checked(p, features)
+                                           for p in paths[i:i + CHUNK]]), labels),
+                  [p.name for p in paths[i:i + CHUNK]], None)
+                 for i in range(0, len(paths), CHUNK))
+    for images, semantic, sources, labelled in parts:
+        stats.add(images, features(images), sources, semantic, labelled)
     return stats
+
+
+def source_part(scans: ScanSet, start: int, stop: int
+                ) -> tuple[np.ndarray, np.ndarray | None, list[str], np.ndarray]:
+    """Scans `start:stop` of a real set as `SetStats.add` takes them: images, SemanticKITTI
+    train ids (None without them), file names, and which were labelled."""
+    sem = scans.semantic
+    return (scans.images[start:stop], None if sem is None else train_ids(sem[start:stop]),
+            [Path(src).name for src in scans.sources[start:stop]],
+            scans.labelled()[start:stop])
+
+
+def _real_part(scans: ScanSet, semantic: bool
+               ) -> tuple[np.ndarray, np.ndarray | None, list[str], np.ndarray]:
+    """A part of a planned set as the whole set would hold it: SemanticKITTI ids for every
+    scan (zeros for one without labels) when the set has them (`plan_semantic`), else none."""
+    if not semantic:
+        scans = replace(scans, semantic=None)
+    elif scans.semantic is None:   # a part of unlabelled scans only
+        scans = replace(scans, semantic=np.zeros(scans.images.shape[:3], np.uint16))
+    return source_part(scans, 0, len(scans))
 
 
 def _split_labels(images: np.ndarray, labels: str) -> tuple[np.ndarray, np.ndarray | None]:
@@ -258,19 +290,22 @@ def _split_labels(images: np.ndarray, labels: str) -> tuple[np.ndarray, np.ndarr
     return images, ids
 
 
-def compare(synthetic: dict[str, list[Path]], real: list[ScanSet],
+def compare(synthetic: dict[str, list[Path]], real: list[ScanSet | SetPlan],
             features: EncoderFeatures, pooled_name: str = "pooled",
             bootstrap_draws: int = 0, labels: dict[str, str] | None = None,
-            reported: list[ScanSet] = ()) -> Realism:
+            reported: list[ScanSet | SetPlan] = (), sensor: Sensor | None = None) -> Realism:
     """Statistics of each synthetic set (name -> .npy paths; `labels`: name -> what their
-    label channel holds, "kitti4" when not named) and real set, and the distance of each
-    synthetic set to each real set and to all real sets pooled; with `bootstrap_draws`, also
-    how much of each distance sampling alone could move (`bootstrap`). Pairs that both carry
-    SemanticKITTI labels also get the DIAGNOSTIC distance. `reported` real sets (evaluation
-    data) get their distances too, but are neither pooled nor compared with."""
+    label channel holds, "kitti4" when not named) and real set (read or planned: then read
+    CHUNK scans at a time with `sensor`), and the distance of each synthetic set to each real
+    set and to all real sets pooled; with `bootstrap_draws`, also how much of each distance
+    sampling alone could move (`bootstrap`). Pairs that both carry SemanticKITTI labels also
+    get the DIAGNOSTIC distance. `reported` real sets (evaluation data) get their distances
+    too, but are neither pooled nor compared with. Real scans without labels are named and
+    counted in every statistic but the classes'."""
     if not real:
         raise FalsifyError("realism needs at least one real set")
-    real_stats = [set_stats(s.name, s, features) for s in real]
+    resampled_real = bootstrap_draws > 0   # else each real scan's 1 MB of moments is folded
+    real_stats = [_real_stats(s, features, sensor, resampled_real) for s in real]
     all_real = tuple(real_stats)
     if len(real_stats) > 1:
         pooled = real_stats[0]
@@ -280,7 +315,7 @@ def compare(synthetic: dict[str, list[Path]], real: list[ScanSet],
     labels = labels or {}
     syn_stats = tuple(set_stats(name, paths, features, labels.get(name, "kitti4"))
                       for name, paths in synthetic.items())
-    shown = tuple(set_stats(s.name, s, features) for s in reported)
+    shown = tuple(_real_stats(s, features, sensor, False) for s in reported)
     for s in (*real_stats, *syn_stats, *shown):
         check_comparable(s)
     for s in syn_stats:
@@ -297,10 +332,20 @@ def compare(synthetic: dict[str, list[Path]], real: list[ScanSet],
                    resampled, per_real_scan(syn_stats, all_real[-1]), shown)
 
 
+def _real_stats(source: ScanSet | SetPlan, features: EncoderFeatures, sensor: Sensor | None,
+                scan_moments: bool) -> SetStats:
+    name = source.name if isinstance(source, ScanSet) else plan_name(source)
+    return set_stats(name, source, features, sensor=sensor, scan_moments=scan_moments)
+
+
 def check_comparable(stats: SetStats) -> None:
     """FalsifyError naming a set whose scans hold too little to compare: no valid point (scans
-    blanked by dense fog, or empty files), or fewer than two feature cells for its Fréchet
-    distance (it was a ValueError traceback)."""
+    blanked by dense fog, or empty files), fewer than two feature cells for its Fréchet
+    distance (it was a ValueError traceback), or no labelled scan for its class fractions."""
+    if stats.unlabelled and len(stats.unlabelled) == stats.scans:
+        raise FalsifyError(f"set {stats.name}: none of its {stats.scans} scans has labels "
+                           "(x.label beside x.bin or in ../labels/); realism compares class "
+                           f"fractions, so it needs them (first: {stats.unlabelled[0]})")
     cells = int(stats.all_features.counts.sum())
     if stats.points == 0 or cells < 2:
         what = ("no valid point (range > 0)" if stats.points == 0 else

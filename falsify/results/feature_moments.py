@@ -22,7 +22,8 @@ class ScanFeatures:
     tiles: np.ndarray           # (B * tiles a scan, C) float64: tile means
     counts: np.ndarray          # (B,) valid cells per scan
     means: np.ndarray           # (B, C) float64
-    covs: np.ndarray            # (B, C, C) float32, ddof 1 (zeros for a scan with one cell)
+    covs: np.ndarray            # (B, C, C) float32, ddof 1 (zeros for a scan with one cell);
+    #                             float64 once `folded`
 
     def __len__(self) -> int:
         return len(self.counts)
@@ -31,6 +32,22 @@ class ScanFeatures:
     def concat(parts: list[ScanFeatures]) -> ScanFeatures:
         return ScanFeatures(*(np.concatenate([getattr(p, k) for p in parts])
                               for k in ("tiles", "counts", "means", "covs")))
+
+
+def folded(parts: list[ScanFeatures]) -> ScanFeatures:
+    """All scans' cell moments as one row (count, mean, covariance: what `pooled_moments` gives
+    on them) with every tile kept: a set only pooled whole holds one C x C covariance, not one
+    a scan (1 MB at C = 512)."""
+    feats = ScanFeatures.concat(parts)
+    n = feats.counts.astype(np.float64)
+    total = n.sum()
+    c = feats.means.shape[1]
+    mu = (n[:, None] * feats.means).sum(axis=0) / total if total > 0 else np.zeros(c)
+    off = feats.means - mu
+    scatter = np.einsum("b,bij->ij", np.maximum(n - 1, 0), feats.covs.astype(np.float64))
+    scatter += (off * n[:, None]).T @ off
+    cov = scatter / (total - 1) if total > 1 else np.zeros((c, c))
+    return ScanFeatures(feats.tiles, np.array([int(total)], np.int64), mu[None], cov[None])
 
 
 def cell_moments(f: np.ndarray, valid: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:

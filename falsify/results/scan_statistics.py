@@ -15,7 +15,12 @@ from falsify.results.distances import (
     total_variation,
     wasserstein_hist,
 )
-from falsify.results.feature_moments import ScanFeatures, cell_frechet, pooled_moments
+from falsify.results.feature_moments import (
+    ScanFeatures,
+    cell_frechet,
+    folded,
+    pooled_moments,
+)
 from falsify.results.metrics import CLASSES
 from falsify.semantic import TRAIN_CLASSES
 
@@ -53,7 +58,8 @@ class SetStats:
     the valid fraction of each row, histogram counts (HISTOGRAMS), class counts and, for sets
     labelled with SemanticKITTI's classes, counts per train id ("semantic", index 0 unlabeled);
     `groups` tells which real set each scan came from; `features` holds one ScanFeatures a
-    batch."""
+    batch, or with `scan_moments` False all of them `folded` into one (a set only compared
+    whole). A scan without labels counts no class: its sources are in `unlabelled`."""
 
     name: str
     scans: int = 0
@@ -64,28 +70,36 @@ class SetStats:
     per_scan: dict[str, list[np.ndarray]] = field(default_factory=dict, repr=False)
     groups: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
     sources: list[str] = field(default_factory=list, repr=False)   # file name per scan
+    unlabelled: list[str] = field(default_factory=list)   # sources whose labels were not found
+    scan_moments: bool = True   # keep each scan's feature moments (for resampling them)
     _joined: ScanFeatures | None = field(default=None, repr=False, compare=False)
     _tables: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
     def add(self, images: np.ndarray, features: ScanFeatures | None,
-            sources: list[str] | None = None, semantic: np.ndarray | None = None) -> None:
+            sources: list[str] | None = None, semantic: np.ndarray | None = None,
+            labelled: np.ndarray | None = None) -> None:
         """Add (B, H, W, 6) scans and their features (`sources`: the file of each scan;
-        `semantic`: their (B, H, W) SemanticKITTI train ids, for a set labelled with them)."""
+        `semantic`: their (B, H, W) SemanticKITTI train ids, for a set labelled with them;
+        `labelled`: (B,) False for a scan whose labels were not found, all True if None)."""
         valid = images[..., 4] > 0
+        labelled = (np.ones(len(images), bool) if labelled is None
+                    else np.asarray(labelled, bool))
+        sources = (list(sources) if sources is not None
+                   else [f"scan {self.scans + i}" for i in range(len(images))])
         if (semantic is not None) != self.has_semantic and self.scans:
             raise ValueError(f"set {self.name}: SemanticKITTI ids for some scans but not all")
         table: dict[str, list[np.ndarray]] = {key: [] for key, _, _ in HISTOGRAMS}
         table["classes"] = []
         if semantic is not None:
             ids = np.clip(np.asarray(semantic).astype(np.int64), 0, len(TRAIN_CLASSES) - 1)
-            table["semantic"] = [np.bincount(t[v], minlength=len(TRAIN_CLASSES))
-                                 for t, v in zip(ids, valid, strict=True)]
-        for im, v in zip(images, valid, strict=True):
+            table["semantic"] = [np.bincount(t[v], minlength=len(TRAIN_CLASSES)) * known
+                                 for t, v, known in zip(ids, valid, labelled, strict=True)]
+        for im, v, known in zip(images, valid, labelled, strict=True):
             pts = im[v].astype(np.float64)
             for key, channel, edges in HISTOGRAMS:
                 table[key].append(clipped_hist(pts[:, channel], edges))
             cls = np.clip(pts[:, 5].astype(np.int64), 0, len(CLASSES) - 1)
-            table["classes"].append(np.bincount(cls, minlength=len(CLASSES)))
+            table["classes"].append(np.bincount(cls, minlength=len(CLASSES)) * known)
             self.points += len(pts)
             self.sums += pts[:, [4, 2, 3]].sum(axis=0)
         self.per_scan.setdefault("row_valid", []).append(valid.mean(axis=2).astype(np.float64))
@@ -93,11 +107,14 @@ class SetStats:
             self.per_scan.setdefault(key, []).append(np.stack(values).astype(np.float64))
         self._tables = {}
         self.groups = np.concatenate([self.groups, np.zeros(len(images), np.int64)])
-        self.sources += (list(sources) if sources is not None
-                         else [f"scan {self.scans + i}" for i in range(len(images))])
+        self.sources += sources
+        self.unlabelled += [src for src, known in zip(sources, labelled, strict=True)
+                            if not known]
         self.scans += len(images)
         if features is not None:
             self.features.append(features)
+            if not self.scan_moments:
+                self.features = [folded(self.features)]
             self._joined = None
 
     def merged(self, other: SetStats, name: str) -> SetStats:
@@ -110,6 +127,10 @@ class SetStats:
                         if k in other.per_scan}
         out.groups = np.concatenate([self.groups, other.groups + self.groups.max(initial=-1) + 1])
         out.sources = [*self.sources, *other.sources]
+        out.unlabelled = [*self.unlabelled, *other.unlabelled]
+        out.scan_moments = self.scan_moments and other.scan_moments
+        if not out.scan_moments:
+            out.features = [folded(out.features)]
         return out
 
     def scan_table(self, key: str, idx: np.ndarray | None = None) -> np.ndarray:
@@ -166,6 +187,8 @@ class SetStats:
             "feature_trace": round(float(np.trace(cov)), 6),
             "tile_samples": len(feats.tiles),
             "frechet_floor": self.floor,
+            # scans whose labels were not found: no class counted, all else kept
+            "unlabelled": list(self.unlabelled),
             **semantic,
         }
 
@@ -179,7 +202,8 @@ def profile_distances(syn: SetStats, real: SetStats, i_syn: np.ndarray | None = 
         out[key] = wasserstein_hist(syn.scan_table(key, i_syn).sum(0),
                                     real.scan_table(key, i_real).sum(0), edges)
     a, b = syn.scan_table("classes", i_syn).sum(0), real.scan_table("classes", i_real).sum(0)
-    out["classes"] = total_variation(a, b)
+    # NaN where either side holds unlabelled scans only: no class fraction to compare
+    out["classes"] = total_variation(a, b) if a.sum() > 0 and b.sum() > 0 else math.nan
     return out
 
 
@@ -197,7 +221,8 @@ def per_real_scan(synthetic: tuple[SetStats, ...], real: SetStats) -> list[dict]
     real scans a resample of them is one of few combinations, so a set that is farther from one
     real scan is farther on every draw that scan dominates: this shows which scan that is."""
     return [{"source": real.sources[k], "real_set": int(real.groups[k]),
-             "distances": {s.name: {key: round(v, 6) for key, v in
+             "distances": {s.name: {key: round(v, 6) if math.isfinite(v) else None
+                                    for key, v in
                                     profile_distances(s, real, None, np.array([k])).items()}
                            for s in synthetic}}
             for k in range(real.scans)]
@@ -223,6 +248,9 @@ def bootstrap(synthetic: tuple[SetStats, ...], real: SetStats, draws: int,
     make-up) with replacement. Per synthetic set the BOOTSTRAP_LEVELS percentiles of each
     distance; per later set the share of draws in which it is closer than the first, with both
     measured against the same real draw (a paired comparison)."""
+    if len(real.all_features) != real.scans:
+        raise ValueError(f"set {real.name}: its feature moments were folded; resampling "
+                         "needs them per scan (SetStats.scan_moments)")
     rng = np.random.default_rng(seed)
     groups = [np.flatnonzero(real.groups == g) for g in np.unique(real.groups)]
     values = {s.name: {k: [] for k, _, _ in STATISTICS} for s in synthetic}
