@@ -244,9 +244,9 @@ def set_stats(name: str, source: ScanSet | SetPlan | list[Path], features: Encod
     elif isinstance(source, SetPlan):
         if sensor is None:
             raise ValueError("a planned set is read with a sensor")
-        semantic = plan_semantic(source)
+        has_semantic = plan_semantic(source)
         parts = (_real_part(read_part(source, list(source.files[i:i + CHUNK]), sensor),
-                            semantic) for i in range(0, len(source.files), CHUNK))
+                            has_semantic) for i in range(0, len(source.files), CHUNK))
     else:
         paths = list(source)
         parts = ((*_split_labels(np.stack([_checked(p, features)
