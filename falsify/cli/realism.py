@@ -98,16 +98,16 @@ def realism_text(doc: dict, out: Path) -> str:
     names = [s["name"] for s in doc["synthetic"]]
     parts = [r["name"] for r in doc["real"] if r["name"] != ref]
     lines = [f"realism against {ref} ({', '.join(parts) or ref}), lower is "
-             f"closer; wrote {out / 'realism.json'} and {out / 'realism.html'}",
-             f"{'statistic':12s}" + "".join(f"{n[-24:]:>26s}" for n in names)]
-    for key in doc["statistics"]:
-        lines.append(f"{key:12s}" + "".join(f"{doc['distances'][n][ref][key]:26.4f}"
-                                            for n in names))
+             f"closer; wrote {out / 'realism.json'} and {out / 'realism.html'}"]
     for s in [*doc["real"][:len(parts) or 1], *doc.get("reported", [])]:
         if s["unlabelled"]:
             shown = ", ".join(s["unlabelled"][:3]) + (", ..." if len(s["unlabelled"]) > 3 else "")
             lines.append(f"{s['name']}: {len(s['unlabelled'])} of {s['scans']} scans without "
                          f"labels, left out of the class statistics ({shown})")
+    lines.append(f"{'statistic':12s}" + "".join(f"{n[-24:]:>26s}" for n in names))
+    for key in doc["statistics"]:
+        lines.append(f"{key:12s}" + "".join(f"{doc['distances'][n][ref][key]:26.4f}"
+                                            for n in names))
     floors = [s["frechet_floor"] for s in doc["synthetic"]]
     if all(floors):
         lines.append(f"{'(floor)':12s}" + "".join(f"{f['mean']:26.4f}" for f in floors)
