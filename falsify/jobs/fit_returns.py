@@ -220,7 +220,7 @@ def fit_labelled(frames: list[tuple[Path, Path]], name: str, command: str,
         pts["I"].append(img[..., 3][m])
         pts["cos"].append(cos[m])
         pts["r"].append(img[..., 4][m])
-        pts["cls"].append(train[m])
+        pts["cls"].append(train[m].astype(np.uint8))   # train ids 0..19, kept small
         inst = scan.instance[m].astype(np.int64)
         pts["key"].append(np.where(inst > 0, f * 100_000 + inst, -1))
         r = img[..., 4]
@@ -231,17 +231,18 @@ def fit_labelled(frames: list[tuple[Path, Path]], name: str, command: str,
         both[BLOCKED_FIRST_ROW:] = False
         cands["I"].append(((np.roll(img[..., 3], 1, 1) + np.roll(img[..., 3], -1, 1)) / 2)[both])
         cands["returned"].append(valid[both])
-        cands["row"].append(np.nonzero(both)[0])
-        cands["cls"].append(lc[both])
-    cat = {k: np.concatenate(v) for k, v in pts.items()}
+        cands["row"].append(np.nonzero(both)[0].astype(np.int16))
+        cands["cls"].append(lc[both].astype(np.uint8))
+    # each frame's arrays dropped as they are joined: not held twice at the peak
+    cat = {k: np.concatenate(pts.pop(k)) for k in list(pts)}
     cos_exp, atten = _fit_class_gain(cat)
     refl = cat["I"].astype(np.float64) / (np.clip(cat["cos"], 0.05, 1.0) ** cos_exp
                                           * np.exp(-cat["r"] / atten))
     table, share, counts = _class_tables(refl, cat["cls"], cat["key"])
-    ci = np.concatenate(cands["I"]).astype(np.float64)
-    cr = np.concatenate(cands["returned"])
-    crow = np.concatenate(cands["row"])
-    ccls = np.concatenate(cands["cls"])
+    ci = np.concatenate(cands.pop("I")).astype(np.float64)
+    cr = np.concatenate(cands.pop("returned"))
+    crow = np.concatenate(cands.pop("row"))
+    ccls = np.concatenate(cands.pop("cls"))
     (p_min, p_max, i0, k), _ = _fit_dropout(ci, cr, crow, rows)
     p_class, row_keep = _class_dropout(cr, crow, ccls, rows)
     road = cat["cls"] == TRAIN_ID["road"]
@@ -283,15 +284,25 @@ def _fit_class_gain(cat: dict) -> tuple[float, float]:
     """cos_exp and atten_m by least squares of log intensity with one level per class, so that
     a class seen mostly near or mostly flat does not pass for range or incidence."""
     pos = cat["I"] > 0.005
-    cls = cat["cls"][pos]
-    classes = np.unique(cls)
-    dummies = (cls[:, None] == classes[None, :]).astype(np.float64)
-    a = np.concatenate([dummies, np.log(cat["cos"][pos])[:, None],
-                        -cat["r"][pos].astype(np.float64)[:, None]], axis=1)
-    coef, *_ = np.linalg.lstsq(a, np.log(cat["I"][pos].astype(np.float64)), rcond=None)
+    x = (np.log(cat["cos"][pos]).astype(np.float64), -cat["r"][pos].astype(np.float64))
+    coef = within_class_slopes(cat["cls"][pos], x, np.log(cat["I"][pos].astype(np.float64)))
     cos_exp = float(np.clip(coef[-2], 0.0, 2.0))
     atten = float(1.0 / max(coef[-1], 1e-4))
     return cos_exp, atten
+
+
+def within_class_slopes(cls: np.ndarray, x: tuple[np.ndarray, ...], y: np.ndarray
+                        ) -> np.ndarray:
+    """The least-squares coefficients of the float64 columns `x` in y ~ one level per class
+    (`cls`, small non-negative ids) + x. By the Frisch-Waugh-Lovell theorem (Frisch and Waugh
+    1933, Lovell 1963) they are those of y's deviations from its class means regressed on x's:
+    a C x C system, so memory stays a few arrays of the points, not the N x (classes + C)
+    design matrix (40 MB a scan). `x` and `y` are centred in place."""
+    n = np.maximum(np.bincount(cls), 1)   # a class with no point is never indexed
+    for v in (*x, y):
+        v -= (np.bincount(cls, weights=v) / n)[cls]
+    gram = np.array([[float(a @ b) for b in x] for a in x])
+    return np.linalg.lstsq(gram, np.array([float(a @ y) for a in x]), rcond=None)[0]
 
 
 def _class_tables(refl: np.ndarray, cls: np.ndarray, key: np.ndarray

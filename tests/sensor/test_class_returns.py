@@ -10,7 +10,7 @@ import pytest
 
 from falsify.cli import main
 from falsify.errors import ConfigError
-from falsify.jobs.fit_returns import _instance_share
+from falsify.jobs.fit_returns import _instance_share, within_class_slopes
 from falsify.paths import RETURN_MODELS
 from falsify.semantic import RAW_ID, TRAIN_CLASSES, TRAIN_ID
 from falsify.sensor.lidar import load_sensor
@@ -82,6 +82,23 @@ def test_the_instance_share_is_recovered_from_known_draws(share):
         rng.standard_normal(len(key))
     assert _instance_share(z, key) == pytest.approx(share, abs=0.07)
     assert _instance_share(z, np.full(len(key), -1)) == 0.0    # no instance: nothing between
+
+
+def test_within_class_slopes_are_those_of_the_whole_design_matrix():
+    """Frisch-Waugh-Lovell: the gain fit's slopes from class-centred columns equal least
+    squares on one dummy column a class plus the columns, with a class of one point and class
+    ids that skip some (absent classes), and scales as far apart as log cos and range."""
+    rng = np.random.default_rng(3)
+    cls = np.concatenate([rng.choice([0, 2, 5, 9], 4000), [7]]).astype(np.uint8)
+    x = (np.log(rng.uniform(0.05, 1.0, len(cls))), -rng.uniform(1.0, 60.0, len(cls)))
+    y = (np.array([0.3, 0, -1.2, 0, 0, 0.8, 0, 2.0, 0, -0.4])[cls] + 0.7 * x[0] + 0.013 * x[1]
+         + rng.normal(0, 0.2, len(cls)))
+    present = np.unique(cls)
+    design = np.column_stack([(cls[:, None] == present).astype(np.float64), *x])
+    want = np.linalg.lstsq(design, y, rcond=None)[0][-2:]
+    got = within_class_slopes(cls, tuple(v.copy() for v in x), y.copy())
+    np.testing.assert_allclose(got, want, rtol=1e-10)
+    assert got[0] == pytest.approx(0.7, abs=0.02) and got[1] == pytest.approx(0.013, abs=1e-3)
 
 
 def test_the_shipped_model_loads_with_a_table_per_class():
