@@ -183,12 +183,13 @@ def _row_keep(returned: np.ndarray, row: np.ndarray, pred: np.ndarray, rows: int
 def labelled_frames(paths: list[str], sequences: list[str] | None,
                     holdout: Sequence[str | Path] = ()) -> list[tuple[Path, Path]]:
     """(.bin, .label) of every scan the paths name; FalsifyError naming a held-out scan (never
-    fitted to) or one without SemanticKITTI labels."""
-    from falsify.data.holdout import check_not_held_out
+    fitted to), one without SemanticKITTI labels, or one given twice (by path or content)."""
+    from falsify.data.holdout import check_each_once, check_not_held_out
     from falsify.world.real_scans import real_scans
 
     scans = real_scans(paths, sequences)
     check_not_held_out([path for _, path, _, _ in scans], holdout, "fit-returns' scans")
+    check_each_once([path for _, path, _, _ in scans], "fit-returns' scans")
     frames = []
     for _, path, label, kind in scans:
         if kind != "semantickitti" or label is None:

@@ -181,6 +181,15 @@ def test_labelled_fit_refuses_held_out_and_unlabelled_scans(mini, tmp_path, caps
     assert "000000.bin: no SemanticKITTI .label" in capsys.readouterr().err and not out.exists()
     assert main(["fit-returns", str(bare), "--sequences", "01", "--out", str(out)]) == 2
     assert "--sequences: only with --labelled" in capsys.readouterr().err
+    # a copy of a fit scan under another name would weigh it twice in the fit
+    seq = mini / "sequences" / "01"
+    copy = tmp_path / "copy" / "01"
+    for sub, suffix in (("velodyne", ".bin"), ("labels", ".label")):
+        (copy / sub).mkdir(parents=True)
+        first = sorted((seq / sub).glob(f"*{suffix}"))[0]
+        (copy / sub / f"999999{suffix}").write_bytes(first.read_bytes())
+    assert main(["fit-returns", "--labelled", str(seq), str(copy), "--out", str(out)]) == 2
+    assert "999999.bin: the same bytes as" in capsys.readouterr().err and not out.exists()
 
 
 def test_labelled_fit_writes_a_model_the_sensor_reads(mini, tmp_path, capsys, monkeypatch):
