@@ -99,6 +99,12 @@ def test_within_class_slopes_are_those_of_the_whole_design_matrix():
     got = within_class_slopes(cls, tuple(v.copy() for v in x), y.copy())
     np.testing.assert_allclose(got, want, rtol=1e-10)
     assert got[0] == pytest.approx(0.7, abs=0.02) and got[1] == pytest.approx(0.013, abs=1e-3)
+    # at the extremes: no point, or a column constant within every class, gives finite slopes
+    empty = np.zeros(0)
+    assert within_class_slopes(np.zeros(0, np.uint8), (empty.copy(), empty.copy()),
+                               empty.copy()).tolist() == [0.0, 0.0]
+    flat = within_class_slopes(cls, (x[0].copy(), np.full(len(cls), -30.0)), y.copy())
+    assert np.isfinite(flat).all() and flat[1] == pytest.approx(0.0, abs=1e-12)
 
 
 def test_the_shipped_model_loads_with_a_table_per_class():
