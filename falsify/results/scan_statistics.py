@@ -159,6 +159,7 @@ class SetStats:
         """Every scan's features in one ScanFeatures (joined once, then kept)."""
         if self._joined is None:
             self._joined = ScanFeatures.concat(self.features)
+            self.features = [self._joined]   # one copy, not the batches and their join too
         return self._joined
 
     def to_json(self) -> dict:

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import falsify.jobs.realism as realism_job
+import falsify.results.feature_moments as feature_moments
 from falsify.cli import main
 from falsify.data.scansets import load_sets, plan_sets
 from falsify.jobs.realism import EncoderFeatures, set_stats
@@ -36,6 +37,23 @@ def _features(rng: np.random.Generator, counts: list[int], c: int = 6) -> ScanFe
         covs.append(np.cov(x.T).astype(np.float32) if n > 1 else np.zeros((c, c), np.float32))
     return ScanFeatures(rng.normal(size=(2 * len(counts), c)), np.array(counts, np.int64),
                         np.stack(means), np.stack(covs))
+
+
+def test_pooled_moments_a_few_scans_at_a_time_are_those_of_all_cells(monkeypatch) -> None:
+    """Covariances widened POOL_CHUNK scans at a time (here 2): the mean and covariance of the
+    cells themselves, for all scans and for a resample with repeats."""
+    rng = np.random.default_rng(1)
+    cells = [rng.normal(rng.normal(size=4), 1.0, size=(n, 4)) for n in (6, 9, 2, 30, 5)]
+    feats = ScanFeatures(np.zeros((5, 4)), np.array([len(c) for c in cells]),
+                         np.stack([c.mean(axis=0) for c in cells]),
+                         np.stack([np.cov(c.T) for c in cells]).astype(np.float32))
+    monkeypatch.setattr(feature_moments, "POOL_CHUNK", 2)
+    for idx in (None, np.array([3, 0, 3, 4, 1])):
+        chosen = np.concatenate([cells[i] for i in (range(5) if idx is None else idx)])
+        mu, cov, n = pooled_moments(feats, idx)
+        assert n == len(chosen)
+        np.testing.assert_allclose(mu, chosen.mean(axis=0), rtol=1e-12)
+        np.testing.assert_allclose(cov, np.cov(chosen.T), rtol=1e-6)   # float32 per scan
 
 
 def test_folded_moments_pool_as_the_scans_do() -> None:
