@@ -253,7 +253,12 @@ def set_stats(name: str, source: ScanSet | SetPlan | list[Path], features: Encod
                                            for p in paths[i:i + CHUNK]]), labels),
                   [p.name for p in paths[i:i + CHUNK]], None)
                  for i in range(0, len(paths), CHUNK))
+    want = (features.spec.height, features.spec.width)
     for images, semantic, sources, labelled in parts:
+        if images.shape[1:3] != want:   # a part's scans share one shape: its first names it
+            raise FalsifyError(f"set {name}: {sources[0]}: shape {images.shape[1:]}, the "
+                               f"network's grid is {want[0]} x {want[1]} (real scans: the "
+                               "--sensor that projects them; .npy: the KITTI front preset's)")
         stats.add(images, features(images), sources, semantic, labelled)
     return stats
 

@@ -182,3 +182,19 @@ def test_a_real_set_without_any_labels_is_refused(synthetic, tmp_path, capsys) -
     err = capsys.readouterr().err
     assert "set 07: none of its 3 scans has labels" in err and "000000.bin" in err
     assert not (out / "realism.json").exists()
+
+
+def test_a_real_scan_of_another_shape_in_a_later_part_is_named(synthetic, tmp_path, monkeypatch,
+                                                               capsys) -> None:
+    real = tmp_path / "real"
+    real.mkdir()
+    scans = [np.load(p) for p in sorted(synthetic[0].glob("*.npy"))]
+    for k, image in enumerate(scans):
+        np.save(real / f"{k:06d}.npy", image)
+    np.save(real / "000003.npy", np.concatenate([scans[0], scans[0]], axis=1))   # 64 x 1024
+    monkeypatch.setattr(realism_job, "CHUNK", 3)   # alone in the second part
+    out = tmp_path / "out"
+    assert main(["realism", str(synthetic[0]), "--real", str(real), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "set real: 000003.npy: shape (64, 1024, 6), the network's grid is 64 x 512" in err
+    assert not (out / "realism.json").exists()
