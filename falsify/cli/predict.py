@@ -18,6 +18,7 @@ from falsify.cli.common import (
     emit,
     predict_sequences,
 )
+from falsify.cli.progress import ScanCounter
 
 DEFAULT_SENSOR = "kitti-hdl64e-front"
 
@@ -85,6 +86,7 @@ def run(args) -> int:
                    for d in (stem.parent, *stem.parent.parents) if not d.exists()},
                   key=lambda d: len(d.parts), reverse=True)   # the folders writing makes
     written = [0] * len(plans)
+    counter = ScanCounter("predict", sum(len(p.files) for p in plans))
 
     def write(k: int, scans, r) -> None:
         """A part's predictions and pictures, as it is evaluated: the scans are not kept."""
@@ -95,6 +97,7 @@ def run(args) -> int:
             picture = prediction_picture(scans.images[j], cls, labelled=bool(labelled[j]))
             write_bytes(stem.with_name(f"{stem.name}.png"), encode_png(picture))
         written[k] += len(scans)
+        counter(len(scans))
 
     remove_predictions(out, targets)   # a stop while writing leaves none of the last run's
     try:
@@ -105,6 +108,8 @@ def run(args) -> int:
             with contextlib.suppress(OSError):
                 d.rmdir()
         raise
+    finally:
+        counter.close()
     for s in result.sets:   # once every scan is read: a bad one is the only line it prints
         for source in s.unlabelled:
             print(f"falsify: warning: no labels for {source} (looked for {Path(source).stem}"

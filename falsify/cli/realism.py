@@ -8,6 +8,7 @@ from pathlib import Path
 
 from falsify.checks import check_out_dir
 from falsify.cli.common import UsageError, emit, predict_sequences
+from falsify.cli.progress import ScanCounter
 
 OUTPUTS = ("realism.json", "realism.html")   # what a run writes into --out
 
@@ -77,9 +78,14 @@ def run(args) -> int:
     reported = (plan_sets(args.evaluation,
                           predict_sequences(args.evaluation_sequences, args.evaluation))
                 if args.evaluation else [])
-    result = compare(synthetic, real, EncoderFeatures(args.model),
-                     bootstrap_draws=args.bootstrap, labels=labels, reported=reported,
-                     sensor=sensor)
+    counter = ScanCounter("realism", sum(map(len, synthetic.values()))
+                          + sum(len(p.files) for p in (*real, *reported)))
+    try:
+        result = compare(synthetic, real, EncoderFeatures(args.model),
+                         bootstrap_draws=args.bootstrap, labels=labels, reported=reported,
+                         sensor=sensor, on_scans=counter)
+    finally:
+        counter.close()
     doc = result.to_json()
     page = render_realism(doc)
     out = Path(args.out)

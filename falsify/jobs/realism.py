@@ -33,6 +33,7 @@ same scan counts.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -230,14 +231,16 @@ class Realism:
 
 def set_stats(name: str, source: ScanSet | SetPlan | list[Path], features: EncoderFeatures,
               labels: str = "kitti4", sensor: Sensor | None = None,
-              scan_moments: bool = True) -> SetStats:
+              scan_moments: bool = True,
+              on_scans: Callable[[int], None] | None = None) -> SetStats:
     """Statistics of a ScanSet, a planned set (read CHUNK scans at a time with `sensor`, so a
     sequence of thousands fits in memory) or a list of .npy paths (also CHUNK at a time). A real
     set with SemanticKITTI ids, or .npy scans whose label channel holds train ids (`labels`
     "semantickitti", as `falsify dataset --labels semantickitti` writes), also gets the
     per-class table; such .npy labels are turned into our four classes for everything else. A
     real scan without labels counts no class (`SetStats.unlabelled`). Without `scan_moments`
-    the feature moments are folded as they come (a set compared whole, never resampled)."""
+    the feature moments are folded as they come (a set compared whole, never resampled).
+    `on_scans` hears how many more scans are done after each part."""
     stats = SetStats(name, scan_moments=scan_moments)
     if isinstance(source, ScanSet):
         parts = (source_part(source, i, i + CHUNK) for i in range(0, len(source), CHUNK))
@@ -260,6 +263,8 @@ def set_stats(name: str, source: ScanSet | SetPlan | list[Path], features: Encod
                                f"network's grid is {want[0]} x {want[1]} (real scans: the "
                                "--sensor that projects them; .npy: the KITTI front preset's)")
         stats.add(images, features(images), sources, semantic, labelled)
+        if on_scans is not None:
+            on_scans(len(images))
     return stats
 
 
@@ -298,7 +303,8 @@ def _split_labels(images: np.ndarray, labels: str) -> tuple[np.ndarray, np.ndarr
 def compare(synthetic: dict[str, list[Path]], real: list[ScanSet | SetPlan],
             features: EncoderFeatures, pooled_name: str = "pooled",
             bootstrap_draws: int = 0, labels: dict[str, str] | None = None,
-            reported: list[ScanSet | SetPlan] = (), sensor: Sensor | None = None) -> Realism:
+            reported: list[ScanSet | SetPlan] = (), sensor: Sensor | None = None,
+            on_scans: Callable[[int], None] | None = None) -> Realism:
     """Statistics of each synthetic set (name -> .npy paths; `labels`: name -> what their
     label channel holds, "kitti4" when not named) and real set (read or planned: then read
     CHUNK scans at a time with `sensor`), and the distance of each synthetic set to each real
@@ -306,11 +312,12 @@ def compare(synthetic: dict[str, list[Path]], real: list[ScanSet | SetPlan],
     sampling alone could move (`bootstrap`). Pairs that both carry SemanticKITTI labels also
     get the DIAGNOSTIC distance. `reported` real sets (evaluation data) get their distances
     too, but are neither pooled nor compared with. Real scans without labels are named and
-    counted in every statistic but the classes'."""
+    counted in every statistic but the classes'. `on_scans` hears each part read, of every
+    set."""
     if not real:
         raise FalsifyError("realism needs at least one real set")
     resampled_real = bootstrap_draws > 0   # else each real scan's 1 MB of moments is folded
-    real_stats = [_real_stats(s, features, sensor, resampled_real) for s in real]
+    real_stats = [_real_stats(s, features, sensor, resampled_real, on_scans) for s in real]
     all_real = tuple(real_stats)
     if len(real_stats) > 1:
         pooled = real_stats[0]
@@ -318,9 +325,9 @@ def compare(synthetic: dict[str, list[Path]], real: list[ScanSet | SetPlan],
             pooled = pooled.merged(s, pooled_name)
         all_real = (*real_stats, pooled)
     labels = labels or {}
-    syn_stats = tuple(set_stats(name, paths, features, labels.get(name, "kitti4"))
-                      for name, paths in synthetic.items())
-    shown = tuple(_real_stats(s, features, sensor, False) for s in reported)
+    syn_stats = tuple(set_stats(name, paths, features, labels.get(name, "kitti4"),
+                                on_scans=on_scans) for name, paths in synthetic.items())
+    shown = tuple(_real_stats(s, features, sensor, False, on_scans) for s in reported)
     for s in (*real_stats, *syn_stats, *shown):
         check_comparable(s)
     for s in syn_stats:
@@ -338,9 +345,10 @@ def compare(synthetic: dict[str, list[Path]], real: list[ScanSet | SetPlan],
 
 
 def _real_stats(source: ScanSet | SetPlan, features: EncoderFeatures, sensor: Sensor | None,
-                scan_moments: bool) -> SetStats:
+                scan_moments: bool, on_scans: Callable[[int], None] | None) -> SetStats:
     name = source.name if isinstance(source, ScanSet) else plan_name(source)
-    return set_stats(name, source, features, sensor=sensor, scan_moments=scan_moments)
+    return set_stats(name, source, features, sensor=sensor, scan_moments=scan_moments,
+                     on_scans=on_scans)
 
 
 def check_comparable(stats: SetStats) -> None:
