@@ -243,7 +243,7 @@ def set_stats(name: str, source: ScanSet | SetPlan | list[Path], features: Encod
     `on_scans` hears how many more scans are done after each part."""
     stats = SetStats(name, scan_moments=scan_moments)
     if isinstance(source, ScanSet):
-        parts = (source_part(source, i, i + CHUNK) for i in range(0, len(source), CHUNK))
+        parts = (_source_part(source, i, i + CHUNK) for i in range(0, len(source), CHUNK))
     elif isinstance(source, SetPlan):
         if sensor is None:
             raise ValueError("a planned set is read with a sensor")
@@ -268,7 +268,7 @@ def set_stats(name: str, source: ScanSet | SetPlan | list[Path], features: Encod
     return stats
 
 
-def source_part(scans: ScanSet, start: int, stop: int
+def _source_part(scans: ScanSet, start: int, stop: int
                 ) -> tuple[np.ndarray, np.ndarray | None, list[str], np.ndarray]:
     """Scans `start:stop` of a real set as `SetStats.add` takes them: images, SemanticKITTI
     train ids (None without them), file names, and which were labelled."""
@@ -286,7 +286,7 @@ def _real_part(scans: ScanSet, semantic: bool
         scans = replace(scans, semantic=None)
     elif scans.semantic is None:   # a part of unlabelled scans only
         scans = replace(scans, semantic=np.zeros(scans.images.shape[:3], np.uint16))
-    return source_part(scans, 0, len(scans))
+    return _source_part(scans, 0, len(scans))
 
 
 def _split_labels(images: np.ndarray, labels: str) -> tuple[np.ndarray, np.ndarray | None]:

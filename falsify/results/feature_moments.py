@@ -39,14 +39,8 @@ def folded(parts: list[ScanFeatures]) -> ScanFeatures:
     on them) with every tile kept: a set only pooled whole holds one C x C covariance, not one
     a scan (1 MB at C = 512)."""
     feats = ScanFeatures.concat(parts)
-    n = feats.counts.astype(np.float64)
-    total = n.sum()
-    c = feats.means.shape[1]
-    mu = (n[:, None] * feats.means).sum(axis=0) / total if total > 0 else np.zeros(c)
-    off = feats.means - mu
-    scatter = np.einsum("b,bij->ij", np.maximum(n - 1, 0), feats.covs.astype(np.float64))
-    scatter += (off * n[:, None]).T @ off
-    cov = scatter / (total - 1) if total > 1 else np.zeros((c, c))
+    mu, scatter, total = _scatter(feats, np.arange(len(feats)))
+    cov = scatter / (total - 1) if total > 1 else np.zeros_like(scatter)
     return ScanFeatures(feats.tiles, np.array([int(total)], np.int64), mu[None], cov[None])
 
 
@@ -68,15 +62,24 @@ def pooled_moments(feats: ScanFeatures, idx: np.ndarray | None = None
     """Mean, covariance (ddof 1) and count of all valid cells of the scans `idx` (all if None):
     the parallel-axis sum of each scan's own covariance and its mean's offset."""
     idx = np.arange(len(feats)) if idx is None else np.asarray(idx)
-    n = feats.counts[idx].astype(np.float64)
-    total = n.sum()
+    mu, scatter, total = _scatter(feats, idx)
     if total < 2:
         raise ValueError("the Fréchet distance needs at least 2 feature samples per set")
-    mu = (n[:, None] * feats.means[idx]).sum(axis=0) / total
+    return mu, scatter / (total - 1), total
+
+
+def _scatter(feats: ScanFeatures, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Mean, scatter (sum of squared deviations) and count of the cells of scans `idx`: each
+    scan's own scatter plus its mean's offset (the parallel-axis theorem); a zero mean for
+    none."""
+    n = feats.counts[idx].astype(np.float64)
+    total = n.sum()
+    mu = ((n[:, None] * feats.means[idx]).sum(axis=0) / total if total > 0
+          else np.zeros(feats.means.shape[1]))
     off = feats.means[idx] - mu
     scatter = _weighted_sum(np.maximum(n - 1, 0), feats.covs, idx)
     scatter += (off * n[:, None]).T @ off
-    return mu, scatter / (total - 1), int(total)
+    return mu, scatter, int(total)
 
 
 POOL_CHUNK = 64   # scans' covariances widened to float64 at a time (2 MB each at C = 512)
