@@ -9,7 +9,7 @@ SemanticKITTI's 19 train ids (falsify.semantic; 0 unlabeled is ignored by the lo
 by ``falsify dataset --labels semantickitti``. bf16 autocast on a CUDA device where it has it.
 
 Writes into --out: ``checkpoint.pt`` (every epoch and at the time limit: model, optimiser, epoch,
-step, torch RNG, precision, the log so far, the run's options), ``train_log.jsonl`` (one line per
+step, torch RNG (a GPU run: its generator too), precision, the log so far, the run's options),
 epoch, rewritten from the checkpoint on --resume), and at the end ``squeezeseg.pt`` (weights
 only), ``squeezeseg.onnx`` + ``squeezeseg.json``; each file whole or not at all. Real KITTI scans
 must not be --data. An --out holding a run is continued only with --resume, and only with the
@@ -284,11 +284,13 @@ def train(cfg: TrainConfig) -> dict:
 
     def save(log: list[dict]) -> None:
         """Checkpoint the run as it stands, with its log records `log`, whole or not at all."""
-        _save_atomic({"model": model.state_dict(), "optim": opt.state_dict(),
-                      "epoch": run.epoch, "step": run.step, "torch_rng": torch.get_rng_state(),
-                      "config": json.dumps(asdict(cfg)), "precision": precision,
-                      "log": json.dumps(log), "data_path": str(Path(cfg.data).resolve())},
-                     ckpt_path)
+        state = {"model": model.state_dict(), "optim": opt.state_dict(),
+                 "epoch": run.epoch, "step": run.step, "torch_rng": torch.get_rng_state(),
+                 "config": json.dumps(asdict(cfg)), "precision": precision,
+                 "log": json.dumps(log), "data_path": str(Path(cfg.data).resolve())}
+        if cfg.device == "cuda":   # dropout on a GPU draws from the device's own generator
+            state["cuda_rng"] = torch.cuda.get_rng_state()
+        _save_atomic(state, ckpt_path)
 
     limit = cfg.time_limit_min * 60.0 if cfg.time_limit_min else None
     while run.epoch < cfg.epochs and run.stopped == "done":
@@ -511,6 +513,8 @@ def _restore(cfg: TrainConfig, model, opt, ckpt_path: Path, precision: str,
             opt.load_state_dict(ck["optim"])
             epoch, step = int(ck["epoch"]), int(ck["step"])
             torch.set_rng_state(ck["torch_rng"])
+            if cfg.device == "cuda" and "cuda_rng" in ck:
+                torch.cuda.set_rng_state(ck["cuda_rng"])
             log = json.loads(ck["log"]) if "log" in ck else _read_log(Path(cfg.out))
         except (KeyError, RuntimeError, TypeError, ValueError) as exc:
             what = f"no {exc}" if isinstance(exc, KeyError) else str(exc).splitlines()[0]

@@ -61,6 +61,24 @@ def test_train_writes_outputs_and_resume_is_exact(data, val, tmp_path):
         assert torch.equal(a[k], b[k]), k
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (torch.cuda."
+                    "is_available() is False here)")
+def test_resume_on_the_gpu_is_exact(data, tmp_path):
+    """Dropout on a GPU draws from the device's generator: the checkpoint carries it, or the
+    resumed epochs drop other units than the uninterrupted run."""
+    gpu = [*ARGS, "--device", "cuda", "--no-export"]
+    assert main(["--data", str(data), "--out", str(tmp_path / "full"), "--epochs", "2",
+                 *gpu]) == 0
+    part = tmp_path / "part"
+    assert main(["--data", str(data), "--out", str(part), "--epochs", "2", "--max-steps", "3",
+                 *gpu]) == 0
+    assert main(["--data", str(data), "--out", str(part), "--epochs", "2", "--resume",
+                 *gpu]) == 0
+    a, b = _weights(tmp_path / "full"), _weights(part)
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
 def test_flip_negates_y_and_reverses_columns():
     s = plausible_scans(1, 8, 16, seed=0)[0]
     f = flip(s)
