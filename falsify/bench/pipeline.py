@@ -58,6 +58,7 @@ class PipelineBench:
     streets: int = 0              # backgrounds among the samples: built by each worker first
     t_streets: float = 0.0        # s to build them all once (cold, in one process)
     ray: dict | None = None   # with executor "ray": actors against the processes above
+    backend: str = "onnx"     # what ran the network: onnx, torch, or python (a plug-in)
 
     @property
     def samples_per_s(self) -> float:
@@ -108,7 +109,8 @@ class PipelineBench:
         inf = self.inference
         return {
             "benchmark": "pipeline", "config": self.config, "samples": n,
-            "model": self.model, "model_hash": self.model_hash, "machine": self.machine,
+            "model": self.model, "model_hash": self.model_hash, "backend": self.backend,
+            "machine": self.machine,
             "samples_per_task": self.batch, "network_batch": BATCH,
             "one_process": {
                 "samples_per_s": round(n / self.t_pipeline, 2),
@@ -156,7 +158,7 @@ class PipelineBench:
 
 def bench_pipeline(config: str | Path, samples: int = 80, workers: int = 2,
                    model: str | None = None, batch: int = 8,
-                   executor: str = "process") -> PipelineBench:
+                   executor: str = "process", backend: str = "onnx") -> PipelineBench:
     """End-to-end samples/s through the real driver and store on `workers` processes (its
     memory sampled) and on one, the pipeline's overhead over the network's own inference time on
     the same scans in the same process, the network alone in 1 and `workers` processes, its
@@ -171,7 +173,7 @@ def bench_pipeline(config: str | Path, samples: int = 80, workers: int = 2,
 
     space = load_space(config)
     picked = _pick(space, config, samples, workers, batch)
-    backend = backend_for(model, "onnx")   # a plug-in runs as "python"
+    backend = backend_for(model, backend)   # a plug-in runs as "python"
 
     with tempfile.TemporaryDirectory() as tmp:
         # 1. Through the driver, the store and `workers` processes, as `falsify grid` runs;
@@ -222,7 +224,8 @@ def bench_pipeline(config: str | Path, samples: int = 80, workers: int = 2,
         store_rows_per_s=rows_per_s, driver_1_samples=len(picked[batch:]),
         t_driver_1=t_driver_1, inference=inference, matmul=matmul,
         flops=count_flops(resolve_model(model)) if backend == "onnx" else None, memory=memory,
-        driver_threads=settings.threads, ray=ray, streets=len(streets), t_streets=t_streets)
+        driver_threads=settings.threads, ray=ray, streets=len(streets), t_streets=t_streets,
+        backend=backend)
 
 
 def _pick(space: Space, config: str | Path, samples: int, workers: int, batch: int

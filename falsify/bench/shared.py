@@ -25,7 +25,8 @@ GOAL = 0.8
 
 
 def bench_shared(config: str | Path, samples: int = 80, workers: int = 2,
-                 model: str | None = None, device: str = "cpu", batch: int = 8) -> dict:
+                 model: str | None = None, device: str = "cpu", batch: int = 8,
+                 backend: str = "onnx") -> dict:
     """The three rates and their ratio; each timed after a warm-up chunk per worker."""
     from falsify.executors.driver import Driver, Progress
     from falsify.executors.evaluator import EvalSettings
@@ -41,7 +42,7 @@ def bench_shared(config: str | Path, samples: int = 80, workers: int = 2,
                            f"warm-up chunks) and at most the config's {len(grid)} samples")
     picked = grid[:samples]
     streets = tuple(sorted({s.background for s in picked}))
-    backend = backend_for(model, "onnx")
+    backend = backend_for(model, backend)
     settings = EvalSettings(space=space, model=model, backend=backend, threads=1,
                             device=device, warm_backgrounds=streets)
     with tempfile.TemporaryDirectory() as tmp:
@@ -72,7 +73,7 @@ def bench_shared(config: str | Path, samples: int = 80, workers: int = 2,
     network = len(images) / (time.perf_counter() - t0)
     ceiling = min(network, scan_rate)
     return {"benchmark": "pipeline-shared", "config": str(config), "samples": samples,
-            "workers": workers, "device": device, "model": seg.spec.name,
+            "workers": workers, "device": device, "model": seg.spec.name, "backend": backend,
             "e2e_samples_per_s": round(e2e, 2),
             "network_alone_frames_per_s": round(network, 2),
             "scan_only_samples_per_s": round(scan_rate, 2),

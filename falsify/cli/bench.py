@@ -7,7 +7,14 @@ import sys
 from pathlib import Path
 
 from falsify.checks import MAX_SAMPLES, check_out_dir, check_range
-from falsify.cli.common import DEFAULT_CONFIG, UsageError, emit, given_options, int_in
+from falsify.cli.common import (
+    DEFAULT_CONFIG,
+    UsageError,
+    check_backend,
+    emit,
+    given_options,
+    int_in,
+)
 from falsify.paths import CONFIGS
 
 # Held-out frames `bench model` compares the variants on unless --samples says otherwise (each
@@ -30,7 +37,7 @@ BENCH_OPTIONS = {
     "model": ("--samples", "--model", "--scans", "--repeats", "--calibration-scans",
               "--threads"),
     "pipeline": ("--config", "--samples", "--workers", "--executor", "--device", "--inference",
-                 "--model"),
+                 "--model", "--backend"),
     "memory": ("--config", "--workers", "--model"),
     "nodes": ("--config", "--samples", "--nodes", "--model"),
     "search": ("--config", "--out", "--workers", "--model", "--fraction", "--seeds"),
@@ -78,6 +85,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--inference", choices=["auto", "shared"], default="auto",
                    help="bench pipeline: shared measures one inference process fed by the "
                    "workers (the default on cuda)")
+    p.add_argument("--backend", choices=["onnx", "torch", "python"], default=None,
+                   help="bench pipeline: onnx or torch for a model file (torch on cuda needs no "
+                   "onnxruntime-gpu); python (set by itself) for a plug-in (default: onnx)")
     p.add_argument("--model", default=None,
                    help="bench model: an ONNX model; pipeline, memory, nodes, search, map: any "
                    "model a run takes (default bundled)")
@@ -238,7 +248,8 @@ def _bench_shared(args) -> tuple[dict, str]:
     if args.executor == "ray":
         raise UsageError("--inference shared runs beside local workers, not on Ray")
     result = bench_shared(args.config, workers=args.workers, model=args.model,
-                          device=args.device, **given_options(args, "samples"))
+                          backend=check_backend(args.backend, args.model), device=args.device,
+                          **given_options(args, "samples"))
     text = (f"shared inference on {args.device}: {result['e2e_samples_per_s']} samples/s "
             f"end to end on {args.workers} workers; the network alone "
             f"{result['network_alone_frames_per_s']} frames/s, the workers' scans alone "
@@ -254,6 +265,7 @@ def _bench_pipeline(args) -> tuple[dict, str]:
         from falsify.executors.ray import import_ray
         import_ray()
     pipe = bench_pipeline(args.config, workers=args.workers, model=args.model,
+                          backend=check_backend(args.backend, args.model),
                           executor=args.executor, **given_options(args, "samples"))
     result = pipe.to_json()
     one = result["one_process"]

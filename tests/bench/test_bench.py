@@ -123,11 +123,14 @@ def test_int8_matrix_rate_multiplies_integers_exactly():
     """The int8 product timed is a real u8 x s8 -> s32 product (checked against numpy), so its
     rate is of the integer path, not of a graph ONNX Runtime folded away."""
     import numpy as np
+    import onnx
 
     from falsify.bench.machine import matmul_graph
     from falsify.models.runners import cpu_session
 
     model, a, b = matmul_graph(16, 32, 8, kind="int8")
+    # the IR of opset 17, not onnx's newest: onnxruntime 1.19 (the oldest we take) reads <= 10
+    assert onnx.load_from_string(model).ir_version == 8
     y = cpu_session(model, threads=1).run(None, {"A": a})[0]
     assert y.dtype == np.int32 and y.shape == (16, 8)
     assert (y == (a.astype(np.int32) - 128) @ b.astype(np.int32)).all()
@@ -142,6 +145,8 @@ def test_int8_matrix_rate_multiplies_integers_exactly():
     (["bench", "memory", "--workers", "0"], "--workers"),
     (["bench", "memory", "--config", "no-such-config.toml"], "no-such-config.toml"),
     (["bench", "camera", "--camera-preset", "nope"], "--camera-preset: unknown camera 'nope'"),
+    (["bench", "pipeline", "--backend", "torch", "--model", "m.py:f", "--device", "cuda"],
+     "--backend torch: the plug-in model m.py:f runs on python"),
 ])
 def test_bad_bench_options_exit_2(capsys, args, message):
     with pytest.raises(SystemExit) as exc:
@@ -156,6 +161,7 @@ def test_bad_bench_options_exit_2(capsys, args, message):
     (["bench", "effects", "--config", "no-such.toml", "--workers", "1"], "--workers"),
     (["bench", "camera", "--config", "no-such.toml", "--thread=1"], "--threads"),
     (["bench", "memory", "--config", "no-such.toml", "--device", "cuda"], "--device"),
+    (["bench", "scan", "--config", "no-such.toml", "--backend", "torch"], "--backend"),
 ])
 def test_an_option_the_benchmark_does_not_read_exits_2(capsys, args, option):
     """An option a benchmark would ignore (bench scan --model, bench model --config) is refused
