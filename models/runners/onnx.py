@@ -58,6 +58,15 @@ def cpu_session(model: str | bytes, threads: int | None = None):
     return onnx_session(model, threads)
 
 
+def _torch_sees_cuda() -> bool:
+    """Whether torch is installed here and sees a CUDA GPU (False without torch)."""
+    import importlib.util
+    if importlib.util.find_spec("torch") is None:
+        return False
+    import torch
+    return bool(torch.cuda.is_available())
+
+
 def onnx_session(model: str | bytes, threads: int | None = None, device: str = "cpu"):
     """An ONNX Runtime session as `cpu_session` makes it, on the CUDA GPU for device "cuda"
     (CUDAExecutionProvider; FalsifyError where this onnxruntime has none)."""
@@ -67,10 +76,13 @@ def onnx_session(model: str | bytes, threads: int | None = None, device: str = "
     if check_device(device) == "cuda":
         have = ort.get_available_providers()
         if "CUDAExecutionProvider" not in have:
+            torch_too = (", or --backend torch for a model with its .pt beside it (torch here "
+                         "sees a CUDA GPU)" if _torch_sees_cuda() else "")
             raise FalsifyError(
                 f"--device cuda: onnxruntime {ort.__version__} has no CUDAExecutionProvider "
                 f"(it has {', '.join(have)}); pip install onnxruntime-gpu in place of "
-                "onnxruntime on a machine with an NVIDIA GPU, or run with --device cpu")
+                f"onnxruntime on a machine with an NVIDIA GPU, or run with --device cpu"
+                f"{torch_too}")
         providers = ["CUDAExecutionProvider", *providers]
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = int(threads) if threads else default_threads()

@@ -487,6 +487,23 @@ def test_the_torch_backend_on_cuda_equals_the_cpu():
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason=NO_CUDA)
+def test_onnx_without_its_gpu_provider_points_to_the_torch_backend(tmp_path, capsys,
+                                                                  monkeypatch):
+    """A PyTorch GPU machine often has the CPU build of onnxruntime: the error says that torch
+    runs the bundled network there, and `--backend torch` does."""
+    if _has_cuda_provider():
+        pytest.skip("onnxruntime here has the CUDAExecutionProvider: no error to see")
+    monkeypatch.chdir(ROOT)
+    out = tmp_path / "run"
+    assert main(["grid", "configs/smoke.toml", "--out", str(out), "--device", "cuda",
+                 "--quiet"]) == 2
+    assert "--backend torch for a model with its .pt" in capsys.readouterr().err
+    assert not out.exists()
+    assert main(["grid", "configs/smoke.toml", "--out", str(out), "--device", "cuda",
+                 "--backend", "torch", "--quiet", "--no-report"]) == 0
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason=NO_CUDA)
 def test_onnx_on_cuda_equals_the_cpu(tmp_path):
     if not _has_cuda_provider():
         pytest.skip("onnxruntime here has no CUDAExecutionProvider (pip install "
