@@ -122,7 +122,9 @@ def matmul_graph(m: int, k: int, n: int, kind: str = "fp32"
     graph = helper.make_graph(
         [node], "matmul", [helper.make_tensor_value_info("A", types[0], [m, k])],
         [helper.make_tensor_value_info("Y", types[1], [m, n])], [b, *zero])
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    # IR 8 is opset 17's own: onnx writes its newest IR by default, which an older
+    # onnxruntime beside it refuses (onnx 1.23 writes 14; onnxruntime 1.30 reads up to 13).
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
     return model.SerializeToString(), a, bb
 
 
