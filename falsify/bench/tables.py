@@ -77,6 +77,18 @@ def _pipeline(doc: dict) -> Row:
                "--json")
 
 
+def _pipeline_shared(doc: dict) -> Row:
+    where = doc["device"] + (f", {doc['gpu']}" if doc.get("gpu") else "")
+    return Row("pipeline, one inference process",
+               f"{doc['e2e_samples_per_s']} samples/s end to end on {doc['workers']} workers; "
+               f"the network alone {doc['network_alone_frames_per_s']} frames/s, the scans "
+               f"alone {doc['scan_only_samples_per_s']} samples/s",
+               f"end to end / the lower {doc['e2e_over_lower_ceiling']} (goal {doc['goal']})",
+               f"{doc['model']} ({doc.get('backend', 'onnx')} on {where})",
+               f"falsify bench pipeline --inference shared --config {doc['config']} --samples "
+               f"{doc['samples']} --workers {doc['workers']} --device {doc['device']} --json")
+
+
 def _memory(doc: dict) -> Row:
     m = doc["memory"] or {}
     return Row("memory", f"peak {_num(m.get('peak_rss_mb', float('nan')), ',.0f')} MB RSS "
@@ -137,7 +149,8 @@ def _cells(doc: dict) -> Row:
 
 
 ROWS: dict[str, Callable[[dict], Row]] = {
-    "scan": _scan, "scan effects": _effects, "pipeline": _pipeline, "memory": _memory,
+    "scan": _scan, "scan effects": _effects, "pipeline": _pipeline,
+    "pipeline-shared": _pipeline_shared, "memory": _memory,
     "nodes": _nodes, "model": _model, "camera": _camera, "cells": _cells}
 
 

@@ -119,6 +119,20 @@ def test_the_benchmarks_page_holds_the_tables_of_the_committed_results():
         "--write docs/benchmarks.md")
 
 
+def test_a_gpu_pipeline_row_names_its_backend_device_and_ceilings():
+    doc = {"benchmark": "pipeline-shared", "config": "configs/bench.toml", "samples": 450,
+           "workers": 14, "device": "cuda", "gpu": "NVIDIA H200", "model": "squeezeseg",
+           "backend": "torch", "e2e_samples_per_s": 164.97, "network_alone_frames_per_s": 214.64,
+           "scan_only_samples_per_s": 1126.59, "e2e_over_lower_ceiling": 0.769, "goal": 0.8,
+           "machine": XEON}
+    row = render([doc]).splitlines()[-2]
+    assert row == ("| pipeline, one inference process | 164.97 samples/s end to end on 14 "
+                   "workers; the network alone 214.64 frames/s, the scans alone 1126.59 "
+                   "samples/s | end to end / the lower 0.769 (goal 0.8) | squeezeseg (torch on "
+                   "cuda, NVIDIA H200) | `falsify bench pipeline --inference shared --config "
+                   "configs/bench.toml --samples 450 --workers 14 --device cuda --json` |")
+
+
 def test_process_counts_read_as_english():
     assert (processes(1), processes(2)) == ("1 process", "2 processes")
 
