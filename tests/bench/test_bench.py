@@ -6,6 +6,7 @@ README with the commands that measured them.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 
@@ -28,9 +29,19 @@ def _json(capsys, argv: list[str]) -> dict:
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("ray") is not None,
+                    reason="ray is installed: tests/executors/test_ray.py runs this benchmark "
+                    "beside Ray actors and checks the same figures (one run of ~40 s, not two)")
 def test_bench_pipeline_reports_both_paths(capsys):
-    r = _json(capsys, ["bench", "pipeline", "--config", str(CONFIGS / "ci.toml"),
-                       "--samples", "24", "--workers", "2", "--json"])
+    config = CONFIGS / "ci.toml"
+    check_pipeline_figures(_json(capsys, ["bench", "pipeline", "--config", str(config),
+                                          "--samples", "24", "--workers", "2", "--json"]),
+                           config)
+
+
+def check_pipeline_figures(r: dict, config) -> None:
+    """The figures of `bench pipeline --samples 24 --workers 2 --json` on `config`: each there,
+    and related to the others as they are defined, all from the one run."""
     one = r["one_process"]
     assert r["network_batch"] == 1 and r["samples_per_task"] == 8
     assert one["samples_per_s"] > 0 and one["inference_only_samples_per_s"] > 0
@@ -59,7 +70,7 @@ def test_bench_pipeline_reports_both_paths(capsys):
     assert q["achieved_over_matmul_1_core"] == pytest.approx(
         net["achieved_gflops_1_thread"] / mm["gflops_1_core"], rel=2e-3)
     streets = r["streets"]   # built before the clock in every worker; their cost given apart
-    assert streets["count"] == len({s.background for s in load_space(CONFIGS / "ci.toml").grid()})
+    assert streets["count"] == len({s.background for s in load_space(config).grid()})
     assert streets["build_ms_each"] > 0
     assert r["machine"]["cpus"] >= 1 and "cpu" in r["machine"]
     mem = r["memory"]
