@@ -379,15 +379,23 @@ def model_hash(path: str | Path, spec_path: str | Path | None = None) -> str:
 
 def normalise(scans: np.ndarray, channels: Sequence[str], mean: Sequence[float],
               std: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Scans (B,H,W,>=5) -> input (B,C,H,W), raw xyz (B,3,H,W), mask (B,1,H,W), all float32."""
-    mask = (scans[..., 4] > 0).astype(np.float32)  # (B,H,W)
-    planes = []
-    for c, m, s in zip(channels, mean, std, strict=True):
+    """Scans (B,H,W,>=5), cast to float32 -> input (B,C,H,W), raw xyz (B,3,H,W), mask
+    (B,1,H,W), all float32. Each plane is (v - mean) / std * mask computed in place in its
+    output: one shared inference process does this for every worker's frames."""
+    scans = np.asarray(scans, np.float32)
+    b, h, w = scans.shape[:3]
+    mask = np.empty((b, 1, h, w), np.float32)
+    np.greater(scans[..., 4], 0, out=mask[:, 0], casting="unsafe")
+    x = np.empty((b, len(channels), h, w), np.float32)
+    for i, (c, m, s) in enumerate(zip(channels, mean, std, strict=True)):
+        plane = x[:, i]
         if c == "mask":
-            planes.append(mask)
-        else:
-            planes.append((scans[..., SCAN_INDEX[c]] - np.float32(m)) / np.float32(s) * mask)
-    x = np.stack(planes, axis=1).astype(np.float32, copy=False)
-    xyz = np.ascontiguousarray(np.moveaxis(scans[..., :3], -1, 1) * mask[:, None],
-                               dtype=np.float32)
-    return np.ascontiguousarray(x), xyz, np.ascontiguousarray(mask[:, None])
+            plane[...] = mask[:, 0]
+            continue
+        np.subtract(scans[..., SCAN_INDEX[c]], np.float32(m), out=plane)
+        np.divide(plane, np.float32(s), out=plane)
+        np.multiply(plane, mask[:, 0], out=plane)
+    xyz = np.empty((b, 3, h, w), np.float32)
+    for j in range(3):
+        np.multiply(scans[..., j], mask[:, 0], out=xyz[:, j])
+    return x, xyz, mask

@@ -151,8 +151,10 @@ def to_prediction(out: np.ndarray, spec: ModelSpec, valid: np.ndarray) -> Predic
     into ours, as its labels are folded, so `classes` agrees with `train_ids`. Otherwise the
     argmax of the summed probabilities."""
     order = _one_to_one(spec)
-    if order is not None:
-        classes = np.asarray(out)[:, order].argmax(axis=1).astype(np.uint8)
+    if order is not None:   # in our order already (the bundled networks): no copy to reorder
+        out = np.asarray(out)
+        ours = out if order == list(range(len(order))) else out[:, order]
+        classes = ours.argmax(axis=1).astype(np.uint8)
     elif spec.semantic:
         classes = spec.four_class_table()[np.asarray(out).argmax(axis=1)]
     else:
