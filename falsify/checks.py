@@ -64,12 +64,16 @@ def check_out_dir(path: str | Path, option: str = "--out") -> Path:
     return path
 
 
-def check_out_file(path: str | Path, option: str = "--out") -> Path:
+def check_out_file(path: str | Path, option: str = "--out",
+                   suffixes: tuple[str, ...] = ()) -> Path:
     """An output file: not a directory (nor a name ending in /, which means one), in a
-    directory that exists or can be made."""
+    directory that exists or can be made, and ending in one of `suffixes` where given, so that
+    a slip of the name (`report --out RUN/results.sqlite`) cannot overwrite a store or a scan."""
     if str(path).endswith(("/", os.sep)):
         raise FalsifyError(f"{option} {path}: names a folder; give a file name")
     path = Path(path)
+    if suffixes and path.suffix.lower() not in suffixes:
+        raise FalsifyError(f"{option} {path}: must end in {' or '.join(suffixes)}")
     check_path_length(path, option)
     if path.is_dir():
         raise FalsifyError(f"{option} {path}: is a directory")

@@ -142,9 +142,7 @@ def adjust_weights(weights: str | Path, val: str | Path, out: str | Path,
     from falsify.fileio import atomic_path
     from falsify.models.squeezeseg import load_state
 
-    out = check_out_file(out)
-    if out.suffix != ".pt":
-        raise FalsifyError(f"--out {out}: must end in .pt")
+    out = check_out_file(out, suffixes=(".pt",))
     state = load_state(weights)
     result = choose_alpha(state, val, alphas, weights=weights)
     adjusted = adjust_state(state, result.chosen)

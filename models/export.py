@@ -318,15 +318,11 @@ def export_weights(weights: str | Path, out: str | Path, crf_iterations: int = 3
     first. Returns the files written; FalsifyError before writing anything on bad input. The
     spec records the .onnx and .pt's sha256 (see `_export`): a stop between files leaves a
     set that runners refuse, never a new file run beside an old one."""
-    out = check_out_file(out)
-    if out.suffix != ".onnx":   # the spec and weights go beside it as .json and .pt
-        raise FalsifyError(f"--out {out}: must end in .onnx")
+    out = check_out_file(out, suffixes=(".onnx",))   # the spec and weights go beside it
     check_range(height, "--height", 1)
     check_range(width, "--width", 1)
     if int8:
-        int8 = check_out_file(int8, "--int8")
-        if int8.suffix != ".onnx":   # its spec goes beside it as .json
-            raise FalsifyError(f"--int8 {int8}: must end in .onnx")
+        int8 = check_out_file(int8, "--int8", suffixes=(".onnx",))   # its spec beside it
         if int8.resolve() == out.resolve():   # it would overwrite the fp32 model
             raise FalsifyError(f"--int8 {int8}: is --out; give the int8 copy another name")
     if int8 and (height, width) != (64, 512):

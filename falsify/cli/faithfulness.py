@@ -37,7 +37,7 @@ def run(args) -> int:
     from falsify.sensor.lidar import load_sensor
 
     if args.out:
-        check_out_file(args.out)
+        check_out_file(args.out, suffixes=(".json",))
     if args.instances is not None:
         return _instance_faithfulness(args)
     if args.sequences or args.min_points is not None:

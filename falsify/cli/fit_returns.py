@@ -34,7 +34,7 @@ def run(args) -> int:
     from falsify.cli.common import UsageError
     from falsify.fileio import write_text
 
-    out = check_out_file(args.out)
+    out = check_out_file(args.out, suffixes=(".json",))
     name = args.name or out.stem
     if args.labelled:
         from falsify.jobs.fit_returns import fit_labelled, labelled_frames

@@ -40,7 +40,7 @@ def run(args) -> int:
     from falsify.sensor.lidar import load_sensor
     from falsify.world.space import load_space
 
-    out = check_out_file(args.out)
+    out = check_out_file(args.out, suffixes=(".json",))
     sequences = predict_sequences(args.sequences, args.scans)
     compare = {}
     for path in args.compare or []:

@@ -22,7 +22,7 @@ def run(args) -> int:
     from falsify.data.holdout import load_manifest, manifest_text, scans_under
     from falsify.fileio import write_text
 
-    out = check_out_file(args.out)
+    out = check_out_file(args.out, suffixes=(".toml",))
     sequences = predict_sequences(args.sequences, args.scans)
     scans = scans_under(args.scans, sequences)
     write_text(out, manifest_text(scans, args.note or ""))

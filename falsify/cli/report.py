@@ -33,7 +33,7 @@ def run(args) -> int:
             raise UsageError("--retrain needs --compare RUN_BEFORE (the run before retraining)")
         retrain = read_summary(Path(args.retrain), "--retrain")
     if args.out:
-        check_out_file(args.out)
+        check_out_file(args.out, suffixes=(".html", ".htm"))
     written = write_report_of(Path(args.run), Path(args.out) if args.out else None,
                               Path(args.compare) if args.compare else None,
                               predict=not args.no_predict, retrain=retrain, device=args.device)
