@@ -430,8 +430,9 @@ def check_outputs(run: str | Path, baseline: str | Path | None, junit: str | Pat
                   streams: tuple[tuple[str, int], ...] = ()) -> None:
     """FalsifyError before anything is read or written when an output would replace an input:
     `--junit` onto the run's store, the baseline, a folder or this command's redirected output
-    (`streams`: name and descriptor), or a `--baseline` file that is that output, emptied by the
-    shell's `> FILE` before the gate could read it."""
+    (`streams`: name and descriptor), or a name not ending in .xml (a run's summary.json); or a
+    `--baseline` file that is that output, emptied by the shell's `> FILE` before the gate
+    could read it."""
     if baseline is not None and not Path(baseline).is_dir():
         for name, fd in streams:
             if _is_stream(Path(baseline), fd):
@@ -458,6 +459,8 @@ def check_outputs(run: str | Path, baseline: str | Path | None, junit: str | Pat
             raise FalsifyError(f"--junit {path}: is also where this command's {name} goes; "
                                "the JUnit XML would replace what it prints: write them to "
                                "different files")
+    if path.suffix.lower() != ".xml":   # RUN/summary.json or a map's .csv would be replaced
+        raise FalsifyError(f"--junit {path}: must end in .xml")
 
 
 def write_junit(result: GateResult, path: str | Path) -> None:

@@ -30,6 +30,14 @@ def test_a_report_onto_the_runs_store_is_refused_and_the_store_kept(run, capsys)
     assert main(["report", str(run), "--out", str(run / "page.htm"), "--json"]) == 0
 
 
+def test_junit_onto_a_runs_summary_is_refused_and_the_summary_kept(run, capsys):
+    summary = run / "summary.json"
+    before = summary.read_bytes()
+    assert main(["gate", str(run), "--junit", str(summary)]) == 2
+    assert f"--junit {summary}: must end in .xml" in capsys.readouterr().err
+    assert summary.read_bytes() == before
+
+
 @pytest.mark.parametrize("argv, endings", [
     (["holdout", "SCANS", "--out", "SCANS/000000.bin"], ".toml"),
     (["fit-returns", "SCANS", "--out", "SCANS/000000.label"], ".json"),
