@@ -319,6 +319,11 @@ def export_weights(weights: str | Path, out: str | Path, crf_iterations: int = 3
     spec records the .onnx and .pt's sha256 (see `_export`): a stop between files leaves a
     set that runners refuse, never a new file run beside an old one."""
     out = check_out_file(out, suffixes=(".onnx",))   # the spec and weights go beside it
+    beside = out.with_suffix(".pt")
+    if beside.exists() and Path(weights).exists() and beside.samefile(weights):
+        raise FalsifyError(f"--out {out}: its weights go beside it as {beside}, which is the "
+                           f"input {weights} (a training checkpoint would lose its optimiser "
+                           "and resume state); give --out another name")
     check_range(height, "--height", 1)
     check_range(width, "--width", 1)
     if int8:

@@ -65,6 +65,16 @@ def test_export_int8_onto_the_fp32_files_is_refused(weights, tmp_path, capsys, i
     assert not (tmp_path / "d").exists()
 
 
+def test_export_beside_its_own_input_is_refused(weights, tmp_path, capsys):
+    """`export RUN/checkpoint.pt --out RUN/checkpoint.onnx` wrote the weights-only .pt over the
+    training checkpoint it read: the run could no longer resume."""
+    before = weights.read_bytes()
+    out = weights.with_suffix(".onnx")
+    assert falsify_main(["export", str(weights), "--out", str(out)]) == 2
+    assert f"which is the input {weights}" in capsys.readouterr().err
+    assert weights.read_bytes() == before and not out.exists()
+
+
 @pytest.mark.parametrize("command", ["export", "adjust"])
 def test_weights_of_another_class_set_are_named_as_such(tmp_path, capsys, data, command):
     path = tmp_path / "sk.pt"
