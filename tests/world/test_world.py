@@ -203,12 +203,12 @@ def test_fit_refuses_evaluation_scans(tmp_path):
     assert subprocess.run([sys.executable, "-m", "falsify", "holdout", str(scan), "--out",
                            str(manifest)], capture_output=True, cwd=ROOT).returncode == 0
     r = subprocess.run([sys.executable, "-m", "falsify", "fit-returns", str(scan), "--out",
-                        str(tmp_path / "o")], capture_output=True, text=True, cwd=ROOT,
+                        str(tmp_path / "o.json")], capture_output=True, text=True, cwd=ROOT,
                        env={**os.environ, "FALSIFY_HOLDOUT": str(manifest)})
     assert r.returncode == 2 and "x.bin: a held-out scan" in r.stderr, r.stderr
-    assert not (tmp_path / "o").exists()
+    assert not (tmp_path / "o.json").exists()
     r = subprocess.run([sys.executable, "-m", "falsify", "fit-returns", "nosuch.bin", "--out",
-                        str(tmp_path / "o")], capture_output=True, text=True, cwd=tmp_path)
+                        str(tmp_path / "o.json")], capture_output=True, text=True, cwd=tmp_path)
     assert r.returncode == 2 and "nosuch.bin: no such file" in r.stderr
 
 
