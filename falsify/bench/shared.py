@@ -29,6 +29,7 @@ def bench_shared(config: str | Path, samples: int = 80, workers: int = 2,
                  backend: str = "onnx") -> dict:
     """The three rates and their ratio; each timed after a warm-up chunk per worker."""
     from falsify.executors.driver import Driver, Progress
+    from falsify.executors.environment import gpu_name
     from falsify.executors.evaluator import EvalSettings
     from falsify.executors.inference import MAX_BATCH
     from falsify.models.runners import backend_for, load_segmenter
@@ -80,16 +81,7 @@ def bench_shared(config: str | Path, samples: int = 80, workers: int = 2,
             "e2e_over_lower_ceiling": round(e2e / ceiling, 3), "goal": GOAL,
             "within_goal": e2e / ceiling >= GOAL, "server_batch": MAX_BATCH,
             "network_threads": "2 on the CPU (the server's own), the device's on cuda",
-            **({"gpu": _gpu_name()} if device == "cuda" else {}), "machine": machine()}
-
-
-def _gpu_name() -> str | None:
-    """The CUDA device's name where torch is here to ask (None without torch)."""
-    try:
-        import torch
-    except ImportError:
-        return None
-    return torch.cuda.get_device_name(torch.cuda.current_device())
+            **({"gpu": gpu_name()} if device == "cuda" else {}), "machine": machine()}
 
 
 def _scan(sim, space: Space, sample: Sample):

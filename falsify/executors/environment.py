@@ -76,9 +76,18 @@ def environment(backend: str, device: str, threads: int | None, *, ray: bool = F
     env.update(backend=backend, device=device, inference_threads=threads)
     if torch is not None:
         env["torch_threads"] = int(torch.get_num_threads())
-        if device == "cuda" and torch.cuda.is_available():
-            env["gpu"] = torch.cuda.get_device_name(torch.cuda.current_device())
+        gpu = gpu_name() if device == "cuda" else None
+        if gpu:
+            env["gpu"] = gpu
     return env
+
+
+def gpu_name() -> str | None:
+    """The CUDA device torch runs on, by name; None where torch is not loaded or sees none."""
+    torch = sys.modules.get("torch")
+    if torch is None or not torch.cuda.is_available():
+        return None
+    return torch.cuda.get_device_name(torch.cuda.current_device())
 
 
 def same_bytes_threads(env: dict) -> object:
